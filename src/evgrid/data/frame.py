@@ -1,0 +1,150 @@
+"""The frame contract: what every data source (simulator, nuScenes) yields, one frame a lidar sweep.
+
+A scene is an iterable of :class:`Frame` in time order. One frame per ``LIDAR_TOP`` sweep
+(20 Hz); ``is_keyframe`` marks the 2 Hz nuScenes samples, where maps are updated and
+evaluated. Each frame carries the radar sweeps of the five radars whose timestamps fall in
+``(previous frame's timestamp, this frame's timestamp]``, oldest first, so that a consumer
+that keeps the last N sweeps of each radar sees every sweep exactly once.
+
+All points are in their *sensor* frame, with the sensor's extrinsics (``sensor_to_ego``) and
+the ego pose at the sweep's own timestamp (``ego_pose``, ego -> global), exactly as nuScenes
+stores them. Units: metres, seconds as integer microseconds, m/s, dBsm.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Iterable, Iterator, Mapping, Protocol
+
+import numpy as np
+
+from evgrid.geometry import SE3
+
+__all__ = [
+    "RADAR_CHANNELS",
+    "LIDAR_CHANNEL",
+    "LIDAR_COLUMNS",
+    "RADAR_COLUMNS",
+    "LidarSweep",
+    "RadarSweep",
+    "Frame",
+    "Scene",
+    "radar_column",
+    "keyframes",
+]
+
+LIDAR_CHANNEL = "LIDAR_TOP"
+RADAR_CHANNELS: tuple[str, ...] = (
+    "RADAR_FRONT",
+    "RADAR_FRONT_LEFT",
+    "RADAR_FRONT_RIGHT",
+    "RADAR_BACK_LEFT",
+    "RADAR_BACK_RIGHT",
+)
+
+#: Columns of ``LidarSweep.points`` (float32): metres, metres, metres, intensity 0-255, ring 0-31.
+LIDAR_COLUMNS: tuple[str, ...] = ("x", "y", "z", "intensity", "ring")
+
+#: Columns of ``RadarSweep.points`` (float32), named as in the nuScenes radar ``.pcd`` files:
+#: position (m, sensor frame), radar cross-section (dBsm), raw and ego-motion compensated
+#: Doppler velocity (m/s, sensor frame), and the validity fields of the Continental ARS 408
+#: (``dyn_prop`` 0-7, ``ambig_state`` 0-4, 3 = unambiguous; ``invalid_state`` 0-17, 0 = valid;
+#: ``pdh0`` 0-7, false-alarm probability class, 1 = < 25 %).
+RADAR_COLUMNS: tuple[str, ...] = (
+    "x",
+    "y",
+    "z",
+    "rcs",
+    "vx",
+    "vy",
+    "vx_comp",
+    "vy_comp",
+    "dyn_prop",
+    "ambig_state",
+    "invalid_state",
+    "pdh0",
+)
+
+
+def radar_column(name: str) -> int:
+    """Index of a named column in ``RadarSweep.points``."""
+    try:
+        return RADAR_COLUMNS.index(name)
+    except ValueError:
+        raise KeyError(f"unknown radar column {name!r}; columns are {RADAR_COLUMNS}") from None
+
+
+def _check_points(points: np.ndarray, n_cols: int, what: str) -> np.ndarray:
+    p = np.asarray(points)
+    if p.ndim != 2 or p.shape[1] != n_cols:
+        raise ValueError(f"{what}.points must have shape (n, {n_cols}), got {p.shape}")
+    return np.ascontiguousarray(p, dtype=np.float32)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class LidarSweep:
+    """One lidar sweep: ``points`` (n, 5) float32 in the sensor frame, see ``LIDAR_COLUMNS``."""
+
+    points: np.ndarray
+    sensor_to_ego: SE3
+    ego_pose: SE3
+    timestamp: int
+    channel: str = LIDAR_CHANNEL
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "points", _check_points(self.points, len(LIDAR_COLUMNS), "LidarSweep"))
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class RadarSweep:
+    """One radar sweep: ``points`` (n, 12) float32 in the sensor frame, see ``RADAR_COLUMNS``."""
+
+    points: np.ndarray
+    sensor_to_ego: SE3
+    ego_pose: SE3
+    timestamp: int
+    channel: str
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "points", _check_points(self.points, len(RADAR_COLUMNS), "RadarSweep"))
+        if self.channel not in RADAR_CHANNELS:
+            raise ValueError(f"RadarSweep.channel must be one of {RADAR_CHANNELS}, got {self.channel!r}")
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Frame:
+    """One time step: a lidar sweep, the radar sweeps since the previous frame, the ego pose.
+
+    ``occupancy`` is the true occupancy on the local grid of this frame's ego pose (``(n, n)``
+    uint8: 0 free, 1 occupied static, 2 occupied dynamic), given by the simulator on
+    keyframes and ``None`` elsewhere (nuScenes has no such raster).
+    """
+
+    scene: str
+    index: int
+    timestamp: int
+    ego_pose: SE3
+    is_keyframe: bool
+    lidar: LidarSweep
+    radar: Mapping[str, tuple[RadarSweep, ...]] = field(default_factory=dict)
+    occupancy: np.ndarray | None = None
+
+    def radar_sweeps(self) -> Iterator[RadarSweep]:
+        """All radar sweeps of this frame, channel by channel, oldest first."""
+        for ch in RADAR_CHANNELS:
+            yield from self.radar.get(ch, ())
+
+
+class Scene(Protocol):
+    """A named, finite sequence of frames (what loaders and the simulator return)."""
+
+    name: str
+
+    def __iter__(self) -> Iterator[Frame]: ...
+
+    def __len__(self) -> int: ...
+
+
+def keyframes(frames: Iterable[Frame]) -> Iterator[Frame]:
+    """Only the keyframes of a frame stream."""
+    return (f for f in frames if f.is_keyframe)

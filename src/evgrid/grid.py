@@ -1,0 +1,352 @@
+"""Mass grids in the map frame: the SE(2) warp of a local grid, a tiled map that grows, persistence.
+
+Indexing and frames are those of :mod:`evgrid.geometry`. A local ISM grid (``(n, n, 3)``,
+ego-centred) taken at ego pose ``pose`` (an :class:`~evgrid.geometry.SE2` of the ego in the
+first pose's frame) is resampled onto the map cells its square covers, bilinearly (a convex
+mix of masses is a mass), cells beyond the local grid counting as vacuous [0, 0, 1]
+(DESIGN 3). Only that window of the map is read or written.
+
+The map stores square tiles of ``tile_cells`` cells, created the first time a local grid
+covers them, so memory grows with the area explored, not with the bounding box of the drive.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+import numba
+import numpy as np
+
+from evgrid.geometry import SE2, GridSpec
+from evgrid.mass import vacuous
+
+__all__ = ["MapWindow", "EvidentialMap", "Warper", "warp_to_map", "warp_window", "save_map", "load_map", "MapFileError"]
+
+# Continuous source indices closer than this to an integer (in cells) are snapped to it, so
+# that identity and 90-degree warps copy cells exactly despite cos(pi/2) != 0 in floating point.
+_SNAP = 1e-6
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class MapWindow:
+    """A local grid resampled into the map: masses ``(h, w, 3)`` whose cell [0, 0] is map cell ``(r0, c0)``.
+
+    ``covered[i, j]`` is True where the local grid contributes any mass to the cell.
+    """
+
+    r0: int
+    c0: int
+    masses: np.ndarray
+    covered: np.ndarray
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """``(h, w)`` in cells."""
+        return self.covered.shape  # type: ignore[return-value]
+
+
+@numba.njit(cache=True, fastmath=True)
+def _k_warp(local, u00, v00, du_di, du_dj, dv_di, dv_dj, out, covered):
+    n_r, n_c = local.shape[0], local.shape[1]
+    h, w = out.shape[0], out.shape[1]
+    for i in range(h):
+        for j in range(w):
+            u = u00 + i * du_di + j * du_dj
+            v = v00 + i * dv_di + j * dv_dj
+            if u <= -1.0 or v <= -1.0 or u >= n_r or v >= n_c:
+                out[i, j, 0] = 0.0
+                out[i, j, 1] = 0.0
+                out[i, j, 2] = 1.0
+                covered[i, j] = False
+                continue
+            covered[i, j] = True
+            iu = int(u + 1.0) - 1  # floor, as u > -1
+            iv = int(v + 1.0) - 1
+            fu = u - iu
+            fv = v - iv
+            if fu < _SNAP:
+                fu = 0.0
+            elif fu > 1.0 - _SNAP:
+                fu = 0.0
+                iu += 1
+            if fv < _SNAP:
+                fv = 0.0
+            elif fv > 1.0 - _SNAP:
+                fv = 0.0
+                iv += 1
+            w00 = (1.0 - fu) * (1.0 - fv)
+            w01 = (1.0 - fu) * fv
+            w10 = fu * (1.0 - fv)
+            w11 = fu * fv
+            if iu >= 0 and iv >= 0 and iu + 1 < n_r and iv + 1 < n_c:
+                for c in range(3):
+                    out[i, j, c] = (w00 * local[iu, iv, c] + w01 * local[iu, iv + 1, c]
+                                    + w10 * local[iu + 1, iv, c] + w11 * local[iu + 1, iv + 1, c])
+                continue
+            # Border: neighbours beyond the local grid count as vacuous [0, 0, 1].
+            f = 0.0
+            o = 0.0
+            un = 0.0
+            for di in range(2):
+                r = iu + di
+                for dj in range(2):
+                    cc = iv + dj
+                    wt = (w10 if dj == 0 else w11) if di else (w00 if dj == 0 else w01)
+                    if wt == 0.0:
+                        continue
+                    if r < 0 or r >= n_r or cc < 0 or cc >= n_c:
+                        un += wt
+                    else:
+                        f += wt * local[r, cc, 0]
+                        o += wt * local[r, cc, 1]
+                        un += wt * local[r, cc, 2]
+            out[i, j, 0] = f
+            out[i, j, 1] = o
+            out[i, j, 2] = un
+
+def _pose_affine(spec: GridSpec, pose: SE2) -> tuple[float, float, float, float]:
+    """Coefficients of map (R, C) -> local (u, v): u = cu + cos a + sin b, v = cu - sin a + cos b."""
+    res = spec.resolution
+    return math.cos(pose.yaw), math.sin(pose.yaw), pose.x / res, pose.y / res
+
+
+def warp_window(spec: GridSpec, pose: SE2) -> tuple[int, int, int, int]:
+    """Map cells ``(r0, c0, h, w)`` that a local grid at ``pose`` can contribute to."""
+    n = spec.n_cells
+    c0 = n / 2.0 - 0.5
+    cs, sn, tx, ty = _pose_affine(spec, pose)
+    rows, cols = [], []
+    for u in (-1.0, float(n)):
+        for v in (-1.0, float(n)):
+            a = cs * (u - c0) - sn * (v - c0)
+            b = sn * (u - c0) + cs * (v - c0)
+            rows.append(a - 0.5 - tx)
+            cols.append(b - 0.5 - ty)
+    r0 = math.floor(min(rows))
+    c0_ = math.floor(min(cols))
+    r1 = math.ceil(max(rows))
+    c1 = math.ceil(max(cols))
+    return r0, c0_, r1 - r0 + 1, c1 - c0_ + 1
+
+
+class Warper:
+    """Warps local grids into the map, reusing its output buffers between calls.
+
+    Fresh multi-megabyte arrays cost more in page faults than the warp itself; a pipeline
+    keeps one ``Warper`` per ISM. Each returned window is a view that the next call overwrites.
+    """
+
+    def __init__(self, spec: GridSpec):
+        self.spec = spec
+        side = int(math.ceil(spec.n_cells * math.sqrt(2.0))) + 4
+        self._masses = np.empty((side, side, 3), dtype=np.float32)
+        self._covered = np.empty((side, side), dtype=np.bool_)
+
+    def warp(self, local: np.ndarray, pose: SE2) -> MapWindow:
+        """Resample ``local`` ``(n, n, 3)`` taken at ego ``pose`` (first-pose frame, m/rad) into the map."""
+        spec = self.spec
+        local = np.asarray(local)
+        if local.shape != (spec.n_cells, spec.n_cells, 3):
+            raise ValueError(f"local grid must have shape {(spec.n_cells, spec.n_cells, 3)}, got {local.shape}")
+        local = np.ascontiguousarray(local, dtype=np.float32)
+        r0, c0, h, w = warp_window(spec, pose)
+        cs, sn, tx, ty = _pose_affine(spec, pose)
+        cc = spec.n_cells / 2.0 - 0.5
+        a0 = r0 + 0.5 + tx
+        b0 = c0 + 0.5 + ty
+        out = self._masses[:h, :w]
+        covered = self._covered[:h, :w]
+        _k_warp(local, cc + cs * a0 + sn * b0, cc - sn * a0 + cs * b0, cs, sn, -sn, cs, out, covered)
+        return MapWindow(r0, c0, out, covered)
+
+
+def warp_to_map(local: np.ndarray, pose: SE2, spec: GridSpec) -> MapWindow:
+    """Resample a local mass grid ``(n, n, 3)`` taken at ego ``pose`` (first-pose frame, m/rad) into the map."""
+    return Warper(spec).warp(local, pose)
+
+
+class EvidentialMap:
+    """A mass grid in the first pose's frame, stored as tiles created where local grids reach.
+
+    Cells never covered read as vacuous. ``metadata`` is free JSON-serialisable data that is
+    saved with the map.
+    """
+
+    def __init__(self, spec: GridSpec | None = None, tile_cells: int = 256, metadata: dict[str, Any] | None = None):
+        self.spec = spec or GridSpec()
+        if not isinstance(tile_cells, (int, np.integer)) or tile_cells < 8:
+            raise ValueError(f"tile_cells must be an integer >= 8, got {tile_cells!r}")
+        self.tile_cells = int(tile_cells)
+        self.tiles: dict[tuple[int, int], np.ndarray] = {}
+        self.covered_tiles: dict[tuple[int, int], np.ndarray] = {}
+        self.metadata: dict[str, Any] = dict(metadata or {})
+
+    def __repr__(self) -> str:
+        return f"EvidentialMap({len(self.tiles)} tiles of {self.tile_cells} cells, {self.nbytes / 2**20:.1f} MiB)"
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the tiles."""
+        return sum(t.nbytes for t in self.tiles.values()) + sum(c.nbytes for c in self.covered_tiles.values())
+
+    def _tile(self, key: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+        t = self.tiles.get(key)
+        if t is None:
+            t = vacuous((self.tile_cells, self.tile_cells))
+            self.tiles[key] = t
+            self.covered_tiles[key] = np.zeros((self.tile_cells, self.tile_cells), dtype=np.bool_)
+        return t, self.covered_tiles[key]
+
+    def _pieces(self, r0: int, c0: int, h: int, w: int) -> Iterator[tuple[tuple[int, int], slice, slice, slice, slice]]:
+        """(tile key, tile rows, tile cols, window rows, window cols) for each tile the window meets."""
+        ts = self.tile_cells
+        for ti in range(r0 // ts, (r0 + h - 1) // ts + 1):
+            ra, rb = max(r0, ti * ts), min(r0 + h, (ti + 1) * ts)
+            for tj in range(c0 // ts, (c0 + w - 1) // ts + 1):
+                ca, cb = max(c0, tj * ts), min(c0 + w, (tj + 1) * ts)
+                yield (
+                    (ti, tj),
+                    slice(ra - ti * ts, rb - ti * ts),
+                    slice(ca - tj * ts, cb - tj * ts),
+                    slice(ra - r0, rb - r0),
+                    slice(ca - c0, cb - c0),
+                )
+
+    def apply(self, window: MapWindow, fn: Callable[..., None], *masses: np.ndarray) -> None:
+        """Call ``fn(map_view, *window_views)`` on every covered piece; ``fn`` updates ``map_view`` in place.
+
+        ``masses`` are ``(h, w, 3)`` arrays aligned with ``window`` (default: ``window.masses``).
+        """
+        arrays = masses or (window.masses,)
+        h, w = window.shape
+        for a in arrays:
+            if a.shape != (h, w, 3):
+                raise ValueError(f"window arrays must have shape {(h, w, 3)}, got {a.shape}")
+        for key, tr, tc, wr, wc in self._pieces(window.r0, window.c0, h, w):
+            cov = window.covered[wr, wc]
+            if not cov.any():
+                continue
+            tile, tcov = self._tile(key)
+            fn(tile[tr, tc], *(a[wr, wc] for a in arrays))
+            tcov[tr, tc] |= cov
+
+    def read(self, r0: int, c0: int, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+        """Dense copy of map cells ``[r0:r0+h, c0:c0+w]``: masses ``(h, w, 3)`` and coverage ``(h, w)``."""
+        out = vacuous((h, w))
+        cov = np.zeros((h, w), dtype=np.bool_)
+        for key, tr, tc, wr, wc in self._pieces(r0, c0, h, w):
+            t = self.tiles.get(key)
+            if t is not None:
+                out[wr, wc] = t[tr, tc]
+                cov[wr, wc] = self.covered_tiles[key][tr, tc]
+        return out, cov
+
+    def bounds(self) -> tuple[int, int, int, int]:
+        """``(r0, c0, h, w)`` of the smallest tile-aligned box holding every tile; zeros when empty."""
+        if not self.tiles:
+            return (0, 0, 0, 0)
+        ts = self.tile_cells
+        ti = [k[0] for k in self.tiles]
+        tj = [k[1] for k in self.tiles]
+        return min(ti) * ts, min(tj) * ts, (max(ti) - min(ti) + 1) * ts, (max(tj) - min(tj) + 1) * ts
+
+    def to_dense(self) -> tuple[np.ndarray, np.ndarray, int, int]:
+        """The whole map as dense arrays: masses, coverage, and the map cell ``(r0, c0)`` of element [0, 0]."""
+        r0, c0, h, w = self.bounds()
+        m, cov = self.read(r0, c0, h, w)
+        return m, cov, r0, c0
+
+    def copy(self) -> "EvidentialMap":
+        """A deep copy."""
+        other = EvidentialMap(self.spec, self.tile_cells, json.loads(json.dumps(self.metadata)))
+        other.tiles = {k: v.copy() for k, v in self.tiles.items()}
+        other.covered_tiles = {k: v.copy() for k, v in self.covered_tiles.items()}
+        return other
+
+
+# --- persistence --------------------------------------------------------------------------------
+
+_FORMAT = "evgrid-map"
+_FORMAT_VERSION = 1
+
+
+class MapFileError(ValueError):
+    """A file that is not a complete evgrid map (truncated, foreign or of a newer format)."""
+
+
+def atomic_write(path: str | os.PathLike, write: Callable[[Any], None], mode: str = "wb") -> Path:
+    """Write a file through ``write(fileobj)`` to a temporary sibling, fsync it, then rename it into place."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, mode) as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+    return path
+
+
+def save_map(m: EvidentialMap, path: str | os.PathLike) -> Path:
+    """Save a map losslessly (compressed ``.npz`` with its grid spec and metadata), atomically."""
+    keys = sorted(m.tiles)
+    header = {
+        "format": _FORMAT,
+        "version": _FORMAT_VERSION,
+        "spec": m.spec.to_dict(),
+        "tile_cells": m.tile_cells,
+        "metadata": m.metadata,
+    }
+    ts = m.tile_cells
+    arrays = {
+        "header": np.frombuffer(json.dumps(header).encode(), dtype=np.uint8),
+        "keys": np.array(keys, dtype=np.int64).reshape(-1, 2),
+        "tiles": np.stack([m.tiles[k] for k in keys]) if keys else np.zeros((0, ts, ts, 3), np.float32),
+        "covered": np.stack([m.covered_tiles[k] for k in keys]) if keys else np.zeros((0, ts, ts), bool),
+    }
+    return atomic_write(path, lambda f: np.savez_compressed(f, **arrays))
+
+
+def load_map(path: str | os.PathLike) -> EvidentialMap:
+    """Load a map written by :func:`save_map`; raise :class:`MapFileError` for anything else."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no map file at {path}")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            names = set(z.files)
+            if not {"header", "keys", "tiles", "covered"} <= names:
+                raise MapFileError(f"{path} is not an evgrid map (arrays {sorted(names)})")
+            header = json.loads(z["header"].tobytes().decode())
+            keys, tiles, covered = z["keys"], z["tiles"], z["covered"]
+    except MapFileError:
+        raise
+    except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError, UnicodeDecodeError) as e:
+        raise MapFileError(f"{path} is truncated or not an evgrid map: {e}") from e
+    if header.get("format") != _FORMAT:
+        raise MapFileError(f"{path} is not an evgrid map (format {header.get('format')!r})")
+    if header.get("version") != _FORMAT_VERSION:
+        raise MapFileError(f"{path} has map format version {header.get('version')!r}; this evgrid reads {_FORMAT_VERSION}")
+    ts = int(header["tile_cells"])
+    if tiles.shape != (len(keys), ts, ts, 3) or covered.shape != (len(keys), ts, ts) or tiles.dtype != np.float32:
+        raise MapFileError(f"{path} is inconsistent: {len(keys)} keys, tiles {tiles.shape} {tiles.dtype}")
+    m = EvidentialMap(GridSpec.from_dict(header["spec"]), ts, header.get("metadata", {}))
+    for k, t, c in zip(keys, tiles, covered):
+        key = (int(k[0]), int(k[1]))
+        m.tiles[key] = np.ascontiguousarray(t)
+        m.covered_tiles[key] = np.ascontiguousarray(c)
+    return m

@@ -1,0 +1,303 @@
+"""The evidential algebra on the frame {free, occupied}: masses ``[m_f, m_o, m_u]`` (paper sec. III).
+
+Every public function takes arrays of shape ``(..., 3)`` (masses) or ``(..., 2)`` (evidence)
+and broadcasts over the leading axes; outputs are float32. Masses are dimensionless, each in
+[0, 1], summing to 1. The combination rules run as compiled numba kernels; the per-cell
+formulas below (``_*_cell``) are shared with the map update rules in :mod:`evgrid.fusion`.
+
+Numerics: every kernel works in float64 and renormalises its output by its own sum, which
+equals the paper's ``1 - K`` (Dempster) or ``1`` (Yager) in exact arithmetic. This keeps any
+chain of updates on the simplex in float32.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+__all__ = [
+    "VACUOUS",
+    "validate",
+    "conflict",
+    "dempster",
+    "yager",
+    "discount",
+    "limit_unknown",
+    "from_evidence",
+    "pignistic_occupied",
+    "deep_discount_factor",
+    "vacuous",
+]
+
+#: The vacuous mass [m_f, m_o, m_u] = [0, 0, 1]: no information.
+VACUOUS = np.array([0.0, 0.0, 1.0], dtype=np.float32)
+
+_SUM_ATOL = 1e-5
+
+
+def vacuous(shape: tuple[int, ...]) -> np.ndarray:
+    """A float32 mass grid of ``shape + (3,)`` holding the vacuous mass everywhere."""
+    m = np.zeros(tuple(shape) + (3,), dtype=np.float32)
+    m[..., 2] = 1.0
+    return m
+
+
+def validate(m: np.ndarray, name: str = "m", atol: float = _SUM_ATOL) -> np.ndarray:
+    """Check that ``m`` is a mass array ``(..., 3)``; raise ValueError naming the problem."""
+    a = np.asarray(m)
+    if a.ndim == 0 or a.shape[-1] != 3:
+        raise ValueError(f"{name}: the last axis must be [m_f, m_o, m_u] of length 3, got shape {a.shape}")
+    if not np.issubdtype(a.dtype, np.floating):
+        raise ValueError(f"{name}: masses must be floating point, got dtype {a.dtype}")
+    if not np.isfinite(a).all():
+        bad = int((~np.isfinite(a)).any(axis=-1).sum())
+        raise ValueError(f"{name}: {bad} cell(s) hold NaN or inf")
+    if (a < 0).any():
+        raise ValueError(f"{name}: negative mass (min {float(a.min()):.3g})")
+    if (a > 1).any():
+        raise ValueError(f"{name}: mass above 1 (max {float(a.max()):.6g})")
+    s = a.sum(axis=-1, dtype=np.float64)
+    off = np.abs(s - 1.0)
+    if (off > atol).any():
+        raise ValueError(f"{name}: masses must sum to 1 within {atol:g}, worst sum {float(s.flat[int(off.argmax())]):.6g}")
+    return a
+
+
+# --- per-cell formulas (float64 scalars in, normalised float64 triple out) ---------------------
+
+@numba.njit(inline="always", cache=True)
+def _dempster_cell(f1, o1, u1, f2, o2, u2):
+    # Paper eq. (dempsters_rule); the sum f + o + u equals 1 - K for normalised inputs.
+    f = f1 * f2 + f1 * u2 + u1 * f2
+    o = o1 * o2 + o1 * u2 + u1 * o2
+    u = u1 * u2
+    s = f + o + u
+    if s <= 1e-30:  # total conflict (1 - K = 0): undefined, return vacuous (DESIGN 1)
+        return 0.0, 0.0, 1.0
+    return f / s, o / s, u / s
+
+
+@numba.njit(inline="always", cache=True)
+def _yager_cell(f1, o1, u1, f2, o2, u2):
+    # Paper eq. (yagers_rule): the conflict K goes to the unknown mass.
+    k = f1 * o2 + o1 * f2
+    f = f1 * f2 + f1 * u2 + u1 * f2
+    o = o1 * o2 + o1 * u2 + u1 * o2
+    u = u1 * u2 + k
+    s = f + o + u
+    if s <= 1e-30:
+        return 0.0, 0.0, 1.0
+    return f / s, o / s, u / s
+
+
+@numba.njit(inline="always", cache=True)
+def _normalise_cell(f, o, u):
+    s = f + o + u
+    if s <= 1e-30:
+        return 0.0, 0.0, 1.0
+    return f / s, o / s, u / s
+
+
+@numba.njit(inline="always", cache=True)
+def _limit_unknown_cell(f, o, u, m_u_min):
+    # Paper eq. (lower_un_mass_limit): move Delta = max(0, m_u_min - m_u) into m_u, taking it
+    # from m_f and m_o in proportion (their ratio is kept).
+    d = m_u_min - u
+    if d <= 0.0:
+        return f, o, u
+    s = f + o
+    if s <= 0.0:
+        return f, o, u
+    a = d / s
+    return f * (1.0 - a), o * (1.0 - a), u + d
+
+
+@numba.njit(inline="always", cache=True)
+def _gamma_cell(f1, o1, u1, f2, o2, u2, m_u_min, alpha):
+    # DESIGN 2: gamma = min(tanh(alpha * max(0, m_u_map - m_u_pred)), exact bound), in [0, 1].
+    # The paper's bound (eq. gamma) holds K fixed; K scales with gamma, so the exact bound is
+    # (m_u_map - m_u_min) / (m_u_map * (1 - m_u_pred) - K0) where that denominator is > 0.
+    gain = math.tanh(alpha * max(0.0, u1 - u2))
+    if gain <= 0.0:
+        return 0.0
+    den = u1 * (1.0 - u2) - (f1 * o2 + o1 * f2)
+    g = gain
+    if den > 0.0:
+        b = (u1 - m_u_min) / den
+        if b < g:
+            g = b
+    if g < 0.0:
+        return 0.0
+    if g > 1.0:
+        return 1.0
+    return g
+
+
+@numba.njit(inline="always", cache=True)
+def _deep_disc_cell(f1, o1, u1, f2, o2, u2, m_u_min, alpha):
+    # DESIGN 5, deep_disc: m = limit_unknown(pred); map <- map (+)_Y (gamma (x) m).
+    f1, o1, u1 = _normalise_cell(f1, o1, u1)
+    f2, o2, u2 = _normalise_cell(f2, o2, u2)
+    f2, o2, u2 = _limit_unknown_cell(f2, o2, u2, m_u_min)
+    g = _gamma_cell(f1, o1, u1, f2, o2, u2, m_u_min, alpha)
+    if g <= 0.0:
+        return f1, o1, u1
+    # Paper eq. (discount_eq).
+    return _yager_cell(f1, o1, u1, g * f2, g * o2, 1.0 - g + g * u2)
+
+
+# --- kernels over (H, W, 3) arrays -------------------------------------------------------------
+
+@numba.njit(cache=True)
+def _k_dempster(a, b, out):
+    h, w = a.shape[0], a.shape[1]
+    for i in range(h):
+        for j in range(w):
+            f, o, u = _dempster_cell(
+                np.float64(a[i, j, 0]), np.float64(a[i, j, 1]), np.float64(a[i, j, 2]),
+                np.float64(b[i, j, 0]), np.float64(b[i, j, 1]), np.float64(b[i, j, 2]),
+            )
+            out[i, j, 0] = f
+            out[i, j, 1] = o
+            out[i, j, 2] = u
+
+
+@numba.njit(cache=True)
+def _k_yager(a, b, out):
+    h, w = a.shape[0], a.shape[1]
+    for i in range(h):
+        for j in range(w):
+            f, o, u = _yager_cell(
+                np.float64(a[i, j, 0]), np.float64(a[i, j, 1]), np.float64(a[i, j, 2]),
+                np.float64(b[i, j, 0]), np.float64(b[i, j, 1]), np.float64(b[i, j, 2]),
+            )
+            out[i, j, 0] = f
+            out[i, j, 1] = o
+            out[i, j, 2] = u
+
+
+@numba.njit(cache=True)
+def _k_gamma(a, b, m_u_min, alpha, out):
+    h, w = a.shape[0], a.shape[1]
+    for i in range(h):
+        for j in range(w):
+            f1, o1, u1 = _normalise_cell(np.float64(a[i, j, 0]), np.float64(a[i, j, 1]), np.float64(a[i, j, 2]))
+            f2, o2, u2 = _normalise_cell(np.float64(b[i, j, 0]), np.float64(b[i, j, 1]), np.float64(b[i, j, 2]))
+            out[i, j] = _gamma_cell(f1, o1, u1, f2, o2, u2, m_u_min, alpha)
+
+
+def _pair3d(m1: np.ndarray, m2: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[int, ...]]:
+    a = np.asarray(m1)
+    b = np.asarray(m2)
+    for name, x in (("m1", a), ("m2", b)):
+        if x.ndim == 0 or x.shape[-1] != 3:
+            raise ValueError(f"{name}: the last axis must be [m_f, m_o, m_u] of length 3, got shape {x.shape}")
+    a, b = np.broadcast_arrays(a, b)
+    shape = a.shape
+    a3 = np.ascontiguousarray(a, dtype=np.float32).reshape(1, -1, 3)
+    b3 = np.ascontiguousarray(b, dtype=np.float32).reshape(1, -1, 3)
+    return a3, b3, shape
+
+
+def _combine(kernel, m1: np.ndarray, m2: np.ndarray, out: np.ndarray | None) -> np.ndarray:
+    a, b, shape = _pair3d(m1, m2)
+    if out is None:
+        res = np.empty(shape, dtype=np.float32)
+    else:
+        if out.shape != shape or out.dtype != np.float32 or not out.flags.c_contiguous:
+            raise ValueError(f"out must be a C-contiguous float32 array of shape {shape}, got {out.shape} {out.dtype}")
+        res = out
+    kernel(a, b, res.reshape(1, -1, 3))
+    return res
+
+
+def conflict(m1: np.ndarray, m2: np.ndarray) -> np.ndarray:
+    """Conflict ``K = m_f1 m_o2 + m_o1 m_f2`` (paper eq. conflict), shape ``(...)``."""
+    a = np.asarray(m1, dtype=np.float32)
+    b = np.asarray(m2, dtype=np.float32)
+    return (a[..., 0] * b[..., 1] + a[..., 1] * b[..., 0]).astype(np.float32)
+
+
+def dempster(m1: np.ndarray, m2: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """Dempster's rule ``m1 (+)_D m2`` (paper eq. dempsters_rule); total conflict gives [0, 0, 1]."""
+    return _combine(_k_dempster, m1, m2, out)
+
+
+def yager(m1: np.ndarray, m2: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """Yager's rule ``m1 (+)_Y m2`` (paper eq. yagers_rule): the conflict K goes to m_u."""
+    return _combine(_k_yager, m1, m2, out)
+
+
+def _check_unit(name: str, v: np.ndarray | float) -> np.ndarray:
+    a = np.asarray(v, dtype=np.float64)
+    if not np.isfinite(a).all() or (a < 0).any() or (a > 1).any():
+        raise ValueError(f"{name} must lie in [0, 1], got {v!r}")
+    return a
+
+
+def discount(m: np.ndarray, gamma: np.ndarray | float) -> np.ndarray:
+    """Discounting ``gamma (x) m = [g m_f, g m_o, 1 - g + g m_u]`` (paper eq. discount_eq), gamma in [0, 1]."""
+    a = np.asarray(m, dtype=np.float64)
+    if a.ndim == 0 or a.shape[-1] != 3:
+        raise ValueError(f"m: the last axis must be of length 3, got shape {a.shape}")
+    g = _check_unit("gamma", gamma)
+    out = np.stack([g * a[..., 0], g * a[..., 1], 1.0 - g + g * a[..., 2]], axis=-1)
+    return out.astype(np.float32)
+
+
+def limit_unknown(m: np.ndarray, m_u_min: float) -> np.ndarray:
+    """Lower limit on unknown mass ``m (box+) m_u_min`` (paper eq. lower_un_mass_limit).
+
+    Raises m_u to at least ``m_u_min``, taking the difference from m_f and m_o in proportion,
+    so their ratio is kept. A cell with ``m_f + m_o = 0`` is returned unchanged.
+    """
+    _check_unit("m_u_min", m_u_min)
+    a = np.asarray(m, dtype=np.float64)
+    if a.ndim == 0 or a.shape[-1] != 3:
+        raise ValueError(f"m: the last axis must be of length 3, got shape {a.shape}")
+    d = np.maximum(0.0, float(m_u_min) - a[..., 2])
+    s = a[..., 0] + a[..., 1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        alpha = np.where(s > 0, d / np.where(s > 0, s, 1.0), 0.0)
+    d = np.where(s > 0, d, 0.0)
+    out = np.stack([(1 - alpha) * a[..., 0], (1 - alpha) * a[..., 1], a[..., 2] + d], axis=-1)
+    return out.astype(np.float32)
+
+
+def from_evidence(e: np.ndarray) -> np.ndarray:
+    """Subjective-logic masses from evidence ``[e_f, e_o] >= 0``: ``[e_f/S, e_o/S, 2/S]``, ``S = 2 + e_f + e_o``."""
+    a = np.asarray(e, dtype=np.float64)
+    if a.ndim == 0 or a.shape[-1] != 2:
+        raise ValueError(f"e: the last axis must be [e_f, e_o] of length 2, got shape {a.shape}")
+    if not np.isfinite(a).all() or (a < 0).any():
+        raise ValueError("e: evidence must be finite and non-negative")
+    s = 2.0 + a[..., 0] + a[..., 1]
+    return np.stack([a[..., 0] / s, a[..., 1] / s, 2.0 / s], axis=-1).astype(np.float32)
+
+
+def pignistic_occupied(m: np.ndarray) -> np.ndarray:
+    """Occupancy probability ``p_o = m_o + m_u / 2`` (paper eq. pignistic_prob), shape ``(...)``."""
+    a = np.asarray(m, dtype=np.float32)
+    if a.ndim == 0 or a.shape[-1] != 3:
+        raise ValueError(f"m: the last axis must be of length 3, got shape {a.shape}")
+    return (a[..., 1] + 0.5 * a[..., 2]).astype(np.float32)
+
+
+def deep_discount_factor(
+    m_map: np.ndarray, m_pred: np.ndarray, m_u_min: float, alpha: float = 10.0
+) -> np.ndarray:
+    """Discount factor gamma in [0, 1] for a deep-ISM prediction (paper eq. gamma, DESIGN 2), shape ``(...)``.
+
+    ``gamma = min(tanh(alpha * max(0, m_u_map - m_u_pred)), (m_u_map - m_u_min) / (m_u_map
+    (1 - m_u_pred) - K0))``, the bound applying where its denominator is positive; ``m_pred``
+    is expected to be limited to ``m_u_min`` already.
+    """
+    _check_unit("m_u_min", m_u_min)
+    if not (math.isfinite(alpha) and alpha >= 0):
+        raise ValueError(f"alpha must be finite and >= 0, got {alpha!r}")
+    a, b, shape = _pair3d(m_map, m_pred)
+    out = np.empty(shape[:-1], dtype=np.float32)
+    _k_gamma(a, b, float(m_u_min), float(alpha), out.reshape(1, -1))
+    return out
