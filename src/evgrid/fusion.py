@@ -1,0 +1,271 @@
+"""The six map update rules of the paper's Table I (DESIGN 5), and a set of maps updated in one pass.
+
+Each rule updates map cells in place from ISM masses on the same cells (both ``(h, w, 3)``
+views, see :meth:`evgrid.grid.EvidentialMap.apply`):
+
+==============  ==========================================================================
+``ray_ilm``     map = map (+)_D ray ILM (the reference)
+``deep_acc``    map = map (+)_D deep IRM
+``deep_replace`` m = limit_unknown(deep IRM, m_u_min); cell := m where m_u(m) < m_u(map)
+``deep_disc``   m = limit_unknown(deep IRM, m_u_min); map = map (+)_Y (gamma (x) m)
+``ray_irm``     map = map (+)_D ray IRM
+``fused``       the deep_disc step, then map = map (+)_D ray IRM
+==============  ==========================================================================
+
+ISM cells that are vacuous leave a map cell unchanged under every rule, so kernels skip them.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable, Mapping
+
+import numba
+import numpy as np
+
+from evgrid.geometry import SE2, GridSpec
+from evgrid.grid import EvidentialMap, MapWindow, Warper
+from evgrid.mass import _JIT, _deep_disc_cell, _dempster_cell, _limit_unknown_cell, _normalise_cell, rows
+
+__all__ = [
+    "MAP_NAMES",
+    "ISM_NAMES",
+    "FusionParams",
+    "UpdateRule",
+    "RULES",
+    "update_ray_ilm",
+    "update_deep_acc",
+    "update_deep_replace",
+    "update_deep_disc",
+    "update_ray_irm",
+    "update_fused",
+    "MapSet",
+]
+
+#: The six maps of the paper's Table I, in its order.
+MAP_NAMES: tuple[str, ...] = ("ray_ilm", "deep_acc", "deep_replace", "deep_disc", "ray_irm", "fused")
+#: The three inverse sensor models that feed them.
+ISM_NAMES: tuple[str, ...] = ("ray_ilm", "ray_irm", "deep_irm")
+
+# Default lower limit on the deep ISM's unknown mass. The paper gives no value (DESIGN 2).
+# Cells allocated by the deep IRM alone keep m_u >= M_U_MIN_DEFAULT; below 0.5 such a cell can
+# be classified free or occupied (its largest mass can beat m_u), above it never. The default is
+# to be settled by the m_u_min sweep on simulated validation scenes (evgrid.evaluate).
+M_U_MIN_DEFAULT = 0.3
+ALPHA_DEFAULT = 10.0  # paper, section IV-C
+
+
+@dataclass(frozen=True, slots=True)
+class FusionParams:
+    """Parameters of the deep-ISM rules: ``m_u_min`` (unitless, [0, 1)) and ``alpha`` (gain of tanh, >= 0)."""
+
+    m_u_min: float = M_U_MIN_DEFAULT
+    alpha: float = ALPHA_DEFAULT
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.m_u_min) and 0.0 <= self.m_u_min < 1.0):
+            raise ValueError(f"m_u_min must lie in [0, 1), got {self.m_u_min!r}")
+        if not (math.isfinite(self.alpha) and self.alpha >= 0.0):
+            raise ValueError(f"alpha must be finite and >= 0, got {self.alpha!r}")
+
+
+# --- in-place kernels over rows (see evgrid.mass.rows) -----------------------------------------
+# Cells where the ISM is vacuous keep their old value exactly (a select, not a branch, so the
+# loops vectorise).
+
+@numba.njit(**_JIT)
+def _k_dempster_into(mp, mrs, ism, irs, h, w):
+    for i in range(h):
+        mp_, ism_ = mp[i * mrs:i * mrs + 3 * w], ism[i * irs:i * irs + 3 * w]
+        for j in range(w):
+            p = 3 * j
+            f1, o1, u1 = np.float64(mp_[p]), np.float64(mp_[p + 1]), np.float64(mp_[p + 2])
+            u2 = np.float64(ism_[p + 2])
+            f, o, u = _dempster_cell(f1, o1, u1, np.float64(ism_[p]), np.float64(ism_[p + 1]), u2)
+            keep = u2 >= 1.0
+            mp_[p] = f1 if keep else f
+            mp_[p + 1] = o1 if keep else o
+            mp_[p + 2] = u1 if keep else u
+
+
+@numba.njit(**_JIT)
+def _k_deep_replace_into(mp, mrs, ism, irs, h, w, m_u_min):
+    for i in range(h):
+        mp_, ism_ = mp[i * mrs:i * mrs + 3 * w], ism[i * irs:i * irs + 3 * w]
+        for j in range(w):
+            p = 3 * j
+            f, o, u = _normalise_cell(np.float64(ism_[p]), np.float64(ism_[p + 1]), np.float64(ism_[p + 2]))
+            f, o, u = _limit_unknown_cell(f, o, u, m_u_min)
+            f1, o1, u1 = np.float64(mp_[p]), np.float64(mp_[p + 1]), np.float64(mp_[p + 2])
+            take = (u < u1) and (ism_[p + 2] < 1.0)
+            mp_[p] = f if take else f1
+            mp_[p + 1] = o if take else o1
+            mp_[p + 2] = u if take else u1
+
+
+@numba.njit(**_JIT)
+def _k_deep_disc_into(mp, mrs, ism, irs, h, w, m_u_min, alpha):
+    for i in range(h):
+        mp_, ism_ = mp[i * mrs:i * mrs + 3 * w], ism[i * irs:i * irs + 3 * w]
+        for j in range(w):
+            p = 3 * j
+            f1, o1, u1 = np.float64(mp_[p]), np.float64(mp_[p + 1]), np.float64(mp_[p + 2])
+            u2 = np.float64(ism_[p + 2])
+            f, o, u = _deep_disc_cell(f1, o1, u1, np.float64(ism_[p]), np.float64(ism_[p + 1]), u2, m_u_min, alpha)
+            keep = u2 >= 1.0
+            mp_[p] = f1 if keep else f
+            mp_[p + 1] = o1 if keep else o
+            mp_[p + 2] = u1 if keep else u
+
+
+@numba.njit(**_JIT)
+def _k_fused_into(mp, mrs, deep, drs, irm, irs, h, w, m_u_min, alpha):
+    for i in range(h):
+        mp_, deep_, irm_ = mp[i * mrs:i * mrs + 3 * w], deep[i * drs:i * drs + 3 * w], irm[i * irs:i * irs + 3 * w]
+        for j in range(w):
+            p = 3 * j
+            f1, o1, u1 = np.float64(mp_[p]), np.float64(mp_[p + 1]), np.float64(mp_[p + 2])
+            ud = np.float64(deep_[p + 2])
+            f, o, u = _deep_disc_cell(f1, o1, u1, np.float64(deep_[p]), np.float64(deep_[p + 1]), ud, m_u_min, alpha)
+            keep = ud >= 1.0
+            f = f1 if keep else f
+            o = o1 if keep else o
+            u = u1 if keep else u
+            ur = np.float64(irm_[p + 2])
+            f2, o2, u2 = _dempster_cell(f, o, u, np.float64(irm_[p]), np.float64(irm_[p + 1]), ur)
+            keep = ur >= 1.0
+            mp_[p] = f if keep else f2
+            mp_[p + 1] = o if keep else o2
+            mp_[p + 2] = u if keep else u2
+
+
+# --- public rules ----------------------------------------------------------------------------
+
+def _check_views(cell: np.ndarray, *isms: np.ndarray) -> None:
+    for a in (cell, *isms):
+        if a.ndim != 3 or a.shape[2] != 3 or a.dtype != np.float32:
+            raise ValueError(f"map and ISM views must be float32 (h, w, 3), got {a.dtype} {a.shape}")
+        if a.shape != cell.shape:
+            raise ValueError(f"ISM view shape {a.shape} differs from the map view's {cell.shape}")
+    if not cell.flags.writeable:
+        raise ValueError("the map view must be writeable (updates are in place)")
+
+
+def _pair(cell: np.ndarray, ism: np.ndarray) -> tuple:
+    fm, mrs, h, w = rows(cell)
+    fi, irs, _, _ = rows(ism)
+    return fm, mrs, fi, irs, h, w
+
+
+def update_ray_ilm(cell: np.ndarray, ilm: np.ndarray, params: FusionParams = FusionParams()) -> None:
+    """``map = map (+)_D ray ILM``, in place on ``(h, w, 3)`` float32 views."""
+    _check_views(cell, ilm)
+    _k_dempster_into(*_pair(cell, ilm))
+
+
+def update_deep_acc(cell: np.ndarray, deep: np.ndarray, params: FusionParams = FusionParams()) -> None:
+    """``map = map (+)_D deep IRM`` (paper: deep IRM (acc.)), in place."""
+    _check_views(cell, deep)
+    _k_dempster_into(*_pair(cell, deep))
+
+
+def update_deep_replace(cell: np.ndarray, deep: np.ndarray, params: FusionParams = FusionParams()) -> None:
+    """Replace a cell by ``limit_unknown(deep IRM, m_u_min)`` where that is less unknown (paper: deep IRM (replace))."""
+    _check_views(cell, deep)
+    _k_deep_replace_into(*_pair(cell, deep), float(params.m_u_min))
+
+
+def update_deep_disc(cell: np.ndarray, deep: np.ndarray, params: FusionParams = FusionParams()) -> None:
+    """``map = map (+)_Y (gamma (x) limit_unknown(deep IRM))`` (paper eq. gamma; deep IRM (disc.)), in place."""
+    _check_views(cell, deep)
+    _k_deep_disc_into(*_pair(cell, deep), float(params.m_u_min), float(params.alpha))
+
+
+def update_ray_irm(cell: np.ndarray, irm: np.ndarray, params: FusionParams = FusionParams()) -> None:
+    """``map = map (+)_D ray IRM``, in place."""
+    _check_views(cell, irm)
+    _k_dempster_into(*_pair(cell, irm))
+
+
+def update_fused(
+    cell: np.ndarray, deep: np.ndarray, irm: np.ndarray, params: FusionParams = FusionParams()
+) -> None:
+    """The deep_disc step with the deep IRM, then ``map (+)_D ray IRM`` (paper: fused IRM), in place."""
+    _check_views(cell, deep, irm)
+    fm, mrs, h, w = rows(cell)
+    fd, drs, _, _ = rows(deep)
+    fi, irs, _, _ = rows(irm)
+    _k_fused_into(fm, mrs, fd, drs, fi, irs, h, w, float(params.m_u_min), float(params.alpha))
+
+
+@dataclass(frozen=True, slots=True)
+class UpdateRule:
+    """One map of Table I: its name, the ISMs it reads (in argument order) and its update function."""
+
+    name: str
+    isms: tuple[str, ...]
+    update: Callable[..., None]
+
+
+RULES: dict[str, UpdateRule] = {
+    "ray_ilm": UpdateRule("ray_ilm", ("ray_ilm",), update_ray_ilm),
+    "deep_acc": UpdateRule("deep_acc", ("deep_irm",), update_deep_acc),
+    "deep_replace": UpdateRule("deep_replace", ("deep_irm",), update_deep_replace),
+    "deep_disc": UpdateRule("deep_disc", ("deep_irm",), update_deep_disc),
+    "ray_irm": UpdateRule("ray_irm", ("ray_irm",), update_ray_irm),
+    "fused": UpdateRule("fused", ("deep_irm", "ray_irm"), update_fused),
+}
+
+
+class MapSet:
+    """Several maps of Table I over one scene, in the first pose's frame, updated in one pass.
+
+    Each ISM needed by any map is warped once per update and shared by the maps that read it.
+    """
+
+    def __init__(
+        self,
+        spec: GridSpec | None = None,
+        params: FusionParams | None = None,
+        names: tuple[str, ...] = MAP_NAMES,
+        tile_cells: int = 256,
+    ):
+        unknown = [n for n in names if n not in RULES]
+        if unknown or not names:
+            raise ValueError(f"unknown map name(s) {unknown}; choose from {MAP_NAMES}")
+        self.spec = spec or GridSpec()
+        self.params = params or FusionParams()
+        self.names = tuple(names)
+        self.maps: dict[str, EvidentialMap] = {
+            n: EvidentialMap(self.spec, tile_cells, {"rule": n, "m_u_min": self.params.m_u_min, "alpha": self.params.alpha})
+            for n in self.names
+        }
+        self.required_isms: tuple[str, ...] = tuple(i for i in ISM_NAMES if any(i in RULES[n].isms for n in self.names))
+        self._warpers = {i: Warper(self.spec) for i in self.required_isms}
+        self.n_updates = 0
+
+    def __getitem__(self, name: str) -> EvidentialMap:
+        return self.maps[name]
+
+    def warp(self, pose: SE2, isms: Mapping[str, np.ndarray]) -> dict[str, MapWindow]:
+        """Warp every required local ISM grid ``(n, n, 3)`` at ``pose`` into map windows (views reused next call)."""
+        missing = [i for i in self.required_isms if i not in isms]
+        if missing:
+            raise ValueError(f"missing ISM grid(s) {missing}; these maps need {self.required_isms}")
+        return {i: self._warpers[i].warp(isms[i], pose) for i in self.required_isms}
+
+    def update(self, pose: SE2, isms: Mapping[str, np.ndarray]) -> None:
+        """Fuse one time step: local ISM grids keyed by ISM name, taken at ego ``pose`` in the first pose's frame."""
+        windows = self.warp(pose, isms)
+        self.update_windows(windows)
+
+    def update_windows(self, windows: Mapping[str, MapWindow]) -> None:
+        """Fuse already-warped ISM windows (all from the same pose) into every map."""
+        any_w = next(iter(windows.values()))
+        for name in self.names:
+            rule = RULES[name]
+            arrays = tuple(windows[i].masses for i in rule.isms)
+            params = self.params
+            self.maps[name].apply(any_w, lambda cell, *views, _u=rule.update: _u(cell, *views, params), *arrays)
+        self.n_updates += 1
