@@ -21,12 +21,17 @@ import math
 from dataclasses import dataclass
 from typing import Callable, Mapping
 
-import numba
 import numpy as np
 
 from evgrid.geometry import SE2, GridSpec
 from evgrid.grid import EvidentialMap, MapWindow, Warper
-from evgrid.mass import _JIT, _deep_disc_cell, _dempster_cell, _limit_unknown_cell, _normalise_cell, rows
+from evgrid.kernels import (
+    _k_deep_disc_into,
+    _k_deep_replace_into,
+    _k_dempster_into,
+    _k_fused_into,
+    rows,
+)
 
 __all__ = [
     "MAP_NAMES",
@@ -68,76 +73,6 @@ class FusionParams:
             raise ValueError(f"m_u_min must lie in [0, 1), got {self.m_u_min!r}")
         if not (math.isfinite(self.alpha) and self.alpha >= 0.0):
             raise ValueError(f"alpha must be finite and >= 0, got {self.alpha!r}")
-
-
-# --- in-place kernels over rows (see evgrid.mass.rows) -----------------------------------------
-# Cells where the ISM is vacuous keep their old value exactly (a select, not a branch, so the
-# loops vectorise).
-
-@numba.njit(**_JIT)
-def _k_dempster_into(mp, mrs, ism, irs, h, w):
-    for i in range(h):
-        mp_, ism_ = mp[i * mrs:i * mrs + 3 * w], ism[i * irs:i * irs + 3 * w]
-        for j in range(w):
-            p = 3 * j
-            f1, o1, u1 = np.float64(mp_[p]), np.float64(mp_[p + 1]), np.float64(mp_[p + 2])
-            u2 = np.float64(ism_[p + 2])
-            f, o, u = _dempster_cell(f1, o1, u1, np.float64(ism_[p]), np.float64(ism_[p + 1]), u2)
-            keep = u2 >= 1.0
-            mp_[p] = f1 if keep else f
-            mp_[p + 1] = o1 if keep else o
-            mp_[p + 2] = u1 if keep else u
-
-
-@numba.njit(**_JIT)
-def _k_deep_replace_into(mp, mrs, ism, irs, h, w, m_u_min):
-    for i in range(h):
-        mp_, ism_ = mp[i * mrs:i * mrs + 3 * w], ism[i * irs:i * irs + 3 * w]
-        for j in range(w):
-            p = 3 * j
-            f, o, u = _normalise_cell(np.float64(ism_[p]), np.float64(ism_[p + 1]), np.float64(ism_[p + 2]))
-            f, o, u = _limit_unknown_cell(f, o, u, m_u_min)
-            f1, o1, u1 = np.float64(mp_[p]), np.float64(mp_[p + 1]), np.float64(mp_[p + 2])
-            take = (u < u1) and (ism_[p + 2] < 1.0)
-            mp_[p] = f if take else f1
-            mp_[p + 1] = o if take else o1
-            mp_[p + 2] = u if take else u1
-
-
-@numba.njit(**_JIT)
-def _k_deep_disc_into(mp, mrs, ism, irs, h, w, m_u_min, alpha):
-    for i in range(h):
-        mp_, ism_ = mp[i * mrs:i * mrs + 3 * w], ism[i * irs:i * irs + 3 * w]
-        for j in range(w):
-            p = 3 * j
-            f1, o1, u1 = np.float64(mp_[p]), np.float64(mp_[p + 1]), np.float64(mp_[p + 2])
-            u2 = np.float64(ism_[p + 2])
-            f, o, u = _deep_disc_cell(f1, o1, u1, np.float64(ism_[p]), np.float64(ism_[p + 1]), u2, m_u_min, alpha)
-            keep = u2 >= 1.0
-            mp_[p] = f1 if keep else f
-            mp_[p + 1] = o1 if keep else o
-            mp_[p + 2] = u1 if keep else u
-
-
-@numba.njit(**_JIT)
-def _k_fused_into(mp, mrs, deep, drs, irm, irs, h, w, m_u_min, alpha):
-    for i in range(h):
-        mp_, deep_, irm_ = mp[i * mrs:i * mrs + 3 * w], deep[i * drs:i * drs + 3 * w], irm[i * irs:i * irs + 3 * w]
-        for j in range(w):
-            p = 3 * j
-            f1, o1, u1 = np.float64(mp_[p]), np.float64(mp_[p + 1]), np.float64(mp_[p + 2])
-            ud = np.float64(deep_[p + 2])
-            f, o, u = _deep_disc_cell(f1, o1, u1, np.float64(deep_[p]), np.float64(deep_[p + 1]), ud, m_u_min, alpha)
-            keep = ud >= 1.0
-            f = f1 if keep else f
-            o = o1 if keep else o
-            u = u1 if keep else u
-            ur = np.float64(irm_[p + 2])
-            f2, o2, u2 = _dempster_cell(f, o, u, np.float64(irm_[p]), np.float64(irm_[p + 1]), ur)
-            keep = ur >= 1.0
-            mp_[p] = f if keep else f2
-            mp_[p + 1] = o if keep else o2
-            mp_[p + 2] = u if keep else u2
 
 
 # --- public rules ----------------------------------------------------------------------------

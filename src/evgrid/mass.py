@@ -14,8 +14,9 @@ from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
+
+from evgrid.kernels import _k_dempster, _k_gamma, _k_yager, rows
 
 __all__ = [
     "VACUOUS",
@@ -65,166 +66,16 @@ def validate(m: np.ndarray, name: str = "m", atol: float = _SUM_ATOL) -> np.ndar
     return a
 
 
-# --- per-cell formulas (float64 scalars in, normalised float64 triple out) ---------------------
-# Branch-free (selects only) and compiled with error_model="numpy", so that LLVM vectorises the
-# row loops below: numba's default error model guards every division with a branch.
-
-_JIT = dict(cache=True, fastmath=True, error_model="numpy")
-_TINY = 1e-30
-
-
-@numba.njit(inline="always", **_JIT)
-def _normalise_cell(f, o, u):
-    s = f + o + u
-    ok = s > _TINY
-    r = 1.0 / (s if ok else 1.0)
-    return (f * r if ok else 0.0), (o * r if ok else 0.0), (u * r if ok else 1.0)
-
-
-@numba.njit(inline="always", **_JIT)
-def _dempster_cell(f1, o1, u1, f2, o2, u2):
-    # Paper eq. (dempsters_rule); f + o + u equals 1 - K for normalised inputs, so dividing by
-    # it normalises. Total conflict (1 - K = 0) is undefined: vacuous (DESIGN 1).
-    f = f1 * f2 + f1 * u2 + u1 * f2
-    o = o1 * o2 + o1 * u2 + u1 * o2
-    u = u1 * u2
-    return _normalise_cell(f, o, u)
-
-
-@numba.njit(inline="always", **_JIT)
-def _yager_cell(f1, o1, u1, f2, o2, u2):
-    # Paper eq. (yagers_rule): the conflict K goes to the unknown mass.
-    k = f1 * o2 + o1 * f2
-    f = f1 * f2 + f1 * u2 + u1 * f2
-    o = o1 * o2 + o1 * u2 + u1 * o2
-    u = u1 * u2 + k
-    return _normalise_cell(f, o, u)
-
-
-@numba.njit(inline="always", **_JIT)
-def _limit_unknown_cell(f, o, u, m_u_min):
-    # Paper eq. (lower_un_mass_limit): move Delta = max(0, m_u_min - m_u) into m_u, taking it
-    # from m_f and m_o in proportion (their ratio is kept); m_f + m_o = 0 stays unchanged.
-    s = f + o
-    d = m_u_min - u
-    d = d if (d > 0.0 and s > 0.0) else 0.0
-    a = 1.0 - d / (s if s > 0.0 else 1.0)
-    return f * a, o * a, u + d
-
-
-@numba.njit(inline="always", **_JIT)
-def _tanh_pos(y):
-    # tanh(y) for y >= 0 as -e / (2 + e) with e = expm1(-2 y). expm1 of z/64 by its Taylor
-    # series, then (1 + e)^2 - 1 = e (2 + e) six times: multiplications only, so it vectorises,
-    # and no cancellation for small y. Absolute error < 1e-14 against math.tanh.
-    y = y if y < 20.0 else 20.0
-    z = y * (-2.0 / 64.0)
-    e = z * (1.0 + z * (1.0 / 2 + z * (1.0 / 6 + z * (1.0 / 24 + z * (1.0 / 120 + z * (1.0 / 720 + z * (
-        1.0 / 5040 + z * (1.0 / 40320 + z * (1.0 / 362880 + z * (1.0 / 3628800 + z * (1.0 / 39916800)))))))))))
-    for _ in range(6):
-        e = e * (2.0 + e)
-    return -e / (2.0 + e)
-
-
-@numba.njit(inline="always", **_JIT)
-def _gamma_cell(f1, o1, u1, f2, o2, u2, m_u_min, alpha):
-    # DESIGN 2: gamma = min(tanh(alpha * max(0, m_u_map - m_u_pred)), exact bound), in [0, 1].
-    # The paper's bound (eq. gamma) holds K fixed; K scales with gamma, so the exact bound is
-    # (m_u_map - m_u_min) / (m_u_map * (1 - m_u_pred) - K0) where that denominator is > 0.
-    x = u1 - u2
-    g = _tanh_pos(alpha * (x if x > 0.0 else 0.0))
-    den = u1 * (1.0 - u2) - (f1 * o2 + o1 * f2)
-    b = (u1 - m_u_min) / (den if den > _TINY else 1.0)
-    g = b if (den > _TINY and b < g) else g
-    g = g if g > 0.0 else 0.0
-    return g if g < 1.0 else 1.0
-
-
-@numba.njit(inline="always", **_JIT)
-def _deep_disc_cell(f1, o1, u1, f2, o2, u2, m_u_min, alpha):
-    # DESIGN 5, deep_disc: m = limit_unknown(pred); map <- map (+)_Y (gamma (x) m). gamma = 0
-    # gives back the map cell itself.
-    f1, o1, u1 = _normalise_cell(f1, o1, u1)
-    f2, o2, u2 = _normalise_cell(f2, o2, u2)
-    f2, o2, u2 = _limit_unknown_cell(f2, o2, u2, m_u_min)
-    g = _gamma_cell(f1, o1, u1, f2, o2, u2, m_u_min, alpha)
-    # Paper eq. (discount_eq), then Yager.
-    return _yager_cell(f1, o1, u1, g * f2, g * o2, 1.0 - g + g * u2)
-
-
-# --- kernels over rows -------------------------------------------------------------------------
-# A (h, w, 3) view whose rows are contiguous travels as a flat float32 buffer and a row stride
-# (elements): cell (i, j) starts at i * rs + 3 * j. See `rows()`.
-
-@numba.njit(**_JIT)
-def _k_dempster(a, ars, b, brs, out, ors, h, w):
-    for i in range(h):
-        ra, rb, ro = a[i * ars:i * ars + 3 * w], b[i * brs:i * brs + 3 * w], out[i * ors:i * ors + 3 * w]
-        for j in range(w):
-            p = 3 * j
-            f, o, u = _dempster_cell(
-                np.float64(ra[p]), np.float64(ra[p + 1]), np.float64(ra[p + 2]),
-                np.float64(rb[p]), np.float64(rb[p + 1]), np.float64(rb[p + 2]),
-            )
-            ro[p] = f
-            ro[p + 1] = o
-            ro[p + 2] = u
-
-
-@numba.njit(**_JIT)
-def _k_yager(a, ars, b, brs, out, ors, h, w):
-    for i in range(h):
-        ra, rb, ro = a[i * ars:i * ars + 3 * w], b[i * brs:i * brs + 3 * w], out[i * ors:i * ors + 3 * w]
-        for j in range(w):
-            p = 3 * j
-            f, o, u = _yager_cell(
-                np.float64(ra[p]), np.float64(ra[p + 1]), np.float64(ra[p + 2]),
-                np.float64(rb[p]), np.float64(rb[p + 1]), np.float64(rb[p + 2]),
-            )
-            ro[p] = f
-            ro[p + 1] = o
-            ro[p + 2] = u
-
-
-@numba.njit(**_JIT)
-def _k_gamma(a, ars, b, brs, m_u_min, alpha, out, h, w):
-    for i in range(h):
-        ra, rb, ro = a[i * ars:i * ars + 3 * w], b[i * brs:i * brs + 3 * w], out[i * w:(i + 1) * w]
-        for j in range(w):
-            p = 3 * j
-            f1, o1, u1 = _normalise_cell(np.float64(ra[p]), np.float64(ra[p + 1]), np.float64(ra[p + 2]))
-            f2, o2, u2 = _normalise_cell(np.float64(rb[p]), np.float64(rb[p + 1]), np.float64(rb[p + 2]))
-            ro[j] = _gamma_cell(f1, o1, u1, f2, o2, u2, m_u_min, alpha)
-
-
-def rows(v: np.ndarray) -> tuple[np.ndarray, int, int, int]:
-    """A ``(h, w, 3)`` float32 view with contiguous rows as ``(flat buffer, row stride, h, w)``.
-
-    The flat buffer spans the view's memory from its first to its last element (the gaps
-    between rows belong to the parent array and are never touched by the kernels).
-    """
-    if v.ndim != 3 or v.shape[2] != 3 or v.dtype != np.float32:
-        raise ValueError(f"expected a float32 (h, w, 3) array, got {v.dtype} {v.shape}")
-    h, w = v.shape[0], v.shape[1]
-    if h == 0 or w == 0:
-        return np.zeros(0, np.float32), 0, 0, 0
-    if v.strides[2] != 4 or v.strides[1] != 12 or v.strides[0] % 4 or v.strides[0] < 12 * w:
-        raise ValueError(f"rows of the (h, w, 3) array must be contiguous, got strides {v.strides}")
-    rs = v.strides[0] // 4 if h > 1 else 3 * w
-    flat = np.lib.stride_tricks.as_strided(v, shape=((h - 1) * rs + 3 * w,), strides=(4,), writeable=v.flags.writeable)
-    return flat, rs, h, w
-
-
 def _pair3d(m1: np.ndarray, m2: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[int, ...]]:
     a = np.asarray(m1)
     b = np.asarray(m2)
     for name, x in (("m1", a), ("m2", b)):
         if x.ndim == 0 or x.shape[-1] != 3:
             raise ValueError(f"{name}: the last axis must be [m_f, m_o, m_u] of length 3, got shape {x.shape}")
-    a, b = np.broadcast_arrays(a, b)
-    shape = a.shape
-    a3 = np.ascontiguousarray(a, dtype=np.float32).reshape(1, -1, 3)
-    b3 = np.ascontiguousarray(b, dtype=np.float32).reshape(1, -1, 3)
+    shape = np.broadcast_shapes(a.shape, b.shape)
+    a3 = np.ascontiguousarray(np.broadcast_to(a, shape) if a.shape != shape else a, dtype=np.float32)
+    b3 = np.ascontiguousarray(np.broadcast_to(b, shape) if b.shape != shape else b, dtype=np.float32)
+    a3, b3 = a3.reshape(1, -1, 3), b3.reshape(1, -1, 3)
     return a3, b3, shape
 
 

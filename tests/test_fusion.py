@@ -1,0 +1,161 @@
+"""The six update rules of the paper's Table I (evgrid.fusion)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from evgrid import mass
+from evgrid.fusion import (
+    MAP_NAMES,
+    RULES,
+    FusionParams,
+    MapSet,
+    update_deep_acc,
+    update_deep_disc,
+    update_deep_replace,
+    update_fused,
+    update_ray_ilm,
+    update_ray_irm,
+)
+from evgrid.geometry import SE2, GridSpec
+from tests.strategies import random_masses
+
+P = FusionParams(m_u_min=0.4, alpha=10.0)
+
+
+def cell(m) -> np.ndarray:
+    return np.array(m, np.float32).reshape(1, 1, 3)
+
+
+def test_the_six_rules_are_the_papers():
+    assert MAP_NAMES == ("ray_ilm", "deep_acc", "deep_replace", "deep_disc", "ray_irm", "fused")
+    assert set(RULES) == set(MAP_NAMES)
+    assert RULES["fused"].isms == ("deep_irm", "ray_irm")
+
+
+@pytest.mark.parametrize("rule", [update_ray_ilm, update_deep_acc, update_ray_irm])
+def test_dempster_rules_hand_computed(rule):
+    m = cell([0.5, 0.2, 0.3])
+    rule(m, cell([0.1, 0.6, 0.3]))
+    np.testing.assert_allclose(m[0, 0], [0.23 / 0.68, 0.36 / 0.68, 0.09 / 0.68], rtol=1e-6)
+
+
+def test_deep_replace_hand_computed():
+    # prediction [.6, .2, .2] limited to m_u >= .4 is [.45, .15, .4]: replaces a cell with m_u .7
+    m = cell([0.1, 0.2, 0.7])
+    update_deep_replace(m, cell([0.6, 0.2, 0.2]), P)
+    np.testing.assert_allclose(m[0, 0], [0.45, 0.15, 0.4], rtol=1e-6)
+    # but not a cell already more certain than the limited prediction
+    m = cell([0.65, 0.0, 0.35])
+    update_deep_replace(m, cell([0.1, 0.8, 0.1]), P)
+    np.testing.assert_array_equal(m[0, 0], np.float32([0.65, 0.0, 0.35]))
+
+
+def test_deep_disc_hand_computed():
+    # map [.3, 0, .7], prediction [.6, 0, .4] at m_u_min .4: gamma = 5/7 and m_u lands on .4
+    m = cell([0.3, 0.0, 0.7])
+    update_deep_disc(m, cell([0.6, 0.0, 0.4]), P)
+    np.testing.assert_allclose(m[0, 0], [0.6, 0.0, 0.4], rtol=1e-6)
+    # a vacuous map and a limited prediction: gamma = tanh(10 * .6), Yager of the discounted mass
+    m = cell([0.0, 0.0, 1.0])
+    update_deep_disc(m, cell([0.0, 0.9, 0.1]), P)  # limited to [0, .6, .4]
+    g = math.tanh(6.0)
+    np.testing.assert_allclose(m[0, 0], [0.0, 0.6 * g, 1 - 0.6 * g], rtol=1e-6)
+
+
+def test_fused_is_deep_disc_then_dempster_with_ray_irm():
+    rng = np.random.default_rng(0)
+    m0, deep, irm = (random_masses(rng, (16, 16)) for _ in range(3))
+    a = m0.copy()
+    update_fused(a, deep, irm, P)
+    b = m0.copy()
+    update_deep_disc(b, deep, P)
+    update_ray_irm(b, irm)
+    np.testing.assert_allclose(a, b, atol=1e-6)
+
+
+@pytest.mark.parametrize("name", MAP_NAMES)
+def test_vacuous_isms_leave_the_map_bit_identical(name):
+    m0 = random_masses(np.random.default_rng(1), (8, 8))
+    m = m0.copy()
+    rule = RULES[name]
+    rule.update(m, *[mass.vacuous((8, 8)) for _ in rule.isms], P)
+    assert m.tobytes() == m0.tobytes()
+
+
+def test_rules_work_on_strided_views_of_a_larger_map():
+    rng = np.random.default_rng(2)
+    big = random_masses(rng, (20, 20))
+    ism = random_masses(rng, (20, 20))
+    ref = big.copy()
+    view_ref = ref[3:11, 5:17].copy()
+    update_deep_disc(view_ref, ism[3:11, 5:17], P)
+    update_deep_disc(big[3:11, 5:17], ism[3:11, 5:17], P)
+    np.testing.assert_array_equal(big[3:11, 5:17], view_ref)
+    untouched = np.ones((20, 20), bool)
+    untouched[3:11, 5:17] = False
+    np.testing.assert_array_equal(big[untouched], ref[untouched])
+
+
+def test_rules_reject_bad_views():
+    with pytest.raises(ValueError, match="float32"):
+        update_ray_ilm(np.zeros((2, 2, 3)), np.zeros((2, 2, 3)))
+    with pytest.raises(ValueError, match="differs"):
+        update_ray_ilm(mass.vacuous((2, 2)), mass.vacuous((2, 3)))
+    with pytest.raises(ValueError, match="contiguous"):
+        update_ray_ilm(mass.vacuous((4, 4))[:, ::2], mass.vacuous((4, 2)))
+
+
+def test_params_validation():
+    with pytest.raises(ValueError, match="m_u_min"):
+        FusionParams(m_u_min=1.0)
+    with pytest.raises(ValueError, match="alpha"):
+        FusionParams(alpha=-1)
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.floats(0.0, 0.9))
+def test_any_chain_of_the_six_rules_keeps_the_simplex(seed, m_u_min):
+    """Random chains, total conflict included (a fifth of ISM cells at simplex corners/edges)."""
+    rng = np.random.default_rng(seed)
+    params = FusionParams(m_u_min=m_u_min, alpha=float(rng.uniform(0, 50)))
+    m = random_masses(rng, (8, 8), p_edge=0.2)
+    for _ in range(60):
+        rule = RULES[MAP_NAMES[rng.integers(len(MAP_NAMES))]]
+        rule.update(m, *[random_masses(rng, (8, 8), p_edge=0.2) for _ in rule.isms], params)
+        assert np.isfinite(m).all()
+        assert m.min() >= 0.0 and m.max() <= 1.0
+        assert np.abs(m.sum(-1, dtype=np.float64) - 1.0).max() <= 1e-5
+
+
+def test_total_conflict_in_a_map_gives_vacuous():
+    m = cell([1.0, 0.0, 0.0])
+    update_ray_ilm(m, cell([0.0, 1.0, 0.0]))
+    np.testing.assert_array_equal(m[0, 0], [0, 0, 1])
+
+
+def test_mapset_updates_all_six_maps_and_validates():
+    spec = GridSpec(64, 5.0)
+    rng = np.random.default_rng(3)
+    ms = MapSet(spec, P)
+    isms = {k: random_masses(rng, spec.shape) for k in ("ray_ilm", "ray_irm", "deep_irm")}
+    ms.update(SE2(0.3, 0.1, 0.2), isms)
+    ms.update(SE2(0.6, 0.1, 0.25), isms)
+    assert ms.n_updates == 2
+    for name in MAP_NAMES:
+        m, cov, _, _ = ms[name].to_dense()
+        mass.validate(m)
+        assert cov.sum() > 64 * 64 * 0.9
+    # the fused map differs from both of its parts
+    a, b, c = (ms[n].to_dense()[0] for n in ("fused", "deep_disc", "ray_irm"))
+    assert not np.array_equal(a, b) and not np.array_equal(a, c)
+    with pytest.raises(ValueError, match="missing ISM"):
+        ms.update(SE2(), {"ray_ilm": isms["ray_ilm"]})
+    with pytest.raises(ValueError, match="unknown map"):
+        MapSet(spec, names=("ray_ilm", "octomap"))
+    assert MapSet(spec, names=("ray_ilm",)).required_isms == ("ray_ilm",)

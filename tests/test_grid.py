@@ -1,0 +1,173 @@
+"""Warping local grids into the map, the tiled map, and map files (evgrid.grid)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from evgrid import mass
+from evgrid.fusion import update_ray_ilm
+from evgrid.geometry import SE2, GridSpec
+from evgrid.grid import EvidentialMap, MapFileError, Warper, load_map, save_map, warp_to_map
+from tests.strategies import random_masses
+
+SPEC = GridSpec(64, 5.0)  # small grids keep the tests fast; the code is size-agnostic
+RES = SPEC.resolution
+MARK = np.array([0.7, 0.1, 0.2], np.float32)
+
+
+def test_warp_of_vacuous_grid_is_vacuous():
+    w = warp_to_map(mass.vacuous(SPEC.shape), SE2(1.3, -0.4, 0.77), SPEC)
+    np.testing.assert_array_equal(w.masses, mass.vacuous(w.masses.shape[:2]))
+
+
+def test_identity_warp_is_exact():
+    local = random_masses(np.random.default_rng(0), SPEC.shape)
+    w = warp_to_map(local, SE2(), SPEC)
+    r = -w.r0 - SPEC.n_cells // 2  # window row of local row 0
+    c = -w.c0 - SPEC.n_cells // 2
+    np.testing.assert_array_equal(w.masses[r : r + 64, c : c + 64], local)
+    assert w.covered[r : r + 64, c : c + 64].all()
+    # everything outside the local square is vacuous
+    outside = np.ones(w.shape, bool)
+    outside[r : r + 64, c : c + 64] = False
+    np.testing.assert_array_equal(w.masses[outside], np.tile([0, 0, 1], (outside.sum(), 1)))
+
+
+def test_whole_cell_translation_is_exact():
+    local = random_masses(np.random.default_rng(1), SPEC.shape)
+    w = warp_to_map(local, SE2(3 * RES, -5 * RES, 0.0), SPEC)
+    # x forward by 3 cells = 3 rows up, y left by -5 cells = 5 columns right
+    R, C = -32 - 3, -32 + 5
+    np.testing.assert_array_equal(w.masses[R - w.r0 : R - w.r0 + 64, C - w.c0 : C - w.c0 + 64], local)
+
+
+def test_90_degree_yaw_and_translation_move_a_cell_where_hand_computation_says():
+    local = mass.vacuous(SPEC.shape)
+    r, c = 10, 40
+    local[r, c] = MARK
+    # cell centre in the ego frame: x = (32 - 10 - 0.5) res = 21.5 res, y = (32 - 40 - 0.5) res = -8.5 res
+    # yaw +90 deg: (x, y) -> (-y, x) = (8.5 res, 21.5 res); then + (4 res, -7 res) = (12.5 res, 14.5 res)
+    # map cell: R = floor(-12.5) = -13, C = floor(-14.5) = -15
+    w = warp_to_map(local, SE2(4 * RES, -7 * RES, math.pi / 2), SPEC)
+    got = np.argwhere(w.masses[..., 2] < 1.0)
+    assert got.tolist() == [[-13 - w.r0, -15 - w.c0]]
+    np.testing.assert_allclose(w.masses[-13 - w.r0, -15 - w.c0], MARK, atol=1e-7)
+
+
+def test_half_cell_shift_mixes_bilinearly_with_vacuous_outside():
+    local = mass.vacuous(SPEC.shape)
+    local[0, 20] = MARK  # on the front edge
+    w = warp_to_map(local, SE2(0.5 * RES, 0.0, 0.0), SPEC)
+    # shifted half a cell forward: map cells R = -33 and -32 each get half of the mark
+    for R in (-33, -32):
+        np.testing.assert_allclose(w.masses[R - w.r0, -12 - w.c0], 0.5 * MARK + 0.5 * np.float32([0, 0, 1]), atol=1e-6)
+    np.testing.assert_allclose(w.masses.sum(-1), 1.0, atol=1e-6)
+
+
+def test_warp_rejects_wrong_shape():
+    with pytest.raises(ValueError, match="shape"):
+        warp_to_map(np.zeros((10, 10, 3), np.float32), SE2(), SPEC)
+
+
+def _drive() -> list[SE2]:
+    """An L-shaped drive: 12 m east, a left turn, 12 m north (in 0.37 m steps)."""
+    poses = [SE2(0.37 * k, 0.0, 0.0) for k in range(33)]
+    poses += [SE2(12.0, 0.37 * k, math.pi / 2 * min(1.0, k / 5)) for k in range(33)]
+    return poses
+
+
+def test_grown_map_matches_a_fixed_large_map():
+    rng = np.random.default_rng(3)
+    tiled = EvidentialMap(SPEC, tile_cells=32)
+    size, off = 600, 300  # a dense array covering map cells [-300, 300)
+    dense = mass.vacuous((size, size))
+    warper = Warper(SPEC)
+    for pose in _drive():
+        ism = random_masses(rng, SPEC.shape, p_edge=0.05)
+        ism[rng.random(SPEC.shape) < 0.5] = [0, 0, 1]
+        w = warper.warp(ism, pose)
+        tiled.apply(w, update_ray_ilm)
+        h, wd = w.shape
+        update_ray_ilm(dense[w.r0 + off : w.r0 + off + h, w.c0 + off : w.c0 + off + wd], w.masses)
+    m, cov, r0, c0 = tiled.to_dense()
+    np.testing.assert_array_equal(m, dense[r0 + off : r0 + off + m.shape[0], c0 + off : c0 + off + m.shape[1]])
+    # outside the tiles nothing was touched
+    inside = np.zeros((size, size), bool)
+    inside[r0 + off : r0 + off + m.shape[0], c0 + off : c0 + off + m.shape[1]] = True
+    assert (dense[~inside][:, 2] == 1.0).all()
+    mass.validate(m)
+    assert cov.any() and not cov.all()
+
+
+def test_map_memory_grows_with_area_not_bounding_box():
+    tiled = EvidentialMap(SPEC, tile_cells=32)
+    warper = Warper(SPEC)
+    ism = random_masses(np.random.default_rng(4), SPEC.shape)
+    for pose in _drive():
+        tiled.apply(warper.warp(ism, pose), update_ray_ilm)
+    r0, c0, h, w = tiled.bounds()
+    n_box = (h // 32) * (w // 32)
+    assert len(tiled.tiles) < 0.75 * n_box  # the L leaves the box's far corner empty
+    # every tile holds covered cells
+    assert all(c.any() for c in tiled.covered_tiles.values())
+
+
+def test_read_returns_vacuous_where_never_covered():
+    tiled = EvidentialMap(SPEC, tile_cells=32)
+    m, cov = tiled.read(-1000, 500, 8, 9)
+    np.testing.assert_array_equal(m, mass.vacuous((8, 9)))
+    assert not cov.any()
+
+
+def _some_map() -> EvidentialMap:
+    tiled = EvidentialMap(SPEC, tile_cells=32, metadata={"scene": "scene-0001", "rule": "ray_ilm"})
+    warper = Warper(SPEC)
+    rng = np.random.default_rng(5)
+    for pose in _drive()[::6]:
+        tiled.apply(warper.warp(random_masses(rng, SPEC.shape), pose), update_ray_ilm)
+    return tiled
+
+
+def test_map_save_load_is_bit_identical(tmp_path):
+    m = _some_map()
+    path = save_map(m, tmp_path / "maps" / "ray_ilm.npz")
+    back = load_map(path)
+    assert back.spec == m.spec and back.tile_cells == m.tile_cells and back.metadata == m.metadata
+    assert back.tiles.keys() == m.tiles.keys()
+    for k in m.tiles:
+        assert back.tiles[k].tobytes() == m.tiles[k].tobytes()
+        np.testing.assert_array_equal(back.covered_tiles[k], m.covered_tiles[k])
+    assert not list((tmp_path / "maps").glob(".*.tmp"))  # no temporary left behind
+
+
+def test_truncated_and_foreign_files_raise_clear_errors(tmp_path):
+    path = save_map(_some_map(), tmp_path / "m.npz")
+    data = path.read_bytes()
+    (tmp_path / "cut.npz").write_bytes(data[: len(data) // 2])
+    with pytest.raises(MapFileError, match="truncated or not an evgrid map"):
+        load_map(tmp_path / "cut.npz")
+    np.savez(tmp_path / "foreign.npz", a=np.zeros(3))
+    with pytest.raises(MapFileError, match="not an evgrid map"):
+        load_map(tmp_path / "foreign.npz")
+    (tmp_path / "text.npz").write_text("hello")
+    with pytest.raises(MapFileError):
+        load_map(tmp_path / "text.npz")
+    with pytest.raises(FileNotFoundError):
+        load_map(tmp_path / "missing.npz")
+
+
+def test_failed_save_keeps_the_previous_file(tmp_path, monkeypatch):
+    path = save_map(_some_map(), tmp_path / "m.npz")
+    before = path.read_bytes()
+
+    def boom(*args, **kwargs):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(np, "savez_compressed", boom)
+    with pytest.raises(OSError, match="disk full"):
+        save_map(_some_map(), path)
+    assert path.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["m.npz"]
