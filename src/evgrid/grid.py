@@ -32,6 +32,7 @@ __all__ = ["MapWindow", "EvidentialMap", "Warper", "warp_to_map", "warp_window",
 # Continuous source indices closer than this to an integer (in cells) are snapped to it, so
 # that identity and 90-degree warps copy cells exactly despite cos(pi/2) != 0 in floating point.
 _SNAP = 1e-6
+_BLOCK = 24
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -53,63 +54,46 @@ class MapWindow:
 
 
 @numba.njit(cache=True, fastmath=True)
-def _k_warp(local, u00, v00, du_di, du_dj, dv_di, dv_dj, out, covered):
-    n_r, n_c = local.shape[0], local.shape[1]
+def _k_warp(src, n_r, n_c, u00, v00, du_di, du_dj, dv_di, dv_dj, out, covered):
+    # src is the local grid with a one-cell vacuous border: local (r, c) is src[r + 1, c + 1],
+    # so bilinear sampling anywhere in (-1, n) needs no bounds checks (vacuous outside).
+    # Output is visited in 24 x 24 blocks to keep the rotated source footprint in cache.
     h, w = out.shape[0], out.shape[1]
-    for i in range(h):
-        for j in range(w):
-            u = u00 + i * du_di + j * du_dj
-            v = v00 + i * dv_di + j * dv_dj
-            if u <= -1.0 or v <= -1.0 or u >= n_r or v >= n_c:
-                out[i, j, 0] = 0.0
-                out[i, j, 1] = 0.0
-                out[i, j, 2] = 1.0
-                covered[i, j] = False
-                continue
-            covered[i, j] = True
-            iu = int(u + 1.0) - 1  # floor, as u > -1
-            iv = int(v + 1.0) - 1
-            fu = u - iu
-            fv = v - iv
-            if fu < _SNAP:
-                fu = 0.0
-            elif fu > 1.0 - _SNAP:
-                fu = 0.0
-                iu += 1
-            if fv < _SNAP:
-                fv = 0.0
-            elif fv > 1.0 - _SNAP:
-                fv = 0.0
-                iv += 1
-            w00 = (1.0 - fu) * (1.0 - fv)
-            w01 = (1.0 - fu) * fv
-            w10 = fu * (1.0 - fv)
-            w11 = fu * fv
-            if iu >= 0 and iv >= 0 and iu + 1 < n_r and iv + 1 < n_c:
-                for c in range(3):
-                    out[i, j, c] = (w00 * local[iu, iv, c] + w01 * local[iu, iv + 1, c]
-                                    + w10 * local[iu + 1, iv, c] + w11 * local[iu + 1, iv + 1, c])
-                continue
-            # Border: neighbours beyond the local grid count as vacuous [0, 0, 1].
-            f = 0.0
-            o = 0.0
-            un = 0.0
-            for di in range(2):
-                r = iu + di
-                for dj in range(2):
-                    cc = iv + dj
-                    wt = (w10 if dj == 0 else w11) if di else (w00 if dj == 0 else w01)
-                    if wt == 0.0:
+    for bi in range(0, h, _BLOCK):
+        for bj in range(0, w, _BLOCK):
+            for i in range(bi, min(h, bi + _BLOCK)):
+                for j in range(bj, min(w, bj + _BLOCK)):
+                    u = u00 + i * du_di + j * du_dj
+                    v = v00 + i * dv_di + j * dv_dj
+                    if u <= -1.0 or v <= -1.0 or u >= n_r or v >= n_c:
+                        out[i, j, 0] = 0.0
+                        out[i, j, 1] = 0.0
+                        out[i, j, 2] = 1.0
+                        covered[i, j] = False
                         continue
-                    if r < 0 or r >= n_r or cc < 0 or cc >= n_c:
-                        un += wt
-                    else:
-                        f += wt * local[r, cc, 0]
-                        o += wt * local[r, cc, 1]
-                        un += wt * local[r, cc, 2]
-            out[i, j, 0] = f
-            out[i, j, 1] = o
-            out[i, j, 2] = un
+                    covered[i, j] = True
+                    iu = int(u + 1.0)  # floor(u) + 1, the padded row, as u > -1
+                    iv = int(v + 1.0)
+                    fu = u + 1.0 - iu
+                    fv = v + 1.0 - iv
+                    if fu < _SNAP:
+                        fu = 0.0
+                    elif fu > 1.0 - _SNAP:
+                        fu = 0.0
+                        iu += 1
+                    if fv < _SNAP:
+                        fv = 0.0
+                    elif fv > 1.0 - _SNAP:
+                        fv = 0.0
+                        iv += 1
+                    w00 = (1.0 - fu) * (1.0 - fv)
+                    w01 = (1.0 - fu) * fv
+                    w10 = fu * (1.0 - fv)
+                    w11 = fu * fv
+                    for c in range(3):
+                        out[i, j, c] = (w00 * src[iu, iv, c] + w01 * src[iu, iv + 1, c]
+                                        + w10 * src[iu + 1, iv, c] + w11 * src[iu + 1, iv + 1, c])
+
 
 def _pose_affine(spec: GridSpec, pose: SE2) -> tuple[float, float, float, float]:
     """Coefficients of map (R, C) -> local (u, v): u = cu + cos a + sin b, v = cu - sin a + cos b."""
@@ -148,6 +132,7 @@ class Warper:
         side = int(math.ceil(spec.n_cells * math.sqrt(2.0))) + 4
         self._masses = np.empty((side, side, 3), dtype=np.float32)
         self._covered = np.empty((side, side), dtype=np.bool_)
+        self._src = vacuous((spec.n_cells + 2, spec.n_cells + 2))  # local grid + vacuous border
 
     def warp(self, local: np.ndarray, pose: SE2) -> MapWindow:
         """Resample ``local`` ``(n, n, 3)`` taken at ego ``pose`` (first-pose frame, m/rad) into the map."""
@@ -155,7 +140,8 @@ class Warper:
         local = np.asarray(local)
         if local.shape != (spec.n_cells, spec.n_cells, 3):
             raise ValueError(f"local grid must have shape {(spec.n_cells, spec.n_cells, 3)}, got {local.shape}")
-        local = np.ascontiguousarray(local, dtype=np.float32)
+        n = spec.n_cells
+        self._src[1 : n + 1, 1 : n + 1] = local
         r0, c0, h, w = warp_window(spec, pose)
         cs, sn, tx, ty = _pose_affine(spec, pose)
         cc = spec.n_cells / 2.0 - 0.5
@@ -163,7 +149,7 @@ class Warper:
         b0 = c0 + 0.5 + ty
         out = self._masses[:h, :w]
         covered = self._covered[:h, :w]
-        _k_warp(local, cc + cs * a0 + sn * b0, cc - sn * a0 + cs * b0, cs, sn, -sn, cs, out, covered)
+        _k_warp(self._src, n, n, cc + cs * a0 + sn * b0, cc - sn * a0 + cs * b0, cs, sn, -sn, cs, out, covered)
         return MapWindow(r0, c0, out, covered)
 
 

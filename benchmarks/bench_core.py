@@ -1,0 +1,97 @@
+"""Benchmark of the core: the algebra, the deep_disc update, the warp into the map, the six maps.
+
+Run: ``python benchmarks/bench_core.py [--json out.json]``. One thread, median of repeats.
+Inputs are random masses on every cell (no vacuous cells to skip: the worst case) unless
+named "ISM-like" (about half the cells vacuous, as a ray ISM's grid is).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import time
+
+os.environ.setdefault("NUMBA_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+
+from evgrid import fusion, mass  # noqa: E402
+from evgrid.geometry import SE2, GridSpec  # noqa: E402
+from evgrid.grid import EvidentialMap, Warper  # noqa: E402
+
+
+def timeit(fn, prep=None, repeat: int = 30) -> float:
+    """Median wall time of ``fn()`` in ms (``prep()`` runs untimed before each call)."""
+    if prep:
+        prep()
+    fn()  # compile / warm up
+    ts = []
+    for _ in range(repeat):
+        if prep:
+            prep()
+        t = time.perf_counter()
+        fn()
+        ts.append(time.perf_counter() - t)
+    return float(np.median(ts) * 1e3)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--json", help="also write the figures to this JSON file")
+    args = ap.parse_args()
+
+    spec = GridSpec()
+    rng = np.random.default_rng(0)
+    a = rng.dirichlet([1, 1, 1], spec.shape).astype(np.float32)
+    b = rng.dirichlet([1, 1, 1], spec.shape).astype(np.float32)
+    ism_like = b.copy()
+    ism_like[rng.random(spec.shape) < 0.5] = [0, 0, 1]
+    out = np.empty_like(a)
+    cur = a.copy()
+
+    def reset() -> None:
+        cur[:] = a
+
+    params = fusion.FusionParams()
+    res: dict[str, float] = {}
+    res["dempster 512x512 (mass.dempster)"] = timeit(lambda: mass.dempster(a, b, out))
+    res["yager 512x512 (mass.yager)"] = timeit(lambda: mass.yager(a, b, out))
+    res["deep_disc update 512x512 (limit + gamma + yager)"] = timeit(lambda: fusion.update_deep_disc(cur, b, params), reset)
+    res["deep_replace update 512x512"] = timeit(lambda: fusion.update_deep_replace(cur, b, params), reset)
+    res["fused update 512x512 (deep_disc + dempster)"] = timeit(lambda: fusion.update_fused(cur, b, ism_like, params), reset)
+
+    warper = Warper(spec)
+    for deg in (0, 30, 45):
+        pose = SE2(3.3, -1.7, math.radians(deg))
+        res[f"warp 512x512 into map, yaw {deg} deg"] = timeit(lambda: warper.warp(ism_like, pose))
+        m = EvidentialMap(spec)
+
+        def warp_fuse() -> None:
+            m.apply(warper.warp(ism_like, pose), fusion.update_ray_ilm)
+
+        res[f"warp + dempster fuse into map, yaw {deg} deg (ISM-like)"] = timeit(warp_fuse)
+
+    ms = fusion.MapSet(spec, params)
+    isms = {"ray_ilm": ism_like, "ray_irm": ism_like, "deep_irm": b}
+    k = [0]
+
+    def six() -> None:
+        k[0] += 1
+        ms.update(SE2(0.5 * k[0], 0.1 * k[0], 0.01 * k[0]), isms)
+
+    res["six maps: 3 warps + 6 updates (moving pose)"] = timeit(six, repeat=20)
+
+    width = max(len(k) for k in res)
+    print(f"evgrid core benchmark - {platform.processor() or platform.machine()}, 1 thread, median ms")
+    for name, ms_ in res.items():
+        print(f"  {name:<{width}}  {ms_:8.3f} ms")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(res, f, indent=2)
+
+
+if __name__ == "__main__":
+    main()
