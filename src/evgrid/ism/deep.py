@@ -19,6 +19,7 @@ reach) depend on the distance from the vehicle.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,7 +31,16 @@ import numpy as np
 from evgrid.data.frame import RadarSweep, radar_column
 from evgrid.geometry import SE3, GridSpec
 
-__all__ = ["CHANNELS", "RadarImageParams", "radar_image", "DeepIrm", "default_checkpoint"]
+__all__ = [
+    "CHANNELS",
+    "DETECTION_COLUMNS",
+    "RadarImageParams",
+    "radar_detections",
+    "detections_to_image",
+    "radar_image",
+    "DeepIrm",
+    "default_checkpoint",
+]
 
 CHANNELS: tuple[str, ...] = ("log_count", "rcs", "doppler_x", "doppler_y", "recency", "range")
 
@@ -51,26 +61,84 @@ class RadarImageParams:
             raise ValueError(f"horizon_s must be a positive number of seconds, got {self.horizon_s!r}")
 
 
+#: Columns of a detection table (see :func:`radar_detections`).
+DETECTION_COLUMNS: tuple[str, ...] = ("x", "y", "rcs", "doppler_x", "doppler_y", "recency")
+
+
 @numba.njit(cache=True)
-def _k_accumulate(xy, rcs, vxy, recency, half, inv_res, img, count):
+def _k_accumulate(det, half, inv_res, img, count):
     n = img.shape[1]
-    for k in range(xy.shape[0]):
-        r = int(math.floor(half - xy[k, 0] * inv_res))
-        c = int(math.floor(half - xy[k, 1] * inv_res))
+    for k in range(det.shape[0]):
+        r = int(math.floor(half - det[k, 0] * inv_res))
+        c = int(math.floor(half - det[k, 1] * inv_res))
         if r < 0 or r >= n or c < 0 or c >= n:
             continue
         count[r, c] += 1.0
-        img[1, r, c] += rcs[k]
-        img[2, r, c] += vxy[k, 0]
-        img[3, r, c] += vxy[k, 1]
-        if recency[k] > img[4, r, c]:
-            img[4, r, c] = recency[k]
+        img[1, r, c] += det[k, 2]
+        img[2, r, c] += det[k, 3]
+        img[3, r, c] += det[k, 4]
+        if det[k, 5] > img[4, r, c]:
+            img[4, r, c] = det[k, 5]
 
 
+@functools.lru_cache(maxsize=4)
 def _range_channel(spec: GridSpec) -> np.ndarray:
     rows, cols = np.meshgrid(np.arange(spec.n_cells), np.arange(spec.n_cells), indexing="ij")
     x, y = spec.cell_to_xy(rows, cols)
     return (np.hypot(x, y) / spec.half_extent).astype(np.float32)
+
+
+def radar_detections(
+    sweeps: Sequence[RadarSweep],
+    ego_pose: SE3,
+    now_us: int | None = None,
+    params: RadarImageParams = RadarImageParams(),
+) -> np.ndarray:
+    """Detections ``(k, 6)`` float32 in the ego frame at ``ego_pose``, columns ``DETECTION_COLUMNS`` (scaled).
+
+    Each sweep is moved with its own ego pose and extrinsics; Doppler is rotated into the ego
+    frame. ``now_us`` (µs) defaults to the newest sweep's time. NaN/inf detections are dropped.
+    """
+    if not sweeps:
+        return np.zeros((0, len(DETECTION_COLUMNS)), np.float32)
+    now = max(s.timestamp for s in sweeps) if now_us is None else int(now_us)
+    to_ego = ego_pose.inverse()
+    parts = []
+    for s in sweeps:
+        p = s.points
+        ok = np.isfinite(p[:, [_X, _Y, 2, _RCS, _VX, _VY]]).all(axis=1)
+        if not ok.any():
+            continue
+        p = p[ok]
+        t = to_ego @ s.ego_pose @ s.sensor_to_ego
+        d = np.empty((len(p), len(DETECTION_COLUMNS)), np.float64)
+        d[:, 0:2] = t.apply(p[:, 0:3])[:, :2]
+        d[:, 2] = p[:, _RCS] / 20.0
+        d[:, 3:5] = (p[:, [_VX, _VY]].astype(np.float64) @ t.rotation[:2, :2].T) / 10.0
+        age = (now - s.timestamp) * 1e-6
+        d[:, 5] = max(0.0, 1.0 - age / params.horizon_s)
+        parts.append(d)
+    if not parts:
+        return np.zeros((0, len(DETECTION_COLUMNS)), np.float32)
+    return np.concatenate(parts).astype(np.float32)
+
+
+def detections_to_image(det: np.ndarray, spec: GridSpec = GridSpec()) -> np.ndarray:
+    """The Ev-Net input ``(len(CHANNELS), n, n)`` float32 from a detection table of :func:`radar_detections`."""
+    det = np.asarray(det)
+    if det.ndim != 2 or det.shape[1] != len(DETECTION_COLUMNS):
+        raise ValueError(f"detections must have shape (k, {len(DETECTION_COLUMNS)}), got {det.shape}")
+    n = spec.n_cells
+    img = np.zeros((len(CHANNELS), n, n), dtype=np.float32)
+    count = np.zeros((n, n), dtype=np.float32)
+    if len(det):
+        _k_accumulate(np.ascontiguousarray(det, dtype=np.float64), n / 2.0, 1.0 / spec.resolution, img, count)
+        hit = count > 0
+        for ch in (1, 2, 3):
+            img[ch][hit] /= count[hit]
+        img[0] = np.log1p(count)
+    img[5] = _range_channel(spec)
+    return img
 
 
 def radar_image(
@@ -82,47 +150,9 @@ def radar_image(
 ) -> np.ndarray:
     """The Ev-Net input ``(len(CHANNELS), n, n)`` float32 from radar sweeps, in the ego frame at ``ego_pose``.
 
-    ``now_us`` (microseconds) defaults to the newest sweep's timestamp. Detections with NaN or
-    inf fields are dropped. The caller chooses which sweeps to pass (e.g. the last
-    ``params.n_sweeps`` of each radar).
+    The caller chooses which sweeps to pass (e.g. the last ``params.n_sweeps`` of each radar).
     """
-    n = spec.n_cells
-    img = np.zeros((len(CHANNELS), n, n), dtype=np.float32)
-    count = np.zeros((n, n), dtype=np.float32)
-    if sweeps:
-        now = max(s.timestamp for s in sweeps) if now_us is None else int(now_us)
-        to_ego = ego_pose.inverse()
-        xy_all, rcs_all, v_all, rec_all = [], [], [], []
-        for s in sweeps:
-            p = s.points
-            ok = np.isfinite(p[:, [_X, _Y, 2, _RCS, _VX, _VY]]).all(axis=1)
-            if not ok.any():
-                continue
-            p = p[ok]
-            t = to_ego @ s.ego_pose @ s.sensor_to_ego
-            xy_all.append(t.apply(p[:, 0:3])[:, :2])
-            rot = t.rotation[:2, :2]
-            v_all.append(p[:, [_VX, _VY]].astype(np.float64) @ rot.T)
-            rcs_all.append(p[:, _RCS])
-            age = (now - s.timestamp) * 1e-6
-            rec_all.append(np.full(len(p), max(0.0, 1.0 - age / params.horizon_s)))
-        if xy_all:
-            _k_accumulate(
-                np.concatenate(xy_all),
-                np.concatenate(rcs_all).astype(np.float64) / 20.0,
-                np.concatenate(v_all) / 10.0,
-                np.concatenate(rec_all),
-                n / 2.0,
-                1.0 / spec.resolution,
-                img,
-                count,
-            )
-            hit = count > 0
-            for ch in (1, 2, 3):
-                img[ch][hit] /= count[hit]
-            img[0] = np.log1p(count)
-    img[5] = _range_channel(spec)
-    return img
+    return detections_to_image(radar_detections(sweeps, ego_pose, now_us, params), spec)
 
 
 def default_checkpoint() -> Path:
