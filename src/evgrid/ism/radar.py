@@ -1,0 +1,730 @@
+"""The ray casting inverse radar model, "ray IRM" (paper sec. V-B; DESIGN 4), after Werber et al. 2015.
+
+Input: the last N = 10 sweeps of each of the 5 radars. Every sweep is moved into the
+*current* ego frame from its own sensor position at its own time::
+
+    global = sweep.ego_pose o sweep.sensor_to_ego o p,    local = current_ego_pose^-1 o global
+
+and the cone apex is the sensor origin moved the same way. Radar points are projected onto the
+ground plane (z dropped, no height filter: the paper names none). For every detection, a
+*cone* of ``opening_angle_deg`` (2 degrees) leaves its sweep's sensor position towards it.
+
+1. Barriers: the far segment of every cone, its *cap* (the arc of radius = the detection's
+   range spanning the cone's opening), is rasterised as the cells the arc passes through
+   (one cell deep; 4-connected, so no ray of the cone can slip past it).
+2. Free space: every cone is cast again and marks the cells it touches m_f = 0.3, but it
+   stops at the first barrier cell of ANY cone it meets, its own cap included. "Stops" is
+   per ray of the cone: the part of a cone behind a barrier is shadowed, the rest goes on
+   (paper fig. 4 b.2.1). The cone is the exact continuous sector, not a bundle of sampled
+   rays: a cell is free when some ray of the cone enters it, inside the cone's range,
+   before having entered a barrier cell (barrier cells themselves are not marked). This is
+   computed per sensor position with an exact shadow-casting column sweep (see
+   ``_k_cast_task``), so cones have no gaps at any range.
+3. The barriers are dropped; the cells of all the sweeps' detections get m_o = 0.5.
+
+Decisions the paper leaves open (documented here once):
+
+* a cell both touched by a cone (step 2) and holding a detection (step 3) is occupied
+  [0, m_o, 1 - m_o]: step 3 comes last in the paper. Since a detection cell is its own
+  cone's cap, this only happens where a detection lies in a sensor's own cell;
+* a barrier in the cell of the cone's own apex does not stop the cone (as in the ray ILM);
+* caps and cone parts outside the local grid are not represented; cones whose sensor
+  position lies outside the grid (old sweeps at high speed) therefore enter it stopped only
+  by their own range, not by barriers outside the grid;
+* a cell marked free by any cone and never occupied is [m_f, 0, 1 - m_f]; no evidence is
+  accumulated between cones or sweeps inside one ISM output.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import deque
+from dataclasses import dataclass
+from typing import Iterable, Iterator
+
+import numba
+import numpy as np
+
+from evgrid.data.frame import RADAR_CHANNELS, Frame, RadarSweep
+from evgrid.geometry import SE3, GridSpec
+from evgrid.ism._common import (
+    FREE,
+    OCCUPIED,
+    IsmResult,
+    as_points,
+    check_threads,
+    label_scratch,
+    labels_to_masses,
+    log_dropped,
+    mass_lut,
+    numba_threads,
+)
+
+__all__ = ["RayIrmParams", "RadarBuffer", "ray_irm", "ray_irm_with_stats", "ray_irm_xy"]
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, slots=True)
+class RayIrmParams:
+    """Parameters of the ray IRM; the defaults are the paper's (sec. V-B)."""
+
+    n_sweeps: int = 10
+    opening_angle_deg: float = 2.0
+    m_free: float = 0.3
+    m_occupied: float = 0.5
+
+    def __post_init__(self) -> None:
+        if isinstance(self.n_sweeps, bool) or not isinstance(self.n_sweeps, (int, np.integer)) or self.n_sweeps < 1:
+            raise ValueError(f"RayIrmParams.n_sweeps must be an integer >= 1, got {self.n_sweeps!r}")
+        for name in ("opening_angle_deg", "m_free", "m_occupied"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)) or not math.isfinite(v):
+                raise ValueError(f"RayIrmParams.{name} must be a finite number, got {v!r}")
+        if not 0 < self.opening_angle_deg < 180:
+            raise ValueError(f"RayIrmParams.opening_angle_deg must be in (0, 180), got {self.opening_angle_deg}")
+        for name in ("m_free", "m_occupied"):
+            if not 0 <= getattr(self, name) <= 1:
+                raise ValueError(f"RayIrmParams.{name} must be a mass in [0, 1], got {getattr(self, name)}")
+
+
+_DEFAULT_GRID = GridSpec()
+_DEFAULT_PARAMS = RayIrmParams()
+_QUARTER = math.pi / 4.0
+# Slope intervals narrower than this are dropped: only float noise makes them.
+_EPS_SLOPE = 1e-12
+
+
+# --- kernels ------------------------------------------------------------------------------------
+# Coordinates inside the kernels are continuous cell coordinates (u, v): u = n/2 - x/res,
+# v = n/2 - y/res (geometry.py), so cell (r, c) is the square [r, r+1) x [c, c+1).
+
+@numba.njit(cache=True)
+def _k_transform(pts, sweep_of, mats, half, inv_res, det_uv, ok):
+    """Move points (sensor frame, metres) into the grid's (u, v); returns the non-finite count."""
+    n_dropped = 0
+    for i in range(pts.shape[0]):
+        x = np.float64(pts[i, 0])
+        y = np.float64(pts[i, 1])
+        z = np.float64(pts[i, 2])
+        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
+            n_dropped += 1
+            ok[i] = False
+            continue
+        m = mats[sweep_of[i]]
+        gx = m[0, 0] * x + m[0, 1] * y + m[0, 2] * z + m[0, 3]
+        gy = m[1, 0] * x + m[1, 1] * y + m[1, 2] * z + m[1, 3]
+        det_uv[i, 0] = half - gx * inv_res
+        det_uv[i, 1] = half - gy * inv_res
+        ok[i] = True
+    return n_dropped
+
+
+@numba.njit(cache=True, inline="always")
+def _wrap(a):
+    """Angle to (-pi, pi]."""
+    two_pi = 2.0 * math.pi
+    a = a - two_pi * math.floor((a + math.pi) / two_pi)  # now in [-pi, pi)
+    if a <= -math.pi:
+        a += two_pi
+    return a
+
+
+@numba.njit(cache=True)
+def _mark_cap(barrier, au, av, du, dv, h, buf):
+    """Step 1: mark the cells the arc {apex + r (cos, sin)(phi + b), |b| <= h} passes through.
+
+    Exact: the arc's crossings with the grid lines u = k and v = k split it into pieces
+    that each lie in one cell; the cell of each piece's middle is marked.
+    """
+    n_r, n_c = barrier.shape
+    r = math.sqrt(du * du + dv * dv)
+    if r < 1e-9:
+        return buf
+    phi = math.atan2(dv, du)
+    # bounding box of the arc: its end points plus the extremes of cos / sin inside it
+    u_lo = min(au + r * math.cos(phi - h), au + r * math.cos(phi + h))
+    u_hi = max(au + r * math.cos(phi - h), au + r * math.cos(phi + h))
+    v_lo = min(av + r * math.sin(phi - h), av + r * math.sin(phi + h))
+    v_hi = max(av + r * math.sin(phi - h), av + r * math.sin(phi + h))
+    if abs(_wrap(phi)) <= h:
+        u_hi = au + r
+    if abs(_wrap(phi - math.pi)) <= h:
+        u_lo = au - r
+    if abs(_wrap(phi - math.pi / 2)) <= h:
+        v_hi = av + r
+    if abs(_wrap(phi + math.pi / 2)) <= h:
+        v_lo = av - r
+    if u_hi < 0.0 or u_lo >= n_r or v_hi < 0.0 or v_lo >= n_c:
+        return buf
+    ku0 = int(math.ceil(u_lo))
+    ku1 = int(math.floor(u_hi))
+    kv0 = int(math.ceil(v_lo))
+    kv1 = int(math.floor(v_hi))
+    need = 2 * (max(ku1 - ku0 + 1, 0) + max(kv1 - kv0 + 1, 0)) + 2
+    if buf.shape[0] < need:
+        buf = np.empty(2 * need, dtype=np.float64)
+    m = 0
+    buf[m] = -h
+    m += 1
+    buf[m] = h
+    m += 1
+    for k in range(ku0, ku1 + 1):
+        c = (k - au) / r
+        if c < -1.0 or c > 1.0:
+            continue
+        t = math.acos(c)
+        b = _wrap(t - phi)
+        if -h < b < h:
+            buf[m] = b
+            m += 1
+        b = _wrap(-t - phi)
+        if -h < b < h:
+            buf[m] = b
+            m += 1
+    for k in range(kv0, kv1 + 1):
+        s = (k - av) / r
+        if s < -1.0 or s > 1.0:
+            continue
+        t = math.asin(s)
+        b = _wrap(t - phi)
+        if -h < b < h:
+            buf[m] = b
+            m += 1
+        b = _wrap(math.pi - t - phi)
+        if -h < b < h:
+            buf[m] = b
+            m += 1
+    # insertion sort: a cap crosses a handful of grid lines
+    for i in range(1, m):
+        x = buf[i]
+        j = i - 1
+        while j >= 0 and buf[j] > x:
+            buf[j + 1] = buf[j]
+            j -= 1
+        buf[j + 1] = x
+    for i in range(m - 1):
+        if buf[i + 1] <= buf[i]:
+            continue
+        b = 0.5 * (buf[i] + buf[i + 1]) + phi
+        cu = math.floor(au + r * math.cos(b))
+        cv = math.floor(av + r * math.sin(b))
+        if cu >= 0 and cu < n_r and cv >= 0 and cv < n_c:
+            barrier[int(cu), int(cv)] = 1
+    return buf
+
+
+@numba.njit(cache=True)
+def _k_caps(det_uv, ok, det_apex, apex_uv, h, barrier):
+    buf = np.empty(64, dtype=np.float64)
+    for i in range(det_uv.shape[0]):
+        if not ok[i]:
+            continue
+        a = det_apex[i]
+        au = apex_uv[a, 0]
+        av = apex_uv[a, 1]
+        buf = _mark_cap(barrier, au, av, det_uv[i, 0] - au, det_uv[i, 1] - av, h, buf)
+
+
+@numba.njit(cache=True, inline="always")
+def _octant_frame(o):
+    """(swap, sa, sb) of octant o: local a = sa * major, b = sb * minor; major is v when swap."""
+    if o == 0:
+        return False, 1, 1
+    if o == 1:
+        return True, 1, 1
+    if o == 2:
+        return True, 1, -1
+    if o == 3:
+        return False, -1, 1
+    if o == 4:
+        return False, -1, -1
+    if o == 5:
+        return True, -1, -1
+    if o == 6:
+        return True, -1, 1
+    return False, 1, -1
+
+
+@numba.njit(cache=True, inline="always")
+def _slope(o, ang):
+    """Local slope db/da in [0, 1] of the direction at angle ``ang`` (in (u, v)) seen in octant o."""
+    swap, sa, sb = _octant_frame(o)
+    cu = math.cos(ang)
+    sv = math.sin(ang)
+    if swap:
+        da = sa * sv
+        db = sb * cu
+    else:
+        da = sa * cu
+        db = sb * sv
+    if da <= 0.0:
+        return 1.0
+    s = db / da
+    if s < 0.0:
+        return 0.0
+    if s > 1.0:
+        return 1.0
+    return s
+
+
+@numba.njit(cache=True)
+def _k_tasks(det_uv, ok, det_apex, apex_uv, h):
+    """Split every cone into octant pieces of slope intervals; merge them per (apex, octant).
+
+    Returns (task_apex, task_octant, task_start (T + 1), iv_lo, iv_hi, iv_r): task t owns
+    the merged, sorted, disjoint intervals iv[task_start[t]:task_start[t + 1]]; iv_r is the
+    largest cone range (cells) in the interval.
+    """
+    n = det_uv.shape[0]
+    max_pieces = int(2.0 * h / _QUARTER) + 2
+    p_key = np.empty(n * max_pieces, dtype=np.float64)
+    p_apex = np.empty(n * max_pieces, dtype=np.int64)
+    p_oct = np.empty(n * max_pieces, dtype=np.int64)
+    p_lo = np.empty(n * max_pieces, dtype=np.float64)
+    p_hi = np.empty(n * max_pieces, dtype=np.float64)
+    p_r = np.empty(n * max_pieces, dtype=np.float64)
+    m = 0
+    for i in range(n):
+        if not ok[i]:
+            continue
+        a = det_apex[i]
+        du = det_uv[i, 0] - apex_uv[a, 0]
+        dv = det_uv[i, 1] - apex_uv[a, 1]
+        r = math.sqrt(du * du + dv * dv)
+        if r < 1e-9:
+            continue
+        phi = math.atan2(dv, du)
+        start = phi - h
+        if start < 0.0:
+            start += 2.0 * math.pi
+        end = start + 2.0 * h
+        k = int(math.floor(start / _QUARTER))
+        x = start
+        while x < end:
+            bnd = (k + 1) * _QUARTER
+            y = min(end, bnd)
+            if y > x:
+                o = k % 8
+                s1 = _slope(o, x)
+                s2 = _slope(o, y)
+                p_apex[m] = a
+                p_oct[m] = o
+                p_lo[m] = min(s1, s2)
+                p_hi[m] = max(s1, s2)
+                p_r[m] = r
+                p_key[m] = (a * 8 + o) + 0.5 * p_lo[m]
+                m += 1
+            x = y
+            k += 1
+    order = np.argsort(p_key[:m])
+    t_apex = np.empty(m, dtype=np.int64)
+    t_oct = np.empty(m, dtype=np.int64)
+    t_start = np.empty(m + 1, dtype=np.int64)
+    iv_lo = np.empty(m, dtype=np.float64)
+    iv_hi = np.empty(m, dtype=np.float64)
+    iv_r = np.empty(m, dtype=np.float64)
+    n_t = 0
+    n_iv = 0
+    for q in range(m):
+        p = order[q]
+        if n_t == 0 or p_apex[p] != t_apex[n_t - 1] or p_oct[p] != t_oct[n_t - 1]:
+            t_apex[n_t] = p_apex[p]
+            t_oct[n_t] = p_oct[p]
+            t_start[n_t] = n_iv
+            n_t += 1
+        elif p_lo[p] <= iv_hi[n_iv - 1]:
+            # overlaps the previous interval of this task: merge
+            if p_hi[p] > iv_hi[n_iv - 1]:
+                iv_hi[n_iv - 1] = p_hi[p]
+            if p_r[p] > iv_r[n_iv - 1]:
+                iv_r[n_iv - 1] = p_r[p]
+            continue
+        iv_lo[n_iv] = p_lo[p]
+        iv_hi[n_iv] = p_hi[p]
+        iv_r[n_iv] = p_r[p]
+        n_iv += 1
+    t_start[n_t] = n_iv
+    return t_apex[:n_t], t_oct[:n_t], t_start[: n_t + 1], iv_lo[:n_iv], iv_hi[:n_iv], iv_r[:n_iv]
+
+
+@numba.njit(cache=True)
+def _k_cast_task(barrier, free, au, av, o, lo0, hi0, r0):
+    """Step 2 for one sensor position and one octant: exact shadow casting of slope intervals.
+
+    In the octant's local frame (a = major axis, b = minor axis, both growing away from the
+    apex; slopes db/da in [0, 1]) the cells are swept column by column (a = i .. i + 1); a
+    ray of slope s crosses column i in increasing b. ``cur`` holds the still-open slope
+    intervals (sorted, disjoint). In column i, cell (i, j) is touched by the slopes
+    [(j - b0) / (i + 1 - a0), (j + 1 - b0) / (i - a0)]; an open cell inside the range is
+    marked free; a barrier cell removes its slopes from the open set (for the rest of the
+    column too, since a ray crosses a column in increasing j). The range limit of an
+    interval (the largest cone range in it) only matters outside the grid: inside, every
+    cone's own cap stops it.
+    """
+    n_r, n_c = barrier.shape
+    swap, sa, sb = _octant_frame(o)
+    if swap:
+        a0 = sa * av
+        b0 = sb * au
+        n_a = n_c
+        n_b = n_r
+    else:
+        a0 = sa * au
+        b0 = sb * av
+        n_a = n_r
+        n_b = n_c
+    # local index ranges covering the grid: a grid index g is i = g (sa > 0) or i = -g - 1
+    i_lo_g = 0 if sa > 0 else -n_a
+    i_hi_g = i_lo_g + n_a - 1
+    j_lo_g = 0 if sb > 0 else -n_b
+    j_hi_g = j_lo_g + n_b - 1
+    i_apex = int(math.floor(a0))
+    j_apex = int(math.floor(b0))
+    cap = lo0.shape[0] + 64
+    cur_lo = np.empty(cap, dtype=np.float64)
+    cur_hi = np.empty(cap, dtype=np.float64)
+    cur_r = np.empty(cap, dtype=np.float64)
+    nxt_lo = np.empty(cap, dtype=np.float64)
+    nxt_hi = np.empty(cap, dtype=np.float64)
+    nxt_r = np.empty(cap, dtype=np.float64)
+    n_cur = lo0.shape[0]
+    r_max = 0.0
+    for k in range(n_cur):
+        cur_lo[k] = lo0[k]
+        cur_hi[k] = hi0[k]
+        cur_r[k] = r0[k]
+        r_max = max(r_max, r0[k])
+    i_first = max(i_apex, i_lo_g)
+    for i in range(i_first, i_hi_g + 1):
+        near = i - a0
+        if near >= r_max or n_cur == 0:
+            break
+        far = i + 1.0 - a0
+        inv_far = 1.0 / far
+        inv_near = 1.0 / near if near > 0.0 else np.inf
+        near_c = near if near > 0.0 else 0.0
+        gi = i if sa > 0 else -i - 1
+        n_nxt = 0
+        for k in range(n_cur):
+            lo = cur_lo[k]
+            hi = cur_hi[k]
+            rr = cur_r[k]
+            if near >= rr:
+                continue
+            j0 = int(math.floor(b0 + lo * near_c))
+            if j0 > j_hi_g:
+                continue  # these rays have left the grid for good (b only grows)
+            j1 = int(math.ceil(b0 + hi * far)) - 1
+            if j1 < j0:
+                j1 = j0
+            jj0 = max(j0, j_lo_g)
+            jj1 = min(j1, j_hi_g)
+            r2 = rr * rr
+            cl = lo
+            # make room for up to (jj1 - jj0 + 2) more intervals
+            need = n_nxt + (jj1 - jj0 + 2) + 1
+            if need > nxt_lo.shape[0]:
+                new_cap = max(2 * nxt_lo.shape[0], need)
+                t_lo = np.empty(new_cap, dtype=np.float64)
+                t_hi = np.empty(new_cap, dtype=np.float64)
+                t_r = np.empty(new_cap, dtype=np.float64)
+                t_lo[:n_nxt] = nxt_lo[:n_nxt]
+                t_hi[:n_nxt] = nxt_hi[:n_nxt]
+                t_r[:n_nxt] = nxt_r[:n_nxt]
+                nxt_lo = t_lo
+                nxt_hi = t_hi
+                nxt_r = t_r
+            for j in range(jj0, jj1 + 1):
+                dy = j - b0
+                if dy < 0.0:
+                    dy = 0.0
+                if near_c * near_c + dy * dy >= r2:
+                    break  # beyond the cone's range; later j are farther still
+                c_hi = (j + 1.0 - b0) * inv_near
+                if c_hi <= cl:
+                    continue
+                gj = j if sb > 0 else -j - 1
+                if swap:
+                    gr = gj
+                    gc = gi
+                else:
+                    gr = gi
+                    gc = gj
+                if barrier[gr, gc] != 0 and not (i == i_apex and j == j_apex):
+                    c_lo = (j - b0) * inv_far
+                    if c_lo > hi:
+                        c_lo = hi
+                    if c_lo - cl > _EPS_SLOPE:
+                        nxt_lo[n_nxt] = cl
+                        nxt_hi[n_nxt] = c_lo
+                        nxt_r[n_nxt] = rr
+                        n_nxt += 1
+                    if c_hi > cl:
+                        cl = c_hi
+                    if cl >= hi:
+                        break
+                else:
+                    free[gr, gc] = FREE
+            if hi - cl > _EPS_SLOPE:
+                nxt_lo[n_nxt] = cl
+                nxt_hi[n_nxt] = hi
+                nxt_r[n_nxt] = rr
+                n_nxt += 1
+        cur_lo, nxt_lo = nxt_lo, cur_lo
+        cur_hi, nxt_hi = nxt_hi, cur_hi
+        cur_r, nxt_r = nxt_r, cur_r
+        n_cur = n_nxt
+        if cur_lo.shape[0] != nxt_lo.shape[0]:
+            # keep both buffers the same size after a growth
+            nxt_lo = np.empty(cur_lo.shape[0], dtype=np.float64)
+            nxt_hi = np.empty(cur_lo.shape[0], dtype=np.float64)
+            nxt_r = np.empty(cur_lo.shape[0], dtype=np.float64)
+
+
+@numba.njit(cache=True)
+def _k_cast(barrier, free, apex_uv, t_apex, t_oct, t_start, iv_lo, iv_hi, iv_r):
+    for t in range(t_apex.shape[0]):
+        a = t_apex[t]
+        s0 = t_start[t]
+        s1 = t_start[t + 1]
+        _k_cast_task(barrier, free, apex_uv[a, 0], apex_uv[a, 1], t_oct[t], iv_lo[s0:s1], iv_hi[s0:s1], iv_r[s0:s1])
+
+
+@numba.njit(cache=True, parallel=True)
+def _k_cast_par(barrier, free, apex_uv, t_apex, t_oct, t_start, iv_lo, iv_hi, iv_r):
+    # Tasks only read ``barrier`` and only write FREE into ``free``: races write equal bytes.
+    for t in numba.prange(t_apex.shape[0]):
+        a = t_apex[t]
+        s0 = t_start[t]
+        s1 = t_start[t + 1]
+        _k_cast_task(barrier, free, apex_uv[a, 0], apex_uv[a, 1], t_oct[t], iv_lo[s0:s1], iv_hi[s0:s1], iv_r[s0:s1])
+
+
+@numba.njit(cache=True)
+def _k_mark_detections(det_uv, ok, labels):
+    """Step 3: detection cells are occupied, over any free mark (detections win)."""
+    n_r, n_c = labels.shape
+    n_used = 0
+    for i in range(det_uv.shape[0]):
+        if not ok[i]:
+            continue
+        n_used += 1
+        fr = math.floor(det_uv[i, 0])
+        fc = math.floor(det_uv[i, 1])
+        if fr >= 0 and fr < n_r and fc >= 0 and fc < n_c:
+            labels[int(fr), int(fc)] = OCCUPIED
+    return n_used
+
+
+# --- the model on prepared detections ---------------------------------------------------------
+
+def _irm_core(
+    det_uv: np.ndarray,
+    ok: np.ndarray,
+    det_apex: np.ndarray,
+    apex_uv: np.ndarray,
+    grid: GridSpec,
+    params: RayIrmParams,
+    threads: int,
+    out: np.ndarray | None,
+) -> tuple[np.ndarray, int]:
+    """Steps 1-3 on detections and apexes in continuous cell coordinates; returns (masses, n_used)."""
+    h = math.radians(params.opening_angle_deg) / 2.0
+    barrier = label_scratch(grid, "irm_barrier")
+    labels = label_scratch(grid, "irm_labels")
+    if det_uv.shape[0]:
+        _k_caps(det_uv, ok, det_apex, apex_uv, h, barrier)
+        tasks = _k_tasks(det_uv, ok, det_apex, apex_uv, h)
+        if threads > 1:
+            with numba_threads(threads):
+                _k_cast_par(barrier, labels, apex_uv, *tasks)
+        else:
+            _k_cast(barrier, labels, apex_uv, *tasks)
+    n_used = int(_k_mark_detections(det_uv, ok, labels))
+    lut = mass_lut(params.m_free, params.m_occupied)
+    if threads > 1:
+        with numba_threads(threads):
+            masses = labels_to_masses(labels, lut, out, threads)
+    else:
+        masses = labels_to_masses(labels, lut, out, threads)
+    return masses, n_used
+
+
+def _check_common(grid: GridSpec, params: RayIrmParams, threads: int) -> int:
+    if not isinstance(grid, GridSpec):
+        raise TypeError(f"ray_irm: grid must be a GridSpec, got {type(grid).__name__}")
+    if not isinstance(params, RayIrmParams):
+        raise TypeError(f"ray_irm: params must be a RayIrmParams, got {type(params).__name__}")
+    return check_threads(threads)
+
+
+def _last_sweeps(sweeps: Iterable[RadarSweep], n_sweeps: int) -> list[RadarSweep]:
+    """The last ``n_sweeps`` sweeps (by timestamp) of each channel, channel by channel."""
+    per: dict[str, list[RadarSweep]] = {}
+    for s in sweeps:
+        if not isinstance(s, RadarSweep):
+            raise TypeError(f"ray_irm: sweeps must be RadarSweep objects, got {type(s).__name__}")
+        per.setdefault(s.channel, []).append(s)
+    out: list[RadarSweep] = []
+    for ch in sorted(per, key=lambda c: RADAR_CHANNELS.index(c)):
+        lst = sorted(per[ch], key=lambda s: s.timestamp)
+        out.extend(lst[-n_sweeps:])
+    return out
+
+
+def ray_irm_with_stats(
+    sweeps: Iterable[RadarSweep],
+    ego_pose: SE3,
+    *,
+    grid: GridSpec = _DEFAULT_GRID,
+    params: RayIrmParams = _DEFAULT_PARAMS,
+    threads: int = 1,
+    out: np.ndarray | None = None,
+) -> IsmResult:
+    """Ray IRM (paper sec. V-B) with point counts: masses ``(n, n, 3)`` float32 in the frame of ``ego_pose`` (metres).
+
+    ``sweeps``: radar sweeps (any order, e.g. a :class:`RadarBuffer`); of each channel the
+    last ``params.n_sweeps`` by timestamp are used. ``ego_pose``: the current ego pose
+    (ego -> global) whose ego frame the grid is. ``threads > 1`` casts the cones on that
+    many numba threads. NaN/inf points are dropped, counted and logged once per call.
+    """
+    threads = _check_common(grid, params, threads)
+    if not isinstance(ego_pose, SE3):
+        raise TypeError(f"ray_irm: ego_pose must be an SE3, got {type(ego_pose).__name__}")
+    used = _last_sweeps(sweeps, params.n_sweeps)
+    n = grid.n_cells
+    inv_res = 1.0 / grid.resolution
+    half = n / 2.0
+    cur_inv = ego_pose.inverse().matrix()
+    mats = np.empty((len(used), 3, 4), dtype=np.float64)
+    apex_xy = np.empty((len(used), 2), dtype=np.float64)
+    for k, s in enumerate(used):
+        # local = current_ego_pose^-1 o sweep.ego_pose o sensor_to_ego (DESIGN 4: own position, own time)
+        m = cur_inv @ s.ego_pose.matrix() @ s.sensor_to_ego.matrix()
+        mats[k] = m[:3, :]
+        apex_xy[k] = m[:2, 3]
+    counts = np.array([s.points.shape[0] for s in used], dtype=np.int64)
+    if counts.sum():
+        pts = np.concatenate([s.points[:, :3] for s in used], axis=0)
+    else:
+        pts = np.empty((0, 3), dtype=np.float32)
+    sweep_of = np.repeat(np.arange(len(used), dtype=np.int64), counts)
+    det_uv = np.empty((pts.shape[0], 2), dtype=np.float64)
+    ok = np.empty(pts.shape[0], dtype=np.bool_)
+    n_dropped = int(_k_transform(pts, sweep_of, mats, half, inv_res, det_uv, ok)) if pts.shape[0] else 0
+    # Sweeps from the very same position (a standing vehicle) share one apex.
+    if len(used):
+        uniq, inverse = np.unique(apex_xy, axis=0, return_inverse=True)
+        det_apex = np.ascontiguousarray(inverse.reshape(-1)[sweep_of])
+    else:
+        uniq = np.empty((0, 2))
+        det_apex = np.empty(0, dtype=np.int64)
+    apex_uv = np.ascontiguousarray(np.stack([half - uniq[:, 0] * inv_res, half - uniq[:, 1] * inv_res], axis=1))
+    n_points = int(pts.shape[0])
+    log_dropped(logger, "ray_irm", n_dropped, n_points)
+    masses, n_used = _irm_core(det_uv, ok, det_apex, apex_uv, grid, params, threads, out)
+    return IsmResult(masses, n_points, n_dropped, n_used)
+
+
+def ray_irm(
+    sweeps: Iterable[RadarSweep],
+    ego_pose: SE3,
+    *,
+    grid: GridSpec = _DEFAULT_GRID,
+    params: RayIrmParams = _DEFAULT_PARAMS,
+    threads: int = 1,
+    out: np.ndarray | None = None,
+) -> np.ndarray:
+    """Ray IRM (paper sec. V-B): masses ``(n, n, 3)`` float32 [m_f, m_o, m_u] in the frame of ``ego_pose``; see :func:`ray_irm_with_stats`."""
+    return ray_irm_with_stats(sweeps, ego_pose, grid=grid, params=params, threads=threads, out=out).masses
+
+
+def ray_irm_xy(
+    detections_xy: np.ndarray,
+    origins_xy: np.ndarray,
+    *,
+    grid: GridSpec = _DEFAULT_GRID,
+    params: RayIrmParams = _DEFAULT_PARAMS,
+    threads: int = 1,
+    out: np.ndarray | None = None,
+) -> IsmResult:
+    """Ray IRM on detections already in the grid's frame: ``detections_xy`` ``(n, 2)`` m, cone apexes ``origins_xy`` ``(n, 2)`` or ``(2,)`` m.
+
+    ``params.n_sweeps`` plays no part here: every detection given is used.
+    """
+    threads = _check_common(grid, params, threads)
+    det = as_points(detections_xy, 2, "ray_irm_xy")
+    if det.shape[1] != 2:
+        raise ValueError(f"ray_irm_xy: detections_xy must have shape (n, 2), got {det.shape}")
+    org = np.asarray(origins_xy, dtype=np.float64)
+    if org.shape == (2,):
+        org = np.broadcast_to(org, det.shape)
+    if org.shape != det.shape:
+        raise ValueError(f"ray_irm_xy: origins_xy must have shape (2,) or {det.shape}, got {org.shape}")
+    if not np.isfinite(org).all():
+        raise ValueError("ray_irm_xy: origins_xy must be finite")
+    n = grid.n_cells
+    inv_res = 1.0 / grid.resolution
+    half = n / 2.0
+    ok = np.isfinite(det).all(axis=1)
+    n_dropped = int((~ok).sum())
+    det_uv = np.ascontiguousarray(half - det.astype(np.float64) * inv_res)
+    det_uv[~ok] = 0.0
+    if det.shape[0]:
+        uniq, inverse = np.unique(org, axis=0, return_inverse=True)
+    else:
+        uniq, inverse = np.empty((0, 2)), np.empty(0, dtype=np.int64)
+    apex_uv = np.ascontiguousarray(half - uniq * inv_res)
+    log_dropped(logger, "ray_irm_xy", n_dropped, int(det.shape[0]))
+    masses, n_used = _irm_core(
+        det_uv, ok, np.ascontiguousarray(inverse.reshape(-1).astype(np.int64)), apex_uv, grid, params, threads, out
+    )
+    return IsmResult(masses, int(det.shape[0]), n_dropped, n_used)
+
+
+class RadarBuffer:
+    """The last ``n_sweeps`` radar sweeps of each channel, fed frame by frame (for :func:`ray_irm`).
+
+    ``update(frame)`` appends the frame's radar sweeps (the frame contract delivers each
+    sweep once, oldest first); a sweep with the timestamp of one already held for its
+    channel is ignored. Iterating yields the held sweeps, channel by channel, oldest first.
+    """
+
+    def __init__(self, n_sweeps: int = 10) -> None:
+        if isinstance(n_sweeps, bool) or not isinstance(n_sweeps, (int, np.integer)) or n_sweeps < 1:
+            raise ValueError(f"RadarBuffer.n_sweeps must be an integer >= 1, got {n_sweeps!r}")
+        self.n_sweeps = int(n_sweeps)
+        self._buf: dict[str, deque[RadarSweep]] = {ch: deque(maxlen=self.n_sweeps) for ch in RADAR_CHANNELS}
+
+    def push(self, sweep: RadarSweep) -> None:
+        """Add one sweep to its channel, dropping that channel's oldest beyond ``n_sweeps``."""
+        if not isinstance(sweep, RadarSweep):
+            raise TypeError(f"RadarBuffer.push needs a RadarSweep, got {type(sweep).__name__}")
+        q = self._buf[sweep.channel]
+        if any(s.timestamp == sweep.timestamp for s in q):
+            return
+        q.append(sweep)
+
+    def update(self, frame: Frame) -> None:
+        """Add all radar sweeps of ``frame``."""
+        if not isinstance(frame, Frame):
+            raise TypeError(f"RadarBuffer.update needs a Frame, got {type(frame).__name__}")
+        for s in frame.radar_sweeps():
+            self.push(s)
+
+    def sweeps(self) -> list[RadarSweep]:
+        """The held sweeps, channel by channel, oldest first."""
+        return [s for ch in RADAR_CHANNELS for s in self._buf[ch]]
+
+    def clear(self) -> None:
+        """Forget all sweeps (at a scene change)."""
+        for q in self._buf.values():
+            q.clear()
+
+    def __iter__(self) -> Iterator[RadarSweep]:
+        return iter(self.sweeps())
+
+    def __len__(self) -> int:
+        return sum(len(q) for q in self._buf.values())
