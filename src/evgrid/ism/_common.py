@@ -83,13 +83,20 @@ def mass_lut(m_free: float, m_occupied: float) -> np.ndarray:
     )
 
 
+def check_out(out: np.ndarray | None, grid: GridSpec) -> None:
+    """Raise ValueError unless ``out`` is None or a writeable C-contiguous float32 ``(n, n, 3)`` array."""
+    if out is None:
+        return
+    shape = grid.shape + (3,)
+    if not isinstance(out, np.ndarray) or out.shape != shape or out.dtype != np.float32 or not out.flags.c_contiguous or not out.flags.writeable:
+        got = f"{out.shape} {out.dtype}" if isinstance(out, np.ndarray) else type(out).__name__
+        raise ValueError(f"out must be a writeable C-contiguous float32 array of shape {shape}, got {got}")
+
+
 def labels_to_masses(labels: np.ndarray, lut: np.ndarray, out: np.ndarray | None, threads: int) -> np.ndarray:
     """Expand a uint8 label grid to float32 masses ``(n, n, 3)``, into ``out`` when given."""
-    shape = labels.shape + (3,)
     if out is None:
-        out = np.empty(shape, dtype=np.float32)
-    elif out.shape != shape or out.dtype != np.float32 or not out.flags.c_contiguous or not out.flags.writeable:
-        raise ValueError(f"out must be a writeable C-contiguous float32 array of shape {shape}, got {out.shape} {out.dtype}")
+        out = np.empty(labels.shape + (3,), dtype=np.float32)
     if threads > 1:
         _k_labels_to_masses_par(labels, lut, out)
     else:
@@ -112,6 +119,26 @@ def label_scratch(grid: GridSpec, name: str) -> np.ndarray:
     else:
         a.fill(0)
     return a
+
+
+def bit_scratch(grid: GridSpec, name: str, count: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Two zeroed uint64 bitmap stacks ``(count, n, ceil(n / 64))`` reused across calls (per thread).
+
+    The first holds a grid by rows (bit c of row r), the second by columns (bit r of column c).
+    """
+    key = (name, grid.n_cells, count)
+    store = getattr(_scratch, "store", None)
+    if store is None:
+        store = _scratch.store = {}
+    pair = store.get(key)
+    if pair is None:
+        w = (grid.n_cells + 63) // 64
+        shape = (count, grid.n_cells, w)
+        pair = store[key] = (np.zeros(shape, np.uint64), np.zeros(shape, np.uint64))
+    else:
+        pair[0].fill(0)
+        pair[1].fill(0)
+    return pair
 
 
 def as_points(points: object, min_cols: int, what: str) -> np.ndarray:

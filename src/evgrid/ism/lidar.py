@@ -44,6 +44,7 @@ from evgrid.ism._common import (
     OCCUPIED,
     IsmResult,
     as_points,
+    check_out,
     check_threads,
     label_scratch,
     labels_to_masses,
@@ -67,9 +68,13 @@ class RayIlmParams:
     angular_resolution_deg: float = 0.2
     m_free: float = 0.05
     m_occupied: float = 0.5
+    #: Returns closer than this (horizontally) to the lidar are ignored, e.g. hits on the
+    #: vehicle's own body, which would otherwise stop every ray through their cells. Not in
+    #: the paper, so 0 (keep all) by default.
+    min_range_m: float = 0.0
 
     def __post_init__(self) -> None:
-        for name in ("z_min_m", "z_max_m", "max_range_m", "angular_resolution_deg", "m_free", "m_occupied"):
+        for name in ("z_min_m", "z_max_m", "max_range_m", "angular_resolution_deg", "m_free", "m_occupied", "min_range_m"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)) or not math.isfinite(v):
                 raise ValueError(f"RayIlmParams.{name} must be a finite number, got {v!r}")
@@ -77,6 +82,8 @@ class RayIlmParams:
             raise ValueError(f"RayIlmParams needs z_min_m < z_max_m, got {self.z_min_m} and {self.z_max_m}")
         if self.max_range_m <= 0:
             raise ValueError(f"RayIlmParams.max_range_m must be > 0, got {self.max_range_m}")
+        if self.min_range_m < 0:
+            raise ValueError(f"RayIlmParams.min_range_m must be >= 0, got {self.min_range_m}")
         if not 0 < self.angular_resolution_deg <= 360:
             raise ValueError(f"RayIlmParams.angular_resolution_deg must be in (0, 360], got {self.angular_resolution_deg}")
         for name in ("m_free", "m_occupied"):
@@ -96,9 +103,10 @@ _DEFAULT_PARAMS = RayIlmParams()
 # --- kernels ------------------------------------------------------------------------------------
 
 @numba.njit(cache=True)
-def _k_ilm_points(pts, se, eg, z_min, z_max, half, inv_res, labels):
+def _k_ilm_points(pts, se, eg, z_min, z_max, min_range, half, inv_res, labels):
     """Mark detection cells; returns (n_dropped, n_used). ``se``: sensor->ego 3x4, ``eg``: ego->grid 2x4."""
     n_r, n_c = labels.shape
+    min_r2 = min_range * min_range
     n_dropped = 0
     n_used = 0
     for i in range(pts.shape[0]):
@@ -114,6 +122,11 @@ def _k_ilm_points(pts, se, eg, z_min, z_max, half, inv_res, labels):
         # Paper sec. V-A: drop detections below 0.3 m and above 3.0 m (ego z = height above ground).
         if ez < z_min or ez > z_max:
             continue
+        if min_r2 > 0.0:
+            hx = ex - se[0, 3]
+            hy = ey - se[1, 3]
+            if hx * hx + hy * hy < min_r2:
+                continue
         n_used += 1
         gx = eg[0, 0] * ex + eg[0, 1] * ey + eg[0, 2] * ez + eg[0, 3]
         gy = eg[1, 0] * ex + eg[1, 1] * ey + eg[1, 2] * ez + eg[1, 3]
@@ -259,6 +272,7 @@ def ray_ilm_with_stats(
     if not isinstance(params, RayIlmParams):
         raise TypeError(f"ray_ilm: params must be a RayIlmParams, got {type(params).__name__}")
     threads = check_threads(threads)
+    check_out(out, grid)
     pts, sensor_to_ego, ego_pose = _resolve_inputs(sweep, sensor_to_ego, ego_pose)
 
     se = np.ascontiguousarray(sensor_to_ego.matrix()[:3, :])
@@ -274,7 +288,7 @@ def ray_ilm_with_stats(
     inv_res = 1.0 / grid.resolution
     labels = label_scratch(grid, "ilm")
     n_dropped, n_used = _k_ilm_points(
-        pts, se, eg, float(params.z_min_m), float(params.z_max_m), n / 2.0, inv_res, labels
+        pts, se, eg, float(params.z_min_m), float(params.z_max_m), float(params.min_range_m), n / 2.0, inv_res, labels
     )
     n_points = int(pts.shape[0])
     log_dropped(logger, "ray_ilm", int(n_dropped), n_points)

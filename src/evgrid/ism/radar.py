@@ -53,7 +53,9 @@ from evgrid.ism._common import (
     OCCUPIED,
     IsmResult,
     as_points,
+    check_out,
     check_threads,
+    bit_scratch,
     label_scratch,
     labels_to_masses,
     log_dropped,
@@ -131,30 +133,84 @@ def _wrap(a):
     return a
 
 
-@numba.njit(cache=True)
-def _mark_cap(barrier, au, av, du, dv, h, buf):
-    """Step 1: mark the cells the arc {apex + r (cos, sin)(phi + b), |b| <= h} passes through.
+@numba.njit(cache=True, inline="always")
+def _set_barrier(barrier, brow, bcol, r, c):
+    """Mark barrier cell (r, c) in the byte grid and in the row-wise and column-wise bitmaps."""
+    barrier[r, c] = 1
+    one = np.uint64(1)
+    brow[r, c >> 6] |= one << np.uint64(c & 63)
+    bcol[c, r >> 6] |= one << np.uint64(r & 63)
 
-    Exact: the arc's crossings with the grid lines u = k and v = k split it into pieces
-    that each lie in one cell; the cell of each piece's middle is marked.
+
+@numba.njit(cache=True, inline="always")
+def _any_bits(bits, row, g0, g1):
+    """Whether any bit g0..g1 (inclusive, 0 <= g0 <= g1) of uint64 word row ``bits[row]`` is set."""
+    full = np.uint64(0xFFFFFFFFFFFFFFFF)
+    w0 = g0 >> 6
+    w1 = g1 >> 6
+    for w in range(w0, w1 + 1):
+        m = full
+        if w == w0:
+            m &= full << np.uint64(g0 & 63)
+        if w == w1:
+            m &= full >> np.uint64(63 - (g1 & 63))
+        if bits[row, w] & m:
+            return True
+    return False
+
+
+@numba.njit(cache=True, inline="always")
+def _set_bits(bits, row, g0, g1):
+    """Set bits g0..g1 (inclusive, 0 <= g0 <= g1) of uint64 word row ``bits[row]``."""
+    full = np.uint64(0xFFFFFFFFFFFFFFFF)
+    w0 = g0 >> 6
+    w1 = g1 >> 6
+    for w in range(w0, w1 + 1):
+        m = full
+        if w == w0:
+            m &= full << np.uint64(g0 & 63)
+        if w == w1:
+            m &= full >> np.uint64(63 - (g1 & 63))
+        bits[row, w] |= m
+
+
+@numba.njit(cache=True)
+def _mark_cap(barrier, brow, bcol, au, av, du, dv, cos_h, sin_h, buf):
+    """Step 1: mark the cells the cap arc passes through, exactly.
+
+    The arc: apex + w, |w| = r = |(du, dv)|, at most h from the direction e = (du, dv) / r;
+    with p = e turned by +90 degrees, w = r (cos b e + sin b p) for |b| <= h. Its crossings
+    with the grid lines u = k and v = k (circle-line intersections, kept where
+    w . e >= r cos h) split it into pieces that each lie in one cell; the crossings are
+    ordered by s = e x w = r sin b, and the cell of each piece's middle is marked.
     """
     n_r, n_c = barrier.shape
-    r = math.sqrt(du * du + dv * dv)
+    r2 = du * du + dv * dv
+    r = math.sqrt(r2)
     if r < 1e-9:
         return buf
-    phi = math.atan2(dv, du)
-    # bounding box of the arc: its end points plus the extremes of cos / sin inside it
-    u_lo = min(au + r * math.cos(phi - h), au + r * math.cos(phi + h))
-    u_hi = max(au + r * math.cos(phi - h), au + r * math.cos(phi + h))
-    v_lo = min(av + r * math.sin(phi - h), av + r * math.sin(phi + h))
-    v_hi = max(av + r * math.sin(phi - h), av + r * math.sin(phi + h))
-    if abs(_wrap(phi)) <= h:
+    eu = du / r
+    ev = dv / r
+    pu = -ev
+    pv = eu
+    rc = r * cos_h
+    rs = r * sin_h
+    # bounding box: both end points, plus the circle's extremes where the arc holds them
+    u1 = au + rc * eu - rs * pu
+    u2 = au + rc * eu + rs * pu
+    v1 = av + rc * ev - rs * pv
+    v2 = av + rc * ev + rs * pv
+    u_lo = min(u1, u2)
+    u_hi = max(u1, u2)
+    v_lo = min(v1, v2)
+    v_hi = max(v1, v2)
+    if eu >= cos_h:
         u_hi = au + r
-    if abs(_wrap(phi - math.pi)) <= h:
+    if eu <= -cos_h:
         u_lo = au - r
-    if abs(_wrap(phi - math.pi / 2)) <= h:
+    if ev >= cos_h:
         v_hi = av + r
-    if abs(_wrap(phi + math.pi / 2)) <= h:
+    if ev <= -cos_h:
         v_lo = av - r
     if u_hi < 0.0 or u_lo >= n_r or v_hi < 0.0 or v_lo >= n_c:
         return buf
@@ -166,36 +222,30 @@ def _mark_cap(barrier, au, av, du, dv, h, buf):
     if buf.shape[0] < need:
         buf = np.empty(2 * need, dtype=np.float64)
     m = 0
-    buf[m] = -h
+    buf[m] = -rs
     m += 1
-    buf[m] = h
+    buf[m] = rs
     m += 1
     for k in range(ku0, ku1 + 1):
-        c = (k - au) / r
-        if c < -1.0 or c > 1.0:
+        x = k - au
+        q = r2 - x * x
+        if q < 0.0:
             continue
-        t = math.acos(c)
-        b = _wrap(t - phi)
-        if -h < b < h:
-            buf[m] = b
-            m += 1
-        b = _wrap(-t - phi)
-        if -h < b < h:
-            buf[m] = b
-            m += 1
+        y = math.sqrt(q)
+        for wv in (y, -y):
+            if x * eu + wv * ev > rc:
+                buf[m] = eu * wv - ev * x
+                m += 1
     for k in range(kv0, kv1 + 1):
-        s = (k - av) / r
-        if s < -1.0 or s > 1.0:
+        y = k - av
+        q = r2 - y * y
+        if q < 0.0:
             continue
-        t = math.asin(s)
-        b = _wrap(t - phi)
-        if -h < b < h:
-            buf[m] = b
-            m += 1
-        b = _wrap(math.pi - t - phi)
-        if -h < b < h:
-            buf[m] = b
-            m += 1
+        x = math.sqrt(q)
+        for wu in (x, -x):
+            if wu * eu + y * ev > rc:
+                buf[m] = eu * y - ev * wu
+                m += 1
     # insertion sort: a cap crosses a handful of grid lines
     for i in range(1, m):
         x = buf[i]
@@ -207,24 +257,27 @@ def _mark_cap(barrier, au, av, du, dv, h, buf):
     for i in range(m - 1):
         if buf[i + 1] <= buf[i]:
             continue
-        b = 0.5 * (buf[i] + buf[i + 1]) + phi
-        cu = math.floor(au + r * math.cos(b))
-        cv = math.floor(av + r * math.sin(b))
+        sm = 0.5 * (buf[i] + buf[i + 1])
+        cm = math.sqrt(max(r2 - sm * sm, 0.0))
+        cu = math.floor(au + cm * eu + sm * pu)
+        cv = math.floor(av + cm * ev + sm * pv)
         if cu >= 0 and cu < n_r and cv >= 0 and cv < n_c:
-            barrier[int(cu), int(cv)] = 1
+            _set_barrier(barrier, brow, bcol, int(cu), int(cv))
     return buf
 
 
 @numba.njit(cache=True)
-def _k_caps(det_uv, ok, det_apex, apex_uv, h, barrier):
+def _k_caps(det_uv, ok, det_apex, apex_uv, h, barrier, brow, bcol):
     buf = np.empty(64, dtype=np.float64)
+    cos_h = math.cos(h)
+    sin_h = math.sin(h)
     for i in range(det_uv.shape[0]):
         if not ok[i]:
             continue
         a = det_apex[i]
         au = apex_uv[a, 0]
         av = apex_uv[a, 1]
-        buf = _mark_cap(barrier, au, av, det_uv[i, 0] - au, det_uv[i, 1] - av, h, buf)
+        buf = _mark_cap(barrier, brow, bcol, au, av, det_uv[i, 0] - au, det_uv[i, 1] - av, cos_h, sin_h, buf)
 
 
 @numba.njit(cache=True, inline="always")
@@ -269,6 +322,38 @@ def _slope(o, ang):
     return s
 
 
+@numba.njit(cache=True, inline="always")
+def _slope_vec(o, x, y):
+    """Local slope db/da in [0, 1] of the direction (x, y) (in (u, v)) seen in octant o."""
+    swap, sa, sb = _octant_frame(o)
+    if swap:
+        da = sa * y
+        db = sb * x
+    else:
+        da = sa * x
+        db = sb * y
+    if da <= 0.0:
+        return 1.0
+    s = db / da
+    if s < 0.0:
+        return 0.0
+    if s > 1.0:
+        return 1.0
+    return s
+
+
+@numba.njit(cache=True, inline="always")
+def _octant_of(x, y):
+    """Octant floor(atan2(y, x) / 45 degrees) of the direction (x, y), without trigonometry."""
+    if y >= 0.0:
+        if x > 0.0:
+            return 0 if y < x else 1
+        return 2 if y > -x else 3
+    if x < 0.0:
+        return 4 if -y < -x else 5
+    return 6 if -y > x else 7
+
+
 @numba.njit(cache=True)
 def _k_tasks(det_uv, ok, det_apex, apex_uv, h):
     """Split every cone into octant pieces of slope intervals; merge them per (apex, octant).
@@ -279,6 +364,9 @@ def _k_tasks(det_uv, ok, det_apex, apex_uv, h):
     """
     n = det_uv.shape[0]
     max_pieces = int(2.0 * h / _QUARTER) + 2
+    cos_h = math.cos(h)
+    sin_h = math.sin(h)
+    narrow = 2.0 * h < _QUARTER
     p_key = np.empty(n * max_pieces, dtype=np.float64)
     p_apex = np.empty(n * max_pieces, dtype=np.int64)
     p_oct = np.empty(n * max_pieces, dtype=np.int64)
@@ -295,6 +383,42 @@ def _k_tasks(det_uv, ok, det_apex, apex_uv, h):
         r = math.sqrt(du * du + dv * dv)
         if r < 1e-9:
             continue
+        if narrow:
+            # A cone narrower than an octant spans one octant or two adjacent ones: split it
+            # with vector algebra. Its edges: e turned by -h and +h.
+            eu = du / r
+            ev = dv / r
+            x1 = cos_h * eu + sin_h * ev
+            y1 = cos_h * ev - sin_h * eu
+            x2 = cos_h * eu - sin_h * ev
+            y2 = cos_h * ev + sin_h * eu
+            o1 = _octant_of(x1, y1)
+            o2 = _octant_of(x2, y2)
+            if o1 == o2 or o2 == (o1 + 1) % 8:
+                # the boundary between o1 and o1 + 1 has slope 1 in o1 when o1 is even, else 0,
+                # and the same slope seen from o1 + 1
+                bnd = 1.0 if o1 % 2 == 0 else 0.0
+                for q in range(2 if o1 != o2 else 1):
+                    if o1 == o2:
+                        o = o1
+                        s1 = _slope_vec(o, x1, y1)
+                        s2 = _slope_vec(o, x2, y2)
+                    elif q == 0:
+                        o = o1
+                        s1 = _slope_vec(o, x1, y1)
+                        s2 = bnd
+                    else:
+                        o = o2
+                        s1 = bnd
+                        s2 = _slope_vec(o, x2, y2)
+                    p_apex[m] = a
+                    p_oct[m] = o
+                    p_lo[m] = min(s1, s2)
+                    p_hi[m] = max(s1, s2)
+                    p_r[m] = r
+                    p_key[m] = (a * 8 + o) + 0.5 * p_lo[m]
+                    m += 1
+                continue
         phi = math.atan2(dv, du)
         start = phi - h
         if start < 0.0:
@@ -350,18 +474,21 @@ def _k_tasks(det_uv, ok, det_apex, apex_uv, h):
 
 
 @numba.njit(cache=True)
-def _k_cast_task(barrier, free, au, av, o, lo0, hi0, r0):
+def _k_cast_task(barrier, brow, bcol, frow, fcol, au, av, o, lo0, hi0, r0):
     """Step 2 for one sensor position and one octant: exact shadow casting of slope intervals.
 
     In the octant's local frame (a = major axis, b = minor axis, both growing away from the
     apex; slopes db/da in [0, 1]) the cells are swept column by column (a = i .. i + 1); a
-    ray of slope s crosses column i in increasing b. ``cur`` holds the still-open slope
-    intervals (sorted, disjoint). In column i, cell (i, j) is touched by the slopes
+    ray of slope s crosses column i in increasing b. The open slope intervals (sorted,
+    disjoint) live in ``iv[cur]``. In column i, cell (i, j) is touched by the slopes
     [(j - b0) / (i + 1 - a0), (j + 1 - b0) / (i - a0)]; an open cell inside the range is
     marked free; a barrier cell removes its slopes from the open set (for the rest of the
     column too, since a ray crosses a column in increasing j). The range limit of an
     interval (the largest cone range in it) only matters outside the grid: inside, every
-    cone's own cap stops it.
+    cone's own cap stops it. Most column runs hold no barrier: the bitmaps ``brow`` /
+    ``bcol`` tell that in a few word operations, and the run is then marked free in one go
+    in the free bitmap of the same orientation (``frow`` / ``fcol``). No array views are
+    made inside the loops: each costs reference counting.
     """
     n_r, n_c = barrier.shape
     swap, sa, sb = _octant_frame(o)
@@ -370,11 +497,15 @@ def _k_cast_task(barrier, free, au, av, o, lo0, hi0, r0):
         b0 = sb * au
         n_a = n_c
         n_b = n_r
+        bbits = bcol
+        fbits = fcol
     else:
         a0 = sa * au
         b0 = sb * av
         n_a = n_r
         n_b = n_c
+        bbits = brow
+        fbits = frow
     # local index ranges covering the grid: a grid index g is i = g (sa > 0) or i = -g - 1
     i_lo_g = 0 if sa > 0 else -n_a
     i_hi_g = i_lo_g + n_a - 1
@@ -382,20 +513,16 @@ def _k_cast_task(barrier, free, au, av, o, lo0, hi0, r0):
     j_hi_g = j_lo_g + n_b - 1
     i_apex = int(math.floor(a0))
     j_apex = int(math.floor(b0))
-    cap = lo0.shape[0] + 64
-    cur_lo = np.empty(cap, dtype=np.float64)
-    cur_hi = np.empty(cap, dtype=np.float64)
-    cur_r = np.empty(cap, dtype=np.float64)
-    nxt_lo = np.empty(cap, dtype=np.float64)
-    nxt_hi = np.empty(cap, dtype=np.float64)
-    nxt_r = np.empty(cap, dtype=np.float64)
     n_cur = lo0.shape[0]
+    # iv[buffer, field, k]: fields lo, hi, range; buffers cur / nxt swap every column
+    iv = np.empty((2, 3, n_cur + 64), dtype=np.float64)
     r_max = 0.0
     for k in range(n_cur):
-        cur_lo[k] = lo0[k]
-        cur_hi[k] = hi0[k]
-        cur_r[k] = r0[k]
+        iv[0, 0, k] = lo0[k]
+        iv[0, 1, k] = hi0[k]
+        iv[0, 2, k] = r0[k]
         r_max = max(r_max, r0[k])
+    cur = 0
     i_first = max(i_apex, i_lo_g)
     for i in range(i_first, i_hi_g + 1):
         near = i - a0
@@ -406,100 +533,118 @@ def _k_cast_task(barrier, free, au, av, o, lo0, hi0, r0):
         inv_near = 1.0 / near if near > 0.0 else np.inf
         near_c = near if near > 0.0 else 0.0
         gi = i if sa > 0 else -i - 1
+        nxt = 1 - cur
         n_nxt = 0
         for k in range(n_cur):
-            lo = cur_lo[k]
-            hi = cur_hi[k]
-            rr = cur_r[k]
+            lo = iv[cur, 0, k]
+            hi = iv[cur, 1, k]
+            rr = iv[cur, 2, k]
             if near >= rr:
                 continue
             j0 = int(math.floor(b0 + lo * near_c))
             if j0 > j_hi_g:
                 continue  # these rays have left the grid for good (b only grows)
             j1 = int(math.ceil(b0 + hi * far)) - 1
-            if j1 < j0:
-                j1 = j0
+            # cells whose nearest point is within range: j - b0 < sqrt(r^2 - near^2)
+            jr = int(math.ceil(b0 + math.sqrt(rr * rr - near_c * near_c))) - 1
             jj0 = max(j0, j_lo_g)
-            jj1 = min(j1, j_hi_g)
-            r2 = rr * rr
+            jj1 = min(j1, j_hi_g, jr)
+            # room for up to (jj1 - jj0 + 2) more intervals
+            need = n_nxt + max(jj1 - jj0, 0) + 3
+            if need > iv.shape[2]:
+                grown = np.empty((2, 3, max(2 * iv.shape[2], need)), dtype=np.float64)
+                grown[:, :, : iv.shape[2]] = iv
+                iv = grown
             cl = lo
-            # make room for up to (jj1 - jj0 + 2) more intervals
-            need = n_nxt + (jj1 - jj0 + 2) + 1
-            if need > nxt_lo.shape[0]:
-                new_cap = max(2 * nxt_lo.shape[0], need)
-                t_lo = np.empty(new_cap, dtype=np.float64)
-                t_hi = np.empty(new_cap, dtype=np.float64)
-                t_r = np.empty(new_cap, dtype=np.float64)
-                t_lo[:n_nxt] = nxt_lo[:n_nxt]
-                t_hi[:n_nxt] = nxt_hi[:n_nxt]
-                t_r[:n_nxt] = nxt_r[:n_nxt]
-                nxt_lo = t_lo
-                nxt_hi = t_hi
-                nxt_r = t_r
-            for j in range(jj0, jj1 + 1):
-                dy = j - b0
-                if dy < 0.0:
-                    dy = 0.0
-                if near_c * near_c + dy * dy >= r2:
-                    break  # beyond the cone's range; later j are farther still
-                c_hi = (j + 1.0 - b0) * inv_near
-                if c_hi <= cl:
-                    continue
-                gj = j if sb > 0 else -j - 1
-                if swap:
-                    gr = gj
-                    gc = gi
+            if jj0 <= jj1:
+                if sb > 0:
+                    g0 = jj0
+                    g1 = jj1
                 else:
-                    gr = gi
-                    gc = gj
-                if barrier[gr, gc] != 0 and not (i == i_apex and j == j_apex):
-                    c_lo = (j - b0) * inv_far
-                    if c_lo > hi:
-                        c_lo = hi
-                    if c_lo - cl > _EPS_SLOPE:
-                        nxt_lo[n_nxt] = cl
-                        nxt_hi[n_nxt] = c_lo
-                        nxt_r[n_nxt] = rr
-                        n_nxt += 1
-                    if c_hi > cl:
-                        cl = c_hi
-                    if cl >= hi:
-                        break
+                    g0 = -jj1 - 1
+                    g1 = -jj0 - 1
+                if not _any_bits(bbits, gi, g0, g1):
+                    # fast path: no barrier in this run of cells, all of it is free
+                    _set_bits(fbits, gi, g0, g1)
                 else:
-                    free[gr, gc] = FREE
+                    for j in range(jj0, jj1 + 1):
+                        c_hi = (j + 1.0 - b0) * inv_near
+                        if c_hi <= cl:
+                            continue
+                        gj = j if sb > 0 else -j - 1
+                        if swap:
+                            is_bar = barrier[gj, gi] != 0
+                        else:
+                            is_bar = barrier[gi, gj] != 0
+                        if is_bar and not (i == i_apex and j == j_apex):
+                            c_lo = (j - b0) * inv_far
+                            if c_lo > hi:
+                                c_lo = hi
+                            if c_lo - cl > _EPS_SLOPE:
+                                iv[nxt, 0, n_nxt] = cl
+                                iv[nxt, 1, n_nxt] = c_lo
+                                iv[nxt, 2, n_nxt] = rr
+                                n_nxt += 1
+                            if c_hi > cl:
+                                cl = c_hi
+                            if cl >= hi:
+                                break
+                        else:
+                            fbits[gi, gj >> 6] |= np.uint64(1) << np.uint64(gj & 63)
             if hi - cl > _EPS_SLOPE:
-                nxt_lo[n_nxt] = cl
-                nxt_hi[n_nxt] = hi
-                nxt_r[n_nxt] = rr
+                iv[nxt, 0, n_nxt] = cl
+                iv[nxt, 1, n_nxt] = hi
+                iv[nxt, 2, n_nxt] = rr
                 n_nxt += 1
-        cur_lo, nxt_lo = nxt_lo, cur_lo
-        cur_hi, nxt_hi = nxt_hi, cur_hi
-        cur_r, nxt_r = nxt_r, cur_r
+        cur = nxt
         n_cur = n_nxt
-        if cur_lo.shape[0] != nxt_lo.shape[0]:
-            # keep both buffers the same size after a growth
-            nxt_lo = np.empty(cur_lo.shape[0], dtype=np.float64)
-            nxt_hi = np.empty(cur_lo.shape[0], dtype=np.float64)
-            nxt_r = np.empty(cur_lo.shape[0], dtype=np.float64)
 
 
 @numba.njit(cache=True)
-def _k_cast(barrier, free, apex_uv, t_apex, t_oct, t_start, iv_lo, iv_hi, iv_r):
+def _k_cast(barrier, brow, bcol, frow, fcol, apex_uv, t_apex, t_oct, t_start, iv_lo, iv_hi, iv_r):
     for t in range(t_apex.shape[0]):
         a = t_apex[t]
         s0 = t_start[t]
         s1 = t_start[t + 1]
-        _k_cast_task(barrier, free, apex_uv[a, 0], apex_uv[a, 1], t_oct[t], iv_lo[s0:s1], iv_hi[s0:s1], iv_r[s0:s1])
+        _k_cast_task(
+            barrier, brow, bcol, frow[0], fcol[0], apex_uv[a, 0], apex_uv[a, 1], t_oct[t],
+            iv_lo[s0:s1], iv_hi[s0:s1], iv_r[s0:s1],
+        )
 
 
 @numba.njit(cache=True, parallel=True)
-def _k_cast_par(barrier, free, apex_uv, t_apex, t_oct, t_start, iv_lo, iv_hi, iv_r):
-    # Tasks only read ``barrier`` and only write FREE into ``free``: races write equal bytes.
-    for t in numba.prange(t_apex.shape[0]):
-        a = t_apex[t]
-        s0 = t_start[t]
-        s1 = t_start[t + 1]
-        _k_cast_task(barrier, free, apex_uv[a, 0], apex_uv[a, 1], t_oct[t], iv_lo[s0:s1], iv_hi[s0:s1], iv_r[s0:s1])
+def _k_cast_par(barrier, brow, bcol, frow, fcol, apex_uv, t_apex, t_oct, t_start, iv_lo, iv_hi, iv_r):
+    # Worker w takes tasks w, w + W, w + 2W, ... and owns free bitmaps frow[w], fcol[w]
+    # (bit OR into shared words would race); they are OR-ed together afterwards.
+    n_w = frow.shape[0]
+    for w in numba.prange(n_w):
+        for t in range(w, t_apex.shape[0], n_w):
+            a = t_apex[t]
+            s0 = t_start[t]
+            s1 = t_start[t + 1]
+            _k_cast_task(
+                barrier, brow, bcol, frow[w], fcol[w], apex_uv[a, 0], apex_uv[a, 1], t_oct[t],
+                iv_lo[s0:s1], iv_hi[s0:s1], iv_r[s0:s1],
+            )
+
+
+@numba.njit(cache=True)
+def _k_merge_free(frow, fcol, labels):
+    """labels[r, c] = FREE where any worker's row-wise or column-wise free bitmap has the cell."""
+    n_r, n_c = labels.shape
+    for w in range(1, frow.shape[0]):
+        frow[0] |= frow[w]
+        fcol[0] |= fcol[w]
+    fr = frow[0]
+    fc = fcol[0]
+    one = np.uint64(1)
+    for r in range(n_r):
+        wr = r >> 6
+        br = np.uint64(r & 63)
+        for c in range(n_c):
+            bit = ((fr[r, c >> 6] >> np.uint64(c & 63)) | (fc[c, wr] >> br)) & one
+            if bit:
+                labels[r, c] = FREE
 
 
 @numba.njit(cache=True)
@@ -534,14 +679,17 @@ def _irm_core(
     h = math.radians(params.opening_angle_deg) / 2.0
     barrier = label_scratch(grid, "irm_barrier")
     labels = label_scratch(grid, "irm_labels")
+    brow, bcol = bit_scratch(grid, "irm_barrier_bits")
+    frow, fcol = bit_scratch(grid, "irm_free_bits", threads)
     if det_uv.shape[0]:
-        _k_caps(det_uv, ok, det_apex, apex_uv, h, barrier)
+        _k_caps(det_uv, ok, det_apex, apex_uv, h, barrier, brow[0], bcol[0])
         tasks = _k_tasks(det_uv, ok, det_apex, apex_uv, h)
         if threads > 1:
             with numba_threads(threads):
-                _k_cast_par(barrier, labels, apex_uv, *tasks)
+                _k_cast_par(barrier, brow[0], bcol[0], frow, fcol, apex_uv, *tasks)
         else:
-            _k_cast(barrier, labels, apex_uv, *tasks)
+            _k_cast(barrier, brow[0], bcol[0], frow, fcol, apex_uv, *tasks)
+        _k_merge_free(frow, fcol, labels)
     n_used = int(_k_mark_detections(det_uv, ok, labels))
     lut = mass_lut(params.m_free, params.m_occupied)
     if threads > 1:
@@ -552,11 +700,12 @@ def _irm_core(
     return masses, n_used
 
 
-def _check_common(grid: GridSpec, params: RayIrmParams, threads: int) -> int:
+def _check_common(grid: GridSpec, params: RayIrmParams, threads: int, out: np.ndarray | None) -> int:
     if not isinstance(grid, GridSpec):
         raise TypeError(f"ray_irm: grid must be a GridSpec, got {type(grid).__name__}")
     if not isinstance(params, RayIrmParams):
         raise TypeError(f"ray_irm: params must be a RayIrmParams, got {type(params).__name__}")
+    check_out(out, grid)
     return check_threads(threads)
 
 
@@ -590,7 +739,7 @@ def ray_irm_with_stats(
     (ego -> global) whose ego frame the grid is. ``threads > 1`` casts the cones on that
     many numba threads. NaN/inf points are dropped, counted and logged once per call.
     """
-    threads = _check_common(grid, params, threads)
+    threads = _check_common(grid, params, threads, out)
     if not isinstance(ego_pose, SE3):
         raise TypeError(f"ray_irm: ego_pose must be an SE3, got {type(ego_pose).__name__}")
     used = _last_sweeps(sweeps, params.n_sweeps)
@@ -654,7 +803,7 @@ def ray_irm_xy(
 
     ``params.n_sweeps`` plays no part here: every detection given is used.
     """
-    threads = _check_common(grid, params, threads)
+    threads = _check_common(grid, params, threads, out)
     det = as_points(detections_xy, 2, "ray_irm_xy")
     if det.shape[1] != 2:
         raise ValueError(f"ray_irm_xy: detections_xy must have shape (n, 2), got {det.shape}")
