@@ -394,6 +394,20 @@ def test_masses_and_opening_are_parameters():
     assert np.allclose(m[row, cols], [0.2, 0.0, 0.8])
 
 
+@pytest.mark.parametrize("opening", [60.0, 150.0])
+def test_wide_cones_spanning_several_octants(opening):
+    # cones wider than an octant take the general (trigonometric) split; check the sector
+    apex, axis = (0.3, -0.2), 100.0
+    det = np.array(apex) + 9.0 * np.array([math.cos(math.radians(axis)), math.sin(math.radians(axis))])
+    m = ray_irm_xy(det[None], np.array(apex), params=RayIrmParams(opening_angle_deg=opening)).masses
+    polar = corners_polar(GRID, apex, axis)
+    half = opening / 2
+    must = inside(polar, 0.0, 9.0 - RES, -half, half)
+    assert must.sum() > 0.8 * math.radians(opening) * 81 / 2 / RES**2
+    assert is_mass(m[must], FREE).all()
+    assert not ((m[..., 0] > 0) & ~touching(polar, 0.0, 9.0, -half, half)).any()
+
+
 @settings(max_examples=25, deadline=None)
 @given(
     st.lists(st.tuples(st.floats(-12, 12), st.floats(-12, 12)), min_size=1, max_size=12),

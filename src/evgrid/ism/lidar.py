@@ -20,7 +20,9 @@ Decisions the paper leaves open (documented here once):
 * every detection cell in the grid is occupied, including those beyond ``max_range_m``: the
   paper marks "detection positions"; the 15 m only bounds the rays;
 * a ray stops at the first detection cell *after* the cell holding the lidar itself, so a
-  return from the vehicle's own body cannot blank the whole grid;
+  return in that cell cannot blank the whole grid. Returns from the vehicle's body in other
+  cells do stop the rays through them; ``min_range_m`` (not in the paper, 0 by default)
+  ignores returns that close to the lidar;
 * a sweep without a single finite point is no measurement: the grid stays vacuous. A sweep
   whose finite points are all filtered out by height (say, only ground hits) still casts
   every ray to 15 m: the sensor saw no obstacle there;

@@ -11,11 +11,12 @@ ground plane (z dropped, no height filter: the paper names none). For every dete
 
 1. Barriers: the far segment of every cone, its *cap* (the arc of radius = the detection's
    range spanning the cone's opening), is rasterised as the cells the arc passes through
-   (one cell deep; 4-connected, so no ray of the cone can slip past it).
+   (one cell deep). Every ray of the cone crosses the arc inside one of them, so none
+   slips past its own cap.
 2. Free space: every cone is cast again and marks the cells it touches m_f = 0.3, but it
    stops at the first barrier cell of ANY cone it meets, its own cap included. "Stops" is
    per ray of the cone: the part of a cone behind a barrier is shadowed, the rest goes on
-   (paper fig. 4 b.2.1). The cone is the exact continuous sector, not a bundle of sampled
+   (paper fig. "comparison_isms", b.2.1). The cone is the exact continuous sector, not a bundle of sampled
    rays: a cell is free when some ray of the cone enters it, inside the cone's range,
    before having entered a barrier cell (barrier cells themselves are not marked). This is
    computed per sensor position with an exact shadow-casting column sweep (see
@@ -114,23 +115,13 @@ def _k_transform(pts, sweep_of, mats, half, inv_res, det_uv, ok):
             n_dropped += 1
             ok[i] = False
             continue
-        m = mats[sweep_of[i]]
-        gx = m[0, 0] * x + m[0, 1] * y + m[0, 2] * z + m[0, 3]
-        gy = m[1, 0] * x + m[1, 1] * y + m[1, 2] * z + m[1, 3]
+        k = sweep_of[i]  # (index, not a view: views cost reference counting per point)
+        gx = mats[k, 0, 0] * x + mats[k, 0, 1] * y + mats[k, 0, 2] * z + mats[k, 0, 3]
+        gy = mats[k, 1, 0] * x + mats[k, 1, 1] * y + mats[k, 1, 2] * z + mats[k, 1, 3]
         det_uv[i, 0] = half - gx * inv_res
         det_uv[i, 1] = half - gy * inv_res
         ok[i] = True
     return n_dropped
-
-
-@numba.njit(cache=True, inline="always")
-def _wrap(a):
-    """Angle to (-pi, pi]."""
-    two_pi = 2.0 * math.pi
-    a = a - two_pi * math.floor((a + math.pi) / two_pi)  # now in [-pi, pi)
-    if a <= -math.pi:
-        a += two_pi
-    return a
 
 
 @numba.njit(cache=True, inline="always")
@@ -301,28 +292,6 @@ def _octant_frame(o):
 
 
 @numba.njit(cache=True, inline="always")
-def _slope(o, ang):
-    """Local slope db/da in [0, 1] of the direction at angle ``ang`` (in (u, v)) seen in octant o."""
-    swap, sa, sb = _octant_frame(o)
-    cu = math.cos(ang)
-    sv = math.sin(ang)
-    if swap:
-        da = sa * sv
-        db = sb * cu
-    else:
-        da = sa * cu
-        db = sb * sv
-    if da <= 0.0:
-        return 1.0
-    s = db / da
-    if s < 0.0:
-        return 0.0
-    if s > 1.0:
-        return 1.0
-    return s
-
-
-@numba.njit(cache=True, inline="always")
 def _slope_vec(o, x, y):
     """Local slope db/da in [0, 1] of the direction (x, y) (in (u, v)) seen in octant o."""
     swap, sa, sb = _octant_frame(o)
@@ -431,8 +400,8 @@ def _k_tasks(det_uv, ok, det_apex, apex_uv, h):
             y = min(end, bnd)
             if y > x:
                 o = k % 8
-                s1 = _slope(o, x)
-                s2 = _slope(o, y)
+                s1 = _slope_vec(o, math.cos(x), math.sin(x))
+                s2 = _slope_vec(o, math.cos(y), math.sin(y))
                 p_apex[m] = a
                 p_oct[m] = o
                 p_lo[m] = min(s1, s2)
