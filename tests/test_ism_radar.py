@@ -139,6 +139,9 @@ def test_detection_beyond_the_grid_casts_to_the_edge():
     assert not (m[..., 1] > 0).any()
     assert is_mass(m[0:250, 255:257], FREE).all()  # from the front edge (x = 20 m) to the sensor
     assert is_mass(m[300:, :], VAC).all()
+    # absurd ranges are clamped, not overflowed: the same cone to the edge
+    far = ray_irm_xy(np.array([[1e30, 0.03 * 1e30 / 60.0], [5.0, 1e250]]), np.array([0.0, 0.0])).masses
+    assert is_mass(far[0:250, 255:257], FREE).all() and not (far[..., 1] > 0).any()
 
 
 def test_detection_in_another_sensors_cell_is_occupied_and_does_not_stop_that_sensor():

@@ -178,8 +178,8 @@ def _mark_cap(barrier, brow, bcol, au, av, du, dv, cos_h, sin_h, buf):
     n_r, n_c = barrier.shape
     r2 = du * du + dv * dv
     r = math.sqrt(r2)
-    if r < 1e-9:
-        return buf
+    if r < 1e-9 or not r < 1e12:
+        return buf  # no cap at the apex; a cap 1e12 cells away cannot touch the grid (or is inf/NaN)
     eu = du / r
     ev = dv / r
     pu = -ev
@@ -352,6 +352,9 @@ def _k_tasks(det_uv, ok, det_apex, apex_uv, h):
         r = math.sqrt(du * du + dv * dv)
         if r < 1e-9:
             continue
+        # Ranges only bound the cone's walk: clamp absurd ones (1e12 cells) so that r * r
+        # stays finite in the cast.
+        r = min(r, 1e12)
         if narrow:
             # A cone narrower than an octant spans one octant or two adjacent ones: split it
             # with vector algebra. Its edges: e turned by -h and +h.
