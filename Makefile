@@ -22,6 +22,7 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) benchmarks/bench_core.py
+	$(PY) benchmarks/bench_ism.py
 
 clean:
 	rm -rf $(VENV) build dist .pytest_cache

@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given
+from hypothesis import assume, given
 from hypothesis import strategies as st
 
 from evgrid.geometry import SE2, SE3, GridSpec, matrix_to_quaternion, quaternion_to_matrix
@@ -51,6 +51,9 @@ def test_cell_roundtrip(x, y):
 
 @given(st.floats(-200, 200), st.floats(-200, 200))
 def test_map_cells_align_with_local_cells_at_identity(x, y):
+    # away from cell edges, where the two float expressions may round to either side
+    edge = min(abs(v / SPEC.resolution - round(v / SPEC.resolution)) for v in (x, y))
+    assume(edge > 1e-9)
     r, c = SPEC.xy_to_cell(x, y)
     R, C = SPEC.map_xy_to_cell(x, y)
     assert (R, C) == (r - 256, c - 256)

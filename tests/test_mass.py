@@ -222,7 +222,8 @@ def test_gamma_in_unit_interval_and_zero_without_gain(m_map, m_pred, m_u_min, al
     g = float(mass.deep_discount_factor(m_map, m_pred, m_u_min, alpha))
     assert 0.0 <= g <= 1.0
     if m_pred[2] >= m_map[2]:
-        assert g == 0.0
+        # no information gain; inputs off the simplex by float32 rounding may show a hair of it
+        assert g <= 1e-6
 
 
 @settings(max_examples=25, deadline=None)

@@ -72,10 +72,12 @@ class GridSpec:
 
     def xy_to_cell(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Ego-frame metres -> integer local (row, col) of the containing cell (may be outside)."""
-        # Via the map index, so that local and map cells agree exactly at the identity pose.
-        rows, cols = self.map_xy_to_cell(x, y)
-        half = self.n_cells // 2
-        return rows + half, cols + half
+        # The same expression as every compiled kernel: floor(n/2 - x * (1/res)).
+        half = self.n_cells / 2.0
+        inv_res = 1.0 / self.resolution
+        rows = np.floor(half - np.asarray(x, dtype=np.float64) * inv_res).astype(np.int64)
+        cols = np.floor(half - np.asarray(y, dtype=np.float64) * inv_res).astype(np.int64)
+        return rows, cols
 
     def cell_to_xy(self, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Local (row, col) -> ego-frame metres of the cell centre."""

@@ -1,0 +1,25 @@
+"""Inverse sensor models: geometric ray casting ISMs for lidar and radar (paper sec. V).
+
+* :func:`ray_ilm` — ray casting inverse lidar model (paper sec. V-A);
+* :func:`ray_irm` — ray casting inverse radar model with 2-degree cones (paper sec. V-B),
+  fed by a :class:`RadarBuffer` of the last N sweeps per radar.
+
+All return float32 mass grids ``(n, n, 3)`` = [m_f, m_o, m_u] on a
+:class:`~evgrid.geometry.GridSpec`; the ``*_with_stats`` variants also count dropped points.
+"""
+
+from evgrid.ism._common import IsmResult
+from evgrid.ism.lidar import RayIlmParams, ray_ilm, ray_ilm_with_stats
+from evgrid.ism.radar import RadarBuffer, RayIrmParams, ray_irm, ray_irm_with_stats, ray_irm_xy
+
+__all__ = [
+    "IsmResult",
+    "RayIlmParams",
+    "ray_ilm",
+    "ray_ilm_with_stats",
+    "RayIrmParams",
+    "RadarBuffer",
+    "ray_irm",
+    "ray_irm_with_stats",
+    "ray_irm_xy",
+]

@@ -1,0 +1,159 @@
+"""Shared pieces of the geometric ISMs: the result type, cell labels, thread control, buffers."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import threading
+from dataclasses import dataclass
+from typing import Iterator
+
+import numba
+import numpy as np
+
+from evgrid.geometry import GridSpec
+
+__all__ = ["IsmResult"]
+
+# Cell labels of the internal uint8 grids; the ISMs turn them into masses at the very end.
+UNKNOWN = np.uint8(0)
+FREE = np.uint8(1)
+OCCUPIED = np.uint8(2)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class IsmResult:
+    """One ISM output: ``masses`` ``(n, n, 3)`` float32 [m_f, m_o, m_u] and point counts.
+
+    ``n_points``: points given; ``n_dropped``: of those, dropped because x, y or z was NaN or
+    inf; ``n_used``: points that became detections (finite, passing the ISM's filter; they
+    may still lie outside the grid).
+    """
+
+    masses: np.ndarray
+    n_points: int
+    n_dropped: int
+    n_used: int
+
+
+def check_threads(threads: int) -> int:
+    """Validate a thread count; clamp it to the threads numba was started with."""
+    if isinstance(threads, bool) or not isinstance(threads, (int, np.integer)) or threads < 1:
+        raise ValueError(f"threads must be an integer >= 1, got {threads!r}")
+    return int(min(int(threads), numba.config.NUMBA_NUM_THREADS))
+
+
+@contextlib.contextmanager
+def numba_threads(threads: int) -> Iterator[None]:
+    """Run the parallel kernels inside with ``threads`` numba threads; restore the count after."""
+    prev = numba.get_num_threads()
+    numba.set_num_threads(threads)
+    try:
+        yield
+    finally:
+        numba.set_num_threads(prev)
+
+
+@numba.njit(cache=True)
+def _k_labels_to_masses(labels, lut, out):
+    n_r, n_c = labels.shape
+    for r in range(n_r):
+        for c in range(n_c):
+            k = labels[r, c]
+            out[r, c, 0] = lut[k, 0]
+            out[r, c, 1] = lut[k, 1]
+            out[r, c, 2] = lut[k, 2]
+
+
+@numba.njit(cache=True, parallel=True)
+def _k_labels_to_masses_par(labels, lut, out):
+    n_r, n_c = labels.shape
+    for r in numba.prange(n_r):
+        for c in range(n_c):
+            k = labels[r, c]
+            out[r, c, 0] = lut[k, 0]
+            out[r, c, 1] = lut[k, 1]
+            out[r, c, 2] = lut[k, 2]
+
+
+def mass_lut(m_free: float, m_occupied: float) -> np.ndarray:
+    """Masses of the three labels: UNKNOWN [0, 0, 1], FREE [m_f, 0, 1 - m_f], OCCUPIED [0, m_o, 1 - m_o]."""
+    return np.array(
+        [[0.0, 0.0, 1.0], [m_free, 0.0, 1.0 - m_free], [0.0, m_occupied, 1.0 - m_occupied]], dtype=np.float32
+    )
+
+
+def check_out(out: np.ndarray | None, grid: GridSpec) -> None:
+    """Raise ValueError unless ``out`` is None or a writeable C-contiguous float32 ``(n, n, 3)`` array."""
+    if out is None:
+        return
+    shape = grid.shape + (3,)
+    if not isinstance(out, np.ndarray) or out.shape != shape or out.dtype != np.float32 or not out.flags.c_contiguous or not out.flags.writeable:
+        got = f"{out.shape} {out.dtype}" if isinstance(out, np.ndarray) else type(out).__name__
+        raise ValueError(f"out must be a writeable C-contiguous float32 array of shape {shape}, got {got}")
+
+
+def labels_to_masses(labels: np.ndarray, lut: np.ndarray, out: np.ndarray | None, threads: int) -> np.ndarray:
+    """Expand a uint8 label grid to float32 masses ``(n, n, 3)``, into ``out`` when given."""
+    if out is None:
+        out = np.empty(labels.shape + (3,), dtype=np.float32)
+    if threads > 1:
+        _k_labels_to_masses_par(labels, lut, out)
+    else:
+        _k_labels_to_masses(labels, lut, out)
+    return out
+
+
+_scratch = threading.local()
+
+
+def label_scratch(grid: GridSpec, name: str) -> np.ndarray:
+    """A zeroed uint8 ``(n, n)`` grid reused across calls (per thread), so no fresh pages are faulted in."""
+    key = (name, grid.n_cells)
+    store = getattr(_scratch, "store", None)
+    if store is None:
+        store = _scratch.store = {}
+    a = store.get(key)
+    if a is None:
+        a = store[key] = np.zeros(grid.shape, dtype=np.uint8)
+    else:
+        a.fill(0)
+    return a
+
+
+def bit_scratch(grid: GridSpec, name: str, count: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Two zeroed uint64 bitmap stacks ``(count, n, ceil(n / 64))`` reused across calls (per thread).
+
+    The first holds a grid by rows (bit c of row r), the second by columns (bit r of column c).
+    """
+    key = (name, grid.n_cells, count)
+    store = getattr(_scratch, "store", None)
+    if store is None:
+        store = _scratch.store = {}
+    pair = store.get(key)
+    if pair is None:
+        w = (grid.n_cells + 63) // 64
+        shape = (count, grid.n_cells, w)
+        pair = store[key] = (np.zeros(shape, np.uint64), np.zeros(shape, np.uint64))
+    else:
+        pair[0].fill(0)
+        pair[1].fill(0)
+    return pair
+
+
+def as_points(points: object, min_cols: int, what: str) -> np.ndarray:
+    """Validate a point array ``(n, >= min_cols)`` of real numbers; return it C-contiguous float32 or float64."""
+    a = np.asarray(points)
+    if a.ndim != 2 or a.shape[1] < min_cols:
+        raise ValueError(f"{what}: points must have shape (n, {min_cols}) or more columns, got shape {a.shape}")
+    if not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):
+        raise ValueError(f"{what}: points must be real numbers, got dtype {a.dtype}")
+    if a.dtype != np.float32 and a.dtype != np.float64:
+        a = a.astype(np.float64)
+    return np.ascontiguousarray(a)
+
+
+def log_dropped(logger: logging.Logger, what: str, n_dropped: int, n_points: int) -> None:
+    """One warning per call when non-finite points were dropped."""
+    if n_dropped:
+        logger.warning("%s: dropped %d of %d points with NaN or inf coordinates", what, n_dropped, n_points)
