@@ -239,7 +239,15 @@ class Trajectory:
     def s_at(self, t: np.ndarray | float) -> np.ndarray:
         """Arc length (m) along the path at time(s) ``t`` (s); linear before t = 0."""
         t = np.asarray(t, dtype=np.float64)
-        s = np.interp(t, self.profile_t, self.profile_s)
+        # Constant acceleration between profile points, so that s(t) integrates speed_at(t)
+        # exactly (a linear interpolation of s would disagree with the speed by up to dv / 2).
+        pt, ps, pv = self.profile_t, self.profile_s, self.profile_v
+        k = np.clip(np.searchsorted(pt, t, side="right") - 1, 0, len(pt) - 2)
+        dt = pt[k + 1] - pt[k]
+        tau = np.clip(t - pt[k], 0.0, dt)
+        acc = (pv[k + 1] - pv[k]) / np.maximum(dt, 1e-12)
+        s = np.minimum(ps[k] + pv[k] * tau + 0.5 * acc * tau * tau, ps[k + 1])
+        s = np.where(t >= pt[-1], ps[-1], s)
         return np.where(t < 0.0, self.s0 + self.v0 * t, s)
 
     def speed_at(self, t: np.ndarray | float) -> np.ndarray:

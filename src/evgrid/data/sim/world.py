@@ -26,7 +26,7 @@ from evgrid.data.sim.trajectory import (
 )
 from evgrid.geometry import SE2
 
-__all__ = ["World", "Movers", "generate_world", "EGO_LENGTH_M", "EGO_WIDTH_M", "EGO_REAR_OVERHANG_M"]
+__all__ = ["World", "Movers", "generate_world", "plan_drive", "EGO_LENGTH_M", "EGO_WIDTH_M", "EGO_REAR_OVERHANG_M"]
 
 #: Ego vehicle footprint (a compact car; the pose is the rear axle centre, as in nuScenes).
 EGO_LENGTH_M = 4.1
@@ -449,20 +449,27 @@ def _mover(klass: int, length: float, width: float, z0: float, z1: float, p0: np
                 speed=speed, tb=tb, te=te, follow=follow, gap=gap, lead=lead)
 
 
-def generate_world(seed: int, config: SimConfig) -> tuple[World, Trajectory, Trajectory]:
-    """Build the world around a random route -> (world, true trajectory (global), same in the city frame)."""
+def plan_drive(seed: int, config: SimConfig) -> tuple[np.random.Generator, str, StreetGrid, Trajectory]:
+    """The first stage of :func:`generate_world`: environment, streets and the ego trajectory
+    (city frame), with the generator in the state the rest of the world continues from."""
     rng = np.random.default_rng([int(seed), 0x5EED])
-    wc = config.world
-    env = wc.environment
+    env = config.world.environment
     if env == "mixed":
         env = "urban" if rng.random() < 0.6 else "suburban"
-    urban = env == "urban"
     lo, hi = config.ego.cruise_speed_mps
-    cruise = float(rng.uniform(lo, hi)) + (0.0 if urban else 2.0)
+    cruise = float(rng.uniform(lo, hi)) + (0.0 if env == "urban" else 2.0)
     need = config.duration_s * cruise * 1.2 + 80.0
     grid = make_street_grid(rng, env, extent_m=need + 250.0)
     route = plan_route(rng, grid, need, config.ego)
     traj = build_trajectory(rng, route, config.ego, cruise, config.duration_s)
+    return rng, env, grid, traj
+
+
+def generate_world(seed: int, config: SimConfig) -> tuple[World, Trajectory, Trajectory]:
+    """Build the world around a random route -> (world, true trajectory (global), same in the city frame)."""
+    rng, env, grid, traj = plan_drive(seed, config)
+    wc = config.world
+    urban = env == "urban"
 
     # The driven part of the path, sampled every 2 m, decides what to populate.
     s_lo = float(traj.s_at(-0.5))
