@@ -30,6 +30,11 @@ def test_simulate_npz(tmp_path):
     # A second run does not clobber files unless told to.
     res = runner.invoke(app, ["simulate", "--out", str(out), "--scenes", "1", "--seed", "3", "--duration", "0.6"])
     assert res.exit_code != 0 and "--overwrite" in res.output
+    # Another seed into the same folder joins the index.
+    res = runner.invoke(app, ["simulate", "--out", str(out), "--seed", "9", "--duration", "0.2"])
+    assert res.exit_code == 0, res.output
+    index = json.loads((out / "index.json").read_text())
+    assert [(s["name"], s["split"]) for s in index["scenes"]] == [("sim-000003", "train"), ("sim-000004", "val"), ("sim-000009", "val")]
 
 
 def test_simulate_nuscenes(tmp_path):

@@ -76,7 +76,8 @@ def simulate(
         if fmt == "npz":
             from evgrid.data.sim.store import save_sim_scene
 
-            index = []
+            index_path = out / "index.json"
+            index = json.loads(index_path.read_text())["scenes"] if index_path.is_file() else []
             for s in seeds:
                 scene = simulate_scene(s, config)
                 path = out / f"{scene.name}.npz"
@@ -84,9 +85,12 @@ def simulate(
                     raise typer.BadParameter(f"{path} exists; pass --overwrite to replace it", param_hint="--out")
                 progress.update(task, description=scene.name)
                 save_sim_scene(scene, path, on_frame=lambda i: progress.advance(task))
+                index = [e for e in index if e.get("name") != scene.name]
                 index.append({"name": scene.name, "seed": s, "split": _sim_split(s), "file": path.name,
                               "environment": scene.world.environment, "frames": len(scene)})
-            atomic_write_text(out / "index.json", json.dumps({"format": "evgrid-sim-npz", "scenes": index}, indent=1))
+                # Rewritten after each scene: an interrupted run still indexes what it wrote.
+                index.sort(key=lambda e: e["name"])
+                atomic_write_text(index_path, json.dumps({"format": "evgrid-sim-npz", "scenes": index}, indent=1))
         else:
             from evgrid.data.nuscenes_format import write_nuscenes
 

@@ -51,5 +51,6 @@ RADAR_MOUNTS: dict[str, SensorMount] = {
         SensorMount("RADAR_BACK_RIGHT", -0.562, -0.618, 0.53, -175.0),
     )
 }
-assert tuple(RADAR_MOUNTS) == RADAR_CHANNELS  # same order as the frame contract (module invariant)
+if tuple(RADAR_MOUNTS) != RADAR_CHANNELS:  # same order as the frame contract
+    raise ImportError(f"RADAR_MOUNTS {tuple(RADAR_MOUNTS)} disagree with frame.RADAR_CHANNELS {RADAR_CHANNELS}")
 SENSOR_MOUNTS: dict[str, SensorMount] = {LIDAR_CHANNEL: LIDAR_MOUNT, **RADAR_MOUNTS}

@@ -1,4 +1,7 @@
-"""The simulator's own file format: one compressed ``.npz`` per scene, readable with numpy alone.
+"""The simulator's own file format: one ``.npz`` per scene, readable with numpy alone.
+
+The lidar points are stored uncompressed (noisy float32 hardly compresses: deflate saves a
+third at three times the write time); all other arrays are deflated. About 265 MB a 20 s scene.
 
 Arrays in the file (``n`` frames, ``k`` keyframes, ``m_c`` sweeps of radar ``c``):
 
@@ -120,8 +123,20 @@ def save_sim_scene(scene: SimScene, path: str | os.PathLike, on_frame: Callable[
         arrays[f"radar_{ch}_frame"] = np.asarray(r["frame"], dtype=np.int64)
         arrays[f"radar_{ch}_sensor_to_ego"] = radar_s2e.get(ch, np.eye(4))
     with atomic_open(path, "wb") as fobj:
-        np.savez_compressed(fobj, **arrays)
+        _write_npz(fobj, arrays, stored={"lidar_points"})
     return path
+
+
+def _write_npz(fobj, arrays: dict[str, np.ndarray], stored: set[str]) -> None:
+    """An ``.npz`` (zip of ``.npy``) that ``np.load`` reads, deflating every array but those in
+    ``stored``: noisy float32 lidar coordinates barely compress and would triple the write time."""
+    with zipfile.ZipFile(fobj, "w", allowZip64=True) as zf:
+        for name, arr in arrays.items():
+            method = zipfile.ZIP_STORED if name in stored else zipfile.ZIP_DEFLATED
+            info = zipfile.ZipInfo(name + ".npy", date_time=(1980, 1, 1, 0, 0, 0))  # fixed: same seed, same bytes
+            info.compress_type = method
+            with zf.open(info, "w", force_zip64=True) as f:
+                np.lib.format.write_array(f, np.asanyarray(arr), allow_pickle=False)
 
 
 class StoredScene:
