@@ -159,3 +159,13 @@ def test_radar_pcd_header_and_empty_sweep(tmp_path):
     np.testing.assert_array_equal(rec["x"], pts[:, 0])
     np.testing.assert_array_equal(rec["id"], [0, 1, 2])
     assert json.dumps(rec["invalid_state"].tolist()) == "[0, 6, 17]"
+
+
+def test_same_seed_writes_the_same_files(tmp_path):
+    cfg = SimConfig(duration_s=0.6)
+    for d in ("a", "b"):
+        write_nuscenes([simulate_scene(21, cfg)], tmp_path / d, VERSION)
+    files = sorted(p.relative_to(tmp_path / "a") for p in (tmp_path / "a").rglob("*") if p.is_file())
+    assert len(files) > 20
+    for f in files:
+        assert (tmp_path / "a" / f).read_bytes() == (tmp_path / "b" / f).read_bytes(), f

@@ -409,6 +409,8 @@ def test_npz_scene_file_round_trip(tmp_path):
         for s in fo.radar_sweeps():
             np.testing.assert_array_equal(back.radar_labels(s.channel, s.timestamp), scene.radar_labels(s.channel, s.timestamp))
     np.testing.assert_array_equal(back.true_poses, scene.true_poses())
+    again = save_sim_scene(simulate_scene(3, _cfg("mixed", duration=0.6)), tmp_path / "again.npz")
+    assert again.read_bytes() == path.read_bytes()  # same seed, same file
     with pytest.raises(ValueError, match="npz"):
         save_sim_scene(scene, tmp_path / "x.bin")
     (tmp_path / "bad.npz").write_bytes(b"not a zip")

@@ -99,6 +99,8 @@ class RadarConfig:
     doppler_noise_mps: float = 0.1
     #: Mean number of clutter detections (false alarms) per sweep.
     clutter_rate: float = 4.0
+    #: Extra return from a vertical edge of a flat-faced object (corner reflector), dB.
+    corner_gain_db: float = 8.0
     #: Two-way loss of a bounce off a reflecting surface (multipath ghosts), dB.
     multipath_loss_db: float = 12.0
     #: The ARS 408 reports at most 125 clusters a cycle; the strongest are kept.
@@ -122,6 +124,7 @@ class RadarConfig:
         for name in (
             "far_fov_deg",
             "far_gain_db",
+            "corner_gain_db",
             "rcs_fluctuation_db",
             "range_noise_m",
             "azimuth_noise_deg",

@@ -127,6 +127,17 @@ class RadarModel:
         cls_all = np.concatenate([world.classes, dcls, [0]]).astype(np.int64)
         off_all = np.concatenate([world.rcs_offset_db, dyn_rcs_offset, [0.0]])
         vel_all = np.concatenate([np.zeros((n_static, 2)), dyn_vel, np.zeros((1, 2))])
+        box_all = np.concatenate([world.boxes, dyn_boxes, np.zeros((1, 8))])
+
+        def corner_gain(li: np.ndarray, kk: np.ndarray, px: np.ndarray, py: np.ndarray) -> np.ndarray:
+            # Vertical edges of flat-faced objects (building corners, vehicle corners) are the
+            # strongest radar scatterers: dihedral returns and edge diffraction.
+            b = box_all[li]
+            qx, qy = px - b[:, 0], py - b[:, 1]
+            lx = b[:, 2] * qx + b[:, 3] * qy
+            ly = -b[:, 3] * qx + b[:, 2] * qy
+            d = np.hypot(b[:, 4] - np.abs(lx), b[:, 5] - np.abs(ly))
+            return np.where(M.RADAR_SPECULAR[kk] > 0, cfg.corner_gain_db * np.exp(-((d / 0.6) ** 2)), 0.0)
 
         def lookup(ids: np.ndarray) -> np.ndarray:
             return np.where(ids >= 0, ids, len(cls_all) - 1)
@@ -153,6 +164,7 @@ class RadarModel:
             rcs = (
                 M.RADAR_RCS_DB[kk] + off_all[li]
                 + M.RADAR_SPECULAR[kk] * 20.0 * np.log10(np.maximum(out_cos[:, k], 0.05))
+                + corner_gain(li, kk, sx + gdx * np.where(valid, t, 0.0), sy + gdy * np.where(valid, t, 0.0))
                 + rng.normal(0.0, cfg.rcs_fluctuation_db, n_rays)
             )
             snr = self._snr(rcs, t, az, far)
