@@ -372,7 +372,7 @@ def _ego_boxes(traj: Trajectory, ts: np.ndarray, margin: float) -> np.ndarray:
 class _MoverSet:
     """Accepts candidate movers that collide with nothing over the scene (sampled every 0.2 s)."""
 
-    def __init__(self, traj: Trajectory, duration: float, static: np.ndarray, static_cls: np.ndarray) -> None:
+    def __init__(self, traj: Trajectory, duration: float, static: np.ndarray) -> None:
         self.traj = traj
         self.ts = np.arange(-0.3, duration + 0.31, 0.2)
         self.ego = _ego_boxes(traj, self.ts, margin=0.6)
@@ -502,7 +502,7 @@ def generate_world(seed: int, config: SimConfig) -> tuple[World, Trajectory, Tra
     static = pack_boxes(rows[:, 0], rows[:, 1], rows[:, 2], rows[:, 3], rows[:, 4], rows[:, 5], rows[:, 6])
     static_cls = rows[:, 7].astype(np.int32)
 
-    movers = _MoverSet(traj, config.duration_s, static, static_cls)
+    movers = _MoverSet(traj, config.duration_s, static)
     # A vehicle ahead of the ego and one behind, driving its path (time-shifted).
     if rng.random() < 0.55 * min(density, 1.0):
         k, length, width, z0, z1 = _vehicle_dims(rng, moving=True)
