@@ -1,4 +1,14 @@
-"""Sensor data: the frame contract, the built-in simulator and the nuScenes loader."""
+"""Sensor data: the frame contract, the built-in simulator and the nuScenes loader.
+
+The frame contract (:mod:`evgrid.data.frame`) is imported eagerly; the simulator (numba) and
+the nuScenes modules load on first use of one of their names, so ``import evgrid.data`` stays
+light.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
 
 from evgrid.data.frame import (
     LIDAR_CHANNEL,
@@ -13,6 +23,26 @@ from evgrid.data.frame import (
     radar_column,
 )
 
+_LAZY = {
+    "SimConfig": "evgrid.data.sim",
+    "LidarConfig": "evgrid.data.sim",
+    "RadarConfig": "evgrid.data.sim",
+    "EgoConfig": "evgrid.data.sim",
+    "WorldConfig": "evgrid.data.sim",
+    "SimScene": "evgrid.data.sim",
+    "simulate_scene": "evgrid.data.sim",
+    "RADAR_REAL": "evgrid.data.sim",
+    "RADAR_CLUTTER": "evgrid.data.sim",
+    "RADAR_GHOST": "evgrid.data.sim",
+    "save_sim_scene": "evgrid.data.sim.store",
+    "load_sim_scene": "evgrid.data.sim.store",
+    "StoredScene": "evgrid.data.sim.store",
+    "write_nuscenes": "evgrid.data.nuscenes_format",
+    "load_nuscenes": "evgrid.data.nuscenes",
+    "nuscenes_splits": "evgrid.data.nuscenes",
+    "NuScenesScene": "evgrid.data.nuscenes",
+}
+
 __all__ = [
     "LIDAR_CHANNEL",
     "LIDAR_COLUMNS",
@@ -24,4 +54,17 @@ __all__ = [
     "Scene",
     "keyframes",
     "radar_column",
+    *_LAZY,
 ]
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        value = getattr(importlib.import_module(_LAZY[name]), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'evgrid.data' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(__all__)

@@ -1,0 +1,35 @@
+"""The built-in nuScenes-like driving simulator (DESIGN 7): seeded, deterministic, numba-fast.
+
+>>> from evgrid.data.sim import simulate_scene, SimConfig
+>>> scene = simulate_scene(seed=0, config=SimConfig(duration_s=1.0))
+>>> frame = next(iter(scene))   # a Frame: lidar sweep, radar sweeps, ego pose, true occupancy
+"""
+
+from evgrid.data.sim.config import EgoConfig, LidarConfig, RadarConfig, SimConfig, WorldConfig
+from evgrid.data.sim.radar import RADAR_CLUTTER, RADAR_GHOST, RADAR_LABEL_NAMES, RADAR_REAL
+from evgrid.data.sim.scene import OCC_DYNAMIC, OCC_FREE, OCC_STATIC, SimScene, scene_name, simulate_scene
+from evgrid.data.sim.sensors import LIDAR_MOUNT, RADAR_MOUNTS, SENSOR_MOUNTS, SensorMount
+from evgrid.data.sim.world import World
+
+__all__ = [
+    "EgoConfig",
+    "LidarConfig",
+    "RadarConfig",
+    "SimConfig",
+    "WorldConfig",
+    "SimScene",
+    "simulate_scene",
+    "scene_name",
+    "World",
+    "SensorMount",
+    "LIDAR_MOUNT",
+    "RADAR_MOUNTS",
+    "SENSOR_MOUNTS",
+    "RADAR_REAL",
+    "RADAR_CLUTTER",
+    "RADAR_GHOST",
+    "RADAR_LABEL_NAMES",
+    "OCC_FREE",
+    "OCC_STATIC",
+    "OCC_DYNAMIC",
+]

@@ -1,0 +1,269 @@
+"""Typed, frozen configuration of the driving simulator (every number in SI units)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field, fields
+from typing import Any
+
+from evgrid.geometry import GridSpec
+
+__all__ = ["LidarConfig", "RadarConfig", "EgoConfig", "WorldConfig", "SimConfig", "ENVIRONMENTS"]
+
+#: Procedural environments; ``"mixed"`` picks urban or suburban from the seed.
+ENVIRONMENTS: tuple[str, ...] = ("urban", "suburban", "mixed")
+
+
+def _positive(owner: str, name: str, value: float, allow_zero: bool = False) -> None:
+    ok = math.isfinite(value) and (value >= 0 if allow_zero else value > 0)
+    if not ok:
+        kind = "non-negative" if allow_zero else "positive"
+        raise ValueError(f"{owner}.{name} must be a finite {kind} number, got {value!r}")
+
+
+def _fraction(owner: str, name: str, value: float) -> None:
+    if not (math.isfinite(value) and 0.0 <= value <= 1.0):
+        raise ValueError(f"{owner}.{name} must be in [0, 1], got {value!r}")
+
+
+@dataclass(frozen=True)
+class LidarConfig:
+    """LIDAR_TOP (a Velodyne HDL-32E): beam layout, rate, range and noise."""
+
+    rate_hz: float = 20.0
+    #: 32 beams evenly spread over [elev_min_deg, elev_max_deg] (HDL-32E: -30.67 to +10.67 deg).
+    n_beams: int = 32
+    elev_min_deg: float = -30.67
+    elev_max_deg: float = 10.67
+    #: Firings per revolution (HDL-32E at 20 Hz: about 1080, 0.33 deg apart).
+    n_azimuth: int = 1080
+    max_range_m: float = 100.0
+    #: Points closer than this are not reported (the sensor's blind zone), metres.
+    min_range_m: float = 1.0
+    range_noise_m: float = 0.02
+    #: Probability that any return is lost regardless of its strength.
+    dropout: float = 0.02
+    #: Return power (reflectivity * cos(incidence) / range^2, 1/m^2) at which a return is
+    #: detected with probability 1 - 1/e; sets how far the grazing ground is seen.
+    power_threshold: float = 1.2e-5
+
+    def __post_init__(self) -> None:
+        o = "LidarConfig"
+        _positive(o, "rate_hz", self.rate_hz)
+        if not isinstance(self.n_beams, int) or not 1 <= self.n_beams <= 128:
+            raise ValueError(f"{o}.n_beams must be an integer in [1, 128], got {self.n_beams!r}")
+        if not isinstance(self.n_azimuth, int) or not 8 <= self.n_azimuth <= 8192:
+            raise ValueError(f"{o}.n_azimuth must be an integer in [8, 8192], got {self.n_azimuth!r}")
+        if not (-89.0 < self.elev_min_deg <= self.elev_max_deg < 89.0):
+            raise ValueError(
+                f"{o} needs -89 < elev_min_deg <= elev_max_deg < 89, got {self.elev_min_deg!r}, {self.elev_max_deg!r}"
+            )
+        _positive(o, "max_range_m", self.max_range_m)
+        _positive(o, "min_range_m", self.min_range_m, allow_zero=True)
+        if self.min_range_m >= self.max_range_m:
+            raise ValueError(f"{o}.min_range_m ({self.min_range_m!r}) must be below max_range_m ({self.max_range_m!r})")
+        _positive(o, "range_noise_m", self.range_noise_m, allow_zero=True)
+        _fraction(o, "dropout", self.dropout)
+        _positive(o, "power_threshold", self.power_threshold)
+
+
+@dataclass(frozen=True)
+class RadarConfig:
+    """The five Continental ARS 408-21 radars: rate, field of view, noise, clutter and ghosts."""
+
+    rate_hz: float = 13.0
+    #: Azimuth spacing of the simulated beams (about the sensor's angular resolution), degrees.
+    ray_spacing_deg: float = 2.5
+    #: Near scan: +-fov_deg wide; range max_range_m out to +-45 deg, falling to edge_range_m at the edge.
+    fov_deg: float = 60.0
+    max_range_m: float = 70.0
+    edge_range_m: float = 25.0
+    #: Far scan: +-far_fov_deg out to far_range_m (beams spaced far_spacing_deg).
+    far_fov_deg: float = 9.0
+    far_range_m: float = 200.0
+    far_spacing_deg: float = 0.75
+    #: Half-opening of the beam in elevation, degrees (what a beam at sensor height can hit).
+    elevation_half_deg: float = 6.0
+    #: Range at which a 0 dBsm target has 0 dB signal-to-threshold (near scan), metres.
+    reference_range_m: float = 25.0
+    #: Extra gain of the far scan, dB.
+    far_gain_db: float = 10.0
+    #: Width of the logistic detection curve, dB.
+    detection_softness_db: float = 2.5
+    #: Swerling-like fluctuation of the reflected power, dB (1 sigma).
+    rcs_fluctuation_db: float = 3.0
+    range_noise_m: float = 0.2
+    #: Azimuth noise at boresight and at the edge of the field of view, degrees (1 sigma).
+    azimuth_noise_deg: float = 0.6
+    azimuth_noise_edge_deg: float = 2.5
+    doppler_noise_mps: float = 0.1
+    #: Mean number of clutter detections (false alarms) per sweep.
+    clutter_rate: float = 4.0
+    #: Extra return from a vertical edge of a flat-faced object (corner reflector), dB.
+    corner_gain_db: float = 8.0
+    #: Two-way loss of a bounce off a reflecting surface (multipath ghosts), dB.
+    multipath_loss_db: float = 12.0
+    #: The ARS 408 reports at most 125 clusters a cycle; the strongest are kept.
+    max_detections: int = 125
+
+    def __post_init__(self) -> None:
+        o = "RadarConfig"
+        for name in (
+            "rate_hz",
+            "ray_spacing_deg",
+            "fov_deg",
+            "max_range_m",
+            "edge_range_m",
+            "far_range_m",
+            "far_spacing_deg",
+            "elevation_half_deg",
+            "reference_range_m",
+            "detection_softness_db",
+        ):
+            _positive(o, name, getattr(self, name))
+        for name in (
+            "far_fov_deg",
+            "far_gain_db",
+            "corner_gain_db",
+            "rcs_fluctuation_db",
+            "range_noise_m",
+            "azimuth_noise_deg",
+            "azimuth_noise_edge_deg",
+            "doppler_noise_mps",
+            "clutter_rate",
+            "multipath_loss_db",
+        ):
+            _positive(o, name, getattr(self, name), allow_zero=True)
+        if self.fov_deg > 90.0 or self.far_fov_deg > self.fov_deg:
+            raise ValueError(f"{o} needs far_fov_deg <= fov_deg <= 90, got {self.far_fov_deg!r}, {self.fov_deg!r}")
+        if self.edge_range_m > self.max_range_m:
+            raise ValueError(f"{o}.edge_range_m ({self.edge_range_m!r}) must not exceed max_range_m ({self.max_range_m!r})")
+        if not isinstance(self.max_detections, int) or self.max_detections < 1:
+            raise ValueError(f"{o}.max_detections must be a positive integer, got {self.max_detections!r}")
+
+
+@dataclass(frozen=True)
+class EgoConfig:
+    """Ego driving behaviour and odometry error."""
+
+    #: Cruise speed is drawn per scene in this range, m/s (urban; suburban adds 2 m/s).
+    cruise_speed_mps: tuple[float, float] = (7.0, 12.0)
+    max_accel_mps2: float = 1.6
+    max_decel_mps2: float = 2.8
+    max_lateral_accel_mps2: float = 2.5
+    #: Probability of stopping at an intersection ahead, and the stop's duration range (s).
+    stop_probability: float = 0.35
+    stop_duration_s: tuple[float, float] = (1.5, 6.0)
+    #: Probability that the scene starts from standstill.
+    start_at_rest_probability: float = 0.25
+    #: Probability that each intersection is a turn (half left, half right).
+    turn_probability: float = 0.45
+    #: Odometry drift (0 = odometry is the true pose): constant yaw-rate bias drawn with this
+    #: standard deviation (deg/s), and a speed scale error with this standard deviation.
+    odometry_yaw_bias_std_deg_s: float = 0.0
+    odometry_scale_std: float = 0.0
+
+    def __post_init__(self) -> None:
+        o = "EgoConfig"
+        lo, hi = self.cruise_speed_mps
+        if not (math.isfinite(lo) and math.isfinite(hi) and 0 < lo <= hi <= 30):
+            raise ValueError(f"{o}.cruise_speed_mps must be (lo, hi) with 0 < lo <= hi <= 30, got {self.cruise_speed_mps!r}")
+        for name in ("max_accel_mps2", "max_decel_mps2", "max_lateral_accel_mps2"):
+            _positive(o, name, getattr(self, name))
+        for name in ("stop_probability", "start_at_rest_probability", "turn_probability"):
+            _fraction(o, name, getattr(self, name))
+        a, b = self.stop_duration_s
+        if not (math.isfinite(a) and math.isfinite(b) and 0 <= a <= b):
+            raise ValueError(f"{o}.stop_duration_s must be (lo, hi) with 0 <= lo <= hi, got {self.stop_duration_s!r}")
+        _positive(o, "odometry_yaw_bias_std_deg_s", self.odometry_yaw_bias_std_deg_s, allow_zero=True)
+        _positive(o, "odometry_scale_std", self.odometry_scale_std, allow_zero=True)
+
+
+@dataclass(frozen=True)
+class WorldConfig:
+    """Densities of the procedural world (multipliers of the per-environment defaults)."""
+
+    #: "urban", "suburban", or "mixed" (drawn from the seed, 60 % urban).
+    environment: str = "mixed"
+    #: Scales the number of moving vehicles, pedestrians and parked cars.
+    traffic_density: float = 1.0
+    #: Random rotation of the whole city in the global frame (streets are not axis aligned).
+    random_orientation: bool = True
+
+    def __post_init__(self) -> None:
+        if self.environment not in ENVIRONMENTS:
+            raise ValueError(f"WorldConfig.environment must be one of {ENVIRONMENTS}, got {self.environment!r}")
+        _positive("WorldConfig", "traffic_density", self.traffic_density, allow_zero=True)
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """Everything :func:`~evgrid.data.sim.simulate_scene` needs besides the seed."""
+
+    #: Scene length in seconds (nuScenes scenes last about 20 s).
+    duration_s: float = 20.0
+    #: One keyframe (a nuScenes sample, 2 Hz) every this many lidar sweeps.
+    keyframe_every: int = 10
+    #: Unix time of the first lidar sweep, microseconds (the seed adds whole days).
+    start_time_us: int = 1_533_000_000_000_000
+    #: The local grid of the true occupancy raster (DESIGN 3).
+    grid: GridSpec = field(default_factory=GridSpec)
+    #: Heights above ground that make a cell occupied (the ray ILM's band, DESIGN 4), metres.
+    occupancy_z_min_m: float = 0.3
+    occupancy_z_max_m: float = 3.0
+    lidar: LidarConfig = field(default_factory=LidarConfig)
+    radar: RadarConfig = field(default_factory=RadarConfig)
+    ego: EgoConfig = field(default_factory=EgoConfig)
+    world: WorldConfig = field(default_factory=WorldConfig)
+
+    def __post_init__(self) -> None:
+        o = "SimConfig"
+        if not (math.isfinite(self.duration_s) and 0.0 < self.duration_s <= 600.0):
+            raise ValueError(f"{o}.duration_s must be in (0, 600] seconds, got {self.duration_s!r}")
+        if not isinstance(self.keyframe_every, int) or self.keyframe_every < 1:
+            raise ValueError(f"{o}.keyframe_every must be a positive integer, got {self.keyframe_every!r}")
+        if not isinstance(self.start_time_us, int) or self.start_time_us < 0:
+            raise ValueError(f"{o}.start_time_us must be a non-negative integer, got {self.start_time_us!r}")
+        if not isinstance(self.grid, GridSpec):
+            raise ValueError(f"{o}.grid must be a GridSpec, got {type(self.grid).__name__}")
+        if not (0.0 <= self.occupancy_z_min_m < self.occupancy_z_max_m):
+            raise ValueError(
+                f"{o} needs 0 <= occupancy_z_min_m < occupancy_z_max_m, got {self.occupancy_z_min_m!r}, {self.occupancy_z_max_m!r}"
+            )
+        for name, typ in (("lidar", LidarConfig), ("radar", RadarConfig), ("ego", EgoConfig), ("world", WorldConfig)):
+            if not isinstance(getattr(self, name), typ):
+                raise ValueError(f"{o}.{name} must be a {typ.__name__}, got {type(getattr(self, name)).__name__}")
+
+    @property
+    def n_frames(self) -> int:
+        """Number of lidar sweeps (frames) in a scene."""
+        return max(1, int(math.floor(self.duration_s * self.lidar.rate_hz + 1e-9)))
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain-JSON form (nested dicts; tuples become lists)."""
+        d = asdict(self)
+        d["grid"] = self.grid.to_dict()
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "SimConfig":
+        """Inverse of :meth:`to_dict`; unknown keys raise ``ValueError`` naming them."""
+        subs = {"lidar": LidarConfig, "radar": RadarConfig, "ego": EgoConfig, "world": WorldConfig}
+        kwargs: dict[str, Any] = {}
+        known = {f.name for f in fields(cls)}
+        for key, value in d.items():
+            if key not in known:
+                raise ValueError(f"unknown SimConfig field {key!r}")
+            if key == "grid":
+                kwargs[key] = GridSpec.from_dict(value)
+            elif key in subs:
+                sub = subs[key]
+                sub_known = {f.name for f in fields(sub)}
+                bad = set(value) - sub_known
+                if bad:
+                    raise ValueError(f"unknown {sub.__name__} field(s) {sorted(bad)!r}")
+                sub_kwargs = {k: tuple(v) if isinstance(v, list) else v for k, v in value.items()}
+                kwargs[key] = sub(**sub_kwargs)
+            else:
+                kwargs[key] = value
+        return cls(**kwargs)

@@ -1,0 +1,657 @@
+"""Numba kernels: ray casting against 2.5-D boxes and the ground, and box rasterisation.
+
+Every obstacle is an oriented box: a rectangle footprint (centre, yaw, half length along its
+heading, half width) extruded from ``z_min`` to ``z_max``. Boxes are packed in a float64
+``(n, 8)`` array with the columns ``BOX_COLUMNS``. Static boxes are found through a uniform
+2-D grid index (cells of a few metres), walked along each ray with a DDA; moving boxes are
+few and tested by brute force.
+
+The lidar kernel exploits that the 32 beams of a firing share one azimuth: the footprint
+walk is done once per azimuth and each box met is intersected with all beams at once (a beam
+is a line ``z = z0 + slope * t`` over the horizontal distance ``t``).
+
+Randomness inside kernels (vegetation penetration, porous fences) comes from a counter-based
+hash of (seed, firing, beam, box), so results do not depend on evaluation order.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+__all__ = [
+    "BOX_COLUMNS",
+    "pack_boxes",
+    "build_index",
+    "lidar_cast",
+    "radar_cast",
+    "rasterize_boxes",
+    "hash_uniform",
+    "GridIndex",
+]
+
+#: Columns of a packed box array.
+BOX_COLUMNS: tuple[str, ...] = ("cx", "cy", "cos_yaw", "sin_yaw", "half_length", "half_width", "z_min", "z_max")
+
+#: Ray ids written by the kernels besides box indices.
+HIT_GROUND = -1
+HIT_NONE = -2
+
+_M1 = np.uint64(0xBF58476D1CE4E5B9)
+_M2 = np.uint64(0x94D049BB133111EB)
+_G1 = np.uint64(0x9E3779B97F4A7C15)
+_G2 = np.uint64(0xC2B2AE3D27D4EB4F)
+_G3 = np.uint64(0x165667B19E3779F9)
+_S30 = np.uint64(30)
+_S27 = np.uint64(27)
+_S31 = np.uint64(31)
+_S11 = np.uint64(11)
+
+
+def pack_boxes(cx: np.ndarray, cy: np.ndarray, yaw: np.ndarray, hl: np.ndarray, hw: np.ndarray, zmin: np.ndarray, zmax: np.ndarray) -> np.ndarray:
+    """Pack box parameters (m, rad) into the ``(n, 8)`` float64 layout of ``BOX_COLUMNS``."""
+    out = np.empty((len(np.atleast_1d(cx)), 8), dtype=np.float64)
+    out[:, 0] = cx
+    out[:, 1] = cy
+    out[:, 2] = np.cos(yaw)
+    out[:, 3] = np.sin(yaw)
+    out[:, 4] = hl
+    out[:, 5] = hw
+    out[:, 6] = zmin
+    out[:, 7] = zmax
+    return out
+
+
+@numba.njit(cache=True)
+def _mix64(x: np.uint64) -> np.uint64:
+    x = (x ^ (x >> _S30)) * _M1
+    x = (x ^ (x >> _S27)) * _M2
+    return x ^ (x >> _S31)
+
+
+@numba.njit(cache=True)
+def hash_uniform(seed: np.uint64, a: int, b: int, c: int) -> float:
+    """A uniform number in [0, 1) from a counter-based hash of four integers (a, b, c >= 0)."""
+    h = _mix64(seed ^ (np.uint64(a) * _G1))
+    h = _mix64(h ^ (np.uint64(b) * _G2))
+    h = _mix64(h ^ (np.uint64(c) * _G3))
+    return float(h >> _S11) * (1.0 / 9007199254740992.0)
+
+
+class GridIndex:
+    """A uniform 2-D grid over the static boxes' footprints: ``start``/``items`` in CSR layout."""
+
+    def __init__(self, boxes: np.ndarray, cell: float = 4.0) -> None:
+        if boxes.shape[0] == 0:
+            self.x0, self.y0, self.nx, self.ny = 0.0, 0.0, 1, 1
+            self.cell = float(cell)
+            self.start = np.zeros(2, dtype=np.int64)
+            self.items = np.zeros(0, dtype=np.int64)
+            return
+        ext = np.abs(boxes[:, 2:3]) * boxes[:, 4:5] + np.abs(boxes[:, 3:4]) * boxes[:, 5:6]
+        exty = np.abs(boxes[:, 3:4]) * boxes[:, 4:5] + np.abs(boxes[:, 2:3]) * boxes[:, 5:6]
+        xmin = boxes[:, 0] - ext[:, 0]
+        xmax = boxes[:, 0] + ext[:, 0]
+        ymin = boxes[:, 1] - exty[:, 0]
+        ymax = boxes[:, 1] + exty[:, 0]
+        self.cell = float(cell)
+        self.x0 = float(xmin.min()) - cell
+        self.y0 = float(ymin.min()) - cell
+        self.nx = int(math.ceil((xmax.max() - self.x0) / cell)) + 2
+        self.ny = int(math.ceil((ymax.max() - self.y0) / cell)) + 2
+        self.start, self.items = build_index(xmin, ymin, xmax, ymax, self.x0, self.y0, self.cell, self.nx, self.ny)
+
+
+@numba.njit(cache=True)
+def build_index(
+    xmin: np.ndarray, ymin: np.ndarray, xmax: np.ndarray, ymax: np.ndarray, x0: float, y0: float, cell: float, nx: int, ny: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """CSR lists of the boxes whose bounding rectangles touch each grid cell (cell = ix * ny + iy)."""
+    n = xmin.shape[0]
+    counts = np.zeros(nx * ny + 1, dtype=np.int64)
+    for b in range(n):
+        i0 = max(int((xmin[b] - x0) / cell), 0)
+        i1 = min(int((xmax[b] - x0) / cell), nx - 1)
+        j0 = max(int((ymin[b] - y0) / cell), 0)
+        j1 = min(int((ymax[b] - y0) / cell), ny - 1)
+        for i in range(i0, i1 + 1):
+            for j in range(j0, j1 + 1):
+                counts[i * ny + j + 1] += 1
+    start = np.cumsum(counts)
+    fill = start[:-1].copy()
+    items = np.empty(start[-1], dtype=np.int64)
+    for b in range(n):
+        i0 = max(int((xmin[b] - x0) / cell), 0)
+        i1 = min(int((xmax[b] - x0) / cell), nx - 1)
+        j0 = max(int((ymin[b] - y0) / cell), 0)
+        j1 = min(int((ymax[b] - y0) / cell), ny - 1)
+        for i in range(i0, i1 + 1):
+            for j in range(j0, j1 + 1):
+                c = i * ny + j
+                items[fill[c]] = b
+                fill[c] += 1
+    return start, items
+
+
+@numba.njit(cache=True)
+def _slab2d(ox: float, oy: float, dx: float, dy: float, box: np.ndarray) -> tuple[float, float, int, float, float]:
+    """Footprint entry/exit distances of a 2-D ray (unit direction), the entered face's axis
+    (0: the box's length axis, 1: width axis) and the ray direction in box coordinates."""
+    c = box[2]
+    s = box[3]
+    rx = ox - box[0]
+    ry = oy - box[1]
+    lx = c * rx + s * ry
+    ly = -s * rx + c * ry
+    ldx = c * dx + s * dy
+    ldy = -s * dx + c * dy
+    t_in = -1e30
+    t_out = 1e30
+    axis = -1
+    hl = box[4]
+    hw = box[5]
+    if abs(ldx) < 1e-12:
+        if abs(lx) > hl:
+            return 1.0, -1.0, -1, ldx, ldy
+    else:
+        a = (-hl - lx) / ldx
+        b = (hl - lx) / ldx
+        if a > b:
+            a, b = b, a
+        if a > t_in:
+            t_in = a
+            axis = 0
+        if b < t_out:
+            t_out = b
+    if abs(ldy) < 1e-12:
+        if abs(ly) > hw:
+            return 1.0, -1.0, -1, ldx, ldy
+    else:
+        a = (-hw - ly) / ldy
+        b = (hw - ly) / ldy
+        if a > b:
+            a, b = b, a
+        if a > t_in:
+            t_in = a
+            axis = 1
+        if b < t_out:
+            t_out = b
+    return t_in, t_out, axis, ldx, ldy
+
+
+@numba.njit(cache=True)
+def _lidar_box(
+    ox: float,
+    oy: float,
+    oz: float,
+    dx: float,
+    dy: float,
+    box: np.ndarray,
+    klass: int,
+    box_id: int,
+    density: np.ndarray,
+    pass_prob: np.ndarray,
+    seed: np.uint64,
+    col: int,
+    slopes: np.ndarray,
+    cos_e: np.ndarray,
+    sin_abs_e: np.ndarray,
+    best_t: np.ndarray,
+    best_id: np.ndarray,
+    best_c: np.ndarray,
+) -> None:
+    t_in, t_out, axis, ldx, ldy = _slab2d(ox, oy, dx, dy, box)
+    t0 = t_in if t_in > 0.0 else 0.0
+    if t_out < t0:
+        return
+    inside = t_in < 0.0
+    face_h = abs(ldx) if axis == 0 else abs(ldy)
+    zmin = box[6]
+    zmax = box[7]
+    dens = density[klass]
+    pp = pass_prob[klass]
+    for j in range(slopes.shape[0]):
+        if t0 >= best_t[j]:
+            continue
+        sl = slopes[j]
+        z0 = oz + sl * t0
+        if zmin <= z0 <= zmax:
+            if inside:
+                continue  # the sensor is inside this volume: no surface to hit
+            th = t0
+            cv = face_h * cos_e[j]
+        elif z0 > zmax and sl < 0.0:
+            th = (zmax - oz) / sl
+            if th > t_out:
+                continue
+            cv = sin_abs_e[j]
+        elif z0 < zmin and sl > 0.0:
+            th = (zmin - oz) / sl
+            if th > t_out:
+                continue
+            cv = sin_abs_e[j]
+        else:
+            continue
+        if th >= best_t[j]:
+            continue
+        if dens > 0.0:
+            # Foliage: the beam is stopped after an exponential depth, or leaves the volume.
+            te = t_out
+            if sl < 0.0:
+                te = min(te, (zmin - oz) / sl)
+            elif sl > 0.0:
+                te = min(te, (zmax - oz) / sl)
+            u = hash_uniform(seed, col, j, box_id)
+            th = th - math.log(1.0 - u) / dens * cos_e[j]
+            if th > te or th >= best_t[j]:
+                continue
+            cv = 0.7  # leaves face every way
+        elif pp > 0.0:
+            if hash_uniform(seed, col, j, box_id) < pp:
+                continue
+        best_t[j] = th
+        best_id[j] = box_id
+        best_c[j] = cv
+
+
+@numba.njit(cache=True)
+def lidar_cast(
+    ox: float,
+    oy: float,
+    oz: float,
+    az: np.ndarray,
+    slopes: np.ndarray,
+    max_h: np.ndarray,
+    boxes: np.ndarray,
+    classes: np.ndarray,
+    idx_start: np.ndarray,
+    idx_items: np.ndarray,
+    gx0: float,
+    gy0: float,
+    cell: float,
+    gnx: int,
+    gny: int,
+    dboxes: np.ndarray,
+    dclasses: np.ndarray,
+    density: np.ndarray,
+    pass_prob: np.ndarray,
+    seed: np.uint64,
+    out_t: np.ndarray,
+    out_id: np.ndarray,
+    out_cos: np.ndarray,
+) -> None:
+    """Cast a rotating multi-beam lidar from ``(ox, oy, oz)`` (m, global frame).
+
+    ``az`` (global azimuths, rad) x ``slopes`` (tan of beam elevations) rays; ``max_h`` the
+    horizontal reach of each beam (m). Writes per ray the horizontal hit distance ``out_t``
+    (m), what was hit ``out_id`` (static box index, ``n_static + k`` for moving box k, -1
+    ground, -2 nothing) and the cosine of the incidence angle ``out_cos``.
+    """
+    nb = slopes.shape[0]
+    n = boxes.shape[0]
+    stamp = np.full(n, -1, dtype=np.int64)
+    cos_e = np.empty(nb)
+    sin_abs_e = np.empty(nb)
+    for j in range(nb):
+        cos_e[j] = 1.0 / math.sqrt(1.0 + slopes[j] * slopes[j])
+        sin_abs_e[j] = abs(slopes[j]) * cos_e[j]
+    best_t = np.empty(nb)
+    best_id = np.empty(nb, dtype=np.int64)
+    best_c = np.empty(nb)
+    gx1 = gx0 + gnx * cell
+    gy1 = gy0 + gny * cell
+    for col in range(az.shape[0]):
+        dx = math.cos(az[col])
+        dy = math.sin(az[col])
+        for j in range(nb):
+            best_t[j] = max_h[j]
+            best_id[j] = HIT_NONE
+            best_c[j] = 0.0
+            if slopes[j] < 0.0:
+                tg = oz / -slopes[j]
+                if tg < max_h[j]:
+                    best_t[j] = tg
+                    best_id[j] = HIT_GROUND
+                    best_c[j] = sin_abs_e[j]
+        for k in range(dboxes.shape[0]):
+            # Bounding-circle rejection first: most moving objects are far from most rays.
+            qx = dboxes[k, 0] - ox
+            qy = dboxes[k, 1] - oy
+            rad = dboxes[k, 4] + dboxes[k, 5]
+            if qx * dx + qy * dy < -rad or abs(qy * dx - qx * dy) > rad:
+                continue
+            _lidar_box(ox, oy, oz, dx, dy, dboxes[k], dclasses[k], n + k, density, pass_prob, seed, col,
+                       slopes, cos_e, sin_abs_e, best_t, best_id, best_c)
+        tlim = 0.0
+        for j in range(nb):
+            tlim = max(tlim, best_t[j])
+        # Clip the ray to the index rectangle, then walk its cells (Amanatides & Woo).
+        t0 = 0.0
+        t1 = tlim
+        if abs(dx) < 1e-12:
+            if ox < gx0 or ox > gx1:
+                t1 = -1.0
+        else:
+            a = (gx0 - ox) / dx
+            b = (gx1 - ox) / dx
+            if a > b:
+                a, b = b, a
+            t0 = max(t0, a)
+            t1 = min(t1, b)
+        if abs(dy) < 1e-12:
+            if oy < gy0 or oy > gy1:
+                t1 = -1.0
+        else:
+            a = (gy0 - oy) / dy
+            b = (gy1 - oy) / dy
+            if a > b:
+                a, b = b, a
+            t0 = max(t0, a)
+            t1 = min(t1, b)
+        if t0 <= t1:
+            px = ox + dx * t0
+            py = oy + dy * t0
+            ix = min(max(int((px - gx0) / cell), 0), gnx - 1)
+            iy = min(max(int((py - gy0) / cell), 0), gny - 1)
+            if dx > 1e-12:
+                stepx = 1
+                tmx = (gx0 + (ix + 1) * cell - ox) / dx
+                tdx = cell / dx
+            elif dx < -1e-12:
+                stepx = -1
+                tmx = (gx0 + ix * cell - ox) / dx
+                tdx = -cell / dx
+            else:
+                stepx = 0
+                tmx = 1e30
+                tdx = 1e30
+            if dy > 1e-12:
+                stepy = 1
+                tmy = (gy0 + (iy + 1) * cell - oy) / dy
+                tdy = cell / dy
+            elif dy < -1e-12:
+                stepy = -1
+                tmy = (gy0 + iy * cell - oy) / dy
+                tdy = -cell / dy
+            else:
+                stepy = 0
+                tmy = 1e30
+                tdy = 1e30
+            tcur = t0
+            while tcur <= tlim:
+                c = ix * gny + iy
+                for p in range(idx_start[c], idx_start[c + 1]):
+                    b = idx_items[p]
+                    if stamp[b] == col:
+                        continue
+                    stamp[b] = col
+                    _lidar_box(ox, oy, oz, dx, dy, boxes[b], classes[b], b, density, pass_prob, seed, col,
+                               slopes, cos_e, sin_abs_e, best_t, best_id, best_c)
+                tlim = 0.0
+                for j in range(nb):
+                    tlim = max(tlim, best_t[j])
+                if tmx < tmy:
+                    tcur = tmx
+                    tmx += tdx
+                    ix += stepx
+                    if ix < 0 or ix >= gnx:
+                        break
+                else:
+                    tcur = tmy
+                    tmy += tdy
+                    iy += stepy
+                    if iy < 0 or iy >= gny:
+                        break
+        for j in range(nb):
+            out_t[col, j] = best_t[j]
+            out_id[col, j] = best_id[j]
+            out_cos[col, j] = best_c[j]
+
+
+@numba.njit(cache=True)
+def _radar_box(
+    ox: float,
+    oy: float,
+    oz: float,
+    dx: float,
+    dy: float,
+    tmax: float,
+    tan_beta: float,
+    box: np.ndarray,
+    box_id: int,
+    r: int,
+    out_t: np.ndarray,
+    out_id: np.ndarray,
+    out_cos: np.ndarray,
+    out_nx: np.ndarray,
+    out_ny: np.ndarray,
+) -> None:
+    t_in, t_out, axis, ldx, ldy = _slab2d(ox, oy, dx, dy, box)
+    if t_in < 0.0 or t_out < t_in or t_in > tmax:
+        return  # behind, missed, too far, or the sensor is inside the footprint
+    # The beam's vertical opening at that distance must overlap the box's height range.
+    if box[6] > oz + tan_beta * t_in or box[7] < oz - tan_beta * t_in:
+        return
+    k_last = out_t.shape[1] - 1
+    if t_in >= out_t[r, k_last]:
+        return
+    if axis == 0:
+        lnx = -1.0 if ldx > 0 else 1.0
+        lny = 0.0
+        cv = abs(ldx)
+    else:
+        lnx = 0.0
+        lny = -1.0 if ldy > 0 else 1.0
+        cv = abs(ldy)
+    c = box[2]
+    s = box[3]
+    i = k_last
+    while i > 0 and out_t[r, i - 1] > t_in:
+        out_t[r, i] = out_t[r, i - 1]
+        out_id[r, i] = out_id[r, i - 1]
+        out_cos[r, i] = out_cos[r, i - 1]
+        out_nx[r, i] = out_nx[r, i - 1]
+        out_ny[r, i] = out_ny[r, i - 1]
+        i -= 1
+    out_t[r, i] = t_in
+    out_id[r, i] = box_id
+    out_cos[r, i] = cv
+    out_nx[r, i] = c * lnx - s * lny
+    out_ny[r, i] = s * lnx + c * lny
+
+
+@numba.njit(cache=True)
+def radar_cast(
+    ox: np.ndarray,
+    oy: np.ndarray,
+    oz: np.ndarray,
+    dx: np.ndarray,
+    dy: np.ndarray,
+    tmax: np.ndarray,
+    exclude: np.ndarray,
+    tan_beta: float,
+    boxes: np.ndarray,
+    classes: np.ndarray,
+    idx_start: np.ndarray,
+    idx_items: np.ndarray,
+    gx0: float,
+    gy0: float,
+    cell: float,
+    gnx: int,
+    gny: int,
+    dboxes: np.ndarray,
+    dclasses: np.ndarray,
+    opaque: np.ndarray,
+    out_t: np.ndarray,
+    out_id: np.ndarray,
+    out_cos: np.ndarray,
+    out_nx: np.ndarray,
+    out_ny: np.ndarray,
+) -> None:
+    """Cast horizontal radar beams (per-ray origin, unit 2-D direction, reach ``tmax`` m).
+
+    Keeps, sorted by distance, the ``K = out_t.shape[1]`` nearest footprint entries whose
+    height range meets the beam's vertical opening (``tan_beta``), up to the first opaque
+    object. Writes distance (m, inf where fewer hits), box id (static index, ``n + k`` for
+    moving box k, -1 none), cosine of incidence and the entered face's outward normal.
+    ``exclude`` names one box per ray to ignore (the mirror of a bounced ray), or -1.
+    """
+    n = boxes.shape[0]
+    K = out_t.shape[1]
+    stamp = np.full(n, -1, dtype=np.int64)
+    gx1 = gx0 + gnx * cell
+    gy1 = gy0 + gny * cell
+    for r in range(ox.shape[0]):
+        for k in range(K):
+            out_t[r, k] = np.inf
+            out_id[r, k] = -1
+            out_cos[r, k] = 0.0
+            out_nx[r, k] = 0.0
+            out_ny[r, k] = 0.0
+        px0 = ox[r]
+        py0 = oy[r]
+        pz0 = oz[r]
+        ddx = dx[r]
+        ddy = dy[r]
+        for k in range(dboxes.shape[0]):
+            if n + k == exclude[r]:
+                continue
+            qx = dboxes[k, 0] - px0
+            qy = dboxes[k, 1] - py0
+            rad = dboxes[k, 4] + dboxes[k, 5]
+            if qx * ddx + qy * ddy < -rad or abs(qy * ddx - qx * ddy) > rad:
+                continue
+            _radar_box(px0, py0, pz0, ddx, ddy, tmax[r], tan_beta, dboxes[k], n + k, r, out_t, out_id, out_cos, out_nx, out_ny)
+        t0 = 0.0
+        t1 = tmax[r]
+        if abs(ddx) < 1e-12:
+            if px0 < gx0 or px0 > gx1:
+                t1 = -1.0
+        else:
+            a = (gx0 - px0) / ddx
+            b = (gx1 - px0) / ddx
+            if a > b:
+                a, b = b, a
+            t0 = max(t0, a)
+            t1 = min(t1, b)
+        if abs(ddy) < 1e-12:
+            if py0 < gy0 or py0 > gy1:
+                t1 = -1.0
+        else:
+            a = (gy0 - py0) / ddy
+            b = (gy1 - py0) / ddy
+            if a > b:
+                a, b = b, a
+            t0 = max(t0, a)
+            t1 = min(t1, b)
+        if t0 > t1:
+            continue
+        px = px0 + ddx * t0
+        py = py0 + ddy * t0
+        ix = min(max(int((px - gx0) / cell), 0), gnx - 1)
+        iy = min(max(int((py - gy0) / cell), 0), gny - 1)
+        if ddx > 1e-12:
+            stepx = 1
+            tmx = (gx0 + (ix + 1) * cell - px0) / ddx
+            tdx = cell / ddx
+        elif ddx < -1e-12:
+            stepx = -1
+            tmx = (gx0 + ix * cell - px0) / ddx
+            tdx = -cell / ddx
+        else:
+            stepx = 0
+            tmx = 1e30
+            tdx = 1e30
+        if ddy > 1e-12:
+            stepy = 1
+            tmy = (gy0 + (iy + 1) * cell - py0) / ddy
+            tdy = cell / ddy
+        elif ddy < -1e-12:
+            stepy = -1
+            tmy = (gy0 + iy * cell - py0) / ddy
+            tdy = -cell / ddy
+        else:
+            stepy = 0
+            tmy = 1e30
+            tdy = 1e30
+        tcur = t0
+        while tcur <= t1:
+            c = ix * gny + iy
+            for p in range(idx_start[c], idx_start[c + 1]):
+                b = idx_items[p]
+                if stamp[b] == r or b == exclude[r]:
+                    continue
+                stamp[b] = r
+                _radar_box(px0, py0, pz0, ddx, ddy, tmax[r], tan_beta, boxes[b], b, r, out_t, out_id, out_cos, out_nx, out_ny)
+            # Nothing beyond the first opaque hit, or beyond a full buffer, can matter.
+            lim = out_t[r, K - 1]
+            for k in range(K):
+                h = out_id[r, k]
+                if h < 0:
+                    break
+                kk = classes[h] if h < n else dclasses[h - n]
+                if opaque[kk]:
+                    lim = out_t[r, k]
+                    break
+            if tcur > lim:
+                break
+            if tmx < tmy:
+                tcur = tmx
+                tmx += tdx
+                ix += stepx
+                if ix < 0 or ix >= gnx:
+                    break
+            else:
+                tcur = tmy
+                tmy += tdy
+                iy += stepy
+                if iy < 0 or iy >= gny:
+                    break
+        # Drop hits behind the first opaque one (they were only kept while searching).
+        cut = False
+        for k in range(K):
+            h = out_id[r, k]
+            if h < 0:
+                break
+            if cut:
+                out_t[r, k] = np.inf
+                out_id[r, k] = -1
+                continue
+            kk = classes[h] if h < n else dclasses[h - n]
+            if opaque[kk]:
+                cut = True
+
+
+@numba.njit(cache=True)
+def rasterize_boxes(boxes: np.ndarray, labels: np.ndarray, n: int, res: float, out: np.ndarray) -> None:
+    """Mark the cells of an ``(n, n)`` ego-centred grid whose centres lie in each box footprint.
+
+    ``boxes`` are in the ego frame (packed layout). A footprint thinner than a cell counts as
+    one cell thick (its half extents are raised to half a cell), so poles and fences are not
+    lost between cell centres. ``out`` keeps the largest label written to a cell.
+    """
+    half = n / 2.0
+    for b in range(boxes.shape[0]):
+        cx = boxes[b, 0]
+        cy = boxes[b, 1]
+        c = boxes[b, 2]
+        s = boxes[b, 3]
+        hl = max(boxes[b, 4], 0.5 * res)
+        hw = max(boxes[b, 5], 0.5 * res)
+        ex = abs(c) * hl + abs(s) * hw
+        ey = abs(s) * hl + abs(c) * hw
+        r0 = max(int(math.floor(half - (cx + ex) / res)), 0)
+        r1 = min(int(math.floor(half - (cx - ex) / res)), n - 1)
+        c0 = max(int(math.floor(half - (cy + ey) / res)), 0)
+        c1 = min(int(math.floor(half - (cy - ey) / res)), n - 1)
+        lab = labels[b]
+        for row in range(r0, r1 + 1):
+            x = (half - row - 0.5) * res - cx
+            for col in range(c0, c1 + 1):
+                y = (half - col - 0.5) * res - cy
+                lx = c * x + s * y
+                ly = -s * x + c * y
+                if abs(lx) <= hl and abs(ly) <= hw and out[row, col] < lab:
+                    out[row, col] = lab

@@ -1,0 +1,581 @@
+"""The procedural 2.5-D world: static boxes (buildings, walls, fences, vegetation, poles, parked
+vehicles) and moving objects (vehicles, cyclists, pedestrians), built around the ego's route.
+
+Everything is generated in a *city frame* (streets axis-aligned, the ego starting near the
+origin) and then moved by one rigid transform into the *global frame* that poses are given in
+(random orientation, coordinates in the hundreds of metres as in nuScenes).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from evgrid.data.sim import materials as M
+from evgrid.data.sim.config import SimConfig
+from evgrid.data.sim.raycast import GridIndex, pack_boxes
+from evgrid.data.sim.trajectory import (
+    LANE_OFFSET_M,
+    StreetGrid,
+    Trajectory,
+    build_trajectory,
+    make_street_grid,
+    plan_route,
+)
+from evgrid.geometry import SE2
+
+__all__ = ["World", "Movers", "generate_world", "plan_drive", "EGO_LENGTH_M", "EGO_WIDTH_M", "EGO_REAR_OVERHANG_M"]
+
+#: Ego vehicle footprint (a compact car; the pose is the rear axle centre, as in nuScenes).
+EGO_LENGTH_M = 4.1
+EGO_WIDTH_M = 1.8
+EGO_REAR_OVERHANG_M = 0.7
+#: Blocks and streets farther than this from the driven path are left empty (sensors reach
+#: about 100 m; the maps only 20 m), metres.
+_POPULATE_RADIUS_M = 110.0
+
+
+@dataclass(frozen=True, eq=False)
+class Movers:
+    """Moving objects. Linear movers: ``position(t) = p0 + u(heading) * speed * clip(t, t_begin, t_end)``;
+    followers (``follow``) drive the ego's path at ``s_ego(t + follow_lead_s) + follow_gap``."""
+
+    classes: np.ndarray
+    half_length: np.ndarray
+    half_width: np.ndarray
+    z_min: np.ndarray
+    z_max: np.ndarray
+    p0: np.ndarray
+    heading: np.ndarray
+    speed: np.ndarray
+    t_begin: np.ndarray
+    t_end: np.ndarray
+    follow: np.ndarray
+    follow_gap: np.ndarray
+    follow_lead_s: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.classes.shape[0])
+
+    @staticmethod
+    def empty() -> "Movers":
+        """No moving objects."""
+        z = np.zeros(0)
+        return Movers(np.zeros(0, np.int32), z, z, z, z, np.zeros((0, 2)), z, z, z, z, np.zeros(0, bool), z, z)
+
+    def state_at(self, t: float, traj: Trajectory) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Packed boxes (m, 8), velocities (m, 2) in m/s, and yaw (m,) of all movers at ``t`` seconds."""
+        m = len(self)
+        tc = np.clip(t, self.t_begin, self.t_end)
+        ux, uy = np.cos(self.heading), np.sin(self.heading)
+        x = self.p0[:, 0] + ux * self.speed * tc
+        y = self.p0[:, 1] + uy * self.speed * tc
+        yaw = self.heading.copy()
+        moving = (t >= self.t_begin) & (t < self.t_end)
+        vx = np.where(moving, ux * self.speed, 0.0)
+        vy = np.where(moving, uy * self.speed, 0.0)
+        if self.follow.any():
+            f = np.nonzero(self.follow)[0]
+            tf = t + self.follow_lead_s[f]
+            s = traj.s_at(tf) + self.follow_gap[f]
+            fx, fy, fyaw = traj.pose_at_s(s)
+            x[f], y[f], yaw[f] = fx, fy, fyaw
+            fvx, fvy, _ = traj.velocity_at(tf)
+            vx[f], vy[f] = fvx, fvy
+        boxes = pack_boxes(x, y, yaw, self.half_length, self.half_width, self.z_min, self.z_max) if m else np.zeros((0, 8))
+        return boxes, np.stack([vx, vy], axis=1) if m else np.zeros((0, 2)), yaw
+
+    def transformed(self, tf: SE2) -> "Movers":
+        """The same movers in the frame ``tf`` maps to."""
+        p0 = tf.apply(self.p0) if len(self) else self.p0
+        return Movers(
+            self.classes, self.half_length, self.half_width, self.z_min, self.z_max, p0, self.heading + tf.yaw,
+            self.speed, self.t_begin, self.t_end, self.follow, self.follow_gap, self.follow_lead_s,
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class World:
+    """Static boxes (global frame, packed ``(n, 8)``, see ``raycast.BOX_COLUMNS``), their classes,
+    per-object material variation, and the moving objects."""
+
+    environment: str
+    boxes: np.ndarray
+    yaw: np.ndarray
+    classes: np.ndarray
+    #: Lidar reflectivity of each static box (class value with per-object variation).
+    reflectivity: np.ndarray
+    #: Radar RCS offset of each static box, dB.
+    rcs_offset_db: np.ndarray
+    movers: Movers
+    mover_reflectivity: np.ndarray
+    mover_rcs_offset_db: np.ndarray
+    streets: StreetGrid
+    #: city frame -> global frame
+    city_to_global: SE2
+    index: GridIndex = field(init=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "index", GridIndex(self.boxes))
+
+    @property
+    def n_static(self) -> int:
+        """Number of static boxes."""
+        return int(self.boxes.shape[0])
+
+    def describe(self) -> dict[str, int]:
+        """Counts of static boxes and moving objects by class name."""
+        out: dict[str, int] = {}
+        for k, name in enumerate(M.CLASS_NAMES):
+            n = int((self.classes == k).sum())
+            if n:
+                out[name] = n
+        for k, name in enumerate(M.CLASS_NAMES):
+            n = int((self.movers.classes == k).sum())
+            if n:
+                out["moving_" + name] = n
+        return out
+
+
+class _Builder:
+    """Collects boxes in the city frame."""
+
+    def __init__(self) -> None:
+        self.rows: list[tuple[float, float, float, float, float, float, float, int]] = []
+
+    def add(self, cx: float, cy: float, yaw: float, hl: float, hw: float, z0: float, z1: float, klass: int) -> None:
+        if hl > 0.01 and hw > 0.01 and z1 > z0:
+            self.rows.append((cx, cy, yaw, hl, hw, z0, z1, klass))
+
+
+@dataclass
+class _Side:
+    """One side of a block, facing a street: u along the side (0..length), v into the block
+    (v = 0 the property line, v = -sidewalk the curb)."""
+
+    origin: np.ndarray
+    t: np.ndarray
+    n: np.ndarray
+    length: float
+    depth: float
+    sidewalk: float
+    half_width: float
+    parking: bool
+
+    @property
+    def yaw(self) -> float:
+        return math.atan2(self.t[1], self.t[0])
+
+    def point(self, u: float, v: float) -> np.ndarray:
+        return self.origin + u * self.t + v * self.n
+
+    def box(self, b: _Builder, u0: float, u1: float, v0: float, v1: float, z0: float, z1: float, klass: int, dyaw: float = 0.0) -> None:
+        p = self.point(0.5 * (u0 + u1), 0.5 * (v0 + v1))
+        b.add(float(p[0]), float(p[1]), self.yaw + dyaw, 0.5 * abs(u1 - u0), 0.5 * abs(v1 - v0), z0, z1, klass)
+
+
+def _vehicle_dims(rng: np.random.Generator, moving: bool) -> tuple[int, float, float, float, float]:
+    """(class, length, width, z_min, z_max) of a random vehicle, metres."""
+    r = rng.random()
+    if r < 0.85:
+        return M.CAR, rng.uniform(3.9, 4.9), rng.uniform(1.7, 1.95), 0.15, rng.uniform(1.4, 1.75)
+    if r < 0.96 or not moving:
+        return M.TRUCK, rng.uniform(5.2, 7.5), rng.uniform(2.0, 2.4), 0.3, rng.uniform(2.2, 3.1)
+    return M.TRUCK, rng.uniform(10.5, 12.0), 2.5, 0.35, 3.2
+
+
+def _tree(b: _Builder, rng: np.random.Generator, p: np.ndarray, street: bool, big: bool = False) -> None:
+    trunk = rng.uniform(0.25, 0.45)
+    base = rng.uniform(3.0, 4.2) if street else rng.uniform(1.8, 3.2)
+    top = base + rng.uniform(3.0, 6.0 if big else 4.5)
+    side = rng.uniform(3.0, 6.5 if big else 5.0)
+    b.add(float(p[0]), float(p[1]), rng.uniform(0, np.pi), 0.5 * trunk, 0.5 * trunk, 0.0, base + 0.5, M.TRUNK)
+    b.add(float(p[0]), float(p[1]), rng.uniform(0, np.pi), 0.5 * side, 0.5 * side * rng.uniform(0.8, 1.0), base, top, M.CANOPY)
+
+
+def _parked_cars(b: _Builder, rng: np.random.Generator, side: _Side, empty_p: float) -> None:
+    u = rng.uniform(7.0, 12.0)
+    v_c = -side.sidewalk - 1.15
+    while u < side.length - 9.0:
+        if rng.random() < empty_p:
+            u += rng.uniform(5.0, 20.0)
+            continue
+        k, length, width, z0, z1 = _vehicle_dims(rng, moving=False)
+        if u + length > side.length - 7.0:
+            break
+        v = v_c + rng.uniform(-0.15, 0.15)
+        side.box(b, u, u + length, v - width / 2, v + width / 2, z0, z1, k, dyaw=rng.normal(0, 0.03))
+        u += length + rng.uniform(0.6, 2.5)
+
+
+def _street_furniture(b: _Builder, rng: np.random.Generator, side: _Side, urban: bool, density: float) -> None:
+    sw, L = side.sidewalk, side.length
+    # Street lights at the curb.
+    u = rng.uniform(5.0, 15.0)
+    while u < L - 4.0:
+        side.box(b, u - 0.12, u + 0.12, -sw + 0.25, -sw + 0.49, 0.0, rng.uniform(6.0, 8.5), M.POLE)
+        u += rng.uniform(25.0, 35.0) if urban else rng.uniform(35.0, 50.0)
+    # Trees in pits (urban) or in the grass strip (suburban).
+    if rng.random() < (0.5 if urban else 0.65):
+        u = rng.uniform(4.0, 10.0)
+        while u < L - 4.0:
+            _tree(b, rng, side.point(u, -sw + 0.9), street=True)
+            u += rng.uniform(8.0, 14.0) if urban else rng.uniform(10.0, 20.0)
+    # Sign poles with a plate on top.
+    for _ in range(rng.poisson(L / (40.0 if urban else 80.0))):
+        u = rng.uniform(4.0, max(L - 4.0, 4.5))
+        side.box(b, u - 0.04, u + 0.04, -sw + 0.3, -sw + 0.38, 0.0, 2.6, M.POLE)
+        side.box(b, u - 0.35, u + 0.35, -sw + 0.39, -sw + 0.43, 1.9, 2.6, M.POLE)
+    if urban:
+        # Bollards, bins, planters.
+        for _ in range(rng.poisson(L / 45.0)):
+            u = rng.uniform(4.0, max(L - 4.0, 4.5))
+            s = rng.uniform(0.2, 0.7)
+            side.box(b, u - s / 2, u + s / 2, -sw + 0.3, -sw + 0.3 + s, 0.0, rng.uniform(0.8, 1.2), M.BARRIER)
+        # People standing at the curb (static).
+        for _ in range(rng.poisson(density * L / 70.0)):
+            u = rng.uniform(4.0, max(L - 4.0, 4.5))
+            v = -sw + rng.uniform(1.2, 1.5)
+            side.box(b, u - 0.25, u + 0.25, v - 0.3, v + 0.3, 0.0, rng.uniform(1.5, 1.9), M.PEDESTRIAN)
+
+
+def _urban_side(b: _Builder, rng: np.random.Generator, side: _Side, density: float) -> None:
+    L = side.length
+    max_depth = max(side.depth / 2.0 - 1.0, 8.0)
+    if rng.random() < 0.12:
+        # A parking lot or plaza behind a low wall, with a building at the back.
+        u = 0.0
+        while u < L:
+            seg = rng.uniform(6.0, 20.0)
+            side.box(b, u, min(u + seg, L), 0.1, 0.4, 0.0, rng.uniform(0.8, 1.4), M.WALL)
+            u += seg + rng.uniform(3.0, 6.0)
+        for _ in range(rng.integers(2, 7)):
+            _tree(b, rng, side.point(rng.uniform(3.0, L - 3.0), rng.uniform(3.0, min(max_depth, 20.0))), street=False, big=True)
+        v_row = rng.uniform(6.0, 10.0)
+        u = 5.0
+        while u < L - 5.0:
+            if rng.random() < 0.7 * min(density, 1.3):
+                k, length, width, z0, z1 = _vehicle_dims(rng, moving=False)
+                side.box(b, u, u + width, v_row, v_row + length, z0, z1, k)
+            u += rng.uniform(2.5, 3.2)
+        if max_depth > 25.0:
+            side.box(b, 0.0, L, 22.0, min(22.0 + rng.uniform(10.0, 20.0), max_depth), 0.0, rng.uniform(8.0, 30.0), M.BUILDING)
+    else:
+        u = 0.0
+        while u < L - 2.0:
+            if rng.random() < 0.12:
+                gap = rng.uniform(2.5, 7.0)
+                if rng.random() < 0.5:
+                    klass = M.WALL if rng.random() < 0.5 else M.FENCE
+                    thick = 0.25 if klass == M.WALL else 0.06
+                    side.box(b, u, min(u + gap, L), 0.05, 0.05 + thick, 0.0, rng.uniform(1.8, 3.0), klass)
+                u += gap
+                continue
+            w = rng.uniform(8.0, 30.0)
+            setback = 0.0 if rng.random() < 0.7 else rng.uniform(0.5, 3.0)
+            depth = min(rng.uniform(12.0, 28.0), max_depth - setback)
+            h = float(np.clip(rng.lognormal(math.log(14.0), 0.5), 5.0, 60.0))
+            side.box(b, u, min(u + w, L), setback, setback + depth, 0.0, h, M.BUILDING)
+            u += w
+    _street_furniture(b, rng, side, urban=True, density=density)
+    if side.parking:
+        _parked_cars(b, rng, side, empty_p=0.22 / max(density, 0.2))
+
+
+def _suburban_side(b: _Builder, rng: np.random.Generator, side: _Side, density: float) -> None:
+    L = side.length
+    u = rng.uniform(0.0, 5.0)
+    while u < L - 10.0:
+        lot = rng.uniform(16.0, 26.0)
+        end = min(u + lot, L)
+        lot = end - u
+        setback = rng.uniform(5.0, 12.0)
+        hw_ = min(rng.uniform(9.0, 15.0), lot - 3.0)
+        hd = min(rng.uniform(8.0, 13.0), side.depth / 2.0 - setback - 2.0)
+        uc = u + (lot - hw_) * rng.uniform(0.2, 0.8)
+        if hw_ > 4.0 and hd > 4.0:
+            side.box(b, uc, uc + hw_, setback, setback + hd, 0.0, rng.uniform(5.0, 8.5), M.BUILDING)
+            if rng.random() < 0.3:  # garage
+                g0 = uc + hw_ + 0.5
+                if g0 + 4.0 < end:
+                    side.box(b, g0, min(g0 + 6.0, end - 0.5), setback + 1.0, setback + 7.0, 0.0, 3.0, M.BUILDING)
+        drive = u + rng.uniform(1.0, max(lot - 5.0, 1.5))
+        r = rng.random()
+        if r < 0.7:
+            hedge = r >= 0.4
+            thick = rng.uniform(0.6, 1.0) if hedge else 0.06
+            height = rng.uniform(0.9, 1.8) if hedge else rng.uniform(0.9, 1.4)
+            klass = M.HEDGE if hedge else M.FENCE
+            for a, c in ((u + 0.3, drive), (drive + 3.5, end - 0.3)):
+                if c - a > 0.5:
+                    side.box(b, a, c, 0.1, 0.1 + thick, 0.0, height, klass)
+        if rng.random() < 0.4:
+            side.box(b, end - 0.06, end, 0.2, setback + hd + rng.uniform(3.0, 10.0), 0.0, rng.uniform(1.5, 1.9), M.FENCE)
+        if setback > 6.0 and rng.random() < 0.45 * min(density, 1.5):
+            k, length, width, z0, z1 = _vehicle_dims(rng, moving=False)
+            length = min(length, setback - 1.5)
+            v0 = rng.uniform(0.8, setback - length - 0.5) if setback - length - 0.5 > 0.8 else 0.8
+            side.box(b, drive + 1.75 - width / 2, drive + 1.75 + width / 2, v0, v0 + length, z0, z1, k)
+        for _ in range(rng.poisson(1.2)):
+            _tree(b, rng, side.point(rng.uniform(u + 2.0, end - 2.0), rng.uniform(1.5, max(setback - 1.0, 1.6))), street=False, big=True)
+        for _ in range(rng.poisson(1.5)):
+            s = rng.uniform(0.8, 2.0)
+            bu = rng.uniform(uc, uc + max(hw_, 1.0))
+            bv = setback - rng.uniform(0.6, 1.6)
+            side.box(b, bu - s / 2, bu + s / 2, bv - s / 2, bv + s / 2, 0.0, rng.uniform(0.6, 1.5), M.BUSH)
+        u = end
+    _street_furniture(b, rng, side, urban=False, density=density)
+    if side.parking:
+        _parked_cars(b, rng, side, empty_p=0.6 / max(density, 0.2))
+
+
+def _block_sides(grid: StreetGrid, i: int, j: int) -> list[_Side] | None:
+    x0 = grid.xs[i] + grid.x_hw[i] + grid.x_sw[i]
+    x1 = grid.xs[i + 1] - grid.x_hw[i + 1] - grid.x_sw[i + 1]
+    y0 = grid.ys[j] + grid.y_hw[j] + grid.y_sw[j]
+    y1 = grid.ys[j + 1] - grid.y_hw[j + 1] - grid.y_sw[j + 1]
+    if x1 - x0 < 10 or y1 - y0 < 10:
+        return None
+    lx, ly = x1 - x0, y1 - y0
+    return [
+        _Side(np.array([x0, y0]), np.array([1.0, 0.0]), np.array([0.0, 1.0]), lx, ly, grid.y_sw[j], grid.y_hw[j], bool(grid.y_parking[j])),
+        _Side(np.array([x1, y1]), np.array([-1.0, 0.0]), np.array([0.0, -1.0]), lx, ly, grid.y_sw[j + 1], grid.y_hw[j + 1], bool(grid.y_parking[j + 1])),
+        _Side(np.array([x0, y1]), np.array([0.0, -1.0]), np.array([1.0, 0.0]), ly, lx, grid.x_sw[i], grid.x_hw[i], bool(grid.x_parking[i])),
+        _Side(np.array([x1, y0]), np.array([0.0, 1.0]), np.array([-1.0, 0.0]), ly, lx, grid.x_sw[i + 1], grid.x_hw[i + 1], bool(grid.x_parking[i + 1])),
+    ]
+
+
+def _overlap(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Do packed boxes ``a[k]`` and ``b[k]`` overlap in footprint (separating axis test)?"""
+    d = b[:, :2] - a[:, :2]
+    sep = np.zeros(len(a), dtype=bool)
+    axes = (a[:, 2:4], np.stack([-a[:, 3], a[:, 2]], 1), b[:, 2:4], np.stack([-b[:, 3], b[:, 2]], 1))
+    for ax in axes:
+        pd = np.abs((d * ax).sum(1))
+        ra = a[:, 4] * np.abs((a[:, 2:4] * ax).sum(1)) + a[:, 5] * np.abs(a[:, 2] * ax[:, 1] - a[:, 3] * ax[:, 0])
+        rb = b[:, 4] * np.abs((b[:, 2:4] * ax).sum(1)) + b[:, 5] * np.abs(b[:, 2] * ax[:, 1] - b[:, 3] * ax[:, 0])
+        sep |= pd > ra + rb
+    return ~sep
+
+
+def _ego_boxes(traj: Trajectory, ts: np.ndarray, margin: float) -> np.ndarray:
+    x, y, yaw = traj.pose_at(ts)
+    off = EGO_LENGTH_M / 2 - EGO_REAR_OVERHANG_M
+    return pack_boxes(
+        x + off * np.cos(yaw), y + off * np.sin(yaw), yaw,
+        np.full(len(ts), EGO_LENGTH_M / 2 + margin), np.full(len(ts), EGO_WIDTH_M / 2 + margin), np.zeros(len(ts)), np.full(len(ts), 1.6),
+    )
+
+
+class _MoverSet:
+    """Accepts candidate movers that collide with nothing over the scene (sampled every 0.2 s)."""
+
+    def __init__(self, traj: Trajectory, duration: float, static: np.ndarray) -> None:
+        self.traj = traj
+        self.ts = np.arange(-0.3, duration + 0.31, 0.2)
+        self.ego = _ego_boxes(traj, self.ts, margin=0.6)
+        self.static = static
+        self.static_lo = static[:, 6] if len(static) else np.zeros(0)
+        self.static_hi = static[:, 7] if len(static) else np.zeros(0)
+        ext = np.abs(static[:, 2]) * static[:, 4] + np.abs(static[:, 3]) * static[:, 5] if len(static) else np.zeros(0)
+        exty = np.abs(static[:, 3]) * static[:, 4] + np.abs(static[:, 2]) * static[:, 5] if len(static) else np.zeros(0)
+        self.static_aabb = (
+            np.stack([static[:, 0] - ext, static[:, 1] - exty, static[:, 0] + ext, static[:, 1] + exty], 1) if len(static) else np.zeros((0, 4))
+        )
+        self.accepted: list[dict] = []
+        self.tracks: list[np.ndarray] = []
+        self._stacked: np.ndarray | None = None
+
+    def _track(self, m: dict) -> np.ndarray:
+        """Packed boxes of one candidate at every sample time."""
+        ts = self.ts
+        n = len(ts)
+        if m["follow"]:
+            x, y, yaw = self.traj.pose_at_s(self.traj.s_at(ts + m["lead"]) + m["gap"])
+        else:
+            tc = np.clip(ts, m["tb"], m["te"])
+            yaw = np.full(n, m["heading"])
+            x = m["p0"][0] + math.cos(m["heading"]) * m["speed"] * tc
+            y = m["p0"][1] + math.sin(m["heading"]) * m["speed"] * tc
+        return pack_boxes(x, y, yaw, np.full(n, m["hl"]), np.full(n, m["hw"]), np.full(n, m["z0"]), np.full(n, m["z1"]))
+
+    def offer(self, m: dict) -> bool:
+        """Accept ``m`` if it overlaps neither the ego, nor accepted movers, nor static boxes."""
+        tr = self._track(m)
+        if _overlap(tr, self.ego).any():
+            return False
+        if self.tracks:
+            if self._stacked is None:
+                self._stacked = np.concatenate(self.tracks, axis=0)
+            if _overlap(np.tile(tr, (len(self.tracks), 1)), self._stacked).any():
+                return False
+        if len(self.static):
+            ext = np.abs(tr[:, 2]) * tr[:, 4] + np.abs(tr[:, 3]) * tr[:, 5]
+            exty = np.abs(tr[:, 3]) * tr[:, 4] + np.abs(tr[:, 2]) * tr[:, 5]
+            lo = np.array([(tr[:, 0] - ext).min(), (tr[:, 1] - exty).min()])
+            hi = np.array([(tr[:, 0] + ext).max(), (tr[:, 1] + exty).max()])
+            a = self.static_aabb
+            cand = np.nonzero(
+                (a[:, 0] <= hi[0]) & (a[:, 2] >= lo[0]) & (a[:, 1] <= hi[1]) & (a[:, 3] >= lo[1])
+                & (self.static_lo < m["z1"]) & (self.static_hi > m["z0"])
+            )[0]
+            if len(cand):
+                k = len(cand)
+                aa = np.tile(tr, (k, 1))
+                bb = np.repeat(self.static[cand], len(tr), axis=0)
+                if _overlap(aa, bb).any():
+                    return False
+        self.accepted.append(m)
+        self.tracks.append(tr)
+        self._stacked = None
+        return True
+
+    def movers(self) -> Movers:
+        if not self.accepted:
+            return Movers.empty()
+        a = self.accepted
+        col = lambda k, dt=np.float64: np.array([m[k] for m in a], dtype=dt)  # noqa: E731
+        return Movers(
+            col("cls", np.int32), col("hl"), col("hw"), col("z0"), col("z1"), np.array([m["p0"] for m in a], dtype=np.float64),
+            col("heading"), col("speed"), col("tb"), col("te"), col("follow", bool), col("gap"), col("lead"),
+        )
+
+
+def _mover(klass: int, length: float, width: float, z0: float, z1: float, p0: np.ndarray, heading: float, speed: float,
+           tb: float = -1e9, te: float = 1e9, follow: bool = False, gap: float = 0.0, lead: float = 0.0) -> dict:
+    return dict(cls=klass, hl=length / 2, hw=width / 2, z0=z0, z1=z1, p0=np.asarray(p0, dtype=np.float64), heading=heading,
+                speed=speed, tb=tb, te=te, follow=follow, gap=gap, lead=lead)
+
+
+def plan_drive(seed: int, config: SimConfig) -> tuple[np.random.Generator, str, StreetGrid, Trajectory]:
+    """The first stage of :func:`generate_world`: environment, streets and the ego trajectory
+    (city frame), with the generator in the state the rest of the world continues from."""
+    rng = np.random.default_rng([int(seed), 0x5EED])
+    env = config.world.environment
+    if env == "mixed":
+        env = "urban" if rng.random() < 0.6 else "suburban"
+    lo, hi = config.ego.cruise_speed_mps
+    cruise = float(rng.uniform(lo, hi)) + (0.0 if env == "urban" else 2.0)
+    need = config.duration_s * cruise * 1.2 + 80.0
+    grid = make_street_grid(rng, env, extent_m=need + 250.0)
+    route = plan_route(rng, grid, need, config.ego)
+    traj = build_trajectory(rng, route, config.ego, cruise, config.duration_s)
+    return rng, env, grid, traj
+
+
+def generate_world(seed: int, config: SimConfig) -> tuple[World, Trajectory, Trajectory]:
+    """Build the world around a random route -> (world, true trajectory (global), same in the city frame)."""
+    rng, env, grid, traj = plan_drive(seed, config)
+    wc = config.world
+    urban = env == "urban"
+
+    # The driven part of the path, sampled every 2 m, decides what to populate.
+    s_lo = float(traj.s_at(-0.5))
+    s_hi = float(traj.s_at(config.duration_s + 0.5))
+    ss = np.arange(s_lo, s_hi + 2.0, 2.0)
+    px, py, _ = traj.pose_at_s(ss)
+    pts = np.stack([px, py], 1)
+
+    def near(x0: float, y0: float, x1: float, y1: float, r: float = _POPULATE_RADIUS_M) -> bool:
+        dx = np.maximum(np.maximum(x0 - pts[:, 0], 0.0), pts[:, 0] - x1)
+        dy = np.maximum(np.maximum(y0 - pts[:, 1], 0.0), pts[:, 1] - y1)
+        return bool((dx * dx + dy * dy).min() <= r * r)
+
+    b = _Builder()
+    density = wc.traffic_density
+    sides: list[_Side] = []
+    for i in range(len(grid.xs) - 1):
+        if not near(grid.xs[i], -1e9, grid.xs[i + 1], 1e9):
+            continue
+        for j in range(len(grid.ys) - 1):
+            if not near(grid.xs[i], grid.ys[j], grid.xs[i + 1], grid.ys[j + 1]):
+                continue
+            blk = _block_sides(grid, i, j)
+            if blk is None:
+                continue
+            for side in blk:
+                (_urban_side if urban else _suburban_side)(b, rng, side, density)
+                sides.append(side)
+    rows = np.array(b.rows, dtype=np.float64).reshape(-1, 8)
+    static = pack_boxes(rows[:, 0], rows[:, 1], rows[:, 2], rows[:, 3], rows[:, 4], rows[:, 5], rows[:, 6])
+    static_cls = rows[:, 7].astype(np.int32)
+
+    movers = _MoverSet(traj, config.duration_s, static)
+    # A vehicle ahead of the ego and one behind, driving its path (time-shifted).
+    if rng.random() < 0.55 * min(density, 1.0):
+        k, length, width, z0, z1 = _vehicle_dims(rng, moving=True)
+        movers.offer(_mover(k, length, width, z0, z1, np.zeros(2), 0.0, 0.0, follow=True,
+                            gap=rng.uniform(8.0, 14.0) + (length - 4.5) / 2, lead=rng.uniform(0.8, 2.0)))
+    if rng.random() < 0.45 * min(density, 1.0):
+        k, length, width, z0, z1 = _vehicle_dims(rng, moving=True)
+        movers.offer(_mover(k, length, width, z0, z1, np.zeros(2), 0.0, 0.0, follow=True,
+                            gap=-rng.uniform(8.0, 14.0) - (length - 4.5) / 2, lead=-rng.uniform(0.8, 2.0)))
+    # Traffic on the streets near the route: both directions, one speed a lane.
+    spacing = 45.0 if urban else 90.0
+    xlo, xhi = pts[:, 0].min() - 120.0, pts[:, 0].max() + 120.0
+    ylo, yhi = pts[:, 1].min() - 120.0, pts[:, 1].max() + 120.0
+    for axis in (0, 1):
+        centres = grid.ys if axis == 0 else grid.xs
+        hws = grid.y_hw if axis == 0 else grid.x_hw
+        a_lo, a_hi = (xlo, xhi) if axis == 0 else (ylo, yhi)
+        for c, hw in zip(centres, hws):
+            if not ((ylo if axis == 0 else xlo) <= c <= (yhi if axis == 0 else xhi)):
+                continue
+            for d in (1, -1):
+                speed = float(rng.uniform(6.0, 12.5)) * (1.0 if urban else 1.15)
+                n = rng.poisson(density * (a_hi - a_lo) / spacing)
+                pos = np.sort(rng.uniform(a_lo, a_hi, size=n))
+                if n > 1:
+                    keep = np.concatenate([[True], np.diff(pos) > 12.0])
+                    pos = pos[keep]
+                lane = c - d * LANE_OFFSET_M if axis == 0 else c + d * LANE_OFFSET_M
+                heading = (0.0 if d > 0 else math.pi) if axis == 0 else (math.pi / 2 if d > 0 else -math.pi / 2)
+                for p in pos:
+                    k, length, width, z0, z1 = _vehicle_dims(rng, moving=True)
+                    p0 = np.array([p, lane]) if axis == 0 else np.array([lane, p])
+                    movers.offer(_mover(k, length, width, z0, z1, p0, heading, speed))
+                # Cyclists keep to the right edge of the lane.
+                if rng.random() < (0.25 if urban else 0.15) * density:
+                    off = LANE_OFFSET_M + 1.1
+                    lane_c = c - d * off if axis == 0 else c + d * off
+                    p = rng.uniform(a_lo, a_hi)
+                    p0 = np.array([p, lane_c]) if axis == 0 else np.array([lane_c, p])
+                    movers.offer(_mover(M.CYCLIST, 1.8, 0.6, 0.0, 1.75, p0, heading, float(rng.uniform(3.5, 6.0))))
+    # Pedestrians walking along sidewalks, and some crossing at corners.
+    for side in sides:
+        sw = side.sidewalk
+        for _ in range(rng.poisson(density * side.length / (45.0 if urban else 150.0))):
+            u = rng.uniform(0.0, side.length)
+            v = -sw * rng.uniform(0.22, 0.42)
+            fwd = rng.random() < 0.5
+            heading = side.yaw if fwd else side.yaw + math.pi
+            movers.offer(_mover(M.PEDESTRIAN, 0.5, 0.6, 0.0, float(rng.uniform(1.5, 1.9)), side.point(u, v), heading,
+                                float(rng.uniform(0.9, 1.6))))
+        if rng.random() < (0.3 if urban else 0.08) * density:
+            speed = float(rng.uniform(1.1, 1.5))
+            start = side.point(-1.0, -sw + 0.2)
+            dist = 2 * side.half_width + 0.4
+            tb = float(rng.uniform(-2.0, config.duration_s))
+            heading = math.atan2(-side.n[1], -side.n[0])
+            p0 = start - np.array([math.cos(heading), math.sin(heading)]) * speed * tb
+            movers.offer(_mover(M.PEDESTRIAN, 0.5, 0.6, 0.0, float(rng.uniform(1.5, 1.9)), p0, heading, speed, tb=tb,
+                                te=tb + dist / speed))
+    mv = movers.movers()
+
+    # Into the global frame: a random rotation, the start a few hundred metres from the origin.
+    theta = float(rng.uniform(-math.pi, math.pi)) if wc.random_orientation else 0.0
+    start = np.array([float(traj.pose_at(0.0)[0]), float(traj.pose_at(0.0)[1])])
+    target = rng.uniform(300.0, 1700.0, size=2)
+    c, s = math.cos(theta), math.sin(theta)
+    tf = SE2(float(target[0] - (c * start[0] - s * start[1])), float(target[1] - (s * start[0] + c * start[1])), theta)
+    gxy = tf.apply(static[:, :2]) if len(static) else np.zeros((0, 2))
+    yaw_g = rows[:, 2] + theta
+    static_g = pack_boxes(gxy[:, 0], gxy[:, 1], yaw_g, static[:, 4], static[:, 5], static[:, 6], static[:, 7])
+    refl = np.clip(M.LIDAR_REFLECTIVITY[static_cls] * rng.uniform(0.7, 1.3, size=len(static_cls)), 0.02, 1.0)
+    rcs_off = rng.normal(0.0, 2.0, size=len(static_cls))
+    m_refl = np.clip(M.LIDAR_REFLECTIVITY[mv.classes] * rng.uniform(0.7, 1.3, size=len(mv)), 0.02, 1.0)
+    m_rcs = rng.normal(0.0, 2.0, size=len(mv))
+    world = World(env, static_g, yaw_g, static_cls, refl, rcs_off, mv.transformed(tf), m_refl, m_rcs, grid, tf)
+    return world, traj.transformed(tf), traj
