@@ -243,6 +243,20 @@ class EvidentialMap:
         tj = [k[1] for k in self.tiles]
         return min(ti) * ts, min(tj) * ts, (max(ti) - min(ti) + 1) * ts, (max(tj) - min(tj) + 1) * ts
 
+    def covered_bounds(self) -> tuple[int, int, int, int]:
+        """``(r0, c0, h, w)`` of the smallest box holding every covered cell; zeros when none is."""
+        ts = self.tile_cells
+        rows, cols = [], []
+        for (ti, tj), cov in self.covered_tiles.items():
+            r = np.flatnonzero(cov.any(axis=1))
+            c = np.flatnonzero(cov.any(axis=0))
+            if len(r):
+                rows += [ti * ts + r[0], ti * ts + r[-1]]
+                cols += [tj * ts + c[0], tj * ts + c[-1]]
+        if not rows:
+            return (0, 0, 0, 0)
+        return int(min(rows)), int(min(cols)), int(max(rows) - min(rows) + 1), int(max(cols) - min(cols) + 1)
+
     def to_dense(self) -> tuple[np.ndarray, np.ndarray, int, int]:
         """The whole map as dense arrays: masses, coverage, and the map cell ``(r0, c0)`` of element [0, 0]."""
         r0, c0, h, w = self.bounds()

@@ -51,8 +51,12 @@ def plot_panels(
     extent_m: Sequence[float] | None = None,
     tracks: Mapping[str, np.ndarray] | None = None,
     cols: int | None = None,
+    gamma: float = 1.0,
 ) -> Path:
-    """Mass grids side by side (paper Figs. 2 and 4), with a legend; ``extent_m`` = (left, right, bottom, top)."""
+    """Mass grids side by side (paper Figs. 2 and 4), with a legend; ``extent_m`` = (left, right, bottom, top).
+
+    ``gamma < 1`` brightens small masses (a single ISM's m_f = 0.05 is invisible otherwise).
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -65,7 +69,8 @@ def plot_panels(
     rows = (n + cols - 1) // cols
     fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols, 3.6 * rows), dpi=110, squeeze=False)
     for ax, (name, m) in zip(axes.flat, panels.items()):
-        ax.imshow(masses_to_rgb(m), extent=extent_m, interpolation="nearest")
+        shown = np.asarray(m, dtype=np.float32) ** gamma if gamma != 1.0 else m
+        ax.imshow(masses_to_rgb(shown), extent=extent_m, interpolation="nearest")
         if tracks and name in tracks:
             t = tracks[name]
             ax.plot(t[:, 0], t[:, 1], "w-", lw=0.8)

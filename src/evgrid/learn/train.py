@@ -314,7 +314,17 @@ def train(
 
     model = EvNet(config.model).to(device)
     opt = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
-    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=config.lr, total_steps=config.epochs * max(1, len(loader)), pct_start=0.15)
+    total = config.epochs * max(1, len(loader))
+    warm = max(1, total // 20)
+
+    def lr_factor(step: int) -> float:
+        # linear warm-up, then cosine to 2 % of lr; from the config, so a resumed run may add epochs
+        if step < warm:
+            return (step + 1) / warm
+        q = min(1.0, (step - warm) / max(1, total - warm))
+        return 0.02 + 0.98 * 0.5 * (1.0 + math.cos(math.pi * q))
+
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lr_factor)
     start_epoch, best_score, best_epoch, best, baseline = 0, -math.inf, -1, {}, {}
     state_path = out / "resume.pt"
     if resume and state_path.exists():
