@@ -5,7 +5,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.evgrid-installed
 
-.PHONY: install test bench clean
+.PHONY: install test bench demo clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -23,6 +23,11 @@ test: $(STAMP)
 bench: $(STAMP)
 	$(PY) benchmarks/bench_core.py
 	$(PY) benchmarks/bench_ism.py
+	$(VENV)/bin/evgrid bench
+
+# The README's first command: set up, then map simulated scenes with the shipped Ev-Net.
+demo: $(STAMP)
+	$(VENV)/bin/evgrid demo --out out/demo
 
 clean:
 	rm -rf $(VENV) build dist .pytest_cache

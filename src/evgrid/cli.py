@@ -32,7 +32,9 @@ def main(
 
 def _sim_split(seed: int) -> str:
     # Every fifth seed is validation: a scene's split depends on its seed alone, not on N.
-    return "val" if seed % 5 == 4 else "train"
+    from evgrid.sources import sim_split
+
+    return sim_split(seed)
 
 
 @app.command()
@@ -109,6 +111,239 @@ def simulate(
             except FileExistsError as e:
                 raise typer.BadParameter(f"{e} (pass --overwrite)", param_hint="--out") from e
     typer.echo(f"wrote {scenes} scene(s) to {out}")
+
+
+# --- mapping, evaluation, training, benchmark ------------------------------------------------------
+
+def _source(nuscenes: Path | None, version: str, split: str, sim_dir: Path | None, scenes: int, seed: int, duration: float):
+    """The scene source named by the common data options (the simulator when none is given)."""
+    from evgrid.sources import NuScenesSource, SimFilesSource, SimSource
+
+    if nuscenes is not None and sim_dir is not None:
+        raise typer.BadParameter("give either --nuscenes or --sim-dir, not both", param_hint="--nuscenes")
+    if nuscenes is not None:
+        return NuScenesSource(str(nuscenes), version, None if split == "all" else split)
+    if sim_dir is not None:
+        return SimFilesSource(str(sim_dir), None if split == "all" else split)
+    if split == "all":
+        from evgrid.sources import SimSource
+
+        return SimSource(tuple(range(seed, seed + scenes)), duration)
+    return SimSource.split(split, scenes, seed, duration)
+
+
+_NUSCENES = typer.Option(None, "--nuscenes", help="nuScenes dataroot (needs evgrid[nuscenes]); default: the simulator.")
+_VERSION = typer.Option("v1.0-trainval", "--version", help="nuScenes version folder, e.g. v1.0-mini or v1.0-sim.")
+_SIM_DIR = typer.Option(None, "--sim-dir", help="A folder written by `evgrid simulate` (npz format).")
+_SCENES = typer.Option(3, "--scenes", min=1, help="Simulator: number of scenes of the split.")
+_SEED = typer.Option(0, "--seed", min=0, help="Simulator: first seed to draw scenes from.")
+_DURATION = typer.Option(20.0, "--duration", help="Simulator: scene length in seconds.")
+
+
+def _mapper_config(m_u_min: float | None, checkpoint: Path | None, update_every: int, maps: str | None):
+    from evgrid.fusion import MAP_NAMES, FusionParams
+    from evgrid.pipeline import MapperConfig
+
+    fusion = FusionParams() if m_u_min is None else FusionParams(m_u_min=m_u_min)
+    names = tuple(n.strip() for n in maps.split(",")) if maps else MAP_NAMES
+    try:
+        return MapperConfig(fusion=fusion, maps=names, checkpoint=str(checkpoint) if checkpoint else None, update_every=update_every)
+    except ValueError as e:
+        raise typer.BadParameter(str(e)) from e
+
+
+def _run_maps(source, out: Path, config, names, workers: int, figures: bool, save_maps: bool) -> dict:
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from evgrid.pipeline import map_scenes
+    from evgrid.sources import scenes_of
+
+    todo = scenes_of(source, names)
+    console = Console()
+    with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), console=console) as p:
+        task = p.add_task(f"mapping {len(todo)} scene(s)", total=len(todo))
+
+        def done(m: dict) -> None:
+            p.advance(task)
+            p.console.print(f"  {m['scene']}: {m['frames']} frames, {m['frames_per_second']:.1f} frames/s")
+
+        summary = map_scenes(source, out, config, todo, workers, figures, save_maps, on_scene=done)
+    console.print((out / "table.md").read_text())
+    console.print(f"frames per second (all scenes): {summary['frames_per_second']:.1f}; results in {out}")
+    return summary
+
+
+@app.command("map")
+def map_cmd(
+    out: Path = typer.Option(Path("out/map"), "--out", help="Results folder."),
+    nuscenes: Path = _NUSCENES,
+    version: str = _VERSION,
+    split: str = typer.Option("val", "--split", help="train, val (nuScenes: any official split), or all."),
+    scene: list[str] = typer.Option(None, "--scene", help="Only these scene names (repeatable)."),
+    sim_dir: Path = _SIM_DIR,
+    scenes: int = _SCENES,
+    seed: int = _SEED,
+    duration: float = _DURATION,
+    checkpoint: Path = typer.Option(None, "--checkpoint", help="Ev-Net checkpoint; default: the shipped one."),
+    m_u_min: float = typer.Option(None, "--m-u-min", help="Lower limit on the deep IRM's unknown mass."),
+    update_every: int = typer.Option(2, "--update-every", min=1, help="Update the maps every N lidar frames (2 = 10 Hz)."),
+    maps: str = typer.Option(None, "--maps", help="Comma-separated subset of the six maps."),
+    workers: int = typer.Option(1, "--workers", min=1, help="Scenes mapped in parallel (one process each)."),
+    save_maps: bool = typer.Option(False, "--save-maps", help="Also write every map as .npz."),
+) -> None:
+    """Map scenes: the six maps of the paper's Table I, figures, GIFs, metrics.
+
+    Examples:
+      evgrid map --scenes 5 --out out/sim-val
+      evgrid map --nuscenes /data/nuscenes --version v1.0-mini --split mini_val --out out/mini
+    """
+    source = _source(nuscenes, version, split, sim_dir, scenes, seed, duration)
+    _run_maps(source, out, _mapper_config(m_u_min, checkpoint, update_every, maps), scene or None, workers, True, save_maps)
+
+
+@app.command()
+def evaluate(
+    out: Path = typer.Option(Path("out/evaluate"), "--out", help="Results folder."),
+    nuscenes: Path = _NUSCENES,
+    version: str = _VERSION,
+    split: str = typer.Option("val", "--split", help="train, val (nuScenes: any official split), or all."),
+    scene: list[str] = typer.Option(None, "--scene", help="Only these scene names (repeatable)."),
+    sim_dir: Path = _SIM_DIR,
+    scenes: int = typer.Option(10, "--scenes", min=1, help="Simulator: number of validation scenes."),
+    seed: int = _SEED,
+    duration: float = _DURATION,
+    checkpoint: Path = typer.Option(None, "--checkpoint", help="Ev-Net checkpoint; default: the shipped one."),
+    m_u_min: float = typer.Option(None, "--m-u-min", help="Lower limit on the deep IRM's unknown mass."),
+    update_every: int = typer.Option(2, "--update-every", min=1, help="Update the maps every N lidar frames (2 = 10 Hz)."),
+    workers: int = typer.Option(2, "--workers", min=1, help="Scenes evaluated in parallel (one process each)."),
+) -> None:
+    """Evaluate the six maps over a split: per-class mIoU against ray_ilm (and the truth in simulation).
+
+    Like `map` without figures; writes summary.json and table.md (beside the paper's Table I).
+
+    Examples:
+      evgrid evaluate --scenes 10 --workers 2
+      evgrid evaluate --nuscenes /data/nuscenes --split val --workers 8
+    """
+    source = _source(nuscenes, version, split, sim_dir, scenes, seed, duration)
+    _run_maps(source, out, _mapper_config(m_u_min, checkpoint, update_every, None), scene or None, workers, False, False)
+
+
+@app.command()
+def demo(
+    out: Path = typer.Option(Path("out/demo"), "--out", help="Results folder."),
+    scenes: int = typer.Option(3, "--scenes", min=1, help="Simulated validation scenes to map."),
+    duration: float = typer.Option(20.0, "--duration", help="Scene length in seconds."),
+    workers: int = typer.Option(2, "--workers", min=1, help="Scenes mapped in parallel."),
+) -> None:
+    """Simulate a few validation scenes, map them with the shipped Ev-Net, write metrics, table, figures, GIFs.
+
+    Writes OUT/metrics.json ({"maps": {name: {"free", "occupied", "unknown"}}, ...}), OUT/table.md and,
+    per scene, maps.png, isms.png, convergence.png and maps.gif.
+    """
+    from evgrid.grid import atomic_write
+    from evgrid.sources import SimSource
+
+    import json
+
+    summary = _run_maps(SimSource.split("val", scenes, 0, duration), out, _mapper_config(None, None, 2, None), None, workers, True, False)
+    atomic_write(out / "metrics.json", lambda f: f.write(json.dumps(summary, indent=2).encode()))
+
+
+@app.command()
+def train(
+    out: Path = typer.Option(Path("out/train"), "--out", help="Run folder: config, metrics.csv, checkpoints, cache."),
+    nuscenes: Path = _NUSCENES,
+    version: str = _VERSION,
+    train_split: str = typer.Option("train", "--train-split", help="Split to train on."),
+    val_split: str = typer.Option("val", "--val-split", help="Split to validate on."),
+    scenes: int = typer.Option(40, "--scenes", min=1, help="Simulator: training scenes."),
+    val_scenes: int = typer.Option(10, "--val-scenes", min=1, help="Simulator: validation scenes."),
+    seed: int = typer.Option(0, "--seed", min=0, help="Seed of the training run (and first simulator seed)."),
+    duration: float = _DURATION,
+    epochs: int = typer.Option(20, "--epochs", min=1),
+    batch_size: int = typer.Option(4, "--batch-size", min=1),
+    lr: float = typer.Option(2e-3, "--lr"),
+    workers: int = typer.Option(2, "--workers", min=0, help="DataLoader workers."),
+    frame_stride: int = typer.Option(4, "--frame-stride", min=1, help="Use every Nth lidar frame as a sample."),
+    width: int = typer.Option(12, "--width", min=1, help="Ev-Net width of the first stage."),
+    depth: int = typer.Option(4, "--depth", min=2, help="Ev-Net stages."),
+    resume: bool = typer.Option(False, "--resume", help="Continue the run in --out."),
+) -> None:
+    """Train Ev-Net (the deep IRM) on simulated scenes or nuScenes, against the ray ILM.
+
+    Multi-GPU / multi-process: the same command under torchrun, e.g.
+      torchrun --nproc_per_node=4 -m evgrid.cli train --nuscenes /data/nuscenes --out out/train
+
+    Examples:
+      evgrid train --scenes 40 --val-scenes 10 --epochs 12 --out out/train
+    """
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from evgrid.learn.evnet import EvNetConfig
+    from evgrid.learn.train import TrainConfig, build_cache
+    from evgrid.learn.train import train as run_training
+
+    console = Console()
+    try:
+        config = TrainConfig(epochs=epochs, batch_size=batch_size, lr=lr, seed=seed, workers=workers,
+                             frame_stride=frame_stride, model=EvNetConfig(in_channels=6, width=width, depth=depth))
+    except ValueError as e:
+        raise typer.BadParameter(str(e)) from e
+    if nuscenes is not None:
+        from evgrid.sources import NuScenesSource
+
+        tr, va = NuScenesSource(str(nuscenes), version, train_split), NuScenesSource(str(nuscenes), version, val_split)
+    else:
+        from evgrid.sources import SimSource
+
+        tr, va = SimSource.split("train", scenes, seed, duration), SimSource.split("val", val_scenes, seed, duration)
+    cache = out / "cache" / config.data_key()
+    rank = int(__import__("os").environ.get("RANK", "0"))
+    names = {}
+    if rank == 0:
+        with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), console=console) as p:
+            for split, src, irm in (("train", tr, False), ("val", va, True)):
+                todo = src.names()
+                task = p.add_task(f"caching {split} samples", total=len(todo))
+                names[split] = build_cache((src.load(n) for n in todo), cache, config, with_irm=irm, progress=lambda n: p.advance(task))
+    else:
+        names = {"train": tr.names(), "val": va.names()}
+
+    def show(epoch: int, row: dict) -> None:
+        console.print(f"epoch {epoch}: loss {row['train_loss']:.4f}, val IoU free {row['val_free']:.3f} "
+                      f"occupied {row['val_occupied']:.3f} unknown {row['val_unknown']:.3f} "
+                      f"(ray IRM free {row['ray_irm_free']:.3f}), {row['seconds']:.0f} s")
+
+    res = run_training(config, cache, names["train"], names["val"], out, resume=resume, on_epoch=show)
+    if rank == 0:
+        console.print(f"best epoch {res.best_epoch}: {res.best}; ray IRM baseline {res.ray_irm_baseline}; "
+                      f"{res.seconds_per_epoch:.0f} s per epoch; checkpoint {out / 'best.safetensors'}")
+
+
+@app.command()
+def bench(
+    seconds: float = typer.Option(6.0, "--duration", help="Length of the simulated scene used (s)."),
+    checkpoint: Path = typer.Option(None, "--checkpoint", help="Ev-Net checkpoint; default: the shipped one."),
+    out: Path = typer.Option(None, "--out", help="Also write the JSON here."),
+) -> None:
+    """Time every component and the per-frame updates on one core; print JSON.
+
+    Example:
+      evgrid bench --out out/bench.json
+    """
+    import json
+
+    from evgrid.bench import run_bench
+    from evgrid.grid import atomic_write
+
+    res = run_bench(seconds, str(checkpoint) if checkpoint else None)
+    text = json.dumps(res, indent=2)
+    typer.echo(text)
+    if out is not None:
+        atomic_write(out, lambda f: f.write(text.encode()))
 
 
 if __name__ == "__main__":

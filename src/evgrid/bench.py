@@ -1,0 +1,83 @@
+"""``evgrid bench``: per-component and per-frame timings on one core, as a JSON-ready dict."""
+
+from __future__ import annotations
+
+import math
+import os
+import platform
+import time
+from typing import Any
+
+import numpy as np
+
+
+def _median_ms(fn, repeat: int = 20) -> float:
+    fn()
+    ts = []
+    for _ in range(repeat):
+        t = time.perf_counter()
+        fn()
+        ts.append(time.perf_counter() - t)
+    return float(np.median(ts) * 1e3)
+
+
+def run_bench(duration_s: float = 6.0, checkpoint: str | None = None) -> dict[str, Any]:
+    """Map a simulated scene with all six maps and with ``fused`` alone; time kernels on 512 x 512 grids."""
+    import numba
+    import torch
+
+    from evgrid import fusion, mass
+    from evgrid.data import SimConfig, simulate_scene
+    from evgrid.geometry import SE2, GridSpec
+    from evgrid.grid import EvidentialMap, Warper
+    from evgrid.ism.deep import DeepIrm
+    from evgrid.pipeline import MapperConfig, OccupancyMapper
+
+    numba.set_num_threads(1)
+    torch.set_num_threads(1)
+    spec = GridSpec()
+    deep = DeepIrm(checkpoint, spec, threads=1)
+    scene = simulate_scene(4, SimConfig(duration_s=duration_s))
+    frames = list(scene)
+
+    runs = {}
+    for label, maps in (("six_maps", fusion.MAP_NAMES), ("fused_only", ("fused",))):
+        mapper = OccupancyMapper(MapperConfig(maps=maps, track_convergence=False, snapshot_every=0), deep=deep)
+        for f in frames[:4]:  # warm up (compilation, first allocations)
+            mapper.process(f)
+        mapper = OccupancyMapper(MapperConfig(maps=maps, track_convergence=False, snapshot_every=0), deep=deep)
+        t = time.perf_counter()
+        for f in frames:
+            mapper.process(f)
+        wall = time.perf_counter() - t
+        runs[label] = {
+            "components_ms": mapper.timing_summary(),
+            "updates": mapper.n_updates,
+            "frames": len(frames),
+            "frames_per_second": len(frames) / wall,
+            "updates_per_second": mapper.n_updates / wall,
+        }
+
+    rng = np.random.default_rng(0)
+    a = rng.dirichlet([1, 1, 1], spec.shape).astype(np.float32)
+    b = rng.dirichlet([1, 1, 1], spec.shape).astype(np.float32)
+    cur, out = a.copy(), np.empty_like(a)
+    params = fusion.FusionParams()
+    warper = Warper(spec)
+    emap = EvidentialMap(spec)
+    pose = SE2(3.3, -1.7, math.radians(30))
+    kernels = {
+        "dempster_512": _median_ms(lambda: mass.dempster(a, b, out)),
+        "deep_disc_update_512": _median_ms(lambda: fusion.update_deep_disc(cur, b, params)),
+        "fused_update_512": _median_ms(lambda: fusion.update_fused(cur, b, a, params)),
+        "warp_512_yaw30": _median_ms(lambda: warper.warp(a, pose)),
+        "warp_and_fuse_512_yaw30": _median_ms(lambda: emap.apply(warper.warp(a, pose), fusion.update_ray_ilm)),
+    }
+    return {
+        "machine": {"processor": platform.processor() or platform.machine(), "cpus": os.cpu_count(), "threads": 1},
+        "scene": {"name": scene.name, "duration_s": duration_s},
+        "checkpoint": str(deep.checkpoint),
+        "per_frame": runs,
+        "kernels_ms": kernels,
+        "note": "components_ms are medians per map update; step_total is one whole update of all listed maps",
+    }

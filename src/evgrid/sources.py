@@ -1,0 +1,128 @@
+"""Where scenes come from, as small picklable descriptions (so one process per scene can load its own).
+
+* :class:`SimSource` - the built-in simulator, by seed (the default when no dataset is given);
+* :class:`SimFilesSource` - scenes written by ``evgrid simulate`` (``.npz`` folder);
+* :class:`NuScenesSource` - nuScenes (or a simulated dataset in its layout) through the devkit.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol, Sequence
+
+from evgrid.data.frame import Scene
+
+__all__ = ["SceneSource", "SimSource", "SimFilesSource", "NuScenesSource", "sim_split"]
+
+
+def sim_split(seed: int) -> str:
+    """Split of a simulated seed: every fifth seed (seed % 5 == 4) is ``val``, the others ``train``."""
+    return "val" if seed % 5 == 4 else "train"
+
+
+class SceneSource(Protocol):
+    """Names scenes and loads one by name."""
+
+    def names(self) -> list[str]: ...
+
+    def load(self, name: str) -> Scene: ...
+
+
+@dataclass(frozen=True)
+class SimSource:
+    """Simulated scenes of the given seeds (``duration_s`` seconds each)."""
+
+    seeds: tuple[int, ...]
+    duration_s: float = 20.0
+
+    @classmethod
+    def split(cls, split: str, n: int, first_seed: int = 0, duration_s: float = 20.0) -> "SimSource":
+        """The first ``n`` seeds from ``first_seed`` on that belong to ``split`` (``train`` or ``val``)."""
+        if split not in ("train", "val"):
+            raise ValueError(f"split must be 'train' or 'val', got {split!r}")
+        seeds, s = [], first_seed
+        while len(seeds) < n:
+            if sim_split(s) == split:
+                seeds.append(s)
+            s += 1
+        return cls(tuple(seeds), duration_s)
+
+    def names(self) -> list[str]:
+        from evgrid.data.sim.scene import scene_name
+
+        return [scene_name(s) for s in self.seeds]
+
+    def load(self, name: str) -> Scene:
+        from evgrid.data.sim import SimConfig, simulate_scene
+
+        by_name = dict(zip(self.names(), self.seeds))
+        if name not in by_name:
+            raise KeyError(f"no simulated scene {name!r} among {sorted(by_name)}")
+        return simulate_scene(by_name[name], SimConfig(duration_s=self.duration_s))
+
+
+@dataclass(frozen=True)
+class SimFilesSource:
+    """Scenes written by ``evgrid simulate --format npz`` into ``folder`` (optionally one split)."""
+
+    folder: str
+    split: str | None = None
+
+    def _index(self) -> list[dict]:
+        path = Path(self.folder) / "index.json"
+        if not path.is_file():
+            raise FileNotFoundError(f"{path} not found: write scenes with `evgrid simulate --out {self.folder}` first")
+        entries = json.loads(path.read_text())["scenes"]
+        return [e for e in entries if self.split is None or e.get("split") == self.split]
+
+    def names(self) -> list[str]:
+        return [e["name"] for e in self._index()]
+
+    def load(self, name: str) -> Scene:
+        from evgrid.data.sim.store import load_sim_scene
+
+        for e in self._index():
+            if e["name"] == name:
+                return load_sim_scene(Path(self.folder) / e["file"])
+        raise KeyError(f"no scene {name!r} in {self.folder}")
+
+
+@functools.lru_cache(maxsize=2)
+def _nuscenes_scenes(dataroot: str, version: str, split: str | None, names: tuple[str, ...] | None) -> dict:
+    from evgrid.data.nuscenes import load_nuscenes
+
+    scenes = load_nuscenes(dataroot, version, split=split, scene_names=list(names) if names else None)
+    return {s.name: s for s in scenes}
+
+
+@dataclass(frozen=True)
+class NuScenesSource:
+    """nuScenes scenes of a split (or the named ones) under ``dataroot``; see :func:`evgrid.data.load_nuscenes`."""
+
+    dataroot: str
+    version: str = "v1.0-trainval"
+    split: str | None = "val"
+    scene_names: tuple[str, ...] | None = None
+
+    def names(self) -> list[str]:
+        return list(_nuscenes_scenes(self.dataroot, self.version, self.split, self.scene_names))
+
+    def load(self, name: str) -> Scene:
+        scenes = _nuscenes_scenes(self.dataroot, self.version, self.split, self.scene_names)
+        if name not in scenes:
+            raise KeyError(f"no nuScenes scene {name!r} in split {self.split!r}")
+        return scenes[name]
+
+
+def scenes_of(source: SceneSource, names: Sequence[str] | None = None) -> list[str]:
+    """The names to run: all of the source's, or those asked for (checked)."""
+    known = source.names()
+    if names is None:
+        return known
+    missing = [n for n in names if n not in known]
+    if missing:
+        raise KeyError(f"unknown scene(s) {missing}; available: {known[:10]}{' ...' if len(known) > 10 else ''}")
+    return list(names)

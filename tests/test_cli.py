@@ -1,0 +1,65 @@
+"""The command line: map, evaluate, bench (small runs with a tiny checkpoint)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from evgrid.cli import app
+from evgrid.geometry import GridSpec
+from evgrid.ism.deep import CHANNELS
+from evgrid.learn.evnet import EvNet, EvNetConfig, save_checkpoint
+
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def tiny_checkpoint(tmp_path_factory):
+    torch.manual_seed(0)
+    net = EvNet(EvNetConfig(in_channels=len(CHANNELS), width=4, depth=2))
+    return save_checkpoint(net, tmp_path_factory.mktemp("ck") / "tiny.safetensors", extra={"grid": GridSpec().to_dict()})
+
+
+def test_map_writes_per_scene_results_and_table(tmp_path, tiny_checkpoint):
+    r = runner.invoke(app, ["map", "--scenes", "1", "--duration", "2", "--checkpoint", str(tiny_checkpoint),
+                            "--out", str(tmp_path), "--save-maps"])
+    assert r.exit_code == 0, r.output
+    assert "frames/s" in r.output and "| `fused` |" in r.output
+    scene_dir = tmp_path / "sim-000004"  # the first validation seed
+    for name in ("metrics.json", "maps.png", "isms.png", "maps.gif", "maps/fused.npz"):
+        assert (scene_dir / name).is_file(), name
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert set(summary["maps"]) == {"ray_ilm", "deep_acc", "deep_replace", "deep_disc", "ray_irm", "fused"}
+    assert summary["scenes"] == ["sim-000004"] and summary["frames_per_second"] > 0
+
+
+def test_evaluate_over_two_scenes_in_two_processes(tmp_path, tiny_checkpoint):
+    r = runner.invoke(app, ["evaluate", "--scenes", "2", "--duration", "1.5", "--workers", "2",
+                            "--checkpoint", str(tiny_checkpoint), "--out", str(tmp_path), "--m-u-min", "0.4"])
+    assert r.exit_code == 0, r.output
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["scenes"] == ["sim-000004", "sim-000009"]
+    assert "vs_truth" in summary and not (tmp_path / "sim-000004" / "maps.png").exists()
+    assert json.loads((tmp_path / "sim-000009" / "config.json").read_text())["fusion"]["m_u_min"] == 0.4
+    assert "against the true occupancy" in (tmp_path / "table.md").read_text()
+
+
+def test_bad_options_are_rejected(tmp_path):
+    r = runner.invoke(app, ["map", "--maps", "ray_ilm,octomap", "--out", str(tmp_path)])
+    assert r.exit_code != 0 and "unknown map" in r.output
+    r = runner.invoke(app, ["map", "--nuscenes", str(tmp_path), "--sim-dir", str(tmp_path)])
+    assert r.exit_code != 0
+
+
+def test_bench_prints_json(tmp_path, tiny_checkpoint):
+    out = tmp_path / "bench.json"
+    r = runner.invoke(app, ["bench", "--duration", "1", "--checkpoint", str(tiny_checkpoint), "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    res = json.loads(out.read_text())
+    fused = res["per_frame"]["fused_only"]["components_ms"]
+    assert {"ray_irm", "deep_irm_input", "deep_irm_net", "warp", "fuse", "step_total"} <= set(fused)
+    assert "ray_ilm" not in fused  # the fused map needs no lidar
+    assert res["kernels_ms"]["dempster_512"] > 0
