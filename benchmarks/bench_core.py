@@ -74,6 +74,19 @@ def main() -> None:
 
         res[f"warp + dempster fuse into map, yaw {deg} deg (ISM-like)"] = timeit(warp_fuse)
 
+    from evgrid.ism import ray_ilm
+    from evgrid.ism.synthetic import street_lidar_sweep
+
+    ilm = ray_ilm(street_lidar_sweep())  # a real ray ILM grid: a 15 m disc in a 40 m square
+    for deg in (0, 30, 45):
+        pose = SE2(3.3, -1.7, math.radians(deg))
+        m = EvidentialMap(spec)
+
+        def warp_fuse_ilm() -> None:
+            m.apply(warper.warp(ilm, pose), fusion.update_ray_ilm)
+
+        res[f"warp + dempster fuse into map, yaw {deg} deg (ray ILM of a street)"] = timeit(warp_fuse_ilm)
+
     ms = fusion.MapSet(spec, params)
     isms = {"ray_ilm": ism_like, "ray_irm": ism_like, "deep_irm": b}
     k = [0]

@@ -53,25 +53,64 @@ class MapWindow:
         return self.covered.shape  # type: ignore[return-value]
 
 
+@numba.njit(cache=True)
+def _k_coarse(src, coarse):
+    """coarse[a, b] = any cell of src block [8a, 8a + 8) x [8b, 8b + 8) is not vacuous."""
+    n_r, n_c = src.shape[0], src.shape[1]
+    coarse[:, :] = False
+    for r in range(n_r):
+        for c in range(n_c):
+            if src[r, c, 2] < 1.0:
+                coarse[r >> 3, c >> 3] = True
+
+
 @numba.njit(cache=True, fastmath=True)
-def _k_warp(src, n_r, n_c, u00, v00, du_di, du_dj, dv_di, dv_dj, out, covered):
+def _k_warp(src, coarse, n_r, n_c, u00, v00, du_di, du_dj, dv_di, dv_dj, out, covered):
     # src is the local grid with a one-cell vacuous border: local (r, c) is src[r + 1, c + 1],
     # so bilinear sampling anywhere in (-1, n) needs no bounds checks (vacuous outside).
-    # Output is visited in 24 x 24 blocks to keep the rotated source footprint in cache.
+    # Output is visited in 24 x 24 blocks to keep the rotated source footprint in cache; a
+    # block whose source footprint is vacuous in `coarse` (8 x 8 source blocks) is filled
+    # without sampling.
     h, w = out.shape[0], out.shape[1]
+    n_cr, n_cc = coarse.shape[0], coarse.shape[1]
     for bi in range(0, h, _BLOCK):
+        i1 = min(h, bi + _BLOCK)
         for bj in range(0, w, _BLOCK):
-            for i in range(bi, min(h, bi + _BLOCK)):
-                for j in range(bj, min(w, bj + _BLOCK)):
+            j1 = min(w, bj + _BLOCK)
+            # source footprint of the block: the box of its corners' (padded) source indices
+            ulo = 1e30
+            uhi = -1e30
+            vlo = 1e30
+            vhi = -1e30
+            for ci in (bi, i1 - 1):
+                for cj in (bj, j1 - 1):
+                    u = u00 + ci * du_di + cj * du_dj + 1.0
+                    v = v00 + ci * dv_di + cj * dv_dj + 1.0
+                    ulo = min(ulo, u)
+                    uhi = max(uhi, u)
+                    vlo = min(vlo, v)
+                    vhi = max(vhi, v)
+            a0 = max(0, int(math.floor(ulo)) - 1) >> 3
+            a1 = min(n_cr - 1, max(0, int(math.floor(uhi)) + 2) >> 3)
+            b0 = max(0, int(math.floor(vlo)) - 1) >> 3
+            b1 = min(n_cc - 1, max(0, int(math.floor(vhi)) + 2) >> 3)
+            informative = False
+            if ulo < n_r + 2 and uhi > -1.0 and vlo < n_c + 2 and vhi > -1.0:
+                for a in range(a0, a1 + 1):
+                    for b in range(b0, b1 + 1):
+                        if coarse[a, b]:
+                            informative = True
+            for i in range(bi, i1):
+                for j in range(bj, j1):
                     u = u00 + i * du_di + j * du_dj
                     v = v00 + i * dv_di + j * dv_dj
-                    if u <= -1.0 or v <= -1.0 or u >= n_r or v >= n_c:
+                    inside = not (u <= -1.0 or v <= -1.0 or u >= n_r or v >= n_c)
+                    covered[i, j] = inside
+                    if not (inside and informative):
                         out[i, j, 0] = 0.0
                         out[i, j, 1] = 0.0
                         out[i, j, 2] = 1.0
-                        covered[i, j] = False
                         continue
-                    covered[i, j] = True
                     iu = int(u + 1.0)  # floor(u) + 1, the padded row, as u > -1
                     iv = int(v + 1.0)
                     fu = u + 1.0 - iu
@@ -133,6 +172,7 @@ class Warper:
         self._masses = np.empty((side, side, 3), dtype=np.float32)
         self._covered = np.empty((side, side), dtype=np.bool_)
         self._src = vacuous((spec.n_cells + 2, spec.n_cells + 2))  # local grid + vacuous border
+        self._coarse = np.zeros(((spec.n_cells + 2 + 7) // 8, (spec.n_cells + 2 + 7) // 8), dtype=np.bool_)
 
     def warp(self, local: np.ndarray, pose: SE2) -> MapWindow:
         """Resample ``local`` ``(n, n, 3)`` taken at ego ``pose`` (first-pose frame, m/rad) into the map."""
@@ -149,7 +189,8 @@ class Warper:
         b0 = c0 + 0.5 + ty
         out = self._masses[:h, :w]
         covered = self._covered[:h, :w]
-        _k_warp(self._src, n, n, cc + cs * a0 + sn * b0, cc - sn * a0 + cs * b0, cs, sn, -sn, cs, out, covered)
+        _k_coarse(self._src, self._coarse)
+        _k_warp(self._src, self._coarse, n, n, cc + cs * a0 + sn * b0, cc - sn * a0 + cs * b0, cs, sn, -sn, cs, out, covered)
         return MapWindow(r0, c0, out, covered)
 
 
