@@ -63,3 +63,14 @@ def test_bench_prints_json(tmp_path, tiny_checkpoint):
     assert {"ray_irm", "deep_irm_input", "deep_irm_net", "warp", "fuse", "step_total"} <= set(fused)
     assert "ray_ilm" not in fused  # the fused map needs no lidar
     assert res["kernels_ms"]["dempster_512"] > 0
+
+
+def test_sweep_m_u_min(tmp_path, tiny_checkpoint):
+    r = runner.invoke(app, ["sweep-m-u-min", "--scenes", "1", "--duration", "1.5", "--values", "0.2,0.6", "--workers", "1",
+                            "--checkpoint", str(tiny_checkpoint), "--out", str(tmp_path)])
+    assert r.exit_code == 0, r.output
+    res = json.loads((tmp_path / "m_u_min_sweep.json").read_text())
+    assert [row["m_u_min"] for row in res["rows"]] == [0.2, 0.6]
+    assert set(res["rows"][0]["miou"]) == {"deep_replace", "deep_disc", "fused"}
+    assert res["best_for_fused"] in (0.2, 0.6)
+    assert (tmp_path / "m_u_min_sweep.png").stat().st_size > 1000

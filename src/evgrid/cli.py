@@ -323,6 +323,40 @@ def train(
                       f"{res.seconds_per_epoch:.0f} s per epoch; checkpoint {out / 'best.safetensors'}")
 
 
+@app.command("sweep-m-u-min")
+def sweep_m_u_min_cmd(
+    out: Path = typer.Option(Path("out/sweep"), "--out", help="Results folder."),
+    values: str = typer.Option("0.1,0.2,0.3,0.4,0.5,0.6,0.7", "--values", help="Comma-separated m_u_min values."),
+    nuscenes: Path = _NUSCENES,
+    version: str = _VERSION,
+    split: str = typer.Option("val", "--split"),
+    sim_dir: Path = _SIM_DIR,
+    scenes: int = typer.Option(4, "--scenes", min=1, help="Simulator: validation scenes."),
+    seed: int = _SEED,
+    duration: float = _DURATION,
+    checkpoint: Path = typer.Option(None, "--checkpoint", help="Ev-Net checkpoint; default: the shipped one."),
+    workers: int = typer.Option(2, "--workers", min=1),
+) -> None:
+    """Sweep the lower limit m_u_min: mIoU of deep_replace, deep_disc and fused against ray_ilm (JSON + plot).
+
+    Example:
+      evgrid sweep-m-u-min --scenes 4 --values 0.1,0.2,0.3,0.4,0.5 --out out/sweep
+    """
+    import json
+
+    from evgrid.pipeline import sweep_m_u_min
+
+    try:
+        vals = [float(v) for v in values.split(",")]
+    except ValueError as e:
+        raise typer.BadParameter(f"--values must be numbers separated by commas, got {values!r}") from e
+    source = _source(nuscenes, version, split, sim_dir, scenes, seed, duration)
+    res = sweep_m_u_min(source, vals, out, _mapper_config(None, checkpoint, 2, None), workers=workers)
+    for row in res["rows"]:
+        typer.echo(f"m_u_min {row['m_u_min']:.2f}: " + ", ".join(f"{k} {v:.3f}" for k, v in row["mean_of_classes"].items()))
+    typer.echo(f"best for fused (mean of the three classes' mIoU): m_u_min = {res['best_for_fused']}; {out}/m_u_min_sweep.png")
+
+
 @app.command()
 def bench(
     seconds: float = typer.Option(6.0, "--duration", help="Length of the simulated scene used (s)."),

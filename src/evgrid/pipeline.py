@@ -22,7 +22,7 @@ import numpy as np
 
 from evgrid.data.frame import Frame
 from evgrid.evaluate import CLASSES, classify, compare_maps, iou_per_class
-from evgrid.fusion import MAP_NAMES, FusionParams, MapSet
+from evgrid.fusion import MAP_NAMES, FusionParams, MapSet, update_ray_ilm
 from evgrid.geometry import SE2, SE3, GridSpec
 from evgrid.grid import EvidentialMap, Warper, atomic_write
 from evgrid.ism.deep import RadarImageParams
@@ -443,3 +443,87 @@ def map_scenes(
         table += "\n" + markdown_table(summary["vs_truth"], title="against the true occupancy (simulator)", paper=False)
     atomic_write(out / "table.md", lambda f: f.write(table.encode()))
     return summary
+
+
+# --- choosing m_u_min ---------------------------------------------------------------------------
+
+SWEPT_MAPS: tuple[str, ...] = ("ray_ilm", "deep_replace", "deep_disc", "fused")  # the maps m_u_min changes
+
+
+def _sweep_one(args: tuple) -> dict[str, Any]:
+    source, name, values, config = args
+    scene = source.load(name)
+    base = OccupancyMapper(MapperConfig(**{**config.__dict__, "maps": SWEPT_MAPS, "track_convergence": False, "snapshot_every": 0}))
+    sets = [MapSet(config.grid, FusionParams(m_u_min=v, alpha=config.fusion.alpha), SWEPT_MAPS[1:], config.tile_cells) for v in values]
+    for frame in scene:
+        base.buffer.update(frame)
+        base.n_frames += 1
+        pose = base.pose_in_map(frame.ego_pose)
+        if not (frame.is_keyframe or (base.n_frames - 1) % config.update_every == 0):
+            continue
+        windows = base.maps.warp(pose, base.local_isms(frame))
+        base.maps.maps["ray_ilm"].apply(windows["ray_ilm"], update_ray_ilm)
+        for s in sets:
+            s.update_windows(windows)
+    per_value = []
+    for v, s in zip(values, sets):
+        maps = {"ray_ilm": base.maps.maps["ray_ilm"], **s.maps}
+        per_value.append({"m_u_min": v, "vs_ray_ilm": compare_maps(maps)})
+    return {"scene": name, "values": per_value}
+
+
+def sweep_m_u_min(
+    source: Any, values: list[float], out_dir: str | os.PathLike, config: MapperConfig = MapperConfig(),
+    names: list[str] | None = None, workers: int = 1,
+) -> dict[str, Any]:
+    """mIoU against ray_ilm of deep_replace, deep_disc and fused for each ``m_u_min``; writes JSON and a plot.
+
+    ISMs are computed and warped once per update and shared by one map set per value.
+    """
+    from concurrent.futures import ProcessPoolExecutor
+    import multiprocessing as mp
+
+    from evgrid.evaluate import mean_iou
+    from evgrid.sources import scenes_of
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    names = scenes_of(source, names)
+    jobs = [(source, n, list(values), config) for n in names]
+    if workers <= 1:
+        per_scene = [_sweep_one(j) for j in jobs]
+    else:
+        with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as ex:
+            per_scene = list(ex.map(_sweep_one, jobs))
+    rows = []
+    for k, v in enumerate(values):
+        m = mean_iou(s["values"][k]["vs_ray_ilm"] for s in per_scene)
+        rows.append({"m_u_min": v, "miou": m, "mean_of_classes": {n: float(np.nanmean(list(d.values()))) for n, d in m.items()}})
+    best = max(rows, key=lambda r: r["mean_of_classes"]["fused"])
+    result = {"scenes": names, "rows": rows, "best_for_fused": best["m_u_min"]}
+    atomic_write(out / "m_u_min_sweep.json", lambda f: f.write(json.dumps(_jsonable(result), indent=2).encode()))
+    _plot_sweep(rows, out / "m_u_min_sweep.png")
+    return _jsonable(result)
+
+
+def _plot_sweep(rows: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from evgrid.render import _save
+
+    xs = [r["m_u_min"] for r in rows]
+    fig, axes = plt.subplots(1, 4, figsize=(15, 3.4), dpi=110)
+    for ax, cls in zip(axes, (*CLASSES, "mean")):
+        for name in SWEPT_MAPS[1:]:
+            ys = [r["mean_of_classes"][name] if cls == "mean" else r["miou"][name][cls] for r in rows]
+            ax.plot(xs, ys, marker="o", label=name)
+        ax.set_title(f"{cls} mIoU vs ray_ilm" if cls != "mean" else "mean of the three classes", fontsize=9)
+        ax.set_xlabel("m_u_min", fontsize=8)
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=7)
+    fig.tight_layout()
+    _save(fig, path)
+    plt.close(fig)
