@@ -317,7 +317,18 @@ def train(
                       f"occupied {row['val_occupied']:.3f} unknown {row['val_unknown']:.3f} "
                       f"(ray IRM free {row['ray_irm_free']:.3f}), {row['seconds']:.0f} s")
 
-    res = run_training(config, cache, names["train"], names["val"], out, resume=resume, on_epoch=show)
+    with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  console=console, disable=rank != 0) as p:
+        task = p.add_task("epoch 0", total=None)
+
+        def batch(epoch: int, b: int, n: int) -> None:
+            p.update(task, description=f"epoch {epoch}", completed=b, total=n)
+
+        def epoch_done(epoch: int, row: dict) -> None:
+            show(epoch, row)
+            p.reset(task)
+
+        res = run_training(config, cache, names["train"], names["val"], out, resume=resume, on_epoch=epoch_done, on_batch=batch)
     if rank == 0:
         console.print(f"best epoch {res.best_epoch}: {res.best}; ray IRM baseline {res.ray_irm_baseline}; "
                       f"{res.seconds_per_epoch:.0f} s per epoch; checkpoint {out / 'best.safetensors'}")

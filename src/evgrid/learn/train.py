@@ -284,8 +284,13 @@ def train(
     out_dir: str | os.PathLike,
     resume: bool = False,
     on_epoch: Callable[[int, dict], None] | None = None,
+    on_batch: Callable[[int, int, int], None] | None = None,
 ) -> TrainResult:
-    """Train Ev-Net on cached scenes; write ``config.json``, ``metrics.csv``, ``last`` and ``best`` checkpoints."""
+    """Train Ev-Net on cached scenes; write ``config.json``, ``metrics.csv``, ``last`` and ``best`` checkpoints.
+
+    ``on_epoch(epoch, row)`` gets each epoch's logged row, ``on_batch(epoch, batch, n_batches)``
+    each finished batch (rank 0 only).
+    """
     rank, world, local_rank = _dist()
     out = Path(out_dir)
     if rank == 0:
@@ -357,7 +362,7 @@ def train(
         net.train()
         t0 = time.perf_counter()
         losses = []
-        for x, t in loader:
+        for b, (x, t) in enumerate(loader):
             x, t = x.to(device), t.to(device)
             opt.zero_grad(set_to_none=True)
             loss = evidential_loss(net(x), t)
@@ -365,6 +370,8 @@ def train(
             opt.step()
             sched.step()
             losses.append(loss.item())
+            if on_batch and rank == 0:
+                on_batch(epoch, b + 1, len(loader))
         if world > 1:
             import torch.distributed as dist
 
