@@ -57,7 +57,7 @@ def simulate(
 
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-    from evgrid.data.io import atomic_write_text
+    from evgrid.io import atomic_write_text
     from evgrid.data.sim import SimConfig, WorldConfig, simulate_scene
     from evgrid.data.sim.config import ENVIRONMENTS
 
@@ -242,7 +242,7 @@ def demo(
     Writes OUT/metrics.json ({"maps": {name: {"free", "occupied", "unknown"}}, ...}), OUT/table.md and,
     per scene, maps.png, isms.png, convergence.png and maps.gif.
     """
-    from evgrid.grid import atomic_write
+    from evgrid.io import atomic_write
     from evgrid.sources import SimSource
 
     import json
@@ -382,7 +382,7 @@ def bench(
     import json
 
     from evgrid.bench import run_bench
-    from evgrid.grid import atomic_write
+    from evgrid.io import atomic_write
 
     res = run_bench(seconds, str(checkpoint) if checkpoint else None)
     text = json.dumps(res, indent=2)

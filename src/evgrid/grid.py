@@ -15,7 +15,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import tempfile
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,6 +24,7 @@ import numba
 import numpy as np
 
 from evgrid.geometry import SE2, GridSpec
+from evgrid.io import atomic_write
 from evgrid.mass import vacuous
 
 __all__ = ["MapWindow", "EvidentialMap", "Warper", "warp_to_map", "warp_window", "save_map", "load_map", "MapFileError"]
@@ -320,26 +320,6 @@ _FORMAT_VERSION = 1
 
 class MapFileError(ValueError):
     """A file that is not a complete evgrid map (truncated, foreign or of a newer format)."""
-
-
-def atomic_write(path: str | os.PathLike, write: Callable[[Any], None], mode: str = "wb") -> Path:
-    """Write a file through ``write(fileobj)`` to a temporary sibling, fsync it, then rename it into place."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, mode) as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
-    return path
 
 
 def save_map(m: EvidentialMap, path: str | os.PathLike) -> Path:

@@ -24,7 +24,8 @@ from evgrid.data.frame import Frame
 from evgrid.evaluate import CLASSES, classify, compare_maps, iou_per_class
 from evgrid.fusion import MAP_NAMES, FusionParams, MapSet, update_ray_ilm
 from evgrid.geometry import SE2, SE3, GridSpec
-from evgrid.grid import EvidentialMap, Warper, atomic_write
+from evgrid.grid import EvidentialMap, Warper
+from evgrid.io import atomic_write
 from evgrid.ism.deep import RadarImageParams
 
 __all__ = ["MapperConfig", "OccupancyMapper", "SceneResult", "map_scene"]

@@ -13,7 +13,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from evgrid.evaluate import CLASSES
-from evgrid.grid import atomic_write
+from evgrid.io import atomic_write
 
 __all__ = ["masses_to_rgb", "plot_panels", "plot_convergence", "write_gif", "trajectory_cells"]
 

@@ -24,7 +24,7 @@ from typing import Callable, Iterable, Mapping, Sequence
 import numpy as np
 
 from evgrid.data.frame import LIDAR_CHANNEL, RADAR_CHANNELS, RADAR_COLUMNS, Frame, Scene
-from evgrid.data.io import atomic_open, atomic_write_bytes, atomic_write_text
+from evgrid.io import atomic_open, atomic_write_bytes, atomic_write_text
 
 __all__ = [
     "RADAR_PCD_FIELDS",

@@ -140,7 +140,7 @@ def save_checkpoint(model: EvNet, path: str | os.PathLike, extra: dict[str, Any]
     """Write the model's weights and config as a safetensors file, atomically; ``extra`` goes in its metadata."""
     from safetensors.torch import save
 
-    from evgrid.grid import atomic_write
+    from evgrid.io import atomic_write
 
     meta = {
         "format": _FORMAT,

@@ -31,7 +31,7 @@ from torch.utils.data import DataLoader, Dataset
 from evgrid.data.frame import Frame
 from evgrid.evaluate import CLASSES, iou_per_class
 from evgrid.geometry import GridSpec
-from evgrid.grid import atomic_write
+from evgrid.io import atomic_write
 from evgrid.ism.deep import CHANNELS, DETECTION_COLUMNS, RadarImageParams, detections_to_image, radar_detections
 from evgrid.learn.evnet import FREE, OCCUPIED, UNKNOWN, EvNet, EvNetConfig, evidential_loss, load_checkpoint, save_checkpoint
 

@@ -39,7 +39,7 @@ from typing import Callable, Iterator
 import numpy as np
 
 from evgrid.data.frame import LIDAR_CHANNEL, LIDAR_COLUMNS, RADAR_CHANNELS, RADAR_COLUMNS, Frame, LidarSweep, RadarSweep
-from evgrid.data.io import atomic_open
+from evgrid.io import atomic_open
 from evgrid.data.sim.materials import CLASS_NAMES
 from evgrid.data.sim.scene import SimScene
 from evgrid.geometry import SE3
