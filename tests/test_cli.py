@@ -74,3 +74,18 @@ def test_sweep_m_u_min(tmp_path, tiny_checkpoint):
     assert set(res["rows"][0]["miou"]) == {"deep_replace", "deep_disc", "fused"}
     assert res["best_for_fused"] in (0.2, 0.6)
     assert (tmp_path / "m_u_min_sweep.png").stat().st_size > 1000
+
+
+def test_map_on_a_dataset_in_the_nuscenes_layout(tmp_path, tiny_checkpoint):
+    """`evgrid map --nuscenes`: the devkit reads a simulated dataset written in the nuScenes layout."""
+    data = tmp_path / "nuscenes"
+    r = runner.invoke(app, ["simulate", "--out", str(data), "--scenes", "1", "--seed", "4", "--duration", "1.5",
+                            "--format", "nuscenes"])
+    assert r.exit_code == 0, r.output
+    out = tmp_path / "out"
+    r = runner.invoke(app, ["map", "--nuscenes", str(data), "--version", "v1.0-sim", "--split", "val",
+                            "--checkpoint", str(tiny_checkpoint), "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    m = json.loads((out / "sim-000004" / "metrics.json").read_text())
+    assert m["frames"] == 30 and "vs_truth" not in m  # nuScenes has no true occupancy
+    assert set(m["vs_ray_ilm"]) == {"deep_acc", "deep_replace", "deep_disc", "ray_irm", "fused"}

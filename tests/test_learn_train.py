@@ -66,3 +66,30 @@ def test_config_validation():
         TrainConfig(epochs=0)
     with pytest.raises(ValueError, match="input channels"):
         TrainConfig(model=EvNetConfig(in_channels=3))
+
+
+def test_training_runs_under_torchrun_with_two_processes(cache, tmp_path):
+    """DistributedDataParallel on CPU (gloo): the command documented for multi-GPU runs."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root, names = cache
+    script = tmp_path / "ddp.py"
+    script.write_text(
+        "import sys\n"
+        "from evgrid.learn.evnet import EvNetConfig\n"
+        "from evgrid.learn.train import TrainConfig, train\n"
+        "cfg = TrainConfig(epochs=1, batch_size=2, workers=0, frame_stride=10, threads=1,\n"
+        "                  model=EvNetConfig(in_channels=6, width=4, depth=2))\n"
+        f"train(cfg, {str(root)!r}, {names[:1]!r}, {names[1:]!r}, sys.argv[1])\n"
+    )
+    torchrun = Path(sys.executable).parent / "torchrun"
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    r = subprocess.run([str(torchrun), "--nproc_per_node=2", "--master_port=29517", str(script), str(tmp_path / "run")],
+                       capture_output=True, text=True, timeout=300, env=env)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert (tmp_path / "run" / "best.safetensors").is_file()
+    rows = list(csv.DictReader(open(tmp_path / "run" / "metrics.csv")))
+    assert len(rows) == 1  # rank 0 alone logs
