@@ -77,3 +77,19 @@ def test_deep_irm_predicts_masses_on_the_simplex(tmp_path):
 def test_deep_irm_refuses_a_checkpoint_for_another_grid(tmp_path):
     with pytest.raises(CheckpointError, match="trained on grid"):
         DeepIrm(_checkpoint(tmp_path, GridSpec(256, 40.0)), SPEC)
+
+
+def test_shipped_checkpoint_loads_and_predicts_masses():
+    from evgrid.ism.deep import default_checkpoint
+    from evgrid.ism.synthetic import street_radar_sweeps
+
+    path = default_checkpoint()
+    assert path.is_file() and path.stat().st_size < 5 * 2**20
+    deep = DeepIrm()  # the shipped checkpoint is the default
+    assert deep.info["grid"] == SPEC.to_dict() and deep.info["val_iou"]["free"] > 0.8
+    sweeps, ego_pose = street_radar_sweeps()
+    m = deep(sweeps, ego_pose)
+    mass.validate(m)
+    # it has learned something: free space around the vehicle, unknown far out
+    near = m[240:272, 240:272]
+    assert (near[..., 0] > near[..., 2]).mean() > 0.5
