@@ -72,7 +72,7 @@ def test_sweep_m_u_min(tmp_path, tiny_checkpoint):
     res = json.loads((tmp_path / "m_u_min_sweep.json").read_text())
     assert [row["m_u_min"] for row in res["rows"]] == [0.2, 0.6]
     assert set(res["rows"][0]["miou"]) == {"deep_replace", "deep_disc", "fused"}
-    assert res["best_for_fused"] in (0.2, 0.6)
+    assert res["chosen"] in (0.2, 0.6) and "highest m_u_min" in res["rule"]
     assert (tmp_path / "m_u_min_sweep.png").stat().st_size > 1000
 
 

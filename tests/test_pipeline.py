@@ -75,3 +75,11 @@ def test_config_validation():
         MapperConfig(maps=("octomap",))
     with pytest.raises(ValueError, match="update_every"):
         MapperConfig(update_every=0)
+
+
+def test_m_u_min_choice_rule():
+    from evgrid.pipeline import choose_m_u_min
+
+    rows = [{"m_u_min": v, "mean_of_classes": {"deep_disc": d}} for v, d in ((0.1, 0.530), (0.3, 0.525), (0.4, 0.49), (0.6, 0.2))]
+    assert choose_m_u_min(rows) == 0.3  # the highest within 0.01 of the best
+    assert choose_m_u_min(rows, tolerance=0.0) == 0.1

@@ -365,7 +365,7 @@ def sweep_m_u_min_cmd(
     res = sweep_m_u_min(source, vals, out, _mapper_config(None, checkpoint, 2, None), workers=workers)
     for row in res["rows"]:
         typer.echo(f"m_u_min {row['m_u_min']:.2f}: " + ", ".join(f"{k} {v:.3f}" for k, v in row["mean_of_classes"].items()))
-    typer.echo(f"best for fused (mean of the three classes' mIoU): m_u_min = {res['best_for_fused']}; {out}/m_u_min_sweep.png")
+    typer.echo(f"chosen m_u_min = {res['chosen']}: {res['rule']}; plot: {out}/m_u_min_sweep.png")
 
 
 @app.command()

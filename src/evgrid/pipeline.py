@@ -500,14 +500,27 @@ def sweep_m_u_min(
     for k, v in enumerate(values):
         m = mean_iou(s["values"][k]["vs_ray_ilm"] for s in per_scene)
         rows.append({"m_u_min": v, "miou": m, "mean_of_classes": {n: float(np.nanmean(list(d.values()))) for n, d in m.items()}})
-    best = max(rows, key=lambda r: r["mean_of_classes"]["fused"])
-    result = {"scenes": names, "rows": rows, "best_for_fused": best["m_u_min"]}
+    chosen = choose_m_u_min(rows)
+    result = {"scenes": names, "rows": rows, "chosen": chosen, "rule": CHOICE_RULE}
     atomic_write(out / "m_u_min_sweep.json", lambda f: f.write(json.dumps(_jsonable(result), indent=2).encode()))
-    _plot_sweep(rows, out / "m_u_min_sweep.png")
+    _plot_sweep(rows, out / "m_u_min_sweep.png", chosen)
     return _jsonable(result)
 
 
-def _plot_sweep(rows: list[dict], path: Path) -> None:
+CHOICE_RULE = (
+    "the highest m_u_min whose deep_disc mIoU (mean of the three classes, against ray_ilm) is within "
+    "0.01 of the best value swept: cells known only to the deep IRM stay as clearly apart from verified "
+    "space as accuracy allows; at m_u_min >= 0.5 such cells can never be classified free or occupied"
+)
+
+
+def choose_m_u_min(rows: list[dict], tolerance: float = 0.01) -> float:
+    """The m_u_min picked from sweep rows by :data:`CHOICE_RULE`."""
+    best = max(r["mean_of_classes"]["deep_disc"] for r in rows)
+    return max(r["m_u_min"] for r in rows if r["mean_of_classes"]["deep_disc"] >= best - tolerance)
+
+
+def _plot_sweep(rows: list[dict], path: Path, chosen: float | None = None) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -524,6 +537,8 @@ def _plot_sweep(rows: list[dict], path: Path) -> None:
         ax.set_title(f"{cls} mIoU vs ray_ilm" if cls != "mean" else "mean of the three classes", fontsize=9)
         ax.set_xlabel("m_u_min", fontsize=8)
         ax.grid(alpha=0.3)
+        if chosen is not None:
+            ax.axvline(chosen, color="k", ls="--", lw=0.8)
     axes[0].legend(fontsize=7)
     fig.tight_layout()
     _save(fig, path)
