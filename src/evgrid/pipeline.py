@@ -521,12 +521,9 @@ def choose_m_u_min(rows: list[dict], tolerance: float = 0.01) -> float:
 
 
 def _plot_sweep(rows: list[dict], path: Path, chosen: float | None = None) -> None:
-    import matplotlib
+    from evgrid.render import _pyplot, _save
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from evgrid.render import _save
+    plt = _pyplot()
 
     xs = [r["m_u_min"] for r in rows]
     fig, axes = plt.subplots(1, 4, figsize=(15, 3.4), dpi=110)

@@ -29,6 +29,16 @@ def masses_to_rgb(m: np.ndarray) -> np.ndarray:
     return np.clip(np.rint(a * 255.0), 0, 255).astype(np.uint8)
 
 
+def _pyplot():
+    """matplotlib.pyplot on the non-interactive Agg backend (no display needed)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
 def _legend(ax) -> None:
     from matplotlib.patches import Patch
 
@@ -57,10 +67,7 @@ def plot_panels(
 
     ``gamma < 1`` brightens small masses (a single ISM's m_f = 0.05 is invisible otherwise).
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = _pyplot()
 
     n = len(panels)
     if n == 0:
@@ -95,10 +102,7 @@ def plot_convergence(
     curves: Mapping[str, Sequence[Mapping[str, float]]], path: str | os.PathLike, times_s: Sequence[float] | None = None, title: str = ""
 ) -> Path:
     """IoU over time of each map, one subplot per class (paper: faster convergence with the deep prior)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = _pyplot()
 
     fig, axes = plt.subplots(1, 3, figsize=(12, 3.4), dpi=110)
     for ax, cls in zip(axes, CLASSES):
