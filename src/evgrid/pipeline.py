@@ -22,7 +22,7 @@ import numpy as np
 
 from evgrid.data.frame import Frame
 from evgrid.evaluate import CLASSES, classify, compare_maps, iou_per_class
-from evgrid.fusion import MAP_NAMES, FusionParams, MapSet, update_ray_ilm
+from evgrid.fusion import MAP_NAMES, FusionParams, MapSet
 from evgrid.geometry import SE2, SE3, GridSpec
 from evgrid.grid import EvidentialMap, Warper
 from evgrid.io import atomic_write
@@ -84,14 +84,21 @@ class OccupancyMapper:
     """The six maps of one scene, built online: call :meth:`process` with each :class:`Frame` in order.
 
     ``deep`` is a :class:`~evgrid.ism.deep.DeepIrm` (loaded from ``config.checkpoint``, or the
-    shipped checkpoint, when the maps need it and none is given).
+    shipped checkpoint, when the maps need it and none is given). ``extra`` map sets are
+    updated from the same ISM grids and warps (used by the ``m_u_min`` sweep).
     """
 
-    def __init__(self, config: MapperConfig = MapperConfig(), deep: Any = None):
+    def __init__(self, config: MapperConfig = MapperConfig(), deep: Any = None, extra: tuple[MapSet, ...] = ()):
         from evgrid.ism import RadarBuffer
 
         self.config = config
         self.maps = MapSet(config.grid, config.fusion, config.maps, config.tile_cells)
+        # further map sets (e.g. other parameters) updated from the same ISMs and warps
+        self.extra = tuple(extra)
+        for s in self.extra:
+            missing = set(s.required_isms) - set(self.maps.required_isms)
+            if missing:
+                raise ValueError(f"extra map sets need ISMs {sorted(missing)} that the mapper's maps do not compute")
         self.buffer = RadarBuffer(max(config.n_radar_sweeps, config.image.n_sweeps))
         self.deep = deep
         if deep is None and "deep_irm" in self.maps.required_isms:
@@ -125,6 +132,7 @@ class OccupancyMapper:
         """Each ISM the maps need, once, on the local grid of ``frame`` (radar buffer already updated)."""
         from evgrid.ism import RayIrmParams, ray_ilm, ray_irm
         from evgrid.ism.deep import radar_image
+        from evgrid.ism.radar import _last_sweeps
 
         cfg = self.config
         out: dict[str, np.ndarray] = {}
@@ -139,7 +147,7 @@ class OccupancyMapper:
             out["ray_irm"] = ray_irm(sweeps, frame.ego_pose, grid=cfg.grid, params=params, threads=cfg.threads)
             t = self._time("ray_irm", t)
         if "deep_irm" in need:
-            image = radar_image(_last_per_channel(sweeps, cfg.image.n_sweeps), frame.ego_pose, cfg.grid, frame.timestamp, cfg.image)
+            image = radar_image(_last_sweeps(sweeps, cfg.image.n_sweeps), frame.ego_pose, cfg.grid, frame.timestamp, cfg.image)
             t = self._time("deep_irm_input", t)
             out["deep_irm"] = self.deep.predict_image(image)
             t = self._time("deep_irm_net", t)
@@ -161,6 +169,8 @@ class OccupancyMapper:
         windows = self.maps.warp(pose, isms)
         t = self._time("warp", t)
         self.maps.update_windows(windows)
+        for extra in self.extra:
+            extra.update_windows(windows)
         t = self._time("fuse", t)
         if frame.occupancy is not None:
             truth_local = _TRUTH_MASSES[np.clip(frame.occupancy, 0, 2)]
@@ -236,13 +246,6 @@ def _observable(cls: np.ndarray) -> np.ndarray:
     near[:, 1:] |= near[:, :-1].copy()
     near[:, :-1] |= near[:, 1:].copy()
     return free | near
-
-
-def _last_per_channel(sweeps, n: int) -> list:
-    per: dict[str, list] = {}
-    for s in sweeps:
-        per.setdefault(s.channel, []).append(s)
-    return [s for lst in per.values() for s in lst[-n:]]
 
 
 @dataclass
@@ -448,28 +451,20 @@ def map_scenes(
 
 # --- choosing m_u_min ---------------------------------------------------------------------------
 
-SWEPT_MAPS: tuple[str, ...] = ("ray_ilm", "deep_replace", "deep_disc", "fused")  # the maps m_u_min changes
+SWEPT_MAPS: tuple[str, ...] = ("deep_replace", "deep_disc", "fused")  # the maps m_u_min changes
 
 
 def _sweep_one(args: tuple) -> dict[str, Any]:
     source, name, values, config = args
     scene = source.load(name)
-    base = OccupancyMapper(MapperConfig(**{**config.__dict__, "maps": SWEPT_MAPS, "track_convergence": False, "snapshot_every": 0}))
-    sets = [MapSet(config.grid, FusionParams(m_u_min=v, alpha=config.fusion.alpha), SWEPT_MAPS[1:], config.tile_cells) for v in values]
+    sets = [MapSet(config.grid, FusionParams(m_u_min=v, alpha=config.fusion.alpha), SWEPT_MAPS, config.tile_cells) for v in values]
+    # ray_ilm is the reference; fused makes the mapper compute all three ISMs
+    cfg = MapperConfig(**{**config.__dict__, "maps": ("ray_ilm", "fused"), "track_convergence": False, "snapshot_every": 0})
+    mapper = OccupancyMapper(cfg, extra=tuple(sets))
     for frame in scene:
-        base.buffer.update(frame)
-        base.n_frames += 1
-        pose = base.pose_in_map(frame.ego_pose)
-        if not (frame.is_keyframe or (base.n_frames - 1) % config.update_every == 0):
-            continue
-        windows = base.maps.warp(pose, base.local_isms(frame))
-        base.maps.maps["ray_ilm"].apply(windows["ray_ilm"], update_ray_ilm)
-        for s in sets:
-            s.update_windows(windows)
-    per_value = []
-    for v, s in zip(values, sets):
-        maps = {"ray_ilm": base.maps.maps["ray_ilm"], **s.maps}
-        per_value.append({"m_u_min": v, "vs_ray_ilm": compare_maps(maps)})
+        mapper.process(frame)
+    ref = mapper.maps.maps["ray_ilm"]
+    per_value = [{"m_u_min": v, "vs_ray_ilm": compare_maps({"ray_ilm": ref, **s.maps})} for v, s in zip(values, sets)]
     return {"scene": name, "values": per_value}
 
 
@@ -528,7 +523,7 @@ def _plot_sweep(rows: list[dict], path: Path, chosen: float | None = None) -> No
     xs = [r["m_u_min"] for r in rows]
     fig, axes = plt.subplots(1, 4, figsize=(15, 3.4), dpi=110)
     for ax, cls in zip(axes, (*CLASSES, "mean")):
-        for name in SWEPT_MAPS[1:]:
+        for name in SWEPT_MAPS:
             ys = [r["mean_of_classes"][name] if cls == "mean" else r["miou"][name][cls] for r in rows]
             ax.plot(xs, ys, marker="o", label=name)
         ax.set_title(f"{cls} mIoU vs ray_ilm" if cls != "mean" else "mean of the three classes", fontsize=9)
