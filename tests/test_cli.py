@@ -89,3 +89,17 @@ def test_map_on_a_dataset_in_the_nuscenes_layout(tmp_path, tiny_checkpoint):
     m = json.loads((out / "sim-000004" / "metrics.json").read_text())
     assert m["frames"] == 30 and "vs_truth" not in m  # nuScenes has no true occupancy
     assert set(m["vs_ray_ilm"]) == {"deep_acc", "deep_replace", "deep_disc", "ray_irm", "fused"}
+
+
+def test_demo_writes_the_metrics_contract(tmp_path):
+    """DESIGN 8: DIR/metrics.json = {"maps": {<six names>: {"free", "occupied", "unknown"}}, ...} with the shipped Ev-Net."""
+    r = runner.invoke(app, ["demo", "--scenes", "1", "--duration", "2", "--workers", "1", "--out", str(tmp_path)])
+    assert r.exit_code == 0, r.output
+    m = json.loads((tmp_path / "metrics.json").read_text())
+    assert set(m["maps"]) == {"ray_ilm", "deep_acc", "deep_replace", "deep_disc", "ray_irm", "fused"}
+    for ious in m["maps"].values():
+        assert set(ious) == {"free", "occupied", "unknown"}
+        assert all(v is None or 0.0 <= v <= 1.0 for v in ious.values())
+    assert (tmp_path / "table.md").is_file()
+    for name in ("maps.png", "isms.png", "convergence.png", "maps.gif"):
+        assert (tmp_path / "sim-000004" / name).is_file()
