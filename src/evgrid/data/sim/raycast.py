@@ -256,6 +256,66 @@ def _lidar_box(
         best_c[j] = cv
 
 
+@numba.njit(cache=True, inline="always")
+def _dda_start(ox, oy, dx, dy, t_end, gx0, gy0, gx1, gy1, cell, gnx, gny):
+    """Clip the ray o + t d, t in [0, t_end], to the index rectangle and set up the cell walk.
+
+    Returns (t0, t1, ix, iy, stepx, stepy, tmx, tmy, tdx, tdy) of Amanatides & Woo; the ray
+    misses the rectangle where t0 > t1.
+    """
+    t0 = 0.0
+    t1 = t_end
+    if abs(dx) < 1e-12:
+        if ox < gx0 or ox > gx1:
+            t1 = -1.0
+    else:
+        a = (gx0 - ox) / dx
+        b = (gx1 - ox) / dx
+        if a > b:
+            a, b = b, a
+        t0 = max(t0, a)
+        t1 = min(t1, b)
+    if abs(dy) < 1e-12:
+        if oy < gy0 or oy > gy1:
+            t1 = -1.0
+    else:
+        a = (gy0 - oy) / dy
+        b = (gy1 - oy) / dy
+        if a > b:
+            a, b = b, a
+        t0 = max(t0, a)
+        t1 = min(t1, b)
+    px = ox + dx * t0
+    py = oy + dy * t0
+    ix = min(max(int((px - gx0) / cell), 0), gnx - 1)
+    iy = min(max(int((py - gy0) / cell), 0), gny - 1)
+    if dx > 1e-12:
+        stepx = 1
+        tmx = (gx0 + (ix + 1) * cell - ox) / dx
+        tdx = cell / dx
+    elif dx < -1e-12:
+        stepx = -1
+        tmx = (gx0 + ix * cell - ox) / dx
+        tdx = -cell / dx
+    else:
+        stepx = 0
+        tmx = 1e30
+        tdx = 1e30
+    if dy > 1e-12:
+        stepy = 1
+        tmy = (gy0 + (iy + 1) * cell - oy) / dy
+        tdy = cell / dy
+    elif dy < -1e-12:
+        stepy = -1
+        tmy = (gy0 + iy * cell - oy) / dy
+        tdy = -cell / dy
+    else:
+        stepy = 0
+        tmy = 1e30
+        tdy = 1e30
+    return t0, t1, ix, iy, stepx, stepy, tmx, tmy, tdx, tdy
+
+
 @numba.njit(cache=True)
 def lidar_cast(
     ox: float,
@@ -328,57 +388,8 @@ def lidar_cast(
         for j in range(nb):
             tlim = max(tlim, best_t[j])
         # Clip the ray to the index rectangle, then walk its cells (Amanatides & Woo).
-        t0 = 0.0
-        t1 = tlim
-        if abs(dx) < 1e-12:
-            if ox < gx0 or ox > gx1:
-                t1 = -1.0
-        else:
-            a = (gx0 - ox) / dx
-            b = (gx1 - ox) / dx
-            if a > b:
-                a, b = b, a
-            t0 = max(t0, a)
-            t1 = min(t1, b)
-        if abs(dy) < 1e-12:
-            if oy < gy0 or oy > gy1:
-                t1 = -1.0
-        else:
-            a = (gy0 - oy) / dy
-            b = (gy1 - oy) / dy
-            if a > b:
-                a, b = b, a
-            t0 = max(t0, a)
-            t1 = min(t1, b)
+        t0, t1, ix, iy, stepx, stepy, tmx, tmy, tdx, tdy = _dda_start(ox, oy, dx, dy, tlim, gx0, gy0, gx1, gy1, cell, gnx, gny)
         if t0 <= t1:
-            px = ox + dx * t0
-            py = oy + dy * t0
-            ix = min(max(int((px - gx0) / cell), 0), gnx - 1)
-            iy = min(max(int((py - gy0) / cell), 0), gny - 1)
-            if dx > 1e-12:
-                stepx = 1
-                tmx = (gx0 + (ix + 1) * cell - ox) / dx
-                tdx = cell / dx
-            elif dx < -1e-12:
-                stepx = -1
-                tmx = (gx0 + ix * cell - ox) / dx
-                tdx = -cell / dx
-            else:
-                stepx = 0
-                tmx = 1e30
-                tdx = 1e30
-            if dy > 1e-12:
-                stepy = 1
-                tmy = (gy0 + (iy + 1) * cell - oy) / dy
-                tdy = cell / dy
-            elif dy < -1e-12:
-                stepy = -1
-                tmy = (gy0 + iy * cell - oy) / dy
-                tdy = -cell / dy
-            else:
-                stepy = 0
-                tmy = 1e30
-                tdy = 1e30
             tcur = t0
             while tcur <= tlim:
                 c = ix * gny + iy
@@ -524,58 +535,11 @@ def radar_cast(
             if qx * ddx + qy * ddy < -rad or abs(qy * ddx - qx * ddy) > rad:
                 continue
             _radar_box(px0, py0, pz0, ddx, ddy, tmax[r], tan_beta, dboxes[k], n + k, r, out_t, out_id, out_cos, out_nx, out_ny)
-        t0 = 0.0
-        t1 = tmax[r]
-        if abs(ddx) < 1e-12:
-            if px0 < gx0 or px0 > gx1:
-                t1 = -1.0
-        else:
-            a = (gx0 - px0) / ddx
-            b = (gx1 - px0) / ddx
-            if a > b:
-                a, b = b, a
-            t0 = max(t0, a)
-            t1 = min(t1, b)
-        if abs(ddy) < 1e-12:
-            if py0 < gy0 or py0 > gy1:
-                t1 = -1.0
-        else:
-            a = (gy0 - py0) / ddy
-            b = (gy1 - py0) / ddy
-            if a > b:
-                a, b = b, a
-            t0 = max(t0, a)
-            t1 = min(t1, b)
+        t0, t1, ix, iy, stepx, stepy, tmx, tmy, tdx, tdy = _dda_start(
+            px0, py0, ddx, ddy, tmax[r], gx0, gy0, gx1, gy1, cell, gnx, gny
+        )
         if t0 > t1:
             continue
-        px = px0 + ddx * t0
-        py = py0 + ddy * t0
-        ix = min(max(int((px - gx0) / cell), 0), gnx - 1)
-        iy = min(max(int((py - gy0) / cell), 0), gny - 1)
-        if ddx > 1e-12:
-            stepx = 1
-            tmx = (gx0 + (ix + 1) * cell - px0) / ddx
-            tdx = cell / ddx
-        elif ddx < -1e-12:
-            stepx = -1
-            tmx = (gx0 + ix * cell - px0) / ddx
-            tdx = -cell / ddx
-        else:
-            stepx = 0
-            tmx = 1e30
-            tdx = 1e30
-        if ddy > 1e-12:
-            stepy = 1
-            tmy = (gy0 + (iy + 1) * cell - py0) / ddy
-            tdy = cell / ddy
-        elif ddy < -1e-12:
-            stepy = -1
-            tmy = (gy0 + iy * cell - py0) / ddy
-            tdy = -cell / ddy
-        else:
-            stepy = 0
-            tmy = 1e30
-            tdy = 1e30
         tcur = t0
         while tcur <= t1:
             c = ix * gny + iy
