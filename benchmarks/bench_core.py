@@ -8,34 +8,22 @@ named "ISM-like" (about half the cells vacuous, as a ray ISM's grid is).
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
 import os
 import platform
-import time
 
 os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
 from evgrid import fusion, mass  # noqa: E402
+from evgrid.bench import median_ms  # noqa: E402
+
+timeit = functools.partial(median_ms, repeat=30)
 from evgrid.geometry import SE2, GridSpec  # noqa: E402
 from evgrid.grid import EvidentialMap, Warper  # noqa: E402
-
-
-def timeit(fn, prep=None, repeat: int = 30) -> float:
-    """Median wall time of ``fn()`` in ms (``prep()`` runs untimed before each call)."""
-    if prep:
-        prep()
-    fn()  # compile / warm up
-    ts = []
-    for _ in range(repeat):
-        if prep:
-            prep()
-        t = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t)
-    return float(np.median(ts) * 1e3)
 
 
 def main() -> None:

@@ -30,13 +30,6 @@ def main(
     """evgrid: evidential occupancy mapping (Bauer et al., deep ISMs as priors)."""
 
 
-def _sim_split(seed: int) -> str:
-    # Every fifth seed is validation: a scene's split depends on its seed alone, not on N.
-    from evgrid.sources import sim_split
-
-    return sim_split(seed)
-
-
 @app.command()
 def simulate(
     out: Path = typer.Option(..., "--out", help="Output folder (created if missing)."),
@@ -60,6 +53,7 @@ def simulate(
     from evgrid.io import atomic_write_text
     from evgrid.data.sim import SimConfig, WorldConfig, simulate_scene
     from evgrid.data.sim.config import ENVIRONMENTS
+    from evgrid.sources import sim_split
 
     if fmt not in ("npz", "nuscenes"):
         raise typer.BadParameter(f"--format must be 'npz' or 'nuscenes', got {fmt!r}", param_hint="--format")
@@ -88,7 +82,7 @@ def simulate(
                 progress.update(task, description=scene.name)
                 save_sim_scene(scene, path, on_frame=lambda i: progress.advance(task))
                 index = [e for e in index if e.get("name") != scene.name]
-                index.append({"name": scene.name, "seed": s, "split": _sim_split(s), "file": path.name,
+                index.append({"name": scene.name, "seed": s, "split": sim_split(s), "file": path.name,
                               "environment": scene.world.environment, "frames": len(scene)})
                 # Rewritten after each scene: an interrupted run still indexes what it wrote.
                 index.sort(key=lambda e: e["name"])
@@ -100,7 +94,7 @@ def simulate(
             sims = []
             for s in seeds:
                 sims.append(simulate_scene(s, config))
-                splits[_sim_split(s)].append(sims[-1].name)
+                splits[sim_split(s)].append(sims[-1].name)
 
             def on_frame(name: str, i: int) -> None:
                 progress.update(task, description=name)

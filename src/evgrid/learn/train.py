@@ -256,6 +256,7 @@ def _dist() -> tuple[int, int, int]:
 def evaluate_model(model: torch.nn.Module, loader: DataLoader, device: torch.device) -> tuple[dict[str, float], dict[str, float], float]:
     """Per-class IoU of the model's cell classes and of the ray IRM's, against the ray ILM targets; mean loss."""
     from evgrid.evaluate import classify
+    from evgrid.mass import from_evidence
 
     model.eval()
     inter = {"deep": np.zeros(3), "irm": np.zeros(3)}
@@ -264,9 +265,7 @@ def evaluate_model(model: torch.nn.Module, loader: DataLoader, device: torch.dev
     for x, t, irm in loader:
         e = model(x.to(device))
         losses.append(float(evidential_loss(e, t.to(device))))
-        alpha_s = 2.0 + e.sum(dim=1, keepdim=True)
-        m = torch.cat([e / alpha_s, 2.0 / alpha_s], dim=1).permute(0, 2, 3, 1).cpu().numpy()
-        pred = classify(m)
+        pred = classify(from_evidence(e.permute(0, 2, 3, 1).cpu().numpy()))
         ref = t.numpy()
         for key, p in (("deep", pred), ("irm", irm.numpy())):
             for k in range(3):
