@@ -304,13 +304,6 @@ class EvidentialMap:
         m, cov = self.read(r0, c0, h, w)
         return m, cov, r0, c0
 
-    def copy(self) -> "EvidentialMap":
-        """A deep copy."""
-        other = EvidentialMap(self.spec, self.tile_cells, json.loads(json.dumps(self.metadata)))
-        other.tiles = {k: v.copy() for k, v in self.tiles.items()}
-        other.covered_tiles = {k: v.copy() for k, v in self.covered_tiles.items()}
-        return other
-
 
 # --- persistence --------------------------------------------------------------------------------
 

@@ -107,7 +107,7 @@ class OccupancyMapper:
             self.deep = DeepIrm(config.checkpoint, config.grid, config.image, config.threads)
         self.first_pose: SE3 | None = None
         self.truth = EvidentialMap(config.grid, config.tile_cells, {"rule": "truth"})
-        self._truth_warper = Warper(config.grid)
+        self._truth_warper: Warper | None = None  # made at the first frame with true occupancy
         self.timings: dict[str, list[float]] = {}
         self.keyframes: list[dict[str, Any]] = []
         self.trajectory: list[tuple[float, float, float]] = []
@@ -173,6 +173,8 @@ class OccupancyMapper:
             extra.update_windows(windows)
         t = self._time("fuse", t)
         if frame.occupancy is not None:
+            if self._truth_warper is None:
+                self._truth_warper = Warper(self.config.grid)
             truth_local = _TRUTH_MASSES[np.clip(frame.occupancy, 0, 2)]
             self.truth.apply(self._truth_warper.warp(truth_local, pose), _replace_where_informed)
         self._time("step_total", t0)
