@@ -23,7 +23,7 @@ from evgrid.bench import median_ms  # noqa: E402
 
 timeit = functools.partial(median_ms, repeat=30)
 from evgrid.geometry import SE2, GridSpec  # noqa: E402
-from evgrid.grid import EvidentialMap, Warper  # noqa: E402
+from evgrid.grid import Warper  # noqa: E402
 
 
 def main() -> None:
@@ -51,29 +51,28 @@ def main() -> None:
     res["deep_replace update 512x512"] = timeit(lambda: fusion.update_deep_replace(cur, b, params), reset)
     res["fused update 512x512 (deep_disc + dempster)"] = timeit(lambda: fusion.update_fused(cur, b, ism_like, params), reset)
 
+    # Warp + fuse one 512 x 512 local grid into a map through the public path (MapSet.update):
+    # a dense grid (every cell informative, as the deep IRM's) with the deep_disc rule, at yaws
+    # from 0 to 90 degrees (the window, and so the work, is largest at 45).
     warper = Warper(spec)
-    for deg in (0, 30, 45):
+    for deg in range(0, 91, 15):
         pose = SE2(3.3, -1.7, math.radians(deg))
-        res[f"warp 512x512 into map, yaw {deg} deg"] = timeit(lambda: warper.warp(ism_like, pose))
-        m = EvidentialMap(spec)
-
-        def warp_fuse() -> None:
-            m.apply(warper.warp(ism_like, pose), fusion.update_ray_ilm)
-
-        res[f"warp + dempster fuse into map, yaw {deg} deg (ISM-like)"] = timeit(warp_fuse)
+        res[f"warp 512x512 into map, yaw {deg} deg (dense)"] = timeit(lambda: warper.warp(b, pose))
+        one = fusion.MapSet(spec, params, names=("deep_disc",))
+        res[f"warp + deep_disc fuse into map, yaw {deg} deg (dense)"] = timeit(lambda: one.update(pose, {"deep_irm": b}))
+    for deg in (0, 45):
+        pose = SE2(3.3, -1.7, math.radians(deg))
+        one = fusion.MapSet(spec, params, names=("ray_ilm",))
+        res[f"warp + dempster fuse into map, yaw {deg} deg (ISM-like)"] = timeit(lambda: one.update(pose, {"ray_ilm": ism_like}))
 
     from evgrid.ism import ray_ilm
     from evgrid.ism.synthetic import street_lidar_sweep
 
     ilm = ray_ilm(street_lidar_sweep())  # a real ray ILM grid: a 15 m disc in a 40 m square
-    for deg in (0, 30, 45):
+    for deg in (0, 45):
         pose = SE2(3.3, -1.7, math.radians(deg))
-        m = EvidentialMap(spec)
-
-        def warp_fuse_ilm() -> None:
-            m.apply(warper.warp(ilm, pose), fusion.update_ray_ilm)
-
-        res[f"warp + dempster fuse into map, yaw {deg} deg (ray ILM of a street)"] = timeit(warp_fuse_ilm)
+        one = fusion.MapSet(spec, params, names=("ray_ilm",))
+        res[f"warp + dempster fuse into map, yaw {deg} deg (ray ILM of a street)"] = timeit(lambda: one.update(pose, {"ray_ilm": ilm}))
 
     ms = fusion.MapSet(spec, params)
     isms = {"ray_ilm": ism_like, "ray_irm": ism_like, "deep_irm": b}

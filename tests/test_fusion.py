@@ -102,6 +102,35 @@ def test_rules_work_on_strided_views_of_a_larger_map():
     np.testing.assert_array_equal(big[untouched], ref[untouched])
 
 
+@pytest.mark.parametrize("name", MAP_NAMES)
+def test_spans_limit_each_row_to_its_columns(name):
+    rng = np.random.default_rng(3)
+    m0 = random_masses(rng, (3, 5), p_edge=0.0)
+    isms = [random_masses(rng, (3, 5), p_edge=0.0) for _ in RULES[name].isms]
+    whole = m0.copy()
+    RULES[name].update(whole, *isms, P)
+    # row 0: columns 1-2; row 1: none; row 2: an out-of-range span, clamped to the whole row
+    spans = np.array([[1, 3], [4, 4], [-7, 99]], dtype=np.int64)
+    part = m0.copy()
+    RULES[name].update(part, *isms, P, spans)
+    touched = np.zeros((3, 5), bool)
+    touched[0, 1:3] = True
+    touched[2, :] = True
+    np.testing.assert_array_equal(part[touched], whole[touched])
+    np.testing.assert_array_equal(part[~touched], m0[~touched])
+    assert not np.array_equal(whole[~touched], m0[~touched])  # the rule would have changed them
+
+
+def test_rules_reject_bad_spans():
+    m = mass.vacuous((2, 3))
+    with pytest.raises(ValueError, match=r"spans must be an int64 array of shape \(2, 2\)"):
+        update_ray_ilm(m, m.copy(), spans=np.zeros((3, 2), np.int64))
+    with pytest.raises(ValueError, match="spans"):
+        update_deep_disc(m, m.copy(), spans=np.zeros((2, 2), np.float64))
+    with pytest.raises(ValueError, match="spans"):
+        update_fused(m, m.copy(), m.copy(), spans=[[0, 3], [0, 3]])
+
+
 def test_rules_reject_bad_views():
     with pytest.raises(ValueError, match="float32"):
         update_ray_ilm(np.zeros((2, 2, 3)), np.zeros((2, 2, 3)))

@@ -6,6 +6,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from evgrid import mass
 from evgrid.fusion import update_ray_ilm
@@ -206,3 +208,52 @@ def test_warp_matches_a_plain_numpy_reference_on_sparse_grids(deg):
     w = warp_to_map(local, pose, spec)
     ref = _numpy_warp_reference(local, pose, spec, w.r0, w.c0, *w.shape)
     np.testing.assert_allclose(w.masses, ref, atol=2e-6)
+
+
+@pytest.mark.parametrize("deg", [0.0, 30.0, 45.0, 90.0, -135.0])
+def test_warp_matches_a_plain_numpy_reference_on_dense_grids(deg):
+    """Every cell informative (a deep IRM's grid): no block is skipped."""
+    spec = GridSpec(128, 10.0)
+    local = random_masses(np.random.default_rng(int(deg) + 700), spec.shape)
+    pose = SE2(-0.61, 2.9, math.radians(deg))
+    w = warp_to_map(local, pose, spec)
+    ref = _numpy_warp_reference(local, pose, spec, w.r0, w.c0, *w.shape)
+    np.testing.assert_allclose(w.masses, ref, atol=2e-6)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    x=st.floats(-6.0, 6.0), y=st.floats(-6.0, 6.0), yaw=st.floats(-math.pi, math.pi),
+)
+def test_spans_are_exactly_the_covered_cells_and_the_rest_is_vacuous(x, y, yaw):
+    pose = SE2(x, y, yaw)
+    w = warp_to_map(random_masses(np.random.default_rng(0), SPEC.shape), pose, SPEC)
+    h, wd = w.shape
+    assert w.spans.shape == (h, 2) and w.spans.dtype == np.int64
+    cols = np.arange(wd)
+    from_spans = (cols >= w.spans[:, :1]) & (cols < w.spans[:, 1:])
+    np.testing.assert_array_equal(from_spans, w.covered)
+    np.testing.assert_array_equal(w.masses[~w.covered], np.tile(np.float32([0, 0, 1]), ((~w.covered).sum(), 1)))
+    # coverage is the local square (-1, n) in continuous local indices, up to rounding at its edge
+    R, C = np.meshgrid(np.arange(w.r0, w.r0 + h), np.arange(w.c0, w.c0 + wd), indexing="ij")
+    lx, ly = SE2.inverse(pose).apply(np.stack(SPEC.map_cell_to_xy(R, C), -1)).transpose(2, 0, 1)
+    u, v = SPEC.xy_to_uv(lx, ly)
+    n = SPEC.n_cells
+    inside = (u > -1) & (v > -1) & (u < n) & (v < n)
+    edge = np.minimum.reduce([np.abs(u + 1), np.abs(v + 1), np.abs(u - n), np.abs(v - n)]) < 1e-9
+    assert not (inside != w.covered)[~edge].any()
+    assert w.covered.sum() > 0
+
+
+def test_fusing_only_the_spans_equals_fusing_whole_pieces():
+    rng = np.random.default_rng(8)
+    with_spans, without = EvidentialMap(SPEC, tile_cells=32), EvidentialMap(SPEC, tile_cells=32)
+    warper = Warper(SPEC)
+    for pose in _drive()[::3]:
+        w = warper.warp(random_masses(rng, SPEC.shape), pose)
+        with_spans.apply(w, lambda c, m, spans: update_ray_ilm(c, m, spans=spans), pass_spans=True)
+        without.apply(w, update_ray_ilm)
+    assert with_spans.tiles.keys() == without.tiles.keys()
+    for k in with_spans.tiles:
+        np.testing.assert_array_equal(with_spans.tiles[k], without.tiles[k])
+        np.testing.assert_array_equal(with_spans.covered_tiles[k], without.covered_tiles[k])

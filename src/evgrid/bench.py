@@ -34,7 +34,7 @@ def run_bench(duration_s: float = 6.0, checkpoint: str | None = None) -> dict[st
     from evgrid import fusion, mass
     from evgrid.data import SimConfig, simulate_scene
     from evgrid.geometry import SE2, GridSpec
-    from evgrid.grid import EvidentialMap, Warper
+    from evgrid.grid import Warper
     from evgrid.ism.deep import DeepIrm
     from evgrid.pipeline import MapperConfig, OccupancyMapper
 
@@ -69,14 +69,14 @@ def run_bench(duration_s: float = 6.0, checkpoint: str | None = None) -> dict[st
     cur, out = a.copy(), np.empty_like(a)
     params = fusion.FusionParams()
     warper = Warper(spec)
-    emap = EvidentialMap(spec)
-    pose = SE2(3.3, -1.7, math.radians(30))
+    one_map = fusion.MapSet(spec, params, names=("deep_disc",))
+    pose = SE2(3.3, -1.7, math.radians(45))  # 45 degrees: the largest window
     kernels = {
         "dempster_512": median_ms(lambda: mass.dempster(a, b, out)),
         "deep_disc_update_512": median_ms(lambda: fusion.update_deep_disc(cur, b, params)),
         "fused_update_512": median_ms(lambda: fusion.update_fused(cur, b, a, params)),
-        "warp_512_yaw30": median_ms(lambda: warper.warp(a, pose)),
-        "warp_and_fuse_512_yaw30": median_ms(lambda: emap.apply(warper.warp(a, pose), fusion.update_ray_ilm)),
+        "warp_512_yaw45": median_ms(lambda: warper.warp(a, pose)),
+        "warp_and_deep_disc_fuse_512_yaw45": median_ms(lambda: one_map.update(pose, {"deep_irm": a})),
     }
     return {
         "machine": {"processor": platform.processor() or platform.machine(), "cpus": os.cpu_count(), "threads": 1},

@@ -89,51 +89,82 @@ def _check_views(cell: np.ndarray, *isms: np.ndarray) -> None:
         raise ValueError("the map view must be writeable (updates are in place)")
 
 
-def _pair(cell: np.ndarray, ism: np.ndarray) -> tuple:
+def _row_spans(spans: np.ndarray | None, h: int, w: int) -> np.ndarray:
+    """Columns to update per row, ``(h, 2)`` int64 ``[lo, hi)``; None means whole rows."""
+    if spans is None:
+        out = np.empty((h, 2), dtype=np.int64)
+        out[:, 0] = 0
+        out[:, 1] = w
+        return out
+    if not isinstance(spans, np.ndarray) or spans.shape != (h, 2) or spans.dtype != np.int64:
+        got = f"{spans.dtype} {spans.shape}" if isinstance(spans, np.ndarray) else type(spans).__name__
+        raise ValueError(f"spans must be an int64 array of shape {(h, 2)}, got {got}")
+    return spans  # kernels clamp each [lo, hi) to [0, w]
+
+
+def _pair(cell: np.ndarray, ism: np.ndarray, spans: np.ndarray | None) -> tuple:
     fm, mrs, h, w = rows(cell)
     fi, irs, _, _ = rows(ism)
-    return fm, mrs, fi, irs, h, w
+    return fm, mrs, fi, irs, h, w, _row_spans(spans, h, w)
 
 
-def update_ray_ilm(cell: np.ndarray, ilm: np.ndarray, params: FusionParams = FusionParams()) -> None:
+# Each rule updates ``cell`` in place from ISM views of the same shape. ``spans`` (optional,
+# ``(h, 2)`` int64) limits row i to columns ``spans[i, 0]:spans[i, 1]``: the covered cells of
+# a warped window (:attr:`evgrid.grid.MapWindow.spans`); cells outside are left untouched.
+
+def update_ray_ilm(
+    cell: np.ndarray, ilm: np.ndarray, params: FusionParams = FusionParams(), spans: np.ndarray | None = None
+) -> None:
     """``map = map (+)_D ray ILM``, in place on ``(h, w, 3)`` float32 views."""
     _check_views(cell, ilm)
-    _k_dempster_into(*_pair(cell, ilm))
+    _k_dempster_into(*_pair(cell, ilm, spans))
 
 
-def update_deep_acc(cell: np.ndarray, deep: np.ndarray, params: FusionParams = FusionParams()) -> None:
+def update_deep_acc(
+    cell: np.ndarray, deep: np.ndarray, params: FusionParams = FusionParams(), spans: np.ndarray | None = None
+) -> None:
     """``map = map (+)_D deep IRM`` (paper: deep IRM (acc.)), in place."""
     _check_views(cell, deep)
-    _k_dempster_into(*_pair(cell, deep))
+    _k_dempster_into(*_pair(cell, deep, spans))
 
 
-def update_deep_replace(cell: np.ndarray, deep: np.ndarray, params: FusionParams = FusionParams()) -> None:
+def update_deep_replace(
+    cell: np.ndarray, deep: np.ndarray, params: FusionParams = FusionParams(), spans: np.ndarray | None = None
+) -> None:
     """Replace a cell by ``limit_unknown(deep IRM, m_u_min)`` where that is less unknown (paper: deep IRM (replace))."""
     _check_views(cell, deep)
-    _k_deep_replace_into(*_pair(cell, deep), float(params.m_u_min))
+    _k_deep_replace_into(*_pair(cell, deep, spans), float(params.m_u_min))
 
 
-def update_deep_disc(cell: np.ndarray, deep: np.ndarray, params: FusionParams = FusionParams()) -> None:
+def update_deep_disc(
+    cell: np.ndarray, deep: np.ndarray, params: FusionParams = FusionParams(), spans: np.ndarray | None = None
+) -> None:
     """``map = map (+)_Y (gamma (x) limit_unknown(deep IRM))`` (paper eq. gamma; deep IRM (disc.)), in place."""
     _check_views(cell, deep)
-    _k_deep_disc_into(*_pair(cell, deep), float(params.m_u_min), float(params.alpha))
+    _k_deep_disc_into(*_pair(cell, deep, spans), float(params.m_u_min), float(params.alpha))
 
 
-def update_ray_irm(cell: np.ndarray, irm: np.ndarray, params: FusionParams = FusionParams()) -> None:
+def update_ray_irm(
+    cell: np.ndarray, irm: np.ndarray, params: FusionParams = FusionParams(), spans: np.ndarray | None = None
+) -> None:
     """``map = map (+)_D ray IRM``, in place."""
     _check_views(cell, irm)
-    _k_dempster_into(*_pair(cell, irm))
+    _k_dempster_into(*_pair(cell, irm, spans))
 
 
 def update_fused(
-    cell: np.ndarray, deep: np.ndarray, irm: np.ndarray, params: FusionParams = FusionParams()
+    cell: np.ndarray,
+    deep: np.ndarray,
+    irm: np.ndarray,
+    params: FusionParams = FusionParams(),
+    spans: np.ndarray | None = None,
 ) -> None:
     """The deep_disc step with the deep IRM, then ``map (+)_D ray IRM`` (paper: fused IRM), in place."""
     _check_views(cell, deep, irm)
     fm, mrs, h, w = rows(cell)
     fd, drs, _, _ = rows(deep)
     fi, irs, _, _ = rows(irm)
-    _k_fused_into(fm, mrs, fd, drs, fi, irs, h, w, float(params.m_u_min), float(params.alpha))
+    _k_fused_into(fm, mrs, fd, drs, fi, irs, h, w, _row_spans(spans, h, w), float(params.m_u_min), float(params.alpha))
 
 
 @dataclass(frozen=True, slots=True)
@@ -204,5 +235,5 @@ class MapSet:
             rule = RULES[name]
             arrays = tuple(windows[i].masses for i in rule.isms)
             params = self.params
-            self.maps[name].apply(any_w, lambda cell, *views, _u=rule.update: _u(cell, *views, params), *arrays)
+            self.maps[name].apply(any_w, lambda cell, *views, spans, _u=rule.update: _u(cell, *views, params, spans), *arrays, pass_spans=True)
         self.n_updates += 1

@@ -29,23 +29,26 @@ from evgrid.mass import vacuous
 
 __all__ = ["MapWindow", "EvidentialMap", "Warper", "warp_to_map", "warp_window", "save_map", "load_map", "MapFileError"]
 
-# Continuous source indices closer than this to an integer (in cells) are snapped to it, so
-# that identity and 90-degree warps copy cells exactly despite cos(pi/2) != 0 in floating point.
-_SNAP = 1e-6
-_BLOCK = 24
+# Output rows are visited in bands of _BLOCK rows and, within a band, blocks of _BLOCK columns,
+# which keeps the rotated source footprint in cache at any yaw.
+_BLOCK = 32
+_COARSE = 8  # side of the source blocks whose vacuousness is checked before sampling
 
 
 @dataclass(frozen=True, slots=True, eq=False)
 class MapWindow:
     """A local grid resampled into the map: masses ``(h, w, 3)`` whose cell [0, 0] is map cell ``(r0, c0)``.
 
-    ``covered[i, j]`` is True where the local grid contributes any mass to the cell.
+    ``covered[i, j]`` is True where the local grid contributes any mass to the cell. Covered
+    cells of a row are contiguous: ``spans[i] = (lo, hi)`` gives them as columns ``lo:hi``
+    (``(0, 0)`` for none); cells outside hold vacuous mass.
     """
 
     r0: int
     c0: int
     masses: np.ndarray
     covered: np.ndarray
+    spans: np.ndarray
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -53,31 +56,101 @@ class MapWindow:
         return self.covered.shape  # type: ignore[return-value]
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, fastmath=True, error_model="numpy")
 def _k_coarse(src, coarse):
     """coarse[a, b] = any cell of src block [8a, 8a + 8) x [8b, 8b + 8) is not vacuous."""
+    # branch-free (a running min per block): a branch per cell mispredicts on scattered cells
     n_r, n_c = src.shape[0], src.shape[1]
-    coarse[:, :] = False
-    for r in range(n_r):
-        for c in range(n_c):
-            if src[r, c, 2] < 1.0:
-                coarse[r >> 3, c >> 3] = True
+    u_min = np.empty(coarse.shape[1], dtype=np.float32)
+    for a in range(coarse.shape[0]):
+        u_min[:] = 1.0
+        for r in range(a * _COARSE, min(n_r, (a + 1) * _COARSE)):
+            for c in range(n_c):
+                b = c // _COARSE
+                u_min[b] = min(u_min[b], src[r, c, 2])
+        for b in range(coarse.shape[1]):
+            coarse[a, b] = u_min[b] < 1.0
 
 
-@numba.njit(cache=True, fastmath=True)
-def _k_warp(src, coarse, n_r, n_c, u00, v00, du_di, du_dj, dv_di, dv_dj, out, covered):
-    # src is the local grid with a one-cell vacuous border: local (r, c) is src[r + 1, c + 1],
-    # so bilinear sampling anywhere in (-1, n) needs no bounds checks (vacuous outside).
-    # Output is visited in 24 x 24 blocks to keep the rotated source footprint in cache; a
-    # block whose source footprint is vacuous in `coarse` (8 x 8 source blocks) is filled
-    # without sampling.
-    h, w = out.shape[0], out.shape[1]
+@numba.njit(cache=True, fastmath=True, error_model="numpy")
+def _row_range(a, d, n, w):
+    """Columns j in [0, w) (padded by one either side) where -1 < a + j d < n; (0, 0) if none."""
+    if d == 0.0:
+        return (0, w) if (a > -1.0 and a < n) else (0, 0)
+    t1 = (-1.0 - a) / d
+    t2 = (n - a) / d
+    lo = max(-2.0, min(float(w), min(t1, t2)))  # clamped before int(): d may be ~1e-17
+    hi = max(-2.0, min(float(w), max(t1, t2)))
+    return max(0, int(math.floor(lo)) - 1), min(w, int(math.floor(hi)) + 2)
+
+
+@numba.njit(cache=True, fastmath=True, error_model="numpy")
+def _k_spans(u00, v00, du_di, du_dj, dv_di, dv_dj, n, h, w, spans):
+    """spans[i] = columns of row i whose local position (u, v) lies in (-1, n)^2 (see _k_warp)."""
+    nf = float(n)
+    for i in range(h):
+        a = u00 + i * du_di
+        b = v00 + i * dv_di
+        l1, h1 = _row_range(a, du_dj, nf, w)
+        l2, h2 = _row_range(b, dv_dj, nf, w)
+        lo = max(l1, l2)
+        hi = min(h1, h2)
+        # the analytic range is padded; settle its ends on the exact test (the set is convex)
+        while lo < hi:
+            u = a + lo * du_dj
+            v = b + lo * dv_dj
+            if u > -1.0 and v > -1.0 and u < nf and v < nf:
+                break
+            lo += 1
+        while hi > lo:
+            u = a + (hi - 1) * du_dj
+            v = b + (hi - 1) * dv_dj
+            if u > -1.0 and v > -1.0 and u < nf and v < nf:
+                break
+            hi -= 1
+        spans[i, 0] = lo if hi > lo else 0
+        spans[i, 1] = hi if hi > lo else 0
+
+
+@numba.njit(cache=True, fastmath=True, error_model="numpy")
+def _k_warp(src, srs, coarse, n, u00, v00, du_di, du_dj, dv_di, dv_dj, out, ors, covered, crs, h, w, spans):
+    # Map cell (i, j) of the window samples the local grid at continuous (row, col) position
+    # (u, v) = (u00 + i du_di + j du_dj, v00 + i dv_di + j dv_dj). src is the local grid with a
+    # one-cell vacuous border (local (r, c) is src[r + 1, c + 1]), so bilinear sampling anywhere
+    # in (-1, n) needs no bounds checks. Weights are float32: an offset below float32's
+    # resolution (a 90-degree cos is 6e-17, not 0) then gives weights exactly 0 and 1, so
+    # identity and quarter-turn warps copy cells exactly.
+    _k_spans(u00, v00, du_di, du_dj, dv_di, dv_dj, n, h, w, spans)
+    one = np.float32(1.0)
+    idx = np.empty(_BLOCK, dtype=np.int64)
+    frac = np.empty(2 * _BLOCK, dtype=np.float32)
+    for i in range(h):
+        ro = out[i * ors:i * ors + 3 * w]
+        cv = covered[i * crs:i * crs + w]
+        lo, hi = spans[i, 0], spans[i, 1]
+        for j in range(lo):
+            ro[3 * j] = 0.0
+            ro[3 * j + 1] = 0.0
+            ro[3 * j + 2] = 1.0
+        for j in range(hi, w):
+            ro[3 * j] = 0.0
+            ro[3 * j + 1] = 0.0
+            ro[3 * j + 2] = 1.0
+        cv[:lo] = False
+        cv[lo:hi] = True
+        cv[hi:] = False
     n_cr, n_cc = coarse.shape[0], coarse.shape[1]
     for bi in range(0, h, _BLOCK):
         i1 = min(h, bi + _BLOCK)
-        for bj in range(0, w, _BLOCK):
-            j1 = min(w, bj + _BLOCK)
-            # source footprint of the block: the box of its corners' (padded) source indices
+        jl = w
+        jh = 0
+        for i in range(bi, i1):
+            if spans[i, 1] > spans[i, 0]:
+                jl = min(jl, spans[i, 0])
+                jh = max(jh, spans[i, 1])
+        for bj in range(jl, jh, _BLOCK):
+            j1 = min(jh, bj + _BLOCK)
+            # the block's source footprint (padded indices): the box of its corners' images
             ulo = 1e30
             uhi = -1e30
             vlo = 1e30
@@ -90,48 +163,45 @@ def _k_warp(src, coarse, n_r, n_c, u00, v00, du_di, du_dj, dv_di, dv_dj, out, co
                     uhi = max(uhi, u)
                     vlo = min(vlo, v)
                     vhi = max(vhi, v)
-            a0 = max(0, int(math.floor(ulo)) - 1) >> 3
-            a1 = min(n_cr - 1, max(0, int(math.floor(uhi)) + 2) >> 3)
-            b0 = max(0, int(math.floor(vlo)) - 1) >> 3
-            b1 = min(n_cc - 1, max(0, int(math.floor(vhi)) + 2) >> 3)
+            a0 = max(0, int(max(ulo, 0.0)) - 1) // _COARSE
+            a1 = min(n_cr - 1, (int(min(max(uhi, 0.0), n + 2.0)) + 2) // _COARSE)
+            b0 = max(0, int(max(vlo, 0.0)) - 1) // _COARSE
+            b1 = min(n_cc - 1, (int(min(max(vhi, 0.0), n + 2.0)) + 2) // _COARSE)
             informative = False
-            if ulo < n_r + 2 and uhi > -1.0 and vlo < n_c + 2 and vhi > -1.0:
-                for a in range(a0, a1 + 1):
-                    for b in range(b0, b1 + 1):
-                        if coarse[a, b]:
-                            informative = True
+            for a in range(a0, a1 + 1):
+                for b in range(b0, b1 + 1):
+                    informative = informative or coarse[a, b]
             for i in range(bi, i1):
-                for j in range(bj, j1):
-                    u = u00 + i * du_di + j * du_dj
-                    v = v00 + i * dv_di + j * dv_dj
-                    inside = not (u <= -1.0 or v <= -1.0 or u >= n_r or v >= n_c)
-                    covered[i, j] = inside
-                    if not (inside and informative):
-                        out[i, j, 0] = 0.0
-                        out[i, j, 1] = 0.0
-                        out[i, j, 2] = 1.0
-                        continue
-                    iu = int(u + 1.0)  # floor(u) + 1, the padded row, as u > -1
-                    iv = int(v + 1.0)
-                    fu = u + 1.0 - iu
-                    fv = v + 1.0 - iv
-                    if fu < _SNAP:
-                        fu = 0.0
-                    elif fu > 1.0 - _SNAP:
-                        fu = 0.0
-                        iu += 1
-                    if fv < _SNAP:
-                        fv = 0.0
-                    elif fv > 1.0 - _SNAP:
-                        fv = 0.0
-                        iv += 1
-                    w00 = (1.0 - fu) * (1.0 - fv)
-                    w01 = (1.0 - fu) * fv
-                    w10 = fu * (1.0 - fv)
-                    w11 = fu * fv
+                ro = out[i * ors:i * ors + 3 * w]
+                j0 = max(bj, spans[i, 0])
+                j2 = min(j1, spans[i, 1])
+                if not informative:
+                    for j in range(j0, j2):
+                        ro[3 * j] = 0.0
+                        ro[3 * j + 1] = 0.0
+                        ro[3 * j + 2] = 1.0
+                    continue
+                a = u00 + i * du_di + 1.0
+                b = v00 + i * dv_di + 1.0
+                # two passes: positions -> (index, fractions) vectorises once apart from the gather
+                for k in range(j2 - j0):
+                    t = a + (j0 + k) * du_dj
+                    s = b + (j0 + k) * dv_dj
+                    iu = min(int(t), n)  # t in (0, n + 1): floor; min() guards a rounding at the edge
+                    iv = min(int(s), n)
+                    frac[2 * k] = np.float32(t - iu)
+                    frac[2 * k + 1] = np.float32(s - iv)
+                    idx[k] = iu * srs + 3 * iv
+                for k in range(j2 - j0):
+                    fu = frac[2 * k]
+                    fv = frac[2 * k + 1]
+                    gu = one - fu
+                    gv = one - fv
+                    p = idx[k]
+                    q = p + srs
+                    o = 3 * (j0 + k)
                     for c in range(3):
-                        out[i, j, c] = (w00 * src[iu, iv, c] + w01 * src[iu, iv + 1, c]
-                                        + w10 * src[iu + 1, iv, c] + w11 * src[iu + 1, iv + 1, c])
+                        ro[o + c] = gu * (gv * src[p + c] + fv * src[p + 3 + c]) + fu * (gv * src[q + c] + fv * src[q + 3 + c])
 
 
 def _pose_affine(spec: GridSpec, pose: SE2) -> tuple[float, float, float, float]:
@@ -168,11 +238,13 @@ class Warper:
 
     def __init__(self, spec: GridSpec):
         self.spec = spec
-        side = int(math.ceil(spec.n_cells * math.sqrt(2.0))) + 4
-        self._masses = np.empty((side, side, 3), dtype=np.float32)
-        self._covered = np.empty((side, side), dtype=np.bool_)
-        self._src = vacuous((spec.n_cells + 2, spec.n_cells + 2))  # local grid + vacuous border
-        self._coarse = np.zeros(((spec.n_cells + 2 + 7) // 8, (spec.n_cells + 2 + 7) // 8), dtype=np.bool_)
+        n = spec.n_cells
+        self._side = side = int(math.ceil(n * math.sqrt(2.0))) + 4
+        self._masses = np.empty(side * side * 3, dtype=np.float32)
+        self._covered = np.empty(side * side, dtype=np.bool_)
+        self._spans = np.zeros((side, 2), dtype=np.int64)
+        self._src = vacuous((n + 2, n + 2))  # local grid + vacuous border
+        self._coarse = np.zeros(((n + 2 + _COARSE - 1) // _COARSE,) * 2, dtype=np.bool_)
 
     def warp(self, local: np.ndarray, pose: SE2) -> MapWindow:
         """Resample ``local`` ``(n, n, 3)`` taken at ego ``pose`` (first-pose frame, m/rad) into the map."""
@@ -184,14 +256,20 @@ class Warper:
         self._src[1 : n + 1, 1 : n + 1] = local
         r0, c0, h, w = warp_window(spec, pose)
         cs, sn, tx, ty = _pose_affine(spec, pose)
-        cc = spec.n_cells / 2.0 - 0.5
+        cc = n / 2.0 - 0.5
         a0 = r0 + 0.5 + tx
         b0 = c0 + 0.5 + ty
-        out = self._masses[:h, :w]
-        covered = self._covered[:h, :w]
+        # windows are packed at the buffers' start (row stride w) so each is one contiguous block
+        spans = self._spans[:h]
         _k_coarse(self._src, self._coarse)
-        _k_warp(self._src, self._coarse, n, n, cc + cs * a0 + sn * b0, cc - sn * a0 + cs * b0, cs, sn, -sn, cs, out, covered)
-        return MapWindow(r0, c0, out, covered)
+        _k_warp(
+            self._src.reshape(-1), 3 * (n + 2), self._coarse, n,
+            cc + cs * a0 + sn * b0, cc - sn * a0 + cs * b0, cs, sn, -sn, cs,
+            self._masses, 3 * w, self._covered, w, h, w, spans,
+        )
+        masses = self._masses[: h * w * 3].reshape(h, w, 3)
+        covered = self._covered[: h * w].reshape(h, w)
+        return MapWindow(r0, c0, masses, covered, spans)
 
 
 def warp_to_map(local: np.ndarray, pose: SE2, spec: GridSpec) -> MapWindow:
@@ -246,10 +324,13 @@ class EvidentialMap:
                     slice(ca - c0, cb - c0),
                 )
 
-    def apply(self, window: MapWindow, fn: Callable[..., None], *masses: np.ndarray) -> None:
+    def apply(self, window: MapWindow, fn: Callable[..., None], *masses: np.ndarray, pass_spans: bool = False) -> None:
         """Call ``fn(map_view, *window_views)`` on every covered piece; ``fn`` updates ``map_view`` in place.
 
         ``masses`` are ``(h, w, 3)`` arrays aligned with ``window`` (default: ``window.masses``).
+        With ``pass_spans``, ``fn`` also gets ``spans=``: the window's covered columns per row of
+        the piece (``(h', 2)`` int64, as the update rules of :mod:`evgrid.fusion` take them), so
+        that it can skip the uncovered cells (which hold vacuous mass).
         """
         arrays = masses or (window.masses,)
         h, w = window.shape
@@ -257,12 +338,21 @@ class EvidentialMap:
             if a.shape != (h, w, 3):
                 raise ValueError(f"window arrays must have shape {(h, w, 3)}, got {a.shape}")
         for key, tr, tc, wr, wc in self._pieces(window.r0, window.c0, h, w):
-            cov = window.covered[wr, wc]
-            if not cov.any():
+            piece = np.clip(window.spans[wr] - wc.start, 0, wc.stop - wc.start)
+            rows_on = np.flatnonzero(piece[:, 1] > piece[:, 0])
+            if len(rows_on) == 0:
                 continue
+            # trim the piece to its rows with covered cells
+            a, b = int(rows_on[0]), int(rows_on[-1]) + 1
+            tr = slice(tr.start + a, tr.start + b)
+            wr = slice(wr.start + a, wr.start + b)
             tile, tcov = self._tile(key)
-            fn(tile[tr, tc], *(a[wr, wc] for a in arrays))
-            tcov[tr, tc] |= cov
+            views = (arr[wr, wc] for arr in arrays)
+            if pass_spans:
+                fn(tile[tr, tc], *views, spans=piece[a:b])
+            else:
+                fn(tile[tr, tc], *views)
+            tcov[tr, tc] |= window.covered[wr, wc]
 
     def read(self, r0: int, c0: int, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
         """Dense copy of map cells ``[r0:r0+h, c0:c0+w]``: masses ``(h, w, 3)`` and coverage ``(h, w)``."""

@@ -169,13 +169,22 @@ def rows(v: np.ndarray) -> tuple[np.ndarray, int, int, int]:
 
 # --- in-place kernels over rows (see evgrid.mass.rows) -----------------------------------------
 # Cells where the ISM is vacuous keep their old value exactly (a select, not a branch, so the
-# loops vectorise).
+# loops vectorise). Only columns spans[i, 0]:spans[i, 1] of row i are visited (the cells a
+# warped window covers); ends are clamped to [0, w], so any spans are memory-safe.
+
+@numba.njit(inline="always", **_JIT)
+def _span(spans, i, w):
+    lo = min(max(spans[i, 0], 0), w)
+    hi = min(max(spans[i, 1], lo), w)
+    return lo, hi
+
 
 @numba.njit(**_JIT)
-def _k_dempster_into(mp, mrs, ism, irs, h, w):
+def _k_dempster_into(mp, mrs, ism, irs, h, w, spans):
     for i in range(h):
-        mp_, ism_ = mp[i * mrs:i * mrs + 3 * w], ism[i * irs:i * irs + 3 * w]
-        for j in range(w):
+        lo, hi = _span(spans, i, w)
+        mp_, ism_ = mp[i * mrs + 3 * lo:i * mrs + 3 * hi], ism[i * irs + 3 * lo:i * irs + 3 * hi]
+        for j in range(hi - lo):
             p = 3 * j
             f1, o1, u1 = np.float64(mp_[p]), np.float64(mp_[p + 1]), np.float64(mp_[p + 2])
             u2 = np.float64(ism_[p + 2])
@@ -187,10 +196,11 @@ def _k_dempster_into(mp, mrs, ism, irs, h, w):
 
 
 @numba.njit(**_JIT)
-def _k_deep_replace_into(mp, mrs, ism, irs, h, w, m_u_min):
+def _k_deep_replace_into(mp, mrs, ism, irs, h, w, spans, m_u_min):
     for i in range(h):
-        mp_, ism_ = mp[i * mrs:i * mrs + 3 * w], ism[i * irs:i * irs + 3 * w]
-        for j in range(w):
+        lo, hi = _span(spans, i, w)
+        mp_, ism_ = mp[i * mrs + 3 * lo:i * mrs + 3 * hi], ism[i * irs + 3 * lo:i * irs + 3 * hi]
+        for j in range(hi - lo):
             p = 3 * j
             f, o, u = _normalise_cell(np.float64(ism_[p]), np.float64(ism_[p + 1]), np.float64(ism_[p + 2]))
             f, o, u = _limit_unknown_cell(f, o, u, m_u_min)
@@ -202,10 +212,11 @@ def _k_deep_replace_into(mp, mrs, ism, irs, h, w, m_u_min):
 
 
 @numba.njit(**_JIT)
-def _k_deep_disc_into(mp, mrs, ism, irs, h, w, m_u_min, alpha):
+def _k_deep_disc_into(mp, mrs, ism, irs, h, w, spans, m_u_min, alpha):
     for i in range(h):
-        mp_, ism_ = mp[i * mrs:i * mrs + 3 * w], ism[i * irs:i * irs + 3 * w]
-        for j in range(w):
+        lo, hi = _span(spans, i, w)
+        mp_, ism_ = mp[i * mrs + 3 * lo:i * mrs + 3 * hi], ism[i * irs + 3 * lo:i * irs + 3 * hi]
+        for j in range(hi - lo):
             p = 3 * j
             f1, o1, u1 = np.float64(mp_[p]), np.float64(mp_[p + 1]), np.float64(mp_[p + 2])
             u2 = np.float64(ism_[p + 2])
@@ -217,10 +228,13 @@ def _k_deep_disc_into(mp, mrs, ism, irs, h, w, m_u_min, alpha):
 
 
 @numba.njit(**_JIT)
-def _k_fused_into(mp, mrs, deep, drs, irm, irs, h, w, m_u_min, alpha):
+def _k_fused_into(mp, mrs, deep, drs, irm, irs, h, w, spans, m_u_min, alpha):
     for i in range(h):
-        mp_, deep_, irm_ = mp[i * mrs:i * mrs + 3 * w], deep[i * drs:i * drs + 3 * w], irm[i * irs:i * irs + 3 * w]
-        for j in range(w):
+        lo, hi = _span(spans, i, w)
+        mp_ = mp[i * mrs + 3 * lo:i * mrs + 3 * hi]
+        deep_ = deep[i * drs + 3 * lo:i * drs + 3 * hi]
+        irm_ = irm[i * irs + 3 * lo:i * irs + 3 * hi]
+        for j in range(hi - lo):
             p = 3 * j
             f1, o1, u1 = np.float64(mp_[p]), np.float64(mp_[p + 1]), np.float64(mp_[p + 2])
             ud = np.float64(deep_[p + 2])
@@ -235,5 +249,3 @@ def _k_fused_into(mp, mrs, deep, drs, irm, irs, h, w, m_u_min, alpha):
             mp_[p] = f if keep else f2
             mp_[p + 1] = o if keep else o2
             mp_[p + 2] = u if keep else u2
-
-
