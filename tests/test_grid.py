@@ -56,7 +56,21 @@ def test_90_degree_yaw_and_translation_move_a_cell_where_hand_computation_says()
     w = warp_to_map(local, SE2(4 * RES, -7 * RES, math.pi / 2), SPEC)
     got = np.argwhere(w.masses[..., 2] < 1.0)
     assert got.tolist() == [[-13 - w.r0, -15 - w.c0]]
-    np.testing.assert_allclose(w.masses[-13 - w.r0, -15 - w.c0], MARK, atol=1e-7)
+    np.testing.assert_array_equal(w.masses[-13 - w.r0, -15 - w.c0], MARK)
+    rest = np.ones(w.shape, bool)
+    rest[-13 - w.r0, -15 - w.c0] = False
+    np.testing.assert_array_equal(w.masses[rest], np.tile(np.float32([0, 0, 1]), (rest.sum(), 1)))
+
+
+@pytest.mark.parametrize("turns", [1, 2, 3, -1])
+def test_quarter_turns_copy_every_cell_exactly(turns):
+    local = random_masses(np.random.default_rng(turns + 10), SPEC.shape, p_edge=0.0)
+    w = warp_to_map(local, SE2(2 * RES, 5 * RES, turns * math.pi / 2), SPEC)
+    informative = np.argwhere(w.masses[..., 2] < 1.0)
+    (r, c), n = informative.min(axis=0), SPEC.n_cells
+    assert len(informative) == n * n  # nothing spills into neighbouring cells
+    # the local grid, rotated (np.rot90 turns the +x rows towards the +y columns), bit for bit
+    np.testing.assert_array_equal(w.masses[r : r + n, c : c + n], np.rot90(local, k=turns))
 
 
 def test_half_cell_shift_mixes_bilinearly_with_vacuous_outside():

@@ -11,8 +11,8 @@ from typing import Any
 import numpy as np
 
 
-def median_ms(fn, prep=None, repeat: int = 20) -> float:
-    """Median wall time of ``fn()`` in ms after one warm-up call; ``prep()`` runs untimed before each call."""
+def timings_ms(fn, prep=None, repeat: int = 20) -> np.ndarray:
+    """Wall times of ``repeat`` calls of ``fn()`` in ms after one warm-up call; ``prep()`` runs untimed before each."""
     if prep:
         prep()
     fn()
@@ -23,7 +23,12 @@ def median_ms(fn, prep=None, repeat: int = 20) -> float:
         t = time.perf_counter()
         fn()
         ts.append(time.perf_counter() - t)
-    return float(np.median(ts) * 1e3)
+    return np.asarray(ts) * 1e3
+
+
+def median_ms(fn, prep=None, repeat: int = 20) -> float:
+    """Median wall time of ``fn()`` in ms (see :func:`timings_ms`)."""
+    return float(np.median(timings_ms(fn, prep, repeat)))
 
 
 def run_bench(duration_s: float = 6.0, checkpoint: str | None = None) -> dict[str, Any]:

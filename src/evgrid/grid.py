@@ -29,6 +29,8 @@ from evgrid.mass import vacuous
 
 __all__ = ["MapWindow", "EvidentialMap", "Warper", "warp_to_map", "warp_window", "save_map", "load_map", "MapFileError"]
 
+# Fractional source positions closer than this to a whole cell (in cells) are snapped to it.
+_SNAP = 1e-6
 # Output rows are visited in bands of _BLOCK rows and, within a band, blocks of _BLOCK columns,
 # which keeps the rotated source footprint in cache at any yaw.
 _BLOCK = 32
@@ -116,10 +118,10 @@ def _k_spans(u00, v00, du_di, du_dj, dv_di, dv_dj, n, h, w, spans):
 def _k_warp(src, srs, coarse, n, u00, v00, du_di, du_dj, dv_di, dv_dj, out, ors, covered, crs, h, w, spans):
     # Map cell (i, j) of the window samples the local grid at continuous (row, col) position
     # (u, v) = (u00 + i du_di + j du_dj, v00 + i dv_di + j dv_dj). src is the local grid with a
-    # one-cell vacuous border (local (r, c) is src[r + 1, c + 1]), so bilinear sampling anywhere
-    # in (-1, n) needs no bounds checks. Weights are float32: an offset below float32's
-    # resolution (a 90-degree cos is 6e-17, not 0) then gives weights exactly 0 and 1, so
-    # identity and quarter-turn warps copy cells exactly.
+    # vacuous border (local (r, c) is src[r + 1, c + 1]; one row/column before, two after, as a
+    # snapped index may reach n + 1), so bilinear sampling anywhere in (-1, n) needs no bounds
+    # checks. Fractions within _SNAP of 0 or 1 are snapped, so
+    # identity, whole-cell and quarter-turn warps copy cells exactly; weights are float32.
     _k_spans(u00, v00, du_di, du_dj, dv_di, dv_dj, n, h, w, spans)
     one = np.float32(1.0)
     idx = np.empty(_BLOCK, dtype=np.int64)
@@ -189,8 +191,19 @@ def _k_warp(src, srs, coarse, n, u00, v00, du_di, du_dj, dv_di, dv_dj, out, ors,
                     s = b + (j0 + k) * dv_dj
                     iu = min(int(t), n)  # t in (0, n + 1): floor; min() guards a rounding at the edge
                     iv = min(int(s), n)
-                    frac[2 * k] = np.float32(t - iu)
-                    frac[2 * k + 1] = np.float32(s - iv)
+                    fu = t - iu
+                    fv = s - iv
+                    # snap near-integer positions to the cell (a quarter-turn's cos is 6e-17, not
+                    # 0) by moving the index, not by a weight of 1: fastmath may evaluate the mix
+                    # as a + f (b - a), exact only for f = 0
+                    up = fu > 1.0 - _SNAP
+                    iu = iu + 1 if up else iu
+                    fu = 0.0 if (up or fu < _SNAP) else fu
+                    up = fv > 1.0 - _SNAP
+                    iv = iv + 1 if up else iv
+                    fv = 0.0 if (up or fv < _SNAP) else fv
+                    frac[2 * k] = np.float32(fu)
+                    frac[2 * k + 1] = np.float32(fv)
                     idx[k] = iu * srs + 3 * iv
                 for k in range(j2 - j0):
                     fu = frac[2 * k]
@@ -243,8 +256,8 @@ class Warper:
         self._masses = np.empty(side * side * 3, dtype=np.float32)
         self._covered = np.empty(side * side, dtype=np.bool_)
         self._spans = np.zeros((side, 2), dtype=np.int64)
-        self._src = vacuous((n + 2, n + 2))  # local grid + vacuous border
-        self._coarse = np.zeros(((n + 2 + _COARSE - 1) // _COARSE,) * 2, dtype=np.bool_)
+        self._src = vacuous((n + 3, n + 3))  # local grid + vacuous border (see _k_warp)
+        self._coarse = np.zeros(((n + 3 + _COARSE - 1) // _COARSE,) * 2, dtype=np.bool_)
 
     def warp(self, local: np.ndarray, pose: SE2) -> MapWindow:
         """Resample ``local`` ``(n, n, 3)`` taken at ego ``pose`` (first-pose frame, m/rad) into the map."""
@@ -263,7 +276,7 @@ class Warper:
         spans = self._spans[:h]
         _k_coarse(self._src, self._coarse)
         _k_warp(
-            self._src.reshape(-1), 3 * (n + 2), self._coarse, n,
+            self._src.reshape(-1), 3 * (n + 3), self._coarse, n,
             cc + cs * a0 + sn * b0, cc - sn * a0 + cs * b0, cs, sn, -sn, cs,
             self._masses, 3 * w, self._covered, w, h, w, spans,
         )
