@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from evgrid import mass
 from evgrid.fusion import update_ray_ilm
 from evgrid.geometry import SE2, GridSpec
-from evgrid.grid import EvidentialMap, MapFileError, Warper, load_map, save_map, warp_to_map
+from evgrid.grid import EvidentialMap, MapFileError, MapWindow, Warper, load_map, save_map, warp_to_map
 from tests.strategies import random_masses
 
 SPEC = GridSpec(64, 5.0)  # small grids keep the tests fast; the code is size-agnostic
@@ -271,3 +271,18 @@ def test_fusing_only_the_spans_equals_fusing_whole_pieces():
     for k in with_spans.tiles:
         np.testing.assert_array_equal(with_spans.tiles[k], without.tiles[k])
         np.testing.assert_array_equal(with_spans.covered_tiles[k], without.covered_tiles[k])
+
+
+def test_a_window_built_by_hand_without_spans_fuses_its_covered_rows_whole():
+    masses = mass.vacuous((4, 5))
+    masses[1, 3] = [0.6, 0.2, 0.2]
+    masses[2, 0] = [0.1, 0.8, 0.1]
+    covered = np.zeros((4, 5), bool)
+    covered[1, 3] = covered[2, 0] = True
+    w = MapWindow(-2, 7, masses, covered)
+    np.testing.assert_array_equal(w.row_spans(), [[0, 0], [0, 5], [0, 5], [0, 0]])
+    m = EvidentialMap(SPEC, tile_cells=8)
+    m.apply(w, lambda c, x, spans: update_ray_ilm(c, x, spans=spans), pass_spans=True)
+    got, cov = m.read(-2, 7, 4, 5)
+    np.testing.assert_array_equal(got, masses)
+    np.testing.assert_array_equal(cov, covered)

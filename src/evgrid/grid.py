@@ -42,15 +42,25 @@ class MapWindow:
     """A local grid resampled into the map: masses ``(h, w, 3)`` whose cell [0, 0] is map cell ``(r0, c0)``.
 
     ``covered[i, j]`` is True where the local grid contributes any mass to the cell. Covered
-    cells of a row are contiguous: ``spans[i] = (lo, hi)`` gives them as columns ``lo:hi``
-    (``(0, 0)`` for none); cells outside hold vacuous mass.
+    cells of a row are contiguous: ``spans[i] = (lo, hi)`` (int64) gives them as columns
+    ``lo:hi`` (``(0, 0)`` for none); cells outside hold vacuous mass. Without ``spans``
+    (a window built by hand), every row with a covered cell counts as covered whole.
     """
 
     r0: int
     c0: int
     masses: np.ndarray
     covered: np.ndarray
-    spans: np.ndarray
+    spans: np.ndarray | None = None
+
+    def row_spans(self) -> np.ndarray:
+        """``spans``, or whole rows ``(0, w)`` where a row has a covered cell when there are none."""
+        if self.spans is not None:
+            return self.spans
+        h, w = self.shape
+        out = np.zeros((h, 2), dtype=np.int64)
+        out[self.covered.any(axis=1), 1] = w
+        return out
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -350,8 +360,9 @@ class EvidentialMap:
         for a in arrays:
             if a.shape != (h, w, 3):
                 raise ValueError(f"window arrays must have shape {(h, w, 3)}, got {a.shape}")
+        spans = window.row_spans()
         for key, tr, tc, wr, wc in self._pieces(window.r0, window.c0, h, w):
-            piece = np.clip(window.spans[wr] - wc.start, 0, wc.stop - wc.start)
+            piece = np.clip(spans[wr] - wc.start, 0, wc.stop - wc.start)
             rows_on = np.flatnonzero(piece[:, 1] > piece[:, 0])
             if len(rows_on) == 0:
                 continue
