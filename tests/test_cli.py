@@ -38,12 +38,15 @@ def test_map_writes_per_scene_results_and_table(tmp_path, tiny_checkpoint):
 
 def test_evaluate_over_two_scenes_in_two_processes(tmp_path, tiny_checkpoint):
     r = runner.invoke(app, ["evaluate", "--scenes", "2", "--duration", "1.5", "--workers", "2",
-                            "--checkpoint", str(tiny_checkpoint), "--out", str(tmp_path), "--m-u-min", "0.4"])
+                            "--checkpoint", str(tiny_checkpoint), "--out", str(tmp_path), "--m-u-min", "0.4",
+                            "--lidar-min-range", "1.5"])
     assert r.exit_code == 0, r.output
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["scenes"] == ["sim-000004", "sim-000009"]
     assert "vs_truth" in summary and not (tmp_path / "sim-000004" / "maps.png").exists()
-    assert json.loads((tmp_path / "sim-000009" / "config.json").read_text())["fusion"]["m_u_min"] == 0.4
+    config = json.loads((tmp_path / "sim-000009" / "config.json").read_text())
+    assert config["fusion"]["m_u_min"] == 0.4 and config["lidar"]["min_range_m"] == 1.5
+    assert config["radar"]["n_sweeps"] == 10  # the ISM parameters used are written down
     assert "against the true occupancy" in (tmp_path / "table.md").read_text()
 
 

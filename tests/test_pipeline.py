@@ -12,6 +12,7 @@ from evgrid import mass
 from evgrid.data import SimConfig, simulate_scene
 from evgrid.fusion import MAP_NAMES
 from evgrid.geometry import GridSpec
+from evgrid.ism import RayIlmParams, RayIrmParams, ray_ilm, ray_irm
 from evgrid.ism.deep import CHANNELS, DeepIrm
 from evgrid.learn.evnet import EvNet, EvNetConfig, save_checkpoint
 from evgrid.pipeline import MapperConfig, OccupancyMapper, map_scene
@@ -83,3 +84,20 @@ def test_m_u_min_choice_rule():
     rows = [{"m_u_min": v, "mean_of_classes": {"deep_disc": d}} for v, d in ((0.1, 0.530), (0.3, 0.525), (0.4, 0.49), (0.6, 0.2))]
     assert choose_m_u_min(rows) == 0.3  # the highest within 0.01 of the best
     assert choose_m_u_min(rows, tolerance=0.0) == 0.1
+
+
+def test_the_ism_parameters_of_the_config_are_the_ones_used(scene):
+    lidar, radar = RayIlmParams(max_range_m=6.0, min_range_m=2.0), RayIrmParams(n_sweeps=3, m_free=0.2)
+    mapper = OccupancyMapper(MapperConfig(maps=("ray_ilm", "ray_irm"), lidar=lidar, radar=radar))
+    frames = list(scene)[:5]
+    for f in frames:
+        mapper.process(f)
+    assert mapper.last_frame is frames[-1]  # frame 4 was an update
+    isms, pose = mapper.last_isms, frames[-1].ego_pose
+    np.testing.assert_array_equal(isms["ray_ilm"], ray_ilm(frames[-1].lidar, params=lidar))
+    assert not np.array_equal(isms["ray_ilm"], ray_ilm(frames[-1].lidar))
+    assert mapper.buffer.n_sweeps == 10  # the deep IRM's image still needs its 10 sweeps
+    sweeps = mapper.buffer.sweeps()
+    np.testing.assert_array_equal(isms["ray_irm"], ray_irm(sweeps, pose, params=radar))
+    assert not np.array_equal(isms["ray_irm"], ray_irm(sweeps, pose, params=RayIrmParams(m_free=0.2)))
+    assert np.isclose(isms["ray_irm"][..., 0].max(), 0.2, atol=1e-6)

@@ -134,14 +134,30 @@ _SEED = typer.Option(0, "--seed", min=0, help="Simulator: first seed to draw sce
 _DURATION = typer.Option(20.0, "--duration", help="Simulator: scene length in seconds.")
 
 
-def _mapper_config(m_u_min: float | None, checkpoint: Path | None, update_every: int, maps: str | None):
+_LIDAR_MIN_RANGE = typer.Option(
+    0.0, "--lidar-min-range", min=0.0,
+    help="Ignore lidar returns closer than this to the lidar (m, horizontally), e.g. nuScenes' hits on the car "
+    "itself; 0 keeps all, as the paper.",
+)
+
+
+def _mapper_config(
+    m_u_min: float | None, checkpoint: Path | None, update_every: int, maps: str | None, lidar_min_range: float = 0.0
+):
     from evgrid.fusion import MAP_NAMES, FusionParams
+    from evgrid.ism import RayIlmParams
     from evgrid.pipeline import MapperConfig
 
-    fusion = FusionParams() if m_u_min is None else FusionParams(m_u_min=m_u_min)
-    names = tuple(n.strip() for n in maps.split(",")) if maps else MAP_NAMES
     try:
-        return MapperConfig(fusion=fusion, maps=names, checkpoint=str(checkpoint) if checkpoint else None, update_every=update_every)
+        fusion = FusionParams() if m_u_min is None else FusionParams(m_u_min=m_u_min)
+        names = tuple(n.strip() for n in maps.split(",")) if maps else MAP_NAMES
+        return MapperConfig(
+            fusion=fusion,
+            maps=names,
+            lidar=RayIlmParams(min_range_m=lidar_min_range),
+            checkpoint=str(checkpoint) if checkpoint else None,
+            update_every=update_every,
+        )
     except ValueError as e:
         raise typer.BadParameter(str(e)) from e
 
@@ -183,6 +199,7 @@ def map_cmd(
     m_u_min: float = typer.Option(None, "--m-u-min", help="Lower limit on the deep IRM's unknown mass."),
     update_every: int = typer.Option(2, "--update-every", min=1, help="Update the maps every N lidar frames (2 = 10 Hz)."),
     maps: str = typer.Option(None, "--maps", help="Comma-separated subset of the six maps."),
+    lidar_min_range: float = _LIDAR_MIN_RANGE,
     workers: int = typer.Option(1, "--workers", min=1, help="Scenes mapped in parallel (one process each)."),
     save_maps: bool = typer.Option(False, "--save-maps", help="Also write every map as .npz."),
 ) -> None:
@@ -190,10 +207,11 @@ def map_cmd(
 
     Examples:
       evgrid map --scenes 5 --out out/sim-val
-      evgrid map --nuscenes /data/nuscenes --version v1.0-mini --split mini_val --out out/mini
+      evgrid map --nuscenes /data/nuscenes --version v1.0-mini --split mini_val --lidar-min-range 1.0 --out out/mini
     """
     source = _source(nuscenes, version, split, sim_dir, scenes, seed, duration)
-    _run_maps(source, out, _mapper_config(m_u_min, checkpoint, update_every, maps), scene or None, workers, True, save_maps)
+    config = _mapper_config(m_u_min, checkpoint, update_every, maps, lidar_min_range)
+    _run_maps(source, out, config, scene or None, workers, True, save_maps)
 
 
 @app.command()
@@ -210,6 +228,7 @@ def evaluate(
     checkpoint: Path = typer.Option(None, "--checkpoint", help="Ev-Net checkpoint; default: the shipped one."),
     m_u_min: float = typer.Option(None, "--m-u-min", help="Lower limit on the deep IRM's unknown mass."),
     update_every: int = typer.Option(2, "--update-every", min=1, help="Update the maps every N lidar frames (2 = 10 Hz)."),
+    lidar_min_range: float = _LIDAR_MIN_RANGE,
     workers: int = typer.Option(2, "--workers", min=1, help="Scenes evaluated in parallel (one process each)."),
 ) -> None:
     """Evaluate the six maps over a split: per-class mIoU against ray_ilm (and the truth in simulation).
@@ -221,7 +240,8 @@ def evaluate(
       evgrid evaluate --nuscenes /data/nuscenes --split val --workers 8
     """
     source = _source(nuscenes, version, split, sim_dir, scenes, seed, duration)
-    _run_maps(source, out, _mapper_config(m_u_min, checkpoint, update_every, None), scene or None, workers, False, False)
+    config = _mapper_config(m_u_min, checkpoint, update_every, None, lidar_min_range)
+    _run_maps(source, out, config, scene or None, workers, False, False)
 
 
 @app.command()

@@ -27,6 +27,8 @@ from evgrid.geometry import SE2, SE3, GridSpec
 from evgrid.grid import EvidentialMap, Warper
 from evgrid.io import atomic_write
 from evgrid.ism.deep import RadarImageParams
+from evgrid.ism.lidar import RayIlmParams
+from evgrid.ism.radar import RayIrmParams
 
 __all__ = ["MapperConfig", "OccupancyMapper", "SceneResult", "map_scene"]
 
@@ -40,7 +42,8 @@ class MapperConfig:
     grid: GridSpec = field(default_factory=GridSpec)
     fusion: FusionParams = field(default_factory=FusionParams)
     maps: tuple[str, ...] = MAP_NAMES
-    n_radar_sweeps: int = 10
+    lidar: RayIlmParams = field(default_factory=RayIlmParams)  # ray ILM
+    radar: RayIrmParams = field(default_factory=RayIrmParams)  # ray IRM (n_sweeps: the paper's N)
     image: RadarImageParams = field(default_factory=RadarImageParams)
     checkpoint: str | None = None
     # Maps are updated every `update_every` lidar frames (20 Hz / 2 = 10 Hz by default): the
@@ -99,7 +102,7 @@ class OccupancyMapper:
             missing = set(s.required_isms) - set(self.maps.required_isms)
             if missing:
                 raise ValueError(f"extra map sets need ISMs {sorted(missing)} that the mapper's maps do not compute")
-        self.buffer = RadarBuffer(max(config.n_radar_sweeps, config.image.n_sweeps))
+        self.buffer = RadarBuffer(max(config.radar.n_sweeps, config.image.n_sweeps))
         self.deep = deep
         if deep is None and "deep_irm" in self.maps.required_isms:
             from evgrid.ism.deep import DeepIrm
@@ -130,7 +133,7 @@ class OccupancyMapper:
 
     def local_isms(self, frame: Frame) -> dict[str, np.ndarray]:
         """Each ISM the maps need, once, on the local grid of ``frame`` (radar buffer already updated)."""
-        from evgrid.ism import RayIrmParams, ray_ilm, ray_irm
+        from evgrid.ism import ray_ilm, ray_irm
         from evgrid.ism.deep import radar_image
         from evgrid.ism.radar import _last_sweeps
 
@@ -139,12 +142,11 @@ class OccupancyMapper:
         need = self.maps.required_isms
         t = time.perf_counter()
         if "ray_ilm" in need:
-            out["ray_ilm"] = ray_ilm(frame.lidar, grid=cfg.grid, threads=cfg.threads)
+            out["ray_ilm"] = ray_ilm(frame.lidar, grid=cfg.grid, params=cfg.lidar, threads=cfg.threads)
             t = self._time("ray_ilm", t)
         sweeps = self.buffer.sweeps()
         if "ray_irm" in need:
-            params = RayIrmParams(n_sweeps=cfg.n_radar_sweeps)
-            out["ray_irm"] = ray_irm(sweeps, frame.ego_pose, grid=cfg.grid, params=params, threads=cfg.threads)
+            out["ray_irm"] = ray_irm(sweeps, frame.ego_pose, grid=cfg.grid, params=cfg.radar, threads=cfg.threads)
             t = self._time("ray_irm", t)
         if "deep_irm" in need:
             image = radar_image(_last_sweeps(sweeps, cfg.image.n_sweeps), frame.ego_pose, cfg.grid, frame.timestamp, cfg.image)
