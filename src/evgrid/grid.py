@@ -131,8 +131,8 @@ def _k_warp(src, srs, coarse, n, u00, v00, du_di, du_dj, dv_di, dv_dj, out, ors,
     # (u, v) = (u00 + i du_di + j du_dj, v00 + i dv_di + j dv_dj). src is the local grid with a
     # vacuous border (local (r, c) is src[r + 1, c + 1]; one row/column before, two after, as a
     # snapped index may reach n + 1), so bilinear sampling anywhere in (-1, n) needs no bounds
-    # checks. Fractions within _SNAP of 0 or 1 are snapped, so
-    # identity, whole-cell and quarter-turn warps copy cells exactly; weights are float32.
+    # checks. Fractions within _SNAP of 0 or 1 are snapped, so identity, whole-cell and
+    # quarter-turn warps copy cells exactly. Weights are float32, positions float64.
     _k_spans(u00, v00, du_di, du_dj, dv_di, dv_dj, n, h, w, spans)
     one = np.float32(1.0)
     idx = np.empty(_BLOCK, dtype=np.int64)
