@@ -135,6 +135,16 @@ def build_index(
     return start, items
 
 
+@numba.njit(cache=True, inline="always")
+def _slab(p: float, d: float, half: float) -> tuple[bool, float, float]:
+    """One slab |p + t d| <= half of a box, in box coordinates: (missed, t entering, t leaving)."""
+    if abs(d) < 1e-12:  # parallel to the slab: inside it for every t, or never
+        return abs(p) > half, -1e30, 1e30
+    a = (-half - p) / d
+    b = (half - p) / d
+    return False, min(a, b), max(a, b)
+
+
 @numba.njit(cache=True)
 def _slab2d(ox: float, oy: float, dx: float, dy: float, box: np.ndarray) -> tuple[float, float, int, float, float]:
     """Footprint entry/exit distances of a 2-D ray (unit direction), the entered face's axis
@@ -150,34 +160,14 @@ def _slab2d(ox: float, oy: float, dx: float, dy: float, box: np.ndarray) -> tupl
     t_in = -1e30
     t_out = 1e30
     axis = -1
-    hl = box[4]
-    hw = box[5]
-    if abs(ldx) < 1e-12:
-        if abs(lx) > hl:
+    for k in range(2):
+        miss, a, b = _slab(lx, ldx, box[4]) if k == 0 else _slab(ly, ldy, box[5])
+        if miss:
             return 1.0, -1.0, -1, ldx, ldy
-    else:
-        a = (-hl - lx) / ldx
-        b = (hl - lx) / ldx
-        if a > b:
-            a, b = b, a
         if a > t_in:
             t_in = a
-            axis = 0
-        if b < t_out:
-            t_out = b
-    if abs(ldy) < 1e-12:
-        if abs(ly) > hw:
-            return 1.0, -1.0, -1, ldx, ldy
-    else:
-        a = (-hw - ly) / ldy
-        b = (hw - ly) / ldy
-        if a > b:
-            a, b = b, a
-        if a > t_in:
-            t_in = a
-            axis = 1
-        if b < t_out:
-            t_out = b
+            axis = k
+        t_out = min(t_out, b)
     return t_in, t_out, axis, ldx, ldy
 
 
