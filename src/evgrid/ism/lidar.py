@@ -47,6 +47,8 @@ from evgrid.ism._common import (
     IsmResult,
     as_points,
     check_out,
+    check_finite_fields,
+    check_mass_fields,
     check_threads,
     label_scratch,
     labels_to_masses,
@@ -76,10 +78,9 @@ class RayIlmParams:
     min_range_m: float = 0.0
 
     def __post_init__(self) -> None:
-        for name in ("z_min_m", "z_max_m", "max_range_m", "angular_resolution_deg", "m_free", "m_occupied", "min_range_m"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)) or not math.isfinite(v):
-                raise ValueError(f"RayIlmParams.{name} must be a finite number, got {v!r}")
+        check_finite_fields(
+            self, ("z_min_m", "z_max_m", "max_range_m", "angular_resolution_deg", "m_free", "m_occupied", "min_range_m")
+        )
         if not self.z_min_m < self.z_max_m:
             raise ValueError(f"RayIlmParams needs z_min_m < z_max_m, got {self.z_min_m} and {self.z_max_m}")
         if self.max_range_m <= 0:
@@ -88,9 +89,7 @@ class RayIlmParams:
             raise ValueError(f"RayIlmParams.min_range_m must be >= 0, got {self.min_range_m}")
         if not 0 < self.angular_resolution_deg <= 360:
             raise ValueError(f"RayIlmParams.angular_resolution_deg must be in (0, 360], got {self.angular_resolution_deg}")
-        for name in ("m_free", "m_occupied"):
-            if not 0 <= getattr(self, name) <= 1:
-                raise ValueError(f"RayIlmParams.{name} must be a mass in [0, 1], got {getattr(self, name)}")
+        check_mass_fields(self, ("m_free", "m_occupied"))
 
     @property
     def n_rays(self) -> int:

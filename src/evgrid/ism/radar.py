@@ -54,6 +54,8 @@ from evgrid.ism._common import (
     OCCUPIED,
     IsmResult,
     as_points,
+    check_finite_fields,
+    check_mass_fields,
     check_out,
     check_threads,
     bit_scratch,
@@ -81,15 +83,10 @@ class RayIrmParams:
     def __post_init__(self) -> None:
         if isinstance(self.n_sweeps, bool) or not isinstance(self.n_sweeps, (int, np.integer)) or self.n_sweeps < 1:
             raise ValueError(f"RayIrmParams.n_sweeps must be an integer >= 1, got {self.n_sweeps!r}")
-        for name in ("opening_angle_deg", "m_free", "m_occupied"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)) or not math.isfinite(v):
-                raise ValueError(f"RayIrmParams.{name} must be a finite number, got {v!r}")
+        check_finite_fields(self, ("opening_angle_deg", "m_free", "m_occupied"))
         if not 0 < self.opening_angle_deg < 180:
             raise ValueError(f"RayIrmParams.opening_angle_deg must be in (0, 180), got {self.opening_angle_deg}")
-        for name in ("m_free", "m_occupied"):
-            if not 0 <= getattr(self, name) <= 1:
-                raise ValueError(f"RayIrmParams.{name} must be a mass in [0, 1], got {getattr(self, name)}")
+        check_mass_fields(self, ("m_free", "m_occupied"))
 
 
 _DEFAULT_GRID = GridSpec()
@@ -134,18 +131,22 @@ def _set_barrier(barrier, brow, bcol, r, c):
 
 
 @numba.njit(cache=True, inline="always")
+def _word_mask(w, g0, g1):
+    """The bits of uint64 word w that lie in bits g0..g1 (inclusive) of a row of words."""
+    full = np.uint64(0xFFFFFFFFFFFFFFFF)
+    m = full
+    if w == g0 >> 6:
+        m &= full << np.uint64(g0 & 63)
+    if w == g1 >> 6:
+        m &= full >> np.uint64(63 - (g1 & 63))
+    return m
+
+
+@numba.njit(cache=True, inline="always")
 def _any_bits(bits, row, g0, g1):
     """Whether any bit g0..g1 (inclusive, 0 <= g0 <= g1) of uint64 word row ``bits[row]`` is set."""
-    full = np.uint64(0xFFFFFFFFFFFFFFFF)
-    w0 = g0 >> 6
-    w1 = g1 >> 6
-    for w in range(w0, w1 + 1):
-        m = full
-        if w == w0:
-            m &= full << np.uint64(g0 & 63)
-        if w == w1:
-            m &= full >> np.uint64(63 - (g1 & 63))
-        if bits[row, w] & m:
+    for w in range(g0 >> 6, (g1 >> 6) + 1):
+        if bits[row, w] & _word_mask(w, g0, g1):
             return True
     return False
 
@@ -153,16 +154,8 @@ def _any_bits(bits, row, g0, g1):
 @numba.njit(cache=True, inline="always")
 def _set_bits(bits, row, g0, g1):
     """Set bits g0..g1 (inclusive, 0 <= g0 <= g1) of uint64 word row ``bits[row]``."""
-    full = np.uint64(0xFFFFFFFFFFFFFFFF)
-    w0 = g0 >> 6
-    w1 = g1 >> 6
-    for w in range(w0, w1 + 1):
-        m = full
-        if w == w0:
-            m &= full << np.uint64(g0 & 63)
-        if w == w1:
-            m &= full >> np.uint64(63 - (g1 & 63))
-        bits[row, w] |= m
+    for w in range(g0 >> 6, (g1 >> 6) + 1):
+        bits[row, w] |= _word_mask(w, g0, g1)
 
 
 @numba.njit(cache=True)
