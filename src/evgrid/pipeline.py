@@ -536,6 +536,4 @@ def _plot_sweep(rows: list[dict], path: Path, chosen: float | None = None) -> No
         if chosen is not None:
             ax.axvline(chosen, color="k", ls="--", lw=0.8)
     axes[0].legend(fontsize=7)
-    fig.tight_layout()
     _save(fig, path)
-    plt.close(fig)

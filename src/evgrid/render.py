@@ -46,11 +46,17 @@ def _legend(ax) -> None:
     ax.legend(handles=handles, loc="lower right", fontsize=7, framealpha=0.8)
 
 
-def _save(fig, path: str | os.PathLike) -> Path:
+def _save(fig, path: str | os.PathLike, title: str = "") -> Path:
+    """Title and lay out a figure, write it atomically (format from the suffix) and close it."""
     import io
 
+    plt = _pyplot()
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
     buf = io.BytesIO()
     fig.savefig(buf, format=Path(path).suffix.lstrip(".") or "png", dpi=fig.dpi, bbox_inches="tight")
+    plt.close(fig)
     return atomic_write(path, lambda f: f.write(buf.getvalue()))
 
 
@@ -90,12 +96,7 @@ def plot_panels(
     for ax in list(axes.flat)[n:]:
         ax.axis("off")
     _legend(axes.flat[0])
-    if title:
-        fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    out = _save(fig, path)
-    plt.close(fig)
-    return out
+    return _save(fig, path, title)
 
 
 def plot_convergence(
@@ -116,12 +117,7 @@ def plot_convergence(
         ax.grid(alpha=0.3)
         ax.tick_params(labelsize=7)
     axes[0].legend(fontsize=7)
-    if title:
-        fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    out = _save(fig, path)
-    plt.close(fig)
-    return out
+    return _save(fig, path, title)
 
 
 def write_gif(frames: Sequence[np.ndarray], path: str | os.PathLike, fps: float = 4.0) -> Path:
