@@ -14,7 +14,8 @@ from hypothesis import strategies as st
 
 from evgrid.data.frame import RADAR_COLUMNS, Frame, LidarSweep, RadarSweep
 from evgrid.geometry import SE3, GridSpec
-from evgrid.ism import IsmResult, RadarBuffer, RayIrmParams, ray_irm, ray_irm_with_stats, ray_irm_xy
+from evgrid.data import RadarBuffer
+from evgrid.ism import IsmResult, RayIrmParams, ray_irm, ray_irm_with_stats, ray_irm_xy
 from evgrid.ism.synthetic import street_radar_sweeps
 
 GRID = GridSpec()
@@ -436,3 +437,14 @@ def test_property_simplex_detections_and_free_inside_cones(dets, orgs):
         rmin = polar[0]
         reach |= touching(polar, 0.0, rng_m, -1.0, 1.0) | (rmin <= grid.resolution)  # (the apex's own cell)
     assert not ((m[..., 0] > 0) & ~reach).any()
+
+
+def test_radar_buffer_skips_and_counts_duplicate_and_late_sweeps_of_any_channel():
+    buf = RadarBuffer(n_sweeps=2)
+    kept = [buf.push(radar_sweep([[5.0, 0.0]], FRONT, SE3.identity(), t, "corner_fl")) for t in (10, 20, 15, 20, 30)]
+    assert kept == [True, True, False, False, True]
+    assert (buf.n_out_of_order, buf.n_duplicate) == (1, 1)
+    assert [x.timestamp for x in buf.sweeps()] == [20, 30]
+    assert [x.timestamp for x in buf.sweeps(1)] == [30]
+    buf.push(radar_sweep([[5.0, 0.0]], FRONT, SE3.identity(), 5, "RADAR_FRONT"))
+    assert buf.channels == ("RADAR_FRONT", "corner_fl")  # nuScenes' names first, then by name

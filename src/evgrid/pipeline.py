@@ -92,7 +92,7 @@ class OccupancyMapper:
     """
 
     def __init__(self, config: MapperConfig = MapperConfig(), deep: Any = None, extra: tuple[MapSet, ...] = ()):
-        from evgrid.ism import RadarBuffer
+        from evgrid.data.sweeps import RadarBuffer
 
         self.config = config
         self.maps = MapSet(config.grid, config.fusion, config.maps, config.tile_cells)
@@ -135,7 +135,6 @@ class OccupancyMapper:
         """Each ISM the maps need, once, on the local grid of ``frame`` (radar buffer already updated)."""
         from evgrid.ism import ray_ilm, ray_irm
         from evgrid.ism.deep import radar_image
-        from evgrid.ism.radar import _last_sweeps
 
         cfg = self.config
         out: dict[str, np.ndarray] = {}
@@ -149,7 +148,7 @@ class OccupancyMapper:
             out["ray_irm"] = ray_irm(sweeps, frame.ego_pose, grid=cfg.grid, params=cfg.radar, threads=cfg.threads)
             t = self._time("ray_irm", t)
         if "deep_irm" in need:
-            image = radar_image(_last_sweeps(sweeps, cfg.image.n_sweeps), frame.ego_pose, cfg.grid, frame.timestamp, cfg.image)
+            image = radar_image(self.buffer.sweeps(cfg.image.n_sweeps), frame.ego_pose, cfg.grid, frame.timestamp, cfg.image)
             t = self._time("deep_irm_input", t)
             out["deep_irm"] = self.deep.predict_image(image)
             t = self._time("deep_irm_net", t)

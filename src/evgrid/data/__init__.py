@@ -19,9 +19,9 @@ from evgrid.data.frame import (
     LidarSweep,
     RadarSweep,
     Scene,
-    keyframes,
     radar_column,
 )
+from evgrid.data.sweeps import RadarBuffer, last_sweeps
 
 _LAZY = {
     "SimConfig": "evgrid.data.sim",
@@ -52,8 +52,9 @@ __all__ = [
     "LidarSweep",
     "RadarSweep",
     "Scene",
-    "keyframes",
     "radar_column",
+    "RadarBuffer",
+    "last_sweeps",
     *_LAZY,
 ]
 

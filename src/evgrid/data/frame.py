@@ -1,8 +1,9 @@
 """The frame contract: what every data source (simulator, nuScenes) yields, one frame a lidar sweep.
 
-A scene is an iterable of :class:`Frame` in time order. One frame per ``LIDAR_TOP`` sweep
-(20 Hz); ``is_keyframe`` marks the 2 Hz nuScenes samples, where maps are updated and
-evaluated. Each frame carries the radar sweeps of the five radars whose timestamps fall in
+A scene is an iterable of :class:`Frame` in time order. One frame per lidar sweep
+(``LIDAR_TOP`` at 20 Hz in nuScenes); ``is_keyframe`` marks the 2 Hz nuScenes samples, where maps are updated and
+evaluated. Each frame carries the radar sweeps of every radar (any number, any channel names;
+nuScenes has the five of ``RADAR_CHANNELS``) whose timestamps fall in
 ``(previous frame's timestamp, this frame's timestamp]``, oldest first, so that a consumer
 that keeps the last N sweeps of each radar sees every sweep exactly once.
 
@@ -14,7 +15,7 @@ stores them. Units: metres, seconds as integer microseconds, m/s, dBsm.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Iterable, Iterator, Mapping, Protocol
+from typing import Iterator, Mapping, Protocol
 
 import numpy as np
 
@@ -30,7 +31,6 @@ __all__ = [
     "Frame",
     "Scene",
     "radar_column",
-    "keyframes",
 ]
 
 LIDAR_CHANNEL = "LIDAR_TOP"
@@ -107,8 +107,8 @@ class RadarSweep:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "points", _check_points(self.points, len(RADAR_COLUMNS), "RadarSweep"))
-        if self.channel not in RADAR_CHANNELS:
-            raise ValueError(f"RadarSweep.channel must be one of {RADAR_CHANNELS}, got {self.channel!r}")
+        if not isinstance(self.channel, str) or not self.channel:
+            raise ValueError(f"RadarSweep.channel must be a non-empty name, got {self.channel!r}")
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -130,9 +130,11 @@ class Frame:
     occupancy: np.ndarray | None = None
 
     def radar_sweeps(self) -> Iterator[RadarSweep]:
-        """All radar sweeps of this frame, channel by channel, oldest first."""
-        for ch in RADAR_CHANNELS:
-            yield from self.radar.get(ch, ())
+        """All radar sweeps of this frame, channel by channel (nuScenes' order, then by name), oldest first."""
+        from evgrid.data.sweeps import channel_order
+
+        for ch in sorted(self.radar, key=channel_order):
+            yield from self.radar[ch]
 
 
 class Scene(Protocol):
@@ -144,7 +146,3 @@ class Scene(Protocol):
 
     def __len__(self) -> int: ...
 
-
-def keyframes(frames: Iterable[Frame]) -> Iterator[Frame]:
-    """Only the keyframes of a frame stream."""
-    return (f for f in frames if f.is_keyframe)

@@ -2,7 +2,7 @@
 
 * :func:`ray_ilm` — ray casting inverse lidar model (paper sec. V-A);
 * :func:`ray_irm` — ray casting inverse radar model with 2-degree cones (paper sec. V-B),
-  fed by a :class:`RadarBuffer` of the last N sweeps per radar.
+  fed by the last N sweeps per radar (:class:`evgrid.data.RadarBuffer`).
 
 All return float32 mass grids ``(n, n, 3)`` = [m_f, m_o, m_u] on a
 :class:`~evgrid.geometry.GridSpec`; the ``*_with_stats`` variants also count dropped points.
@@ -10,7 +10,7 @@ All return float32 mass grids ``(n, n, 3)`` = [m_f, m_o, m_u] on a
 
 from evgrid.ism._common import IsmResult
 from evgrid.ism.lidar import RayIlmParams, ray_ilm, ray_ilm_with_stats
-from evgrid.ism.radar import RadarBuffer, RayIrmParams, ray_irm, ray_irm_with_stats, ray_irm_xy
+from evgrid.ism.radar import RayIrmParams, ray_irm, ray_irm_with_stats, ray_irm_xy
 
 __all__ = [
     "IsmResult",
@@ -18,7 +18,6 @@ __all__ = [
     "ray_ilm",
     "ray_ilm_with_stats",
     "RayIrmParams",
-    "RadarBuffer",
     "ray_irm",
     "ray_irm_with_stats",
     "ray_irm_xy",

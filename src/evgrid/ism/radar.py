@@ -40,14 +40,14 @@ from __future__ import annotations
 
 import logging
 import math
-from collections import deque
 from dataclasses import dataclass
-from typing import Iterable, Iterator
+from typing import Iterable
 
 import numba
 import numpy as np
 
-from evgrid.data.frame import RADAR_CHANNELS, Frame, RadarSweep
+from evgrid.data.frame import RadarSweep
+from evgrid.data.sweeps import last_sweeps
 from evgrid.geometry import SE3, GridSpec
 from evgrid.ism._common import (
     FREE,
@@ -66,7 +66,7 @@ from evgrid.ism._common import (
     numba_threads,
 )
 
-__all__ = ["RayIrmParams", "RadarBuffer", "ray_irm", "ray_irm_with_stats", "ray_irm_xy"]
+__all__ = ["RayIrmParams", "ray_irm", "ray_irm_with_stats", "ray_irm_xy"]
 
 logger = logging.getLogger(__name__)
 
@@ -674,20 +674,6 @@ def _check_common(grid: GridSpec, params: RayIrmParams, threads: int, out: np.nd
     return check_threads(threads)
 
 
-def _last_sweeps(sweeps: Iterable[RadarSweep], n_sweeps: int) -> list[RadarSweep]:
-    """The last ``n_sweeps`` sweeps (by timestamp) of each channel, channel by channel."""
-    per: dict[str, list[RadarSweep]] = {}
-    for s in sweeps:
-        if not isinstance(s, RadarSweep):
-            raise TypeError(f"ray_irm: sweeps must be RadarSweep objects, got {type(s).__name__}")
-        per.setdefault(s.channel, []).append(s)
-    out: list[RadarSweep] = []
-    for ch in sorted(per, key=lambda c: RADAR_CHANNELS.index(c)):
-        lst = sorted(per[ch], key=lambda s: s.timestamp)
-        out.extend(lst[-n_sweeps:])
-    return out
-
-
 def ray_irm_with_stats(
     sweeps: Iterable[RadarSweep],
     ego_pose: SE3,
@@ -707,7 +693,7 @@ def ray_irm_with_stats(
     threads = _check_common(grid, params, threads, out)
     if not isinstance(ego_pose, SE3):
         raise TypeError(f"ray_irm: ego_pose must be an SE3, got {type(ego_pose).__name__}")
-    used = _last_sweeps(sweeps, params.n_sweeps)
+    used = last_sweeps(sweeps, params.n_sweeps)
     n = grid.n_cells
     inv_res = 1.0 / grid.resolution
     half = n / 2.0
@@ -796,49 +782,3 @@ def ray_irm_xy(
         det_uv, ok, np.ascontiguousarray(inverse.reshape(-1).astype(np.int64)), apex_uv, grid, params, threads, out
     )
     return IsmResult(masses, int(det.shape[0]), n_dropped, n_used)
-
-
-class RadarBuffer:
-    """The last ``n_sweeps`` radar sweeps of each channel, fed frame by frame (for :func:`ray_irm`).
-
-    ``update(frame)`` appends the frame's radar sweeps (the frame contract delivers each
-    sweep once, oldest first); a sweep with the timestamp of one already held for its
-    channel is ignored. Iterating yields the held sweeps, channel by channel, oldest first.
-    """
-
-    def __init__(self, n_sweeps: int = 10) -> None:
-        if isinstance(n_sweeps, bool) or not isinstance(n_sweeps, (int, np.integer)) or n_sweeps < 1:
-            raise ValueError(f"RadarBuffer.n_sweeps must be an integer >= 1, got {n_sweeps!r}")
-        self.n_sweeps = int(n_sweeps)
-        self._buf: dict[str, deque[RadarSweep]] = {ch: deque(maxlen=self.n_sweeps) for ch in RADAR_CHANNELS}
-
-    def push(self, sweep: RadarSweep) -> None:
-        """Add one sweep to its channel, dropping that channel's oldest beyond ``n_sweeps``."""
-        if not isinstance(sweep, RadarSweep):
-            raise TypeError(f"RadarBuffer.push needs a RadarSweep, got {type(sweep).__name__}")
-        q = self._buf[sweep.channel]
-        if any(s.timestamp == sweep.timestamp for s in q):
-            return
-        q.append(sweep)
-
-    def update(self, frame: Frame) -> None:
-        """Add all radar sweeps of ``frame``."""
-        if not isinstance(frame, Frame):
-            raise TypeError(f"RadarBuffer.update needs a Frame, got {type(frame).__name__}")
-        for s in frame.radar_sweeps():
-            self.push(s)
-
-    def sweeps(self) -> list[RadarSweep]:
-        """The held sweeps, channel by channel, oldest first."""
-        return [s for ch in RADAR_CHANNELS for s in self._buf[ch]]
-
-    def clear(self) -> None:
-        """Forget all sweeps (at a scene change)."""
-        for q in self._buf.values():
-            q.clear()
-
-    def __iter__(self) -> Iterator[RadarSweep]:
-        return iter(self.sweeps())
-
-    def __len__(self) -> int:
-        return sum(len(q) for q in self._buf.values())

@@ -105,7 +105,8 @@ def scene_samples(
     frames: Iterable[Frame], config: TrainConfig, with_irm: bool = False
 ) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray | None]]:
     """Yield ``(detections, target classes, ray-IRM classes or None)`` for every ``frame_stride``-th frame."""
-    from evgrid.ism import RadarBuffer, ray_ilm, ray_irm
+    from evgrid.data.sweeps import RadarBuffer
+    from evgrid.ism import ray_ilm, ray_irm
 
     buffer = RadarBuffer(config.image.n_sweeps)
     for k, frame in enumerate(frames):

@@ -1,0 +1,106 @@
+"""The last N radar sweeps of each radar: the one place that rule lives.
+
+Both radar ISMs read "the last N sweeps" of every radar (paper sec. V-B), whatever the radar's
+rate and whatever its channel is called. :class:`RadarBuffer` keeps them as frames arrive and
+counts what a real recording throws at it: a sweep whose timestamp its radar already delivered
+(duplicate) or one older than the newest held (out of order) is skipped and counted, never
+re-sorted into the past. :func:`last_sweeps` applies the same rule to any list of sweeps.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from typing import Iterable, Iterator
+
+from evgrid.data.frame import RADAR_CHANNELS, Frame, RadarSweep
+
+__all__ = ["RadarBuffer", "last_sweeps", "channel_order"]
+
+
+def channel_order(channel: str) -> tuple[int, str]:
+    """Sort key of radar channels: nuScenes' five in their usual order, then any others by name."""
+    known = RADAR_CHANNELS.index(channel) if channel in RADAR_CHANNELS else len(RADAR_CHANNELS)
+    return known, channel
+
+
+def _check_n(n_sweeps: object, what: str) -> int:
+    if isinstance(n_sweeps, bool) or not isinstance(n_sweeps, int) or n_sweeps < 1:
+        raise ValueError(f"{what} must be an integer >= 1, got {n_sweeps!r}")
+    return n_sweeps
+
+
+def last_sweeps(sweeps: Iterable[RadarSweep], n_sweeps: int) -> list[RadarSweep]:
+    """The last ``n_sweeps`` sweeps (by timestamp) of each channel, channel by channel, oldest first."""
+    n = _check_n(n_sweeps, "n_sweeps")
+    per: dict[str, list[RadarSweep]] = {}
+    for s in sweeps:
+        if not isinstance(s, RadarSweep):
+            raise TypeError(f"radar sweeps must be RadarSweep objects, got {type(s).__name__}")
+        per.setdefault(s.channel, []).append(s)
+    out: list[RadarSweep] = []
+    for ch in sorted(per, key=channel_order):
+        out.extend(sorted(per[ch], key=lambda s: s.timestamp)[-n:])
+    return out
+
+
+class RadarBuffer:
+    """The last ``n_sweeps`` radar sweeps of each channel, fed frame by frame.
+
+    ``update(frame)`` appends the frame's radar sweeps. Per channel, a sweep is kept only if it
+    is newer than every sweep that channel delivered before: duplicates and late sweeps are
+    skipped and counted in ``n_duplicate`` and ``n_out_of_order``. Iterating yields the held
+    sweeps, channel by channel, oldest first.
+    """
+
+    def __init__(self, n_sweeps: int = 10) -> None:
+        self.n_sweeps = _check_n(n_sweeps, "RadarBuffer.n_sweeps")
+        self._buf: dict[str, deque[RadarSweep]] = {}
+        self._newest: dict[str, int] = {}  # survives clear(): a late sweep after a reset is still late
+        self.n_duplicate = 0
+        self.n_out_of_order = 0
+
+    def push(self, sweep: RadarSweep) -> bool:
+        """Add one sweep to its channel (dropping that channel's oldest beyond ``n_sweeps``); False if skipped."""
+        if not isinstance(sweep, RadarSweep):
+            raise TypeError(f"RadarBuffer.push needs a RadarSweep, got {type(sweep).__name__}")
+        newest = self._newest.get(sweep.channel)
+        if newest is not None and sweep.timestamp <= newest:
+            if sweep.timestamp == newest or any(s.timestamp == sweep.timestamp for s in self._buf.get(sweep.channel, ())):
+                self.n_duplicate += 1
+            else:
+                self.n_out_of_order += 1
+            return False
+        self._newest[sweep.channel] = sweep.timestamp
+        q = self._buf.get(sweep.channel)
+        if q is None:
+            q = self._buf[sweep.channel] = deque(maxlen=self.n_sweeps)
+        q.append(sweep)
+        return True
+
+    def update(self, frame: Frame) -> None:
+        """Add all radar sweeps of ``frame``."""
+        if not isinstance(frame, Frame):
+            raise TypeError(f"RadarBuffer.update needs a Frame, got {type(frame).__name__}")
+        for s in frame.radar_sweeps():
+            self.push(s)
+
+    def sweeps(self, n_sweeps: int | None = None) -> list[RadarSweep]:
+        """The held sweeps (or only the last ``n_sweeps`` of each channel), channel by channel, oldest first."""
+        n = self.n_sweeps if n_sweeps is None else _check_n(n_sweeps, "n_sweeps")
+        return [s for ch in sorted(self._buf, key=channel_order) for s in list(self._buf[ch])[-n:]]
+
+    @property
+    def channels(self) -> tuple[str, ...]:
+        """The radar channels seen so far."""
+        return tuple(sorted(self._buf, key=channel_order))
+
+    def clear(self) -> None:
+        """Forget all held sweeps (at a scene change or a skipped pose jump)."""
+        for q in self._buf.values():
+            q.clear()
+
+    def __iter__(self) -> Iterator[RadarSweep]:
+        return iter(self.sweeps())
+
+    def __len__(self) -> int:
+        return sum(len(q) for q in self._buf.values())
