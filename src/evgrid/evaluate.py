@@ -12,6 +12,7 @@ from typing import Iterable, Mapping
 
 import numpy as np
 
+from evgrid.classes import CLASSES, FREE, OCCUPIED, UNKNOWN
 from evgrid.grid import EvidentialMap
 
 __all__ = [
@@ -27,8 +28,6 @@ __all__ = [
     "markdown_table",
 ]
 
-CLASSES: tuple[str, ...] = ("free", "occupied", "unknown")
-FREE, OCCUPIED, UNKNOWN = 0, 1, 2
 
 #: The paper's Table I (nuScenes val, mIoU in %), for comparison of orderings, not digits.
 PAPER_TABLE_I: dict[str, dict[str, float]] = {

@@ -12,14 +12,16 @@ from typing import Iterator
 import numba
 import numpy as np
 
+from evgrid.classes import FREE as _FREE, OCCUPIED as _OCCUPIED, UNKNOWN as _UNKNOWN
 from evgrid.geometry import GridSpec
 
 __all__ = ["IsmResult"]
 
-# Cell labels of the internal uint8 grids; the ISMs turn them into masses at the very end.
-UNKNOWN = np.uint8(0)
-FREE = np.uint8(1)
-OCCUPIED = np.uint8(2)
+# Cell labels of the internal uint8 grids (the classes of evgrid.classes); the ISMs turn them
+# into masses at the very end.
+FREE = np.uint8(_FREE)
+OCCUPIED = np.uint8(_OCCUPIED)
+UNKNOWN = np.uint8(_UNKNOWN)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -93,9 +95,9 @@ def _k_labels_to_masses_par(labels, lut, out):
 
 
 def mass_lut(m_free: float, m_occupied: float) -> np.ndarray:
-    """Masses of the three labels: UNKNOWN [0, 0, 1], FREE [m_f, 0, 1 - m_f], OCCUPIED [0, m_o, 1 - m_o]."""
+    """Masses of the three labels, indexed by label: FREE [m_f, 0, 1 - m_f], OCCUPIED [0, m_o, 1 - m_o], UNKNOWN [0, 0, 1]."""
     return np.array(
-        [[0.0, 0.0, 1.0], [m_free, 0.0, 1.0 - m_free], [0.0, m_occupied, 1.0 - m_occupied]], dtype=np.float32
+        [[m_free, 0.0, 1.0 - m_free], [0.0, m_occupied, 1.0 - m_occupied], [0.0, 0.0, 1.0]], dtype=np.float32
     )
 
 
@@ -123,17 +125,19 @@ def labels_to_masses(labels: np.ndarray, lut: np.ndarray, out: np.ndarray | None
 _scratch = threading.local()
 
 
-def label_scratch(grid: GridSpec, name: str) -> np.ndarray:
-    """A zeroed uint8 ``(n, n)`` grid reused across calls (per thread), so no fresh pages are faulted in."""
+def label_scratch(grid: GridSpec, name: str, fill: int = UNKNOWN) -> np.ndarray:
+    """A uint8 ``(n, n)`` grid filled with ``fill`` (default UNKNOWN), reused across calls (per thread).
+
+    Reuse means no fresh pages are faulted in on every call.
+    """
     key = (name, grid.n_cells)
     store = getattr(_scratch, "store", None)
     if store is None:
         store = _scratch.store = {}
     a = store.get(key)
     if a is None:
-        a = store[key] = np.zeros(grid.shape, dtype=np.uint8)
-    else:
-        a.fill(0)
+        a = store[key] = np.empty(grid.shape, dtype=np.uint8)
+    a.fill(fill)
     return a
 
 

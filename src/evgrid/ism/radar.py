@@ -642,7 +642,7 @@ def _irm_core(
 ) -> tuple[np.ndarray, int]:
     """Steps 1-3 on detections and apexes in continuous cell coordinates; returns (masses, n_used)."""
     h = math.radians(params.opening_angle_deg) / 2.0
-    barrier = label_scratch(grid, "irm_barrier")
+    barrier = label_scratch(grid, "irm_barrier", fill=0)
     labels = label_scratch(grid, "irm_labels")
     brow, bcol = bit_scratch(grid, "irm_barrier_bits")
     frow, fcol = bit_scratch(grid, "irm_free_bits", threads)

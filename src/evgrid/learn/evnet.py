@@ -22,10 +22,10 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from evgrid.classes import FREE, OCCUPIED, UNKNOWN  # targets: classes of the ray ILM's cells
+
 __all__ = ["EvNetConfig", "EvNet", "evidential_loss", "save_checkpoint", "load_checkpoint", "CheckpointError"]
 
-#: Target classes of a cell, from the ray ILM of the same time step (DESIGN 4).
-FREE, OCCUPIED, UNKNOWN = 0, 1, 2
 
 
 @dataclass(frozen=True)
