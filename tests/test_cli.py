@@ -44,7 +44,7 @@ def test_evaluate_over_two_scenes_in_two_processes(tmp_path, tiny_checkpoint):
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["scenes"] == ["sim-000004", "sim-000009"]
     assert "vs_truth" in summary and not (tmp_path / "sim-000004" / "maps.png").exists()
-    config = json.loads((tmp_path / "sim-000009" / "config.json").read_text())
+    config = json.loads((tmp_path / "sim-000009" / "config.json").read_text())["mapper"]
     assert config["fusion"]["m_u_min"] == 0.4 and config["lidar"]["min_range_m"] == 1.5
     assert config["radar"]["n_sweeps"] == 10  # the ISM parameters used are written down
     assert "against the true occupancy" in (tmp_path / "table.md").read_text()
@@ -95,7 +95,7 @@ def test_map_on_a_dataset_in_the_nuscenes_layout(tmp_path, tiny_checkpoint):
 
 
 def test_demo_writes_the_metrics_contract(tmp_path):
-    """DESIGN 8: DIR/metrics.json = {"maps": {<six names>: {"free", "occupied", "unknown"}}, ...} with the shipped Ev-Net."""
+    """DIR/metrics.json = {"maps": {<six names>: {"free", "occupied", "unknown"}}, ...} with the shipped Ev-Net."""
     r = runner.invoke(app, ["demo", "--scenes", "1", "--duration", "2", "--workers", "1", "--out", str(tmp_path)])
     assert r.exit_code == 0, r.output
     m = json.loads((tmp_path / "metrics.json").read_text())
@@ -106,3 +106,62 @@ def test_demo_writes_the_metrics_contract(tmp_path):
     assert (tmp_path / "table.md").is_file()
     for name in ("maps.png", "isms.png", "convergence.png", "maps.gif"):
         assert (tmp_path / "sim-000004" / name).is_file()
+
+
+def test_a_run_reproduces_from_its_own_config(tmp_path, tiny_checkpoint):
+    first, again = tmp_path / "first", tmp_path / "again"
+    r = runner.invoke(app, ["evaluate", "--scenes", "1", "--duration", "1.5", "--workers", "1", "--seed", "3",
+                            "--checkpoint", str(tiny_checkpoint), "--m-u-min", "0.35", "--update-rate", "5",
+                            "--out", str(first)])
+    assert r.exit_code == 0, r.output
+    r = runner.invoke(app, ["evaluate", "--config", str(first / "config.json"), "--workers", "1", "--out", str(again)])
+    assert r.exit_code == 0, r.output
+    a, b = (json.loads((d / "summary.json").read_text()) for d in (first, again))
+    assert a["scenes"] == b["scenes"] == ["sim-000004"]
+    assert a["maps"] == b["maps"] and a["vs_truth"] == b["vs_truth"]
+    ca, cb = (json.loads((d / "config.json").read_text()) for d in (first, again))
+    assert ca["mapper"] == cb["mapper"] and ca["mapper"]["update_rate_hz"] == 5.0
+    assert ca["source"] == cb["source"] == {"kind": "sim", "seeds": [4], "duration_s": 1.5}
+    # an option given beside --config wins over the file
+    r = runner.invoke(app, ["evaluate", "--config", str(first / "config.json"), "--m-u-min", "0.5", "--workers", "1",
+                            "--out", str(tmp_path / "changed")])
+    assert r.exit_code == 0, r.output
+    assert json.loads((tmp_path / "changed" / "config.json").read_text())["mapper"]["fusion"]["m_u_min"] == 0.5
+
+
+def test_results_are_never_silently_overwritten(tmp_path, tiny_checkpoint):
+    args = ["evaluate", "--scenes", "1", "--duration", "1", "--workers", "1", "--checkpoint", str(tiny_checkpoint),
+            "--out", str(tmp_path)]
+    r = runner.invoke(app, args)
+    assert r.exit_code == 0, r.output
+    before = (tmp_path / "summary.json").read_text()
+    r = runner.invoke(app, args)
+    assert r.exit_code == 1 and "already holds results" in r.output and "--overwrite" in r.output
+    assert (tmp_path / "summary.json").read_text() == before
+    assert runner.invoke(app, [*args, "--overwrite"]).exit_code == 0
+
+
+def test_failures_print_one_line_and_leave_no_empty_folder(tmp_path):
+    out = tmp_path / "never"
+    r = runner.invoke(app, ["map", "--sim-dir", str(tmp_path / "missing"), "--out", str(out)])
+    assert r.exit_code == 1
+    lines = [ln for ln in r.output.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("evgrid: error:") and "index.json" in lines[0], r.output
+    assert not out.exists()
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"mapper": {"fusion": {"m_u_min": 2.0}}}')
+    r = runner.invoke(app, ["map", "--config", str(bad), "--out", str(out)])
+    assert r.exit_code == 1 and "m_u_min" in r.output and str(bad) in r.output and "Traceback" not in r.output
+    bad.write_text('{"mapper": {"lidar": {"m_fre": 0.1}}}')
+    r = runner.invoke(app, ["map", "--config", str(bad), "--out", str(out)])
+    assert r.exit_code == 1 and "config.mapper.lidar" in r.output.replace(str(bad), "config") and "m_fre" in r.output
+    r = runner.invoke(app, ["--debug", "map", "--config", str(bad), "--out", str(out)])
+    assert r.exit_code == 1 and r.exception is not None  # --debug lets the exception (and its traceback) through
+    assert not out.exists()
+
+
+def test_too_short_a_scene_still_gives_a_table(tmp_path, tiny_checkpoint):
+    r = runner.invoke(app, ["evaluate", "--scenes", "1", "--duration", "0.1", "--workers", "1",
+                            "--checkpoint", str(tiny_checkpoint), "--out", str(tmp_path)])
+    assert r.exit_code == 0, r.output
+    assert "| `fused` |" in (tmp_path / "table.md").read_text()

@@ -41,7 +41,8 @@ def run_bench(duration_s: float = 6.0, checkpoint: str | None = None) -> dict[st
     from evgrid.geometry import SE2, GridSpec
     from evgrid.grid import Warper
     from evgrid.ism.deep import DeepIrm
-    from evgrid.pipeline import MapperConfig, OccupancyMapper
+    from evgrid.config import MapperConfig
+    from evgrid.mapper import OccupancyMapper
 
     numba.set_num_threads(1)
     torch.set_num_threads(1)
@@ -52,10 +53,10 @@ def run_bench(duration_s: float = 6.0, checkpoint: str | None = None) -> dict[st
 
     runs = {}
     for label, maps in (("six_maps", fusion.MAP_NAMES), ("fused_only", ("fused",))):
-        mapper = OccupancyMapper(MapperConfig(maps=maps, track_convergence=False, snapshot_every=0), deep=deep)
+        mapper = OccupancyMapper(MapperConfig(maps=maps), deep=deep)
         for f in frames[:4]:  # warm up (compilation, first allocations)
             mapper.process(f)
-        mapper = OccupancyMapper(MapperConfig(maps=maps, track_convergence=False, snapshot_every=0), deep=deep)
+        mapper = OccupancyMapper(MapperConfig(maps=maps), deep=deep)
         t = time.perf_counter()
         for f in frames:
             mapper.process(f)

@@ -1,8 +1,15 @@
-"""The ``evgrid`` command line (typer). Heavy modules are imported inside each command."""
+"""The ``evgrid`` command line (typer). Heavy modules are imported inside each command.
+
+A command that fails prints one line, ``evgrid: error: ...``, and exits with status 1;
+``evgrid --debug COMMAND`` (or ``EVGRID_DEBUG=1``) shows the traceback instead.
+"""
 
 from __future__ import annotations
 
+import functools
+import os
 from pathlib import Path
+from typing import Any, Callable
 
 import typer
 
@@ -23,14 +30,49 @@ def _version(value: bool) -> None:
         raise typer.Exit()
 
 
+_STATE = {"debug": os.environ.get("EVGRID_DEBUG", "") not in ("", "0")}
+
+
 @app.callback()
 def main(
     version: bool = typer.Option(False, "--version", callback=_version, is_eager=True, help="Print the version and exit."),
+    debug: bool = typer.Option(False, "--debug", help="Show the full traceback when a command fails."),
 ) -> None:
     """evgrid: evidential occupancy mapping (Bauer et al., deep ISMs as priors)."""
+    _STATE["debug"] = _STATE["debug"] or debug
 
 
-@app.command()
+def _message(e: BaseException) -> str:
+    """A failure as one line: the exception's own message (a KeyError's without quotes), else its type."""
+    text = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
+    text = " ".join(str(text).split())
+    if isinstance(e, (ValueError, OSError, KeyError, RuntimeError, ImportError)):
+        return text or type(e).__name__
+    return f"{type(e).__name__}: {text}" if text else type(e).__name__
+
+
+def _command(*args: Any, **kwargs: Any) -> Callable:
+    """``app.command`` whose failures print one line (see the module docstring)."""
+
+    def register(fn: Callable) -> Callable:
+        @functools.wraps(fn)
+        def run(*a: Any, **k: Any) -> Any:
+            try:
+                return fn(*a, **k)
+            except (typer.Exit, typer.Abort, typer.TyperException, KeyboardInterrupt):
+                raise
+            except Exception as e:
+                if _STATE["debug"]:
+                    raise
+                typer.echo(f"evgrid: error: {_message(e)}", err=True)
+                raise typer.Exit(1) from None
+
+        return app.command(*args, **kwargs)(run)
+
+    return register
+
+
+@_command()
 def simulate(
     out: Path = typer.Option(..., "--out", help="Output folder (created if missing)."),
     scenes: int = typer.Option(1, "--scenes", min=1, help="Number of scenes; scene k uses seed S + k."),
@@ -109,6 +151,9 @@ def simulate(
 
 # --- mapping, evaluation, training, benchmark ------------------------------------------------------
 
+_DATA_OPTIONS = ("nuscenes", "version", "split", "sim_dir", "scenes", "seed", "duration")
+
+
 def _source(nuscenes: Path | None, version: str, split: str, sim_dir: Path | None, scenes: int, seed: int, duration: float):
     """The scene source named by the common data options (the simulator when none is given)."""
     from evgrid.sources import NuScenesSource, SimFilesSource, SimSource
@@ -120,8 +165,6 @@ def _source(nuscenes: Path | None, version: str, split: str, sim_dir: Path | Non
     if sim_dir is not None:
         return SimFilesSource(str(sim_dir), None if split == "all" else split)
     if split == "all":
-        from evgrid.sources import SimSource
-
         return SimSource(tuple(range(seed, seed + scenes)), duration)
     return SimSource.split(split, scenes, seed, duration)
 
@@ -132,41 +175,62 @@ _SIM_DIR = typer.Option(None, "--sim-dir", help="A folder written by `evgrid sim
 _SCENES = typer.Option(3, "--scenes", min=1, help="Simulator: number of scenes of the split.")
 _SEED = typer.Option(0, "--seed", min=0, help="Simulator: first seed to draw scenes from.")
 _DURATION = typer.Option(20.0, "--duration", help="Simulator: scene length in seconds.")
-
-
+_SPLIT = typer.Option("val", "--split", help="train, val (nuScenes: any official split), or all.")
+_CONFIG = typer.Option(None, "--config", help="A run's config.json: map the same scenes the same way (options given "
+                       "here override it).")
+_CHECKPOINT = typer.Option(None, "--checkpoint", help="Ev-Net checkpoint; default: the shipped one.")
+_M_U_MIN = typer.Option(None, "--m-u-min", help="Lower limit on the deep IRM's unknown mass (default 0.3).")
+_UPDATE_RATE = typer.Option(None, "--update-rate", help="Map updates per second, Hz (default 10, the paper's); "
+                            "keyframes are always updated.")
+_MAPS = typer.Option(None, "--maps", help="Comma-separated subset of the six maps.")
 _LIDAR_MIN_RANGE = typer.Option(
-    0.0, "--lidar-min-range", min=0.0,
-    help="Ignore lidar returns closer than this to the lidar (m, horizontally), e.g. nuScenes' hits on the car "
-    "itself; 0 keeps all, as the paper.",
+    None, "--lidar-min-range", min=0.0,
+    help="Ignore lidar returns closer than this to the lidar (m, horizontally); 0 keeps all.",
 )
+_MAX_SPEED = typer.Option(None, "--max-speed", help="Odometry sanity: faster ego motion is a glitch, m/s (default 100).")
+_OVERWRITE = typer.Option(False, "--overwrite", help="Write into --out even if it holds results of another run.")
 
 
-def _mapper_config(
-    m_u_min: float | None, checkpoint: Path | None, update_every: int, maps: str | None, lidar_min_range: float = 0.0
-):
-    from evgrid.fusion import MAP_NAMES, FusionParams
-    from evgrid.ism import RayIlmParams
-    from evgrid.pipeline import MapperConfig
+def _mapper_config(base, m_u_min=None, checkpoint=None, update_rate=None, maps=None, lidar_min_range=None, max_speed=None):
+    """``base`` (a MapperConfig) with the mapper options given on the command line applied."""
+    from dataclasses import replace
 
-    try:
-        fusion = FusionParams() if m_u_min is None else FusionParams(m_u_min=m_u_min)
-        names = tuple(n.strip() for n in maps.split(",")) if maps else MAP_NAMES
-        return MapperConfig(
-            fusion=fusion,
-            maps=names,
-            lidar=RayIlmParams(min_range_m=lidar_min_range),
-            checkpoint=str(checkpoint) if checkpoint else None,
-            update_every=update_every,
-        )
-    except ValueError as e:
-        raise typer.BadParameter(str(e)) from e
+    cfg = base
+    if m_u_min is not None:
+        cfg = replace(cfg, fusion=replace(cfg.fusion, m_u_min=m_u_min))
+    if checkpoint is not None:
+        cfg = replace(cfg, checkpoint=str(checkpoint))
+    if update_rate is not None:
+        cfg = replace(cfg, update_rate_hz=update_rate)
+    if maps:
+        cfg = replace(cfg, maps=tuple(n.strip() for n in maps.split(",")))
+    if lidar_min_range is not None:
+        cfg = replace(cfg, lidar=replace(cfg.lidar, min_range_m=lidar_min_range))
+    if max_speed is not None:
+        cfg = replace(cfg, poses=replace(cfg.poses, max_speed_mps=max_speed))
+    return cfg
 
 
-def _run_maps(source, out: Path, config, names, workers: int, figures: bool, save_maps: bool) -> dict:
+def _run_setup(ctx: typer.Context, config_path: Path | None, data: dict, scene: list[str] | None):
+    """(source, scene names or None, base RunConfig) from --config and the data options (given ones win)."""
+    from evgrid.config import RunConfig, load_run_config
+    from evgrid.sources import source_from_dict
+
+    run = load_run_config(config_path) if config_path is not None else RunConfig()
+    given = [n for n in _DATA_OPTIONS if ctx.get_parameter_source(n) is not None and ctx.get_parameter_source(n).name == "COMMANDLINE"]
+    if run.source is not None and not given:
+        source = source_from_dict(run.source)
+    else:
+        source = _source(**data)
+    names = list(scene) if scene else (list(run.scenes) if run.scenes and not given else None)
+    return source, names, run
+
+
+def _run_maps(source, out: Path, config, outputs, names, workers: int, overwrite: bool) -> dict:
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from evgrid.pipeline import map_scenes
+    from evgrid.runs import map_scenes
     from evgrid.sources import scenes_of
 
     todo = scenes_of(source, names)
@@ -176,96 +240,114 @@ def _run_maps(source, out: Path, config, names, workers: int, figures: bool, sav
 
         def done(m: dict) -> None:
             p.advance(task)
-            p.console.print(f"  {m['scene']}: {m['frames']} frames, {m['frames_per_second']:.1f} frames/s")
+            skipped = {k: v for k, v in m.get("skipped", {}).items() if v and k not in ("frames", "updates")}
+            extra = f"; skipped {skipped}" if skipped else ""
+            p.console.print(f"  {m['scene']}: {m['frames']} frames, {m['frames_per_second']:.1f} frames/s{extra}")
 
-        summary = map_scenes(source, out, config, todo, workers, figures, save_maps, on_scene=done)
+        summary = map_scenes(source, out, config, outputs, todo, workers, on_scene=done, overwrite=overwrite)
     console.print((out / "table.md").read_text())
     console.print(f"frames per second (all scenes): {summary['frames_per_second']:.1f}; results in {out}")
     return summary
 
 
-@app.command("map")
+@_command("map")
 def map_cmd(
+    ctx: typer.Context,
     out: Path = typer.Option(Path("out/map"), "--out", help="Results folder."),
+    config: Path = _CONFIG,
     nuscenes: Path = _NUSCENES,
     version: str = _VERSION,
-    split: str = typer.Option("val", "--split", help="train, val (nuScenes: any official split), or all."),
+    split: str = _SPLIT,
     scene: list[str] = typer.Option(None, "--scene", help="Only these scene names (repeatable)."),
     sim_dir: Path = _SIM_DIR,
     scenes: int = _SCENES,
     seed: int = _SEED,
     duration: float = _DURATION,
-    checkpoint: Path = typer.Option(None, "--checkpoint", help="Ev-Net checkpoint; default: the shipped one."),
-    m_u_min: float = typer.Option(None, "--m-u-min", help="Lower limit on the deep IRM's unknown mass."),
-    update_every: int = typer.Option(2, "--update-every", min=1, help="Update the maps every N lidar frames (2 = 10 Hz)."),
-    maps: str = typer.Option(None, "--maps", help="Comma-separated subset of the six maps."),
+    checkpoint: Path = _CHECKPOINT,
+    m_u_min: float = _M_U_MIN,
+    update_rate: float = _UPDATE_RATE,
+    maps: str = _MAPS,
     lidar_min_range: float = _LIDAR_MIN_RANGE,
+    max_speed: float = _MAX_SPEED,
     workers: int = typer.Option(1, "--workers", min=1, help="Scenes mapped in parallel (one process each)."),
-    save_maps: bool = typer.Option(False, "--save-maps", help="Also write every map as .npz."),
+    save_maps: bool = typer.Option(None, "--save-maps/--no-save-maps", help="Also write every map as .npz."),
+    overwrite: bool = _OVERWRITE,
 ) -> None:
     """Map scenes: the six maps of the paper's Table I, figures, GIFs, metrics.
 
     Examples:
       evgrid map --scenes 5 --out out/sim-val
-      evgrid map --nuscenes /data/nuscenes --version v1.0-mini --split mini_val --lidar-min-range 1.0 --out out/mini
+      evgrid map --config out/sim-val/config.json --out out/sim-val-again
+      evgrid map --nuscenes /data/nuscenes --version v1.0-mini --split mini_val --out out/mini
     """
-    source = _source(nuscenes, version, split, sim_dir, scenes, seed, duration)
-    config = _mapper_config(m_u_min, checkpoint, update_every, maps, lidar_min_range)
-    _run_maps(source, out, config, scene or None, workers, True, save_maps)
+    from dataclasses import replace
+
+    data = dict(nuscenes=nuscenes, version=version, split=split, sim_dir=sim_dir, scenes=scenes, seed=seed, duration=duration)
+    source, names, run = _run_setup(ctx, config, data, scene)
+    mapper = _mapper_config(run.mapper, m_u_min, checkpoint, update_rate, maps, lidar_min_range, max_speed)
+    outputs = run.outputs if save_maps is None else replace(run.outputs, save_maps=save_maps)
+    _run_maps(source, out, mapper, outputs, names, workers, overwrite)
 
 
-@app.command()
+@_command()
 def evaluate(
+    ctx: typer.Context,
     out: Path = typer.Option(Path("out/evaluate"), "--out", help="Results folder."),
+    config: Path = _CONFIG,
     nuscenes: Path = _NUSCENES,
     version: str = _VERSION,
-    split: str = typer.Option("val", "--split", help="train, val (nuScenes: any official split), or all."),
+    split: str = _SPLIT,
     scene: list[str] = typer.Option(None, "--scene", help="Only these scene names (repeatable)."),
     sim_dir: Path = _SIM_DIR,
     scenes: int = typer.Option(10, "--scenes", min=1, help="Simulator: number of validation scenes."),
     seed: int = _SEED,
     duration: float = _DURATION,
-    checkpoint: Path = typer.Option(None, "--checkpoint", help="Ev-Net checkpoint; default: the shipped one."),
-    m_u_min: float = typer.Option(None, "--m-u-min", help="Lower limit on the deep IRM's unknown mass."),
-    update_every: int = typer.Option(2, "--update-every", min=1, help="Update the maps every N lidar frames (2 = 10 Hz)."),
+    checkpoint: Path = _CHECKPOINT,
+    m_u_min: float = _M_U_MIN,
+    update_rate: float = _UPDATE_RATE,
     lidar_min_range: float = _LIDAR_MIN_RANGE,
+    max_speed: float = _MAX_SPEED,
     workers: int = typer.Option(2, "--workers", min=1, help="Scenes evaluated in parallel (one process each)."),
+    overwrite: bool = _OVERWRITE,
 ) -> None:
     """Evaluate the six maps over a split: per-class mIoU against ray_ilm (and the truth in simulation).
 
-    Like `map` without figures; writes summary.json and table.md (beside the paper's Table I).
+    Like `map` without figures; writes config.json, summary.json and table.md (beside the paper's Table I).
 
     Examples:
       evgrid evaluate --scenes 10 --workers 2
       evgrid evaluate --nuscenes /data/nuscenes --split val --workers 8
     """
-    source = _source(nuscenes, version, split, sim_dir, scenes, seed, duration)
-    config = _mapper_config(m_u_min, checkpoint, update_every, None, lidar_min_range)
-    _run_maps(source, out, config, scene or None, workers, False, False)
+    from dataclasses import replace
+
+    data = dict(nuscenes=nuscenes, version=version, split=split, sim_dir=sim_dir, scenes=scenes, seed=seed, duration=duration)
+    source, names, run = _run_setup(ctx, config, data, scene)
+    mapper = _mapper_config(run.mapper, m_u_min, checkpoint, update_rate, None, lidar_min_range, max_speed)
+    _run_maps(source, out, mapper, replace(run.outputs, figures=False, save_maps=False), names, workers, overwrite)
 
 
-@app.command()
+@_command()
 def demo(
     out: Path = typer.Option(Path("out/demo"), "--out", help="Results folder."),
     scenes: int = typer.Option(3, "--scenes", min=1, help="Simulated validation scenes to map."),
     duration: float = typer.Option(20.0, "--duration", help="Scene length in seconds."),
     workers: int = typer.Option(2, "--workers", min=1, help="Scenes mapped in parallel."),
+    overwrite: bool = _OVERWRITE,
 ) -> None:
     """Simulate a few validation scenes, map them with the shipped Ev-Net, write metrics, table, figures, GIFs.
 
     Writes OUT/metrics.json ({"maps": {name: {"free", "occupied", "unknown"}}, ...}), OUT/table.md and,
     per scene, maps.png, isms.png, convergence.png and maps.gif.
     """
-    from evgrid.io import atomic_write
+    from evgrid.config import MapperConfig, OutputConfig
+    from evgrid.io import write_json
     from evgrid.sources import SimSource
 
-    import json
-
-    summary = _run_maps(SimSource.split("val", scenes, 0, duration), out, _mapper_config(None, None, 2, None), None, workers, True, False)
-    atomic_write(out / "metrics.json", lambda f: f.write(json.dumps(summary, indent=2).encode()))
+    summary = _run_maps(SimSource.split("val", scenes, 0, duration), out, MapperConfig(), OutputConfig(), None, workers, overwrite)
+    write_json(out / "metrics.json", summary)
 
 
-@app.command()
+@_command()
 def train(
     out: Path = typer.Option(Path("out/train"), "--out", help="Run folder: config, metrics.csv, checkpoints, cache."),
     nuscenes: Path = _NUSCENES,
@@ -348,7 +430,7 @@ def train(
                       f"{res.seconds_per_epoch:.0f} s per epoch; checkpoint {out / 'best.safetensors'}")
 
 
-@app.command("sweep-m-u-min")
+@_command("sweep-m-u-min")
 def sweep_m_u_min_cmd(
     out: Path = typer.Option(Path("out/sweep"), "--out", help="Results folder."),
     values: str = typer.Option("0.1,0.2,0.3,0.4,0.5,0.6,0.7", "--values", help="Comma-separated m_u_min values."),
@@ -359,30 +441,31 @@ def sweep_m_u_min_cmd(
     scenes: int = typer.Option(4, "--scenes", min=1, help="Simulator: validation scenes."),
     seed: int = _SEED,
     duration: float = _DURATION,
-    checkpoint: Path = typer.Option(None, "--checkpoint", help="Ev-Net checkpoint; default: the shipped one."),
+    checkpoint: Path = _CHECKPOINT,
     workers: int = typer.Option(2, "--workers", min=1),
+    overwrite: bool = _OVERWRITE,
 ) -> None:
     """Sweep the lower limit m_u_min: mIoU of deep_replace, deep_disc and fused against ray_ilm (JSON + plot).
 
     Example:
       evgrid sweep-m-u-min --scenes 4 --values 0.1,0.2,0.3,0.4,0.5 --out out/sweep
     """
-    import json
-
-    from evgrid.pipeline import sweep_m_u_min
+    from evgrid.config import MapperConfig
+    from evgrid.runs import sweep_m_u_min
 
     try:
         vals = [float(v) for v in values.split(",")]
     except ValueError as e:
         raise typer.BadParameter(f"--values must be numbers separated by commas, got {values!r}") from e
     source = _source(nuscenes, version, split, sim_dir, scenes, seed, duration)
-    res = sweep_m_u_min(source, vals, out, _mapper_config(None, checkpoint, 2, None), workers=workers)
+    res = sweep_m_u_min(source, vals, out, _mapper_config(MapperConfig(), checkpoint=checkpoint), workers=workers,
+                        overwrite=overwrite)
     for row in res["rows"]:
         typer.echo(f"m_u_min {row['m_u_min']:.2f}: " + ", ".join(f"{k} {v:.3f}" for k, v in row["mean_of_classes"].items()))
     typer.echo(f"chosen m_u_min = {res['chosen']}: {res['rule']}; plot: {out}/m_u_min_sweep.png")
 
 
-@app.command()
+@_command()
 def bench(
     seconds: float = typer.Option(6.0, "--duration", help="Length of the simulated scene used (s)."),
     checkpoint: Path = typer.Option(None, "--checkpoint", help="Ev-Net checkpoint; default: the shipped one."),
@@ -396,13 +479,12 @@ def bench(
     import json
 
     from evgrid.bench import run_bench
-    from evgrid.io import atomic_write
+    from evgrid.io import write_json
 
     res = run_bench(seconds, str(checkpoint) if checkpoint else None)
-    text = json.dumps(res, indent=2)
-    typer.echo(text)
+    typer.echo(json.dumps(res, indent=2))
     if out is not None:
-        atomic_write(out, lambda f: f.write(text.encode()))
+        write_json(out, res)
 
 
 if __name__ == "__main__":

@@ -1,4 +1,4 @@
-"""Evaluation (DESIGN 6): cell classes, per-class IoU against a reference map, mIoU over scenes.
+"""Evaluation: cell classes, per-class IoU against a reference map or the truth, mIoU over scenes.
 
 A cell's class is the state with the largest mass; a tie goes to unknown. Maps are compared
 with the ``ray_ilm`` map of the same scene over the cells that any local grid of the scene
@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 from typing import Iterable, Mapping
 
+import numba
 import numpy as np
 
 from evgrid.classes import CLASSES, FREE, OCCUPIED, UNKNOWN
@@ -24,6 +25,10 @@ __all__ = [
     "classify",
     "iou_per_class",
     "compare_maps",
+    "compare_truth",
+    "confusion",
+    "iou_from_confusion",
+    "observable",
     "mean_iou",
     "markdown_table",
 ]
@@ -70,31 +75,129 @@ def iou_per_class(pred: np.ndarray, ref: np.ndarray, mask: np.ndarray | None = N
     return out
 
 
-def _common_window(maps: Iterable[EvidentialMap]) -> tuple[int, int, int, int]:
-    boxes = [m.bounds() for m in maps if m.tiles]
-    if not boxes:
-        return (0, 0, 0, 0)
-    r0 = min(b[0] for b in boxes)
-    c0 = min(b[1] for b in boxes)
-    r1 = max(b[0] + b[2] for b in boxes)
-    c1 = max(b[1] + b[3] for b in boxes)
-    return r0, c0, r1 - r0, c1 - c0
+@numba.njit(cache=True)
+def _k_confusion(ref_cls, mask, m, out):
+    """out[ref, pred] += cells under ``mask``, pred being the class of ``m`` (largest mass, ties unknown)."""
+    h, w = ref_cls.shape
+    for i in range(h):
+        for j in range(w):
+            if not mask[i, j]:
+                continue
+            f = m[i, j, 0]
+            o = m[i, j, 1]
+            u = m[i, j, 2]
+            k = 2  # UNKNOWN
+            if f > o and f > u:
+                k = 0  # FREE
+            elif o > f and o > u:
+                k = 1  # OCCUPIED
+            out[ref_cls[i, j], k] += 1
+
+
+def confusion(ref_cls: np.ndarray, mask: np.ndarray, masses: np.ndarray) -> np.ndarray:
+    """3 x 3 counts (int64) of reference class (rows) against the class of ``masses`` (columns) over ``mask``."""
+    out = np.zeros((3, 3), dtype=np.int64)
+    _k_confusion(np.ascontiguousarray(ref_cls, dtype=np.uint8), np.ascontiguousarray(mask, dtype=np.bool_),
+                 np.ascontiguousarray(masses, dtype=np.float32), out)
+    return out
+
+
+def iou_from_confusion(c: np.ndarray) -> dict[str, float]:
+    """Per-class IoU from confusion counts: |ref = k and pred = k| / |ref = k or pred = k|; NaN where neither."""
+    out = {}
+    for k, name in enumerate(CLASSES):
+        inter = int(c[k, k])
+        union = int(c[k, :].sum() + c[:, k].sum()) - inter
+        out[name] = inter / union if union else math.nan
+    return out
+
+
+def _tile(m: EvidentialMap, key: tuple[int, int]) -> tuple[np.ndarray, np.ndarray] | None:
+    t = m.tiles.get(key)
+    return None if t is None else (t, m.covered_tiles[key])
+
+
+def tile_keys(m: EvidentialMap, r0: int, c0: int, h: int, w: int) -> set[tuple[int, int]]:
+    """Keys of the tiles of ``m``'s layout that the cell box ``[r0, r0+h) x [c0, c0+w)`` meets."""
+    ts = m.tile_cells
+    return {(ti, tj) for ti in range(r0 // ts, (r0 + h - 1) // ts + 1) for tj in range(c0 // ts, (c0 + w - 1) // ts + 1)}
+
+
+def tile_confusions_vs_map(maps: Mapping[str, EvidentialMap], reference: str, key: tuple[int, int]) -> np.ndarray:
+    """Confusion counts ``(len(maps), 3, 3)`` of every map against ``maps[reference]`` on one tile, over its covered cells."""
+    out = np.zeros((len(maps), 3, 3), dtype=np.int64)
+    ref = _tile(maps[reference], key)
+    if ref is None:
+        return out
+    ref_cls = classify(ref[0])
+    for i, m in enumerate(maps.values()):
+        t = _tile(m, key)
+        if t is None:  # a tile a map never got: vacuous, so unknown
+            out[i, :, UNKNOWN] = np.bincount(ref_cls[ref[1]], minlength=3)
+        else:
+            _k_confusion(ref_cls, ref[1], t[0], out[i])
+    return out
+
+
+def observable(cls: np.ndarray) -> np.ndarray:
+    """Free cells and occupied cells with a free 8-neighbour (building interiors are occupied but unobservable)."""
+    free = cls == FREE
+    near = free.copy()
+    near[1:] |= free[:-1]
+    near[:-1] |= free[1:]
+    near[:, 1:] |= near[:, :-1].copy()
+    near[:, :-1] |= near[:, 1:].copy()
+    return free | near
+
+
+def tile_confusions_vs_truth(
+    maps: Mapping[str, EvidentialMap], truth: EvidentialMap, reference: str, key: tuple[int, int]
+) -> np.ndarray:
+    """Confusion counts ``(len(maps), 3, 3)`` of every map against the true occupancy on one tile.
+
+    Cells count where the truth is known, the reference map covered them, and they are
+    observable (:func:`observable`, decided with the neighbouring tiles' cells).
+    """
+    out = np.zeros((len(maps), 3, 3), dtype=np.int64)
+    if key not in truth.tiles:
+        return out
+    ts = truth.tile_cells
+    r0, c0 = key[0] * ts, key[1] * ts
+    halo, halo_cov = truth.read(r0 - 1, c0 - 1, ts + 2, ts + 2)
+    t_all = classify(halo)
+    t_cls = t_all[1:-1, 1:-1]
+    ref = _tile(maps[reference], key)
+    if ref is None:
+        return out
+    mask = halo_cov[1:-1, 1:-1] & ref[1] & observable(t_all)[1:-1, 1:-1]
+    for i, m in enumerate(maps.values()):
+        t = _tile(m, key)
+        if t is None:
+            out[i, :, UNKNOWN] = np.bincount(t_cls[mask], minlength=3)
+        else:
+            _k_confusion(t_cls, mask, t[0], out[i])
+    return out
 
 
 def compare_maps(maps: Mapping[str, EvidentialMap], reference: str = "ray_ilm") -> dict[str, dict[str, float]]:
-    """Per-class IoU of every map against ``maps[reference]`` over the reference's covered cells."""
+    """Per-class IoU of every map against ``maps[reference]`` over the reference's covered cells.
+
+    Works tile by tile over the reference's tiles: the cost grows with the area mapped, never
+    with the bounding box of the drive.
+    """
     if reference not in maps:
         raise KeyError(f"reference map {reference!r} not among {sorted(maps)}")
-    r0, c0, h, w = _common_window(maps.values())
-    ref_m, covered = maps[reference].read(r0, c0, h, w)
-    ref_cls = classify(ref_m)
-    out = {}
-    for name, m in maps.items():
-        if name == reference:
-            continue
-        masses, _ = m.read(r0, c0, h, w)
-        out[name] = iou_per_class(classify(masses), ref_cls, covered)
-    return out
+    total = sum((tile_confusions_vs_map(maps, reference, k) for k in list(maps[reference].tiles)),
+                np.zeros((len(maps), 3, 3), dtype=np.int64))
+    return {name: iou_from_confusion(total[i]) for i, name in enumerate(maps) if name != reference}
+
+
+def compare_truth(maps: Mapping[str, EvidentialMap], truth: EvidentialMap, reference: str = "ray_ilm") -> dict[str, dict[str, float]]:
+    """Per-class IoU (free, occupied) of every map against the accumulated true occupancy (simulation)."""
+    reference = reference if reference in maps else next(iter(maps))
+    total = sum((tile_confusions_vs_truth(maps, truth, reference, k) for k in list(truth.tiles)),
+                np.zeros((len(maps), 3, 3), dtype=np.int64))
+    return {name: {c: v for c, v in iou_from_confusion(total[i]).items() if c != "unknown"} for i, name in enumerate(maps)}
 
 
 def mean_iou(per_scene: Iterable[Mapping[str, Mapping[str, float]]]) -> dict[str, dict[str, float]]:
@@ -119,7 +222,7 @@ def markdown_table(results: Mapping[str, Mapping[str, float]], title: str = "our
     sep = "|" + "---|" * (head.count("|") - 1)
     lines = [f"**{title}** (mIoU in %)", "", head, sep]
     for name, ious in results.items():
-        row = f"| `{name}` | " + " | ".join(_pct(ious.get(c, math.nan)) for c in CLASSES) + " |"
+        row = f"| `{name}` | " + " | ".join(_pct(ious.get(c)) for c in CLASSES) + " |"
         if paper:
             p = PAPER_TABLE_I.get(name)
             row += " " + " | ".join(f"{p[c]:.2f}" if p else "-" for c in CLASSES) + " |"
@@ -127,5 +230,5 @@ def markdown_table(results: Mapping[str, Mapping[str, float]], title: str = "our
     return "\n".join(lines) + "\n"
 
 
-def _pct(v: float) -> str:
-    return "n/a" if math.isnan(v) else f"{100 * v:.2f}"
+def _pct(v: float | None) -> str:
+    return "n/a" if v is None or math.isnan(v) else f"{100 * v:.2f}"

@@ -1,14 +1,18 @@
-"""Small file helpers: atomic writes (write a temporary file next to the target, then rename)."""
+"""Small file helpers: atomic writes (write a temporary file next to the target, then rename), JSON."""
 
 from __future__ import annotations
 
+import json
+import math
 import os
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
-from typing import IO, Callable, Iterator
+from typing import IO, Any, Callable, Iterator
 
-__all__ = ["atomic_open", "atomic_write", "atomic_write_bytes", "atomic_write_text"]
+import numpy as np
+
+__all__ = ["atomic_open", "atomic_write", "atomic_write_bytes", "atomic_write_text", "jsonable", "write_json"]
 
 
 def _umask() -> int:
@@ -61,3 +65,25 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> None:
     """Write UTF-8 ``text`` to ``path`` atomically."""
     with atomic_open(path, "w") as f:
         f.write(text)
+
+
+def jsonable(x: Any) -> Any:
+    """Plain JSON values: numpy numbers to Python numbers, NaN to null, tuples to lists, keys to strings."""
+    if isinstance(x, dict):
+        return {str(k): jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [jsonable(v) for v in x]
+    if isinstance(x, (np.floating, float)):
+        return None if math.isnan(float(x)) else float(x)
+    if isinstance(x, (np.integer,)):
+        return int(x)
+    if isinstance(x, np.bool_):
+        return bool(x)
+    return x
+
+
+def write_json(path: str | os.PathLike, obj: Any) -> Path:
+    """Write ``obj`` as indented JSON (see :func:`jsonable`), atomically; the one JSON writer of evgrid."""
+    text = json.dumps(jsonable(obj), indent=2)
+    atomic_write_text(path, text + "\n")
+    return Path(path)

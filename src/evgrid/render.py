@@ -12,10 +12,21 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from evgrid.evaluate import CLASSES
+from evgrid.classes import CLASSES
 from evgrid.io import atomic_write
+from evgrid.mass import vacuous
 
-__all__ = ["masses_to_rgb", "plot_panels", "plot_convergence", "write_gif", "trajectory_cells"]
+__all__ = [
+    "masses_to_rgb",
+    "plot_panels",
+    "plot_convergence",
+    "write_gif",
+    "trajectory_cells",
+    "sample_map",
+    "mosaic",
+    "write_scene_figures",
+    "plot_m_u_min_sweep",
+]
 
 #: rgb -> {free, occupied, unknown}, as in the paper's figures.
 CLASS_COLOURS = {"free": (1.0, 0.0, 0.0), "occupied": (0.0, 1.0, 0.0), "unknown": (0.0, 0.0, 1.0)}
@@ -140,3 +151,104 @@ def trajectory_cells(xy: np.ndarray, resolution: float, r0: int, c0: int) -> np.
     rows = -xy[:, 0] / resolution - r0 - 0.5
     cols = -xy[:, 1] / resolution - c0 - 0.5
     return np.stack([cols, rows], axis=1)
+
+
+def sample_map(m, r0: int, c0: int, h: int, w: int, step: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Every ``step``-th map cell of ``[r0, r0+h) x [c0, c0+w)``: masses and coverage, read tile by tile.
+
+    Only tiles that exist are touched (at most those the box meets), so a picture of a window
+    costs the same anywhere on a long drive, and a picture of a whole map grows with its area.
+    """
+    if step < 1 or h < 0 or w < 0:
+        raise ValueError(f"sample_map needs step >= 1 and a non-negative box, got step {step}, box {h} x {w}")
+    hh, ww = -(-h // step), -(-w // step)
+    out = vacuous((hh, ww))
+    cov = np.zeros((hh, ww), dtype=np.bool_)
+    ts = m.tile_cells
+    n_box = ((r0 + h - 1) // ts - r0 // ts + 1) * ((c0 + w - 1) // ts - c0 // ts + 1) if h and w else 0
+    if n_box <= len(m.tiles):
+        keys = [(ti, tj) for ti in range(r0 // ts, (r0 + h - 1) // ts + 1) for tj in range(c0 // ts, (c0 + w - 1) // ts + 1)]
+    else:
+        keys = list(m.tiles)
+    for ti, tj in keys:
+        t = m.tiles.get((ti, tj))
+        if t is None:
+            continue
+        # first sampled row/column inside this tile, as a map index
+        ra = max(r0, ti * ts)
+        ca = max(c0, tj * ts)
+        ra += -(ra - r0) % step
+        ca += -(ca - c0) % step
+        rb, cb = min(r0 + h, (ti + 1) * ts), min(c0 + w, (tj + 1) * ts)
+        if ra >= rb or ca >= cb:
+            continue
+        src = (slice(ra - ti * ts, rb - ti * ts, step), slice(ca - tj * ts, cb - tj * ts, step))
+        piece = t[src]
+        oi, oj = (ra - r0) // step, (ca - c0) // step
+        out[oi : oi + piece.shape[0], oj : oj + piece.shape[1]] = piece
+        cov[oi : oi + piece.shape[0], oj : oj + piece.shape[1]] = m.covered_tiles[(ti, tj)][src]
+    return out, cov
+
+
+def mosaic(pics: Sequence[np.ndarray], cols: int = 3) -> np.ndarray:
+    """RGB pictures of one size tiled ``cols`` across (missing places black)."""
+    if not pics:
+        raise ValueError("no pictures to tile")
+    h, w = pics[0].shape[:2]
+    tiles = list(pics) + [np.zeros((h, w, 3), np.uint8)] * (-len(pics) % cols)
+    return np.concatenate([np.concatenate(tiles[i : i + cols], axis=1) for i in range(0, len(tiles), cols)], axis=0)
+
+
+#: Longest side, in map cells read, of the whole-map figure (a figure has a few hundred pixels a panel).
+_FIGURE_CELLS = 1024
+
+
+def write_scene_figures(
+    maps: Mapping[str, object],
+    out: Path,
+    name: str,
+    trajectory: Sequence[tuple[float, float, float]],
+    last_isms: Mapping[str, np.ndarray] | None = None,
+    keyframes: Sequence[Mapping] = (),
+    gif_frames: Sequence[np.ndarray] = (),
+) -> dict[str, str]:
+    """The maps side by side, the ISMs of the last update, convergence curves and the GIF; returns the files."""
+    files: dict[str, str] = {}
+    ref = maps.get("ray_ilm") or next(iter(maps.values()))
+    r0, c0, h, w = ref.covered_bounds()
+    step = max(1, -(-max(h, w) // _FIGURE_CELLS))
+    res = ref.spec.resolution
+    panels = {n: sample_map(m, r0, c0, h, w, step)[0] for n, m in maps.items()}
+    track = trajectory_cells(np.array([(x, y) for x, y, _ in trajectory]).reshape(-1, 2), res * step, r0 / step, c0 / step)
+    files["maps"] = str(plot_panels(panels, out / "maps.png", title=f"{name}: the maps (first pose's frame, x up)",
+                                    tracks={n: track for n in panels}))
+    if last_isms:
+        files["isms"] = str(plot_panels(last_isms, out / "isms.png", gamma=0.4,
+                                        title=f"{name}: ISMs of the last update (local grid, colour gamma 0.4)"))
+    if keyframes and "iou" in keyframes[0]:
+        curves = {n: [k["iou"].get(n, {}) for k in keyframes] for n in maps if n != "ray_ilm"}
+        t0 = keyframes[0]["timestamp"]
+        times = [(k["timestamp"] - t0) * 1e-6 for k in keyframes]
+        files["convergence"] = str(plot_convergence(curves, out / "convergence.png", times, title=f"{name}: IoU against ray_ilm"))
+    if gif_frames:
+        files["gif"] = str(write_gif(gif_frames, out / "maps.gif"))
+    return files
+
+
+def plot_m_u_min_sweep(rows: Sequence[Mapping], names: Sequence[str], path: str | os.PathLike, chosen: float | None = None) -> Path:
+    """mIoU of the swept maps against m_u_min, per class and averaged, with the chosen value marked."""
+    plt = _pyplot()
+
+    xs = [r["m_u_min"] for r in rows]
+    fig, axes = plt.subplots(1, 4, figsize=(15, 3.4), dpi=110)
+    for ax, cls in zip(axes, (*CLASSES, "mean")):
+        for name in names:
+            ys = [r["mean_of_classes"][name] if cls == "mean" else r["miou"][name][cls] for r in rows]
+            ax.plot(xs, ys, marker="o", label=name)
+        ax.set_title(f"{cls} mIoU vs ray_ilm" if cls != "mean" else "mean of the three classes", fontsize=9)
+        ax.set_xlabel("m_u_min", fontsize=8)
+        ax.grid(alpha=0.3)
+        if chosen is not None:
+            ax.axvline(chosen, color="k", ls="--", lw=0.8)
+    axes[0].legend(fontsize=7)
+    return _save(fig, path)

@@ -7,6 +7,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 from dataclasses import dataclass
@@ -15,7 +16,7 @@ from typing import Protocol, Sequence
 
 from evgrid.data.frame import Scene
 
-__all__ = ["SceneSource", "SimSource", "SimFilesSource", "NuScenesSource", "sim_split"]
+__all__ = ["SceneSource", "SimSource", "SimFilesSource", "NuScenesSource", "sim_split", "source_to_dict", "source_from_dict"]
 
 
 def sim_split(seed: int) -> str:
@@ -126,3 +127,26 @@ def scenes_of(source: SceneSource, names: Sequence[str] | None = None) -> list[s
     if missing:
         raise KeyError(f"unknown scene(s) {missing}; available: {known[:10]}{' ...' if len(known) > 10 else ''}")
     return list(names)
+
+
+def _kinds() -> dict[str, type]:
+    return {"sim": SimSource, "sim_files": SimFilesSource, "nuscenes": NuScenesSource}
+
+
+def source_to_dict(source: SceneSource) -> dict | None:
+    """A source as plain JSON (``{"kind": ..., fields}``) for a run's config.json; None for sources of other kinds."""
+    for kind, cls in _kinds().items():
+        if type(source) is cls:
+            return {"kind": kind, **{k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(source).items()}}
+    return None
+
+
+def source_from_dict(d: dict) -> SceneSource:
+    """Inverse of :func:`source_to_dict`; raises ConfigError naming the bad field."""
+    from evgrid.config import ConfigError, from_dict
+
+    kinds = _kinds()
+    if not isinstance(d, dict) or d.get("kind") not in kinds:
+        raise ConfigError(f"config source: 'kind' must be one of {sorted(kinds)}, got {d.get('kind') if isinstance(d, dict) else d!r}")
+    fields = {k: v for k, v in d.items() if k != "kind"}
+    return from_dict(kinds[d["kind"]], fields, f"config source ({d['kind']})")

@@ -1,0 +1,170 @@
+"""Observers of the mapper: the true occupancy, IoU over time, and the GIF.
+
+Each takes :class:`~evgrid.mapper.MapUpdate` objects and touches only the tiles an update
+changed (or a window of fixed size around the vehicle), so its cost per frame does not grow
+with how long the vehicle has driven.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable
+
+import numpy as np
+
+from evgrid.evaluate import iou_from_confusion, tile_confusions_vs_map, tile_confusions_vs_truth, tile_keys
+from evgrid.geometry import GridSpec
+from evgrid.grid import EvidentialMap, MapWindow, Warper
+from evgrid.mapper import MapUpdate
+
+__all__ = ["TruthTracker", "TileScores", "SceneScores", "GifRecorder"]
+
+_TRUTH_MASSES = np.array([[1, 0, 0], [0, 1, 0], [0, 1, 0]], dtype=np.float32)  # free, static, dynamic
+
+
+def _replace_where_informed(cell: np.ndarray, m: np.ndarray) -> None:
+    """Truth map update: the latest observed truth wins where it says anything."""
+    np.copyto(cell, m, where=(m[..., 2] < 1.0)[..., None])
+
+
+def _window_box(w: MapWindow, margin: int = 0) -> tuple[int, int, int, int]:
+    h, wd = w.shape
+    return w.r0 - margin, w.c0 - margin, h + 2 * margin, wd + 2 * margin
+
+
+class TruthTracker:
+    """The true occupancy (simulator only) accumulated in the map frame, as a mass map.
+
+    ``changed`` collects the tiles a truth update touched (with a one-cell margin: a cell's
+    observability depends on its neighbours) until a consumer takes them.
+    """
+
+    def __init__(self, grid: GridSpec, tile_cells: int = 256):
+        self.map = EvidentialMap(grid, tile_cells, {"rule": "truth"})
+        self._warper: Warper | None = None  # made at the first frame with true occupancy
+        self.changed: set[tuple[int, int]] = set()
+
+    def on_update(self, update: MapUpdate) -> None:
+        occ = update.frame.occupancy
+        if occ is None:
+            return
+        if self._warper is None:
+            self._warper = Warper(self.map.spec)
+        window = self._warper.warp(_TRUTH_MASSES[np.clip(occ, 0, 2)], update.pose)
+        self.map.apply(window, _replace_where_informed)
+        self.changed |= tile_keys(self.map, *_window_box(window, 1))
+
+
+class TileScores:
+    """Confusion counts of several maps, kept per tile and summed; only changed tiles are recounted."""
+
+    def __init__(self, names: tuple[str, ...], count_tile: Callable[[tuple[int, int]], np.ndarray]):
+        self.names = names
+        self._count = count_tile
+        self._per_tile: dict[tuple[int, int], np.ndarray] = {}
+        self.total = np.zeros((len(names), 3, 3), dtype=np.int64)
+        self.dirty: set[tuple[int, int]] = set()
+
+    def refresh(self) -> None:
+        """Recount the dirty tiles."""
+        for key in self.dirty:
+            new = self._count(key)
+            old = self._per_tile.get(key)
+            if old is not None:
+                self.total -= old
+            self.total += new
+            self._per_tile[key] = new
+        self.dirty.clear()
+
+    def iou(self, skip: tuple[str, ...] = ()) -> dict[str, dict[str, float]]:
+        """Per-map, per-class IoU of the current counts (after :meth:`refresh`)."""
+        return {n: iou_from_confusion(self.total[i]) for i, n in enumerate(self.names) if n not in skip}
+
+
+class SceneScores:
+    """IoU of every map against ``ray_ilm`` and, where the simulator gives it, the truth; at every keyframe if asked.
+
+    Scores are kept per tile: an update dirties the tiles its windows touched, and a keyframe
+    recounts only those, so tracking convergence costs the same in the first and the tenth minute.
+    """
+
+    def __init__(self, maps: dict[str, EvidentialMap], truth: TruthTracker | None, track: bool = True,
+                 reference: str = "ray_ilm"):
+        self.maps = maps
+        self.truth = truth
+        self.track = track
+        self.reference = reference if reference in maps else None
+        names = tuple(maps)
+        truth_ref = self.reference or names[0]
+        self.vs_ref = TileScores(names, lambda k: tile_confusions_vs_map(maps, self.reference, k)) if self.reference else None
+        self.vs_truth = (TileScores(names, lambda k: tile_confusions_vs_truth(maps, truth.map, truth_ref, k))
+                         if truth is not None else None)
+        self.keyframes: list[dict[str, Any]] = []
+
+    def on_update(self, update: MapUpdate) -> None:
+        any_w = next(iter(update.windows.values()))
+        keys = tile_keys(next(iter(self.maps.values())), *_window_box(any_w))
+        if self.vs_ref is not None:
+            self.vs_ref.dirty |= keys
+        if self.vs_truth is not None:
+            self.vs_truth.dirty |= keys | self.truth.changed
+            self.truth.changed = set()
+        if not update.frame.is_keyframe:
+            return
+        rec: dict[str, Any] = {"index": update.frame.index, "timestamp": update.frame.timestamp}
+        if self.track:
+            if self.vs_ref is not None:
+                self.vs_ref.refresh()
+                rec["iou"] = self.vs_ref.iou(skip=(self.reference,))
+            if self.vs_truth is not None and self.truth.map.tiles:
+                self.vs_truth.refresh()
+                rec["iou_truth"] = {n: {c: v for c, v in d.items() if c != "unknown"} for n, d in self.vs_truth.iou().items()}
+        self.keyframes.append(rec)
+
+    def final(self) -> dict[str, Any]:
+        """Per-class IoU at the end of the scene: ``vs_ray_ilm`` and, with truth, ``vs_truth``."""
+        out: dict[str, Any] = {}
+        if self.vs_ref is not None:
+            self.vs_ref.refresh()
+            out["vs_ray_ilm"] = self.vs_ref.iou(skip=(self.reference,))
+        if self.vs_truth is not None and self.truth.map.tiles:
+            self.vs_truth.dirty |= self.truth.changed
+            self.truth.changed = set()
+            self.vs_truth.refresh()
+            out["vs_truth"] = {n: {c: v for c, v in d.items() if c != "unknown"} for n, d in self.vs_truth.iou().items()}
+        return out
+
+
+class GifRecorder:
+    """A GIF that follows the vehicle: every map in a fixed window around it, at each kept keyframe.
+
+    Each frame reads ``window_m`` metres around the ego pose at one cell in ``step`` (a fixed
+    cost); at most ``max_frames`` are kept, halving the rate (every 2nd, 4th, ... keyframe)
+    whenever that many are held, so memory stays bounded on any drive.
+    """
+
+    def __init__(self, grid: GridSpec, window_m: float = 80.0, step: int = 8, max_frames: int = 240, cols: int = 3):
+        self.grid = grid
+        self.step = step
+        self.cells = int(round(window_m / grid.resolution))
+        self.max_frames = max_frames
+        self.cols = cols
+        self.frames: list[np.ndarray] = []
+        self._stride = 1
+        self._n_keyframes = 0
+
+    def on_update(self, update: MapUpdate) -> None:
+        if not update.frame.is_keyframe:
+            return
+        k = self._n_keyframes
+        self._n_keyframes += 1
+        if k % self._stride:
+            return
+        from evgrid.render import masses_to_rgb, mosaic, sample_map
+
+        rc, cc = self.grid.map_xy_to_cell(update.pose.x, update.pose.y)
+        r0, c0 = int(rc) - self.cells // 2, int(cc) - self.cells // 2
+        pics = [masses_to_rgb(sample_map(m, r0, c0, self.cells, self.cells, self.step)[0]) for m in update.maps.maps.values()]
+        self.frames.append(mosaic(pics, self.cols))
+        if len(self.frames) >= self.max_frames:
+            self.frames = self.frames[::2]
+            self._stride *= 2
