@@ -85,7 +85,10 @@ def test_deep_discount_factor_hand_computed():
 
 
 def test_deep_discount_exact_bound_where_papers_bound_fails():
-    """DESIGN 2: the paper's bound holds K fixed and lets m_u fall below m_u_min; the exact one does not."""
+    """The paper's bound (eq. (35)) holds K fixed and lets m_u fall below m_u_min; the exact one does not.
+
+    docs/decisions.md#exact-gamma-bound
+    """
     m_map = np.array([0.1, 0.4, 0.5])
     m_pred = np.array([0.3, 0.3, 0.4])
     m_u_min, alpha = 0.4, 30.0
@@ -168,7 +171,7 @@ def test_kernels_match_a_float64_numpy_reference():
 def test_dempster_never_raises_unknown(m1, m2):
     """Paper IV-A: Dempster's fused unknown mass never exceeds either input's (total conflict aside)."""
     if 1.0 - float(mass.conflict(m1, m2)) < 1e-6:
-        return  # undefined there; DESIGN 1 returns vacuous
+        return  # undefined there; vacuous (docs/decisions.md#total-conflict)
     u = mass.dempster(m1, m2)[2]
     assert u <= min(m1[2], m2[2]) + 1e-6
 
@@ -229,7 +232,7 @@ def test_gamma_in_unit_interval_and_zero_without_gain(m_map, m_pred, m_u_min, al
 @settings(max_examples=25, deadline=None)
 @given(st.integers(0, 2**32 - 1), st.floats(0.05, 0.9), st.floats(0.5, 50.0))
 def test_deep_discount_invariant_over_1000_updates(seed, m_u_min, alpha):
-    """Paper eq. (condition_on_gamma), DESIGN 2: m_u >= m_u_min stays true under any deep_disc updates."""
+    """Paper eq. (30), docs/decisions.md#exact-gamma-bound: m_u >= m_u_min stays true under any deep_disc updates."""
     from evgrid.fusion import FusionParams, update_deep_disc
 
     rng = np.random.default_rng(seed)

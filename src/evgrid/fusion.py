@@ -1,4 +1,4 @@
-"""The six map update rules of the paper's Table I (DESIGN 5), and a set of maps updated in one pass.
+"""The six map update rules of the paper's Table I, and a set of maps updated in one pass.
 
 Each rule updates map cells in place from ISM masses on the same cells (both ``(h, w, 3)``
 views, see :meth:`evgrid.grid.EvidentialMap.apply`):
@@ -13,6 +13,7 @@ views, see :meth:`evgrid.grid.EvidentialMap.apply`):
 ==============  ==========================================================================
 
 ISM cells that are vacuous leave a map cell unchanged under every rule, so kernels skip them.
+The paper's equations behind each rule: docs/equations.md#the-six-maps-of-table-i.
 """
 
 from __future__ import annotations
@@ -53,14 +54,15 @@ MAP_NAMES: tuple[str, ...] = ("ray_ilm", "deep_acc", "deep_replace", "deep_disc"
 #: The three inverse sensor models that feed them.
 ISM_NAMES: tuple[str, ...] = ("ray_ilm", "ray_irm", "deep_irm")
 
-# Default lower limit on the deep ISM's unknown mass; the paper gives no value (DESIGN 2).
+# Default lower limit on the deep ISM's unknown mass; the paper gives no value
+# (docs/decisions.md#default-lower-limit-on-unknown-mass).
 # Chosen by `evgrid sweep-m-u-min` on simulated validation scenes (seeds 4, 9, 14, 19) with the
 # shipped Ev-Net: the highest limit whose deep_disc mIoU is within 0.01 of the best (0.528 vs
 # 0.530 at 0.05); at >= 0.5 a cell known only to the deep IRM can never be classified free or
 # occupied (deep_disc free mIoU drops from 0.76 to 0), below 0.3 the prior is less clearly
 # apart from verified space for no gain.
 M_U_MIN_DEFAULT = 0.3
-ALPHA_DEFAULT = 10.0  # paper, section IV-C
+ALPHA_DEFAULT = 10.0  # paper, section IV-D, eq. (28)
 
 
 @dataclass(frozen=True, slots=True)
@@ -139,7 +141,7 @@ def update_deep_replace(
 def update_deep_disc(
     cell: np.ndarray, deep: np.ndarray, params: FusionParams = FusionParams(), spans: np.ndarray | None = None
 ) -> None:
-    """``map = map (+)_Y (gamma (x) limit_unknown(deep IRM))`` (paper eq. gamma; deep IRM (disc.)), in place."""
+    """``map = map (+)_Y (gamma (x) limit_unknown(deep IRM))`` (paper eqs. (29), (35); deep IRM (disc.)), in place."""
     _check_views(cell, deep)
     _k_deep_disc_into(*_pair(cell, deep, spans), float(params.m_u_min), float(params.alpha))
 

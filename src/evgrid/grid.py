@@ -4,7 +4,7 @@ Indexing and frames are those of :mod:`evgrid.geometry`. A local ISM grid (``(n,
 ego-centred) taken at ego pose ``pose`` (an :class:`~evgrid.geometry.SE2` of the ego in the
 first pose's frame) is resampled onto the map cells its square covers, bilinearly (a convex
 mix of masses is a mass), cells beyond the local grid counting as vacuous [0, 0, 1]
-(DESIGN 3). Only that window of the map is read or written, and within it the update rules
+(docs/decisions.md#map-frame-and-warp). Only that window of the map is read or written, and within it the update rules
 visit only the covered cells of each row (:attr:`MapWindow.spans`).
 
 The map stores square tiles of ``tile_cells`` cells, created the first time a local grid

@@ -32,8 +32,8 @@ def _normalise_cell(f, o, u):
 
 @numba.njit(inline="always", **_JIT)
 def _dempster_cell(f1, o1, u1, f2, o2, u2):
-    # Paper eq. (dempsters_rule); f + o + u equals 1 - K for normalised inputs, so dividing by
-    # it normalises. Total conflict (1 - K = 0) is undefined: vacuous (DESIGN 1).
+    # Paper eq. (5); f + o + u equals 1 - K for normalised inputs, so dividing by it
+    # normalises. Total conflict (1 - K = 0) is undefined: vacuous (docs/decisions.md#total-conflict).
     f = f1 * f2 + f1 * u2 + u1 * f2
     o = o1 * o2 + o1 * u2 + u1 * o2
     u = u1 * u2
@@ -42,7 +42,7 @@ def _dempster_cell(f1, o1, u1, f2, o2, u2):
 
 @numba.njit(inline="always", **_JIT)
 def _yager_cell(f1, o1, u1, f2, o2, u2):
-    # Paper eq. (yagers_rule): the conflict K goes to the unknown mass.
+    # Paper eq. (6): the conflict K (eq. (7)) goes to the unknown mass.
     k = f1 * o2 + o1 * f2
     f = f1 * f2 + f1 * u2 + u1 * f2
     o = o1 * o2 + o1 * u2 + u1 * o2
@@ -52,7 +52,7 @@ def _yager_cell(f1, o1, u1, f2, o2, u2):
 
 @numba.njit(inline="always", **_JIT)
 def _limit_unknown_cell(f, o, u, m_u_min):
-    # Paper eq. (lower_un_mass_limit): move Delta = max(0, m_u_min - m_u) into m_u, taking it
+    # Paper eqs. (15)-(16): move Delta = max(0, m_u_min - m_u) into m_u, taking it
     # from m_f and m_o in proportion (their ratio is kept); m_f + m_o = 0 stays unchanged.
     s = f + o
     d = m_u_min - u
@@ -77,8 +77,9 @@ def _tanh_pos(y):
 
 @numba.njit(inline="always", **_JIT)
 def _gamma_cell(f1, o1, u1, f2, o2, u2, m_u_min, alpha):
-    # DESIGN 2: gamma = min(tanh(alpha * max(0, m_u_map - m_u_pred)), exact bound), in [0, 1].
-    # The paper's bound (eq. gamma) holds K fixed; K scales with gamma, so the exact bound is
+    # Paper eq. (35) with the exact bound (docs/decisions.md#exact-gamma-bound): gamma =
+    # min(tanh(alpha * max(0, m_u_map - m_u_pred)), exact bound), in [0, 1].
+    # The paper's bound holds K fixed; K scales with gamma, so the exact bound is
     # (m_u_map - m_u_min) / (m_u_map * (1 - m_u_pred) - K0) where that denominator is > 0.
     x = u1 - u2
     g = _tanh_pos(alpha * (x if x > 0.0 else 0.0))
@@ -91,12 +92,12 @@ def _gamma_cell(f1, o1, u1, f2, o2, u2, m_u_min, alpha):
 
 @numba.njit(inline="always", **_JIT)
 def _deep_disc_cell(f1, o1, u1, f2, o2, u2, m_u_min, alpha):
-    # DESIGN 5, deep_disc: m = limit_unknown(pred); map <- map (+)_Y (gamma (x) m).
+    # deep_disc, paper eq. (29): m = limit_unknown(pred), eq. (15); map <- map (+)_Y (gamma (x) m).
     fn, on, un = _normalise_cell(f1, o1, u1)
     f2, o2, u2 = _normalise_cell(f2, o2, u2)
     f2, o2, u2 = _limit_unknown_cell(f2, o2, u2, m_u_min)
     g = _gamma_cell(fn, on, un, f2, o2, u2, m_u_min, alpha)
-    # Paper eq. (discount_eq), then Yager.
+    # Paper eq. (8), then Yager (eq. (6)).
     f, o, u = _yager_cell(fn, on, un, g * f2, g * o2, 1.0 - g + g * u2)
     # gamma = 0 adds nothing: keep the cell bit-exact, as renormalising a float32 cell that sits
     # on m_u_min could move it one ulp below the limit.
@@ -167,7 +168,7 @@ def rows(v: np.ndarray) -> tuple[np.ndarray, int, int, int]:
     return flat, rs, h, w
 
 
-# --- in-place kernels over rows (see evgrid.mass.rows) -----------------------------------------
+# --- in-place kernels over rows (see rows() above) ---------------------------------------------
 # Cells where the ISM is vacuous keep their old value exactly (a select, not a branch, so the
 # loops vectorise). Only columns spans[i, 0]:spans[i, 1] of row i are visited (the cells a
 # warped window covers); ends are clamped to [0, w], so any spans are memory-safe.
@@ -181,6 +182,7 @@ def _span(spans, i, w):
 
 @numba.njit(**_JIT)
 def _k_dempster_into(mp, mrs, ism, irs, h, w, spans):
+    # map <- map (+)_D ISM, paper eq. (5): the ray_ilm, deep_acc and ray_irm maps.
     for i in range(h):
         lo, hi = _span(spans, i, w)
         mp_, ism_ = mp[i * mrs + 3 * lo:i * mrs + 3 * hi], ism[i * irs + 3 * lo:i * irs + 3 * hi]
@@ -197,6 +199,9 @@ def _k_dempster_into(mp, mrs, ism, irs, h, w, spans):
 
 @numba.njit(**_JIT)
 def _k_deep_replace_into(mp, mrs, ism, irs, h, w, spans, m_u_min):
+    # deep_replace: the replace update the paper describes after eq. (23), on the prediction
+    # limited by eq. (15); a cell takes it where it is strictly less unknown
+    # (docs/decisions.md#the-six-maps).
     for i in range(h):
         lo, hi = _span(spans, i, w)
         mp_, ism_ = mp[i * mrs + 3 * lo:i * mrs + 3 * hi], ism[i * irs + 3 * lo:i * irs + 3 * hi]
@@ -213,6 +218,7 @@ def _k_deep_replace_into(mp, mrs, ism, irs, h, w, spans, m_u_min):
 
 @numba.njit(**_JIT)
 def _k_deep_disc_into(mp, mrs, ism, irs, h, w, spans, m_u_min, alpha):
+    # deep_disc: paper eq. (29) with eqs. (15), (8) and (35), see _deep_disc_cell.
     for i in range(h):
         lo, hi = _span(spans, i, w)
         mp_, ism_ = mp[i * mrs + 3 * lo:i * mrs + 3 * hi], ism[i * irs + 3 * lo:i * irs + 3 * hi]
@@ -229,6 +235,8 @@ def _k_deep_disc_into(mp, mrs, ism, irs, h, w, spans, m_u_min, alpha):
 
 @numba.njit(**_JIT)
 def _k_fused_into(mp, mrs, deep, drs, irm, irs, h, w, spans, m_u_min, alpha):
+    # fused: the deep_disc step (paper eq. (29) with eqs. (15), (8), (35)) with the deep IRM,
+    # then Dempster (eq. (5)) with the ray IRM of the same step (docs/decisions.md#the-six-maps).
     for i in range(h):
         lo, hi = _span(spans, i, w)
         mp_ = mp[i * mrs + 3 * lo:i * mrs + 3 * hi]

@@ -2,8 +2,9 @@
 
 Every public function takes arrays of shape ``(..., 3)`` (masses) or ``(..., 2)`` (evidence)
 and broadcasts over the leading axes; outputs are float32. Masses are dimensionless, each in
-[0, 1], summing to 1. The combination rules run as compiled numba kernels; the per-cell
-formulas below (``_*_cell``) are shared with the map update rules in :mod:`evgrid.fusion`.
+[0, 1], summing to 1. The combination rules run as compiled numba kernels; their per-cell
+formulas (``_*_cell`` in :mod:`evgrid.kernels`) are shared with the map update rules in
+:mod:`evgrid.fusion`. Equation numbers are the paper's (docs/equations.md).
 
 Numerics: every kernel works in float64 and renormalises its output by its own sum, which
 equals the paper's ``1 - K`` (Dempster) or ``1`` (Yager) in exact arithmetic. This keeps any
@@ -95,19 +96,22 @@ def _combine(kernel, m1: np.ndarray, m2: np.ndarray, out: np.ndarray | None) -> 
 
 
 def conflict(m1: np.ndarray, m2: np.ndarray) -> np.ndarray:
-    """Conflict ``K = m_f1 m_o2 + m_o1 m_f2`` (paper eq. conflict), shape ``(...)``."""
+    """Conflict ``K = m_f1 m_o2 + m_o1 m_f2`` (paper eq. (7)), shape ``(...)``."""
     a = np.asarray(m1, dtype=np.float32)
     b = np.asarray(m2, dtype=np.float32)
     return (a[..., 0] * b[..., 1] + a[..., 1] * b[..., 0]).astype(np.float32)
 
 
 def dempster(m1: np.ndarray, m2: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-    """Dempster's rule ``m1 (+)_D m2`` (paper eq. dempsters_rule); total conflict gives [0, 0, 1]."""
+    """Dempster's rule ``m1 (+)_D m2`` (paper eq. (5)).
+
+    Total conflict gives [0, 0, 1] (docs/decisions.md#total-conflict).
+    """
     return _combine(_k_dempster, m1, m2, out)
 
 
 def yager(m1: np.ndarray, m2: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-    """Yager's rule ``m1 (+)_Y m2`` (paper eq. yagers_rule): the conflict K goes to m_u."""
+    """Yager's rule ``m1 (+)_Y m2`` (paper eq. (6)): the conflict K goes to m_u."""
     return _combine(_k_yager, m1, m2, out)
 
 
@@ -119,7 +123,7 @@ def _check_unit(name: str, v: np.ndarray | float) -> np.ndarray:
 
 
 def discount(m: np.ndarray, gamma: np.ndarray | float) -> np.ndarray:
-    """Discounting ``gamma (x) m = [g m_f, g m_o, 1 - g + g m_u]`` (paper eq. discount_eq), gamma in [0, 1]."""
+    """Discounting ``gamma (x) m = [g m_f, g m_o, 1 - g + g m_u]`` (paper eq. (8)), gamma in [0, 1]."""
     a = np.asarray(m, dtype=np.float64)
     if a.ndim == 0 or a.shape[-1] != 3:
         raise ValueError(f"m: the last axis must be of length 3, got shape {a.shape}")
@@ -129,10 +133,11 @@ def discount(m: np.ndarray, gamma: np.ndarray | float) -> np.ndarray:
 
 
 def limit_unknown(m: np.ndarray, m_u_min: float) -> np.ndarray:
-    """Lower limit on unknown mass ``m (box+) m_u_min`` (paper eq. lower_un_mass_limit).
+    """Lower limit on unknown mass ``m (box+) m_u_min`` (paper eqs. (15)-(16)).
 
     Raises m_u to at least ``m_u_min``, taking the difference from m_f and m_o in proportion,
-    so their ratio is kept. A cell with ``m_f + m_o = 0`` is returned unchanged.
+    so their ratio is kept. A cell with ``m_f + m_o = 0`` is returned unchanged
+    (docs/decisions.md#box-plus-on-a-vacuous-mass).
     """
     _check_unit("m_u_min", m_u_min)
     a = np.asarray(m, dtype=np.float64)
@@ -148,7 +153,11 @@ def limit_unknown(m: np.ndarray, m_u_min: float) -> np.ndarray:
 
 
 def from_evidence(e: np.ndarray) -> np.ndarray:
-    """Subjective-logic masses from evidence ``[e_f, e_o] >= 0``: ``[e_f/S, e_o/S, 2/S]``, ``S = 2 + e_f + e_o``."""
+    """Subjective-logic masses from evidence ``[e_f, e_o] >= 0``: ``[e_f/S, e_o/S, 2/S]``, ``S = 2 + e_f + e_o``.
+
+    Paper eqs. (9), (10) and (14). Evidence 0 is accepted (the paper says strictly positive):
+    it is the vacuous mass, and a network's softplus output can underflow to 0.
+    """
     a = np.asarray(e, dtype=np.float64)
     if a.ndim == 0 or a.shape[-1] != 2:
         raise ValueError(f"e: the last axis must be [e_f, e_o] of length 2, got shape {a.shape}")
@@ -159,7 +168,7 @@ def from_evidence(e: np.ndarray) -> np.ndarray:
 
 
 def pignistic_occupied(m: np.ndarray) -> np.ndarray:
-    """Occupancy probability ``p_o = m_o + m_u / 2`` (paper eq. pignistic_prob), shape ``(...)``."""
+    """Occupancy probability ``p_o = m_o + m_u / 2`` (paper eq. (13)), shape ``(...)``."""
     a = np.asarray(m, dtype=np.float32)
     if a.ndim == 0 or a.shape[-1] != 3:
         raise ValueError(f"m: the last axis must be of length 3, got shape {a.shape}")
@@ -169,11 +178,12 @@ def pignistic_occupied(m: np.ndarray) -> np.ndarray:
 def deep_discount_factor(
     m_map: np.ndarray, m_pred: np.ndarray, m_u_min: float, alpha: float = 10.0
 ) -> np.ndarray:
-    """Discount factor gamma in [0, 1] for a deep-ISM prediction (paper eq. gamma, DESIGN 2), shape ``(...)``.
+    """Discount factor gamma in [0, 1] for a deep-ISM prediction (paper eq. (35)), shape ``(...)``.
 
     ``gamma = min(tanh(alpha * max(0, m_u_map - m_u_pred)), (m_u_map - m_u_min) / (m_u_map
     (1 - m_u_pred) - K0))``, the bound applying where its denominator is positive; ``m_pred``
-    is expected to be limited to ``m_u_min`` already.
+    is expected to be limited to ``m_u_min`` already. The bound is exact where the paper's is
+    not, and the gain uses eq. (35)'s sign (docs/decisions.md#exact-gamma-bound).
     """
     _check_unit("m_u_min", m_u_min)
     if not (math.isfinite(alpha) and alpha >= 0):

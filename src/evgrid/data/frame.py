@@ -1,8 +1,9 @@
 """The frame contract: what every data source (simulator, nuScenes) yields, one frame a lidar sweep.
 
 A scene is an iterable of :class:`Frame` in time order. One frame per lidar sweep
-(``LIDAR_TOP`` at 20 Hz in nuScenes); ``is_keyframe`` marks the 2 Hz nuScenes samples, where maps are updated and
-evaluated. Each frame carries the radar sweeps of every radar (any number, any channel names;
+(``LIDAR_TOP`` at 20 Hz in nuScenes); ``is_keyframe`` marks the 2 Hz nuScenes samples, where maps are evaluated
+(and updated, as they are between keyframes too: docs/decisions.md#map-update-rate).
+Each frame carries the radar sweeps of every radar (any number, any channel names;
 nuScenes has the five of ``RADAR_CHANNELS``) whose timestamps fall in
 ``(previous frame's timestamp, this frame's timestamp]``, oldest first, so that a consumer
 that keeps the last N sweeps of each radar sees every sweep exactly once.

@@ -1,6 +1,6 @@
 """Deep IRM: Ev-Net on an accumulated radar detection image, used like the geometric ISMs.
 
-The input image (paper sec. V, DESIGN 4) holds the detections of the last ``n_sweeps`` sweeps
+The input image (docs/decisions.md#radar-image-channels) holds the detections of the last ``n_sweeps`` sweeps
 of every radar, each moved into the *current* ego frame with its own ego pose and extrinsics,
 on the local grid. Its channels, one value a cell (0 where a cell has no detection):
 

@@ -1,4 +1,4 @@
-"""The ray casting inverse lidar model, "ray ILM" (paper sec. V-A; DESIGN 4).
+"""The ray casting inverse lidar model, "ray ILM" (paper sec. V-A; docs/decisions.md#ray-ilm).
 
 From one lidar sweep to a local mass grid ``(n, n, 3)`` [m_f, m_o, m_u] on a
 :class:`~evgrid.geometry.GridSpec`:

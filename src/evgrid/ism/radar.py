@@ -1,4 +1,4 @@
-"""The ray casting inverse radar model, "ray IRM" (paper sec. V-B; DESIGN 4), after Werber et al. 2015.
+"""The ray casting inverse radar model, "ray IRM" (paper sec. V-B; docs/decisions.md#ray-irm), after Werber et al. 2015.
 
 Input: the last N = 10 sweeps of each of the 5 radars. Every sweep is moved into the
 *current* ego frame from its own sensor position at its own time::
@@ -16,7 +16,7 @@ ground plane (z dropped, no height filter: the paper names none). For every dete
 2. Free space: every cone is cast again and marks the cells it touches m_f = 0.3, but it
    stops at the first barrier cell of ANY cone it meets, its own cap included. "Stops" is
    per ray of the cone: the part of a cone behind a barrier is shadowed, the rest goes on
-   (paper fig. "comparison_isms", b.2.1). The cone is the exact continuous sector, not a bundle of sampled
+   (paper Fig. 2, b.2.1). The cone is the exact continuous sector, not a bundle of sampled
    rays: a cell is free when some ray of the cone enters it, inside the cone's range,
    before having entered a barrier cell (barrier cells themselves are not marked). This is
    computed per sensor position with an exact shadow-casting column sweep (see
@@ -701,7 +701,7 @@ def ray_irm_with_stats(
     mats = np.empty((len(used), 3, 4), dtype=np.float64)
     apex_xy = np.empty((len(used), 2), dtype=np.float64)
     for k, s in enumerate(used):
-        # local = current_ego_pose^-1 o sweep.ego_pose o sensor_to_ego (DESIGN 4: own position, own time)
+        # local = current_ego_pose^-1 o sweep.ego_pose o sensor_to_ego (paper sec. V-B: own position, own time)
         m = cur_inv @ s.ego_pose.matrix() @ s.sensor_to_ego.matrix()
         mats[k] = m[:3, :]
         apex_xy[k] = m[:2, 3]

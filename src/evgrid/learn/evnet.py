@@ -1,6 +1,6 @@
 """Ev-Net: the deep inverse radar model (Bauer et al. 2019), its loss and its checkpoint files.
 
-The published interface (paper section V, DESIGN 4): an accumulated radar detection image in
+The published interface (paper sec. V-C; docs/decisions.md#ev-net-architecture): an accumulated radar detection image in
 the current ego frame goes in, max-pooled at the input; an encoder-decoder CNN; bilinear
 upsampling at the output; two non-negative evidence channels ``[e_f, e_o]`` come out, turned
 into masses by :func:`evgrid.mass.from_evidence`. The exact layers of Ev-Net are not public:
@@ -22,7 +22,8 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from evgrid.classes import FREE, OCCUPIED, UNKNOWN  # targets: classes of the ray ILM's cells
+# Targets: classes of the ray ILM's cells (docs/decisions.md#ev-net-targets-and-loss).
+from evgrid.classes import FREE, OCCUPIED, UNKNOWN
 
 __all__ = ["EvNetConfig", "EvNet", "evidential_loss", "save_checkpoint", "load_checkpoint", "CheckpointError"]
 
@@ -100,12 +101,13 @@ class EvNet(nn.Module):
 
 
 def evidential_loss(evidence: torch.Tensor, target: torch.Tensor, valid: torch.Tensor | None = None) -> torch.Tensor:
-    """Ev-Net loss (paper sec. V, DESIGN 4): per-class expectations of the per-cell losses, summed.
+    """Ev-Net loss (paper eqs. (36)-(37)): per-class expectations of the per-cell losses, summed.
 
     ``evidence`` ``(B, 2, H, W)`` = ``[e_f, e_o]`` >= 0; ``target`` ``(B, H, W)`` int with
     FREE, OCCUPIED, UNKNOWN. Free and occupied cells: the expected squared error of Sensoy et
     al. 2018, ``sum_k (y_k - p_k)^2 + p_k (1 - p_k) / (S + 1)``, p the Dirichlet mean; unknown
     cells: ``(1 - m_u)^2`` with ``m_u = 2 / S``. A class absent from the batch adds nothing.
+    How this reads the paper's eq. (36): docs/decisions.md#ev-net-targets-and-loss.
     """
     if evidence.ndim != 4 or evidence.shape[1] != 2:
         raise ValueError(f"evidence must be (B, 2, H, W), got {tuple(evidence.shape)}")

@@ -1,6 +1,6 @@
 """Training Ev-Net on scenes (simulated or nuScenes): dataset cache, training loop, validation.
 
-Samples (paper sec. V, DESIGN 4): at every ``frame_stride``-th lidar frame of a scene, the
+Samples (paper sec. V-C, docs/decisions.md#ev-net-targets-and-loss): at every ``frame_stride``-th lidar frame, the
 input is the radar detection image of the last ``n_sweeps`` sweeps of each radar in the
 current ego frame, the target the ray ILM of the same frame (m_o > 0 occupied, m_f > 0 free,
 else unknown). Inputs are cached sparse (detection tables, a few kB a sample) and rasterised
@@ -94,7 +94,10 @@ class TrainConfig:
 # --- samples ------------------------------------------------------------------------------------
 
 def ilm_classes(masses: np.ndarray) -> np.ndarray:
-    """Target classes from ray ILM masses (DESIGN 4): m_o > 0 OCCUPIED, else m_f > 0 FREE, else UNKNOWN."""
+    """Target classes from ray ILM masses: m_o > 0 OCCUPIED, else m_f > 0 FREE, else UNKNOWN.
+
+    See docs/decisions.md#ev-net-targets-and-loss.
+    """
     out = np.full(masses.shape[:-1], UNKNOWN, dtype=np.uint8)
     out[masses[..., 0] > 0] = FREE
     out[masses[..., 1] > 0] = OCCUPIED

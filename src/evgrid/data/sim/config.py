@@ -206,9 +206,9 @@ class SimConfig:
     keyframe_every: int = 10
     #: Unix time of the first lidar sweep, microseconds (the seed adds whole days).
     start_time_us: int = 1_533_000_000_000_000
-    #: The local grid of the true occupancy raster (DESIGN 3).
+    #: The local grid of the true occupancy raster (docs/conventions.md#local-grid).
     grid: GridSpec = field(default_factory=GridSpec)
-    #: Heights above ground that make a cell occupied (the ray ILM's band, DESIGN 4), metres.
+    #: Heights above ground that make a cell occupied (the ray ILM's band, paper sec. V-A), metres.
     occupancy_z_min_m: float = 0.3
     occupancy_z_max_m: float = 3.0
     lidar: LidarConfig = field(default_factory=LidarConfig)
