@@ -13,14 +13,6 @@ DOCS = ROOT / "docs"
 EQUATIONS = DOCS / "equations.md"
 CITING = ("src", "tests", "benchmarks")
 
-# Files of the lead that still cite the private design notes ("DESIGN n"); the lead empties
-# this list as those lines are changed (a file listed here that cites nothing fails the test).
-DESIGN_CITATIONS_PENDING: set[str] = {
-    "README.md",
-    "src/evgrid/evaluate.py",
-    "src/evgrid/pipeline.py",
-    "tests/test_cli.py",
-}
 
 
 def slug(heading: str) -> str:
@@ -164,9 +156,7 @@ _DESIGN = re.compile(r"\bDESIGN\b")
 def test_no_citations_of_the_private_design_notes():
     here = Path(__file__).resolve()
     citing = {str(f.relative_to(ROOT)) for f in _sources() if f.resolve() != here and _DESIGN.search(f.read_text())}
-    assert not citing - DESIGN_CITATIONS_PENDING, "cite docs/ or the paper's equation numbers instead of DESIGN"
-    stale = DESIGN_CITATIONS_PENDING - citing
-    assert not stale, f"no longer cite DESIGN, remove from DESIGN_CITATIONS_PENDING: {sorted(stale)}"
+    assert not citing, "cite docs/ or the paper's equation numbers instead of DESIGN"
 
 
 @pytest.mark.parametrize("path", sorted(p.name for p in DOCS.glob("*.md")))
