@@ -31,12 +31,12 @@ def main() -> None:
     ap.add_argument("--json", help="also write the figures to this JSON file")
     args = ap.parse_args()
 
-    spec = GridSpec()
+    grid = GridSpec()
     rng = np.random.default_rng(0)
-    a = rng.dirichlet([1, 1, 1], spec.shape).astype(np.float32)
-    b = rng.dirichlet([1, 1, 1], spec.shape).astype(np.float32)
+    a = rng.dirichlet([1, 1, 1], grid.shape).astype(np.float32)
+    b = rng.dirichlet([1, 1, 1], grid.shape).astype(np.float32)
     ism_like = b.copy()
-    ism_like[rng.random(spec.shape) < 0.5] = [0, 0, 1]
+    ism_like[rng.random(grid.shape) < 0.5] = [0, 0, 1]
     out = np.empty_like(a)
     cur = a.copy()
 
@@ -54,15 +54,15 @@ def main() -> None:
     # Warp + fuse one 512 x 512 local grid into a map through the public path (MapSet.update):
     # a dense grid (every cell informative, as the deep IRM's) with the deep_disc rule, at yaws
     # from 0 to 90 degrees (the window, and so the work, is largest at 45).
-    warper = Warper(spec)
+    warper = Warper(grid)
     for deg in range(0, 91, 15):
         pose = SE2(3.3, -1.7, math.radians(deg))
         res[f"warp 512x512 into map, yaw {deg} deg (dense)"] = timeit(lambda: warper.warp(b, pose))
-        one = fusion.MapSet(spec, params, names=("deep_disc",))
+        one = fusion.MapSet(grid, params, names=("deep_disc",))
         res[f"warp + deep_disc fuse into map, yaw {deg} deg (dense)"] = timeit(lambda: one.update(pose, {"deep_irm": b}))
     for deg in (0, 45):
         pose = SE2(3.3, -1.7, math.radians(deg))
-        one = fusion.MapSet(spec, params, names=("ray_ilm",))
+        one = fusion.MapSet(grid, params, names=("ray_ilm",))
         res[f"warp + dempster fuse into map, yaw {deg} deg (ISM-like)"] = timeit(lambda: one.update(pose, {"ray_ilm": ism_like}))
 
     from evgrid.ism import ray_ilm
@@ -71,10 +71,10 @@ def main() -> None:
     ilm = ray_ilm(street_lidar_sweep())  # a real ray ILM grid: a 15 m disc in a 40 m square
     for deg in (0, 45):
         pose = SE2(3.3, -1.7, math.radians(deg))
-        one = fusion.MapSet(spec, params, names=("ray_ilm",))
+        one = fusion.MapSet(grid, params, names=("ray_ilm",))
         res[f"warp + dempster fuse into map, yaw {deg} deg (ray ILM of a street)"] = timeit(lambda: one.update(pose, {"ray_ilm": ilm}))
 
-    ms = fusion.MapSet(spec, params)
+    ms = fusion.MapSet(grid, params)
     isms = {"ray_ilm": ism_like, "ray_irm": ism_like, "deep_irm": b}
     k = [0]
 

@@ -11,7 +11,7 @@ from typer.testing import CliRunner
 from evgrid.cli import app
 from evgrid.geometry import GridSpec
 from evgrid.ism.deep import CHANNELS
-from evgrid.learn.evnet import EvNet, EvNetConfig, save_checkpoint
+from evgrid.ism.evnet import EvNet, EvNetConfig, save_checkpoint
 
 runner = CliRunner()
 

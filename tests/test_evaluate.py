@@ -33,11 +33,11 @@ def test_iou_hand_computed():
 
 
 def test_compare_maps_uses_reference_coverage():
-    spec = GridSpec(32, 4.0)
-    ms = MapSet(spec, names=("ray_ilm", "ray_irm"))
-    free = mass.vacuous(spec.shape)
+    grid = GridSpec(32, 4.0)
+    ms = MapSet(grid, names=("ray_ilm", "ray_irm"))
+    free = mass.vacuous(grid.shape)
     free[:, :16] = [0.9, 0.0, 0.1]
-    occ = mass.vacuous(spec.shape)
+    occ = mass.vacuous(grid.shape)
     occ[:, :8] = [0.9, 0.0, 0.1]
     occ[:, 8:16] = [0.0, 0.9, 0.1]
     ms.update(SE2(), {"ray_ilm": free, "ray_irm": occ})

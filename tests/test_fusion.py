@@ -169,10 +169,10 @@ def test_total_conflict_in_a_map_gives_vacuous():
 
 
 def test_mapset_updates_all_six_maps_and_validates():
-    spec = GridSpec(64, 5.0)
+    grid = GridSpec(64, 5.0)
     rng = np.random.default_rng(3)
-    ms = MapSet(spec, P)
-    isms = {k: random_masses(rng, spec.shape) for k in ("ray_ilm", "ray_irm", "deep_irm")}
+    ms = MapSet(grid, P)
+    isms = {k: random_masses(rng, grid.shape) for k in ("ray_ilm", "ray_irm", "deep_irm")}
     ms.update(SE2(0.3, 0.1, 0.2), isms)
     ms.update(SE2(0.6, 0.1, 0.25), isms)
     assert ms.n_updates == 2
@@ -186,5 +186,5 @@ def test_mapset_updates_all_six_maps_and_validates():
     with pytest.raises(ValueError, match="missing ISM"):
         ms.update(SE2(), {"ray_ilm": isms["ray_ilm"]})
     with pytest.raises(ValueError, match="unknown map"):
-        MapSet(spec, names=("ray_ilm", "octomap"))
-    assert MapSet(spec, names=("ray_ilm",)).required_isms == ("ray_ilm",)
+        MapSet(grid, names=("ray_ilm", "octomap"))
+    assert MapSet(grid, names=("ray_ilm",)).required_isms == ("ray_ilm",)

@@ -151,7 +151,7 @@ def test_map_save_load_is_bit_identical(tmp_path):
     m = _some_map()
     path = save_map(m, tmp_path / "maps" / "ray_ilm.npz")
     back = load_map(path)
-    assert back.spec == m.spec and back.tile_cells == m.tile_cells and back.metadata == m.metadata
+    assert back.grid == m.grid and back.tile_cells == m.tile_cells and back.metadata == m.metadata
     assert back.tiles.keys() == m.tiles.keys()
     for k in m.tiles:
         assert back.tiles[k].tobytes() == m.tiles[k].tobytes()
@@ -189,13 +189,13 @@ def test_failed_save_keeps_the_previous_file(tmp_path, monkeypatch):
     assert [p.name for p in tmp_path.iterdir()] == ["m.npz"]
 
 
-def _numpy_warp_reference(local: np.ndarray, pose: SE2, spec: GridSpec, r0: int, c0: int, h: int, w: int) -> np.ndarray:
+def _numpy_warp_reference(local: np.ndarray, pose: SE2, grid: GridSpec, r0: int, c0: int, h: int, w: int) -> np.ndarray:
     """Bilinear resampling written plainly: map cell centre -> ego frame -> continuous local index."""
     R, C = np.meshgrid(np.arange(r0, r0 + h), np.arange(c0, c0 + w), indexing="ij")
-    x, y = spec.map_cell_to_xy(R, C)
+    x, y = grid.map_cell_to_xy(R, C)
     lx, ly = SE2.inverse(pose).apply(np.stack([x, y], -1)).transpose(2, 0, 1)
-    u, v = spec.xy_to_uv(lx, ly)
-    n = spec.n_cells
+    u, v = grid.xy_to_uv(lx, ly)
+    n = grid.n_cells
     padded = mass.vacuous((n + 2, n + 2)).astype(np.float64)
     padded[1:-1, 1:-1] = local
     out = mass.vacuous((h, w)).astype(np.float64)
@@ -210,28 +210,28 @@ def _numpy_warp_reference(local: np.ndarray, pose: SE2, spec: GridSpec, r0: int,
 @pytest.mark.parametrize("deg", [0.0, 17.0, 37.0, 45.0, 123.0, -80.0])
 def test_warp_matches_a_plain_numpy_reference_on_sparse_grids(deg):
     """Sparse blobs (the block-skipping path) and scattered cells, at several yaws."""
-    spec = GridSpec(128, 10.0)
+    grid = GridSpec(128, 10.0)
     rng = np.random.default_rng(int(deg) + 100)
-    local = mass.vacuous(spec.shape)
+    local = mass.vacuous(grid.shape)
     local[10:30, 70:75] = random_masses(rng, (20, 5))
     local[100, 3] = [0.2, 0.7, 0.1]
     local[0, 127] = [0.9, 0.0, 0.1]
     idx = rng.integers(0, 128, size=(40, 2))
     local[idx[:, 0], idx[:, 1]] = random_masses(rng, (40,))
     pose = SE2(1.37, -2.2, math.radians(deg))
-    w = warp_to_map(local, pose, spec)
-    ref = _numpy_warp_reference(local, pose, spec, w.r0, w.c0, *w.shape)
+    w = warp_to_map(local, pose, grid)
+    ref = _numpy_warp_reference(local, pose, grid, w.r0, w.c0, *w.shape)
     np.testing.assert_allclose(w.masses, ref, atol=2e-6)
 
 
 @pytest.mark.parametrize("deg", [0.0, 30.0, 45.0, 90.0, -135.0])
 def test_warp_matches_a_plain_numpy_reference_on_dense_grids(deg):
     """Every cell informative (a deep IRM's grid): no block is skipped."""
-    spec = GridSpec(128, 10.0)
-    local = random_masses(np.random.default_rng(int(deg) + 700), spec.shape)
+    grid = GridSpec(128, 10.0)
+    local = random_masses(np.random.default_rng(int(deg) + 700), grid.shape)
     pose = SE2(-0.61, 2.9, math.radians(deg))
-    w = warp_to_map(local, pose, spec)
-    ref = _numpy_warp_reference(local, pose, spec, w.r0, w.c0, *w.shape)
+    w = warp_to_map(local, pose, grid)
+    ref = _numpy_warp_reference(local, pose, grid, w.r0, w.c0, *w.shape)
     np.testing.assert_allclose(w.masses, ref, atol=2e-6)
 
 
@@ -295,13 +295,13 @@ def test_a_window_built_by_hand_without_spans_fuses_its_covered_rows_whole():
 )
 def test_warp_matches_the_numpy_reference_at_any_pose(x, y, yaw, sparse, seed):
     """Blocks are skipped only where the local grid is vacuous, at any pose."""
-    spec = GridSpec(48, 4.0)
+    grid = GridSpec(48, 4.0)
     rng = np.random.default_rng(seed)
-    local = random_masses(rng, spec.shape)
+    local = random_masses(rng, grid.shape)
     if sparse:  # a few informative 8 x 8 blocks and scattered cells
-        keep = np.kron(rng.random((6, 6)) < 0.2, np.ones((8, 8), bool)) | (rng.random(spec.shape) < 0.01)
+        keep = np.kron(rng.random((6, 6)) < 0.2, np.ones((8, 8), bool)) | (rng.random(grid.shape) < 0.01)
         local[~keep] = [0, 0, 1]
     pose = SE2(x, y, yaw)
-    w = warp_to_map(local, pose, spec)
-    ref = _numpy_warp_reference(local, pose, spec, w.r0, w.c0, *w.shape)
+    w = warp_to_map(local, pose, grid)
+    ref = _numpy_warp_reference(local, pose, grid, w.r0, w.c0, *w.shape)
     np.testing.assert_allclose(w.masses, ref, atol=2e-6)

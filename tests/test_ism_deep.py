@@ -12,7 +12,7 @@ from evgrid import mass
 from evgrid.data.frame import RADAR_COLUMNS, RadarSweep
 from evgrid.geometry import SE2, SE3, GridSpec
 from evgrid.ism.deep import CHANNELS, DeepIrm, RadarImageParams, radar_image
-from evgrid.learn.evnet import CheckpointError, EvNet, EvNetConfig, save_checkpoint
+from evgrid.ism.evnet import CheckpointError, EvNet, EvNetConfig, save_checkpoint
 
 SPEC = GridSpec()
 

@@ -7,17 +7,9 @@ import pytest
 import torch
 
 from evgrid import mass
-from evgrid.learn.evnet import (
-    FREE,
-    OCCUPIED,
-    UNKNOWN,
-    CheckpointError,
-    EvNet,
-    EvNetConfig,
-    evidential_loss,
-    load_checkpoint,
-    save_checkpoint,
-)
+from evgrid.classes import FREE, OCCUPIED, UNKNOWN
+from evgrid.ism.evnet import CheckpointError, EvNet, EvNetConfig, load_checkpoint, save_checkpoint
+from evgrid.learn.loss import evidential_loss
 
 TINY = EvNetConfig(in_channels=3, width=4, pool=2, depth=2)
 

@@ -9,7 +9,8 @@ import pytest
 import torch
 
 from evgrid.data import SimConfig, simulate_scene
-from evgrid.learn.evnet import FREE, OCCUPIED, UNKNOWN, EvNetConfig, load_checkpoint
+from evgrid.classes import FREE, OCCUPIED, UNKNOWN
+from evgrid.ism.evnet import EvNetConfig, load_checkpoint
 from evgrid.learn.train import RadarDataset, TrainConfig, build_cache, ilm_classes, train
 
 CFG = TrainConfig(epochs=2, batch_size=2, workers=0, frame_stride=10, model=EvNetConfig(in_channels=6, width=4, depth=2))
@@ -79,7 +80,7 @@ def test_training_runs_under_torchrun_with_two_processes(cache, tmp_path):
     script = tmp_path / "ddp.py"
     script.write_text(
         "import sys\n"
-        "from evgrid.learn.evnet import EvNetConfig\n"
+        "from evgrid.ism.evnet import EvNetConfig\n"
         "from evgrid.learn.train import TrainConfig, train\n"
         "cfg = TrainConfig(epochs=1, batch_size=2, workers=0, frame_stride=10, threads=1,\n"
         "                  model=EvNetConfig(in_channels=6, width=4, depth=2))\n"

@@ -14,7 +14,7 @@ from evgrid.fusion import MAP_NAMES
 from evgrid.geometry import GridSpec
 from evgrid.ism import RayIlmParams, RayIrmParams, ray_ilm, ray_irm
 from evgrid.ism.deep import CHANNELS, DeepIrm
-from evgrid.learn.evnet import EvNet, EvNetConfig, save_checkpoint
+from evgrid.ism.evnet import EvNet, EvNetConfig, save_checkpoint
 from evgrid.config import MapperConfig, OutputConfig
 from evgrid.mapper import OccupancyMapper
 from evgrid.runs import choose_m_u_min, map_scene

@@ -46,8 +46,8 @@ def run_bench(duration_s: float = 6.0, checkpoint: str | None = None) -> dict[st
 
     numba.set_num_threads(1)
     torch.set_num_threads(1)
-    spec = GridSpec()
-    deep = DeepIrm(checkpoint, spec, threads=1)
+    grid = GridSpec()
+    deep = DeepIrm(checkpoint, grid, threads=1)
     scene = simulate_scene(4, SimConfig(duration_s=duration_s))
     frames = list(scene)
 
@@ -70,12 +70,12 @@ def run_bench(duration_s: float = 6.0, checkpoint: str | None = None) -> dict[st
         }
 
     rng = np.random.default_rng(0)
-    a = rng.dirichlet([1, 1, 1], spec.shape).astype(np.float32)
-    b = rng.dirichlet([1, 1, 1], spec.shape).astype(np.float32)
+    a = rng.dirichlet([1, 1, 1], grid.shape).astype(np.float32)
+    b = rng.dirichlet([1, 1, 1], grid.shape).astype(np.float32)
     cur, out = a.copy(), np.empty_like(a)
     params = fusion.FusionParams()
-    warper = Warper(spec)
-    one_map = fusion.MapSet(spec, params, names=("deep_disc",))
+    warper = Warper(grid)
+    one_map = fusion.MapSet(grid, params, names=("deep_disc",))
     pose = SE2(3.3, -1.7, math.radians(45))  # 45 degrees: the largest window
     kernels = {
         "dempster_512": median_ms(lambda: mass.dempster(a, b, out)),

@@ -378,7 +378,7 @@ def train(
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from evgrid.learn.evnet import EvNetConfig
+    from evgrid.ism.evnet import EvNetConfig
     from evgrid.learn.train import TrainConfig, build_cache
     from evgrid.learn.train import train as run_training
 

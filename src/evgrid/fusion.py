@@ -196,7 +196,7 @@ class MapSet:
 
     def __init__(
         self,
-        spec: GridSpec | None = None,
+        grid: GridSpec | None = None,
         params: FusionParams | None = None,
         names: tuple[str, ...] = MAP_NAMES,
         tile_cells: int = 256,
@@ -204,15 +204,15 @@ class MapSet:
         unknown = [n for n in names if n not in RULES]
         if unknown or not names:
             raise ValueError(f"unknown map name(s) {unknown}; choose from {MAP_NAMES}")
-        self.spec = spec or GridSpec()
+        self.grid = grid or GridSpec()
         self.params = params or FusionParams()
         self.names = tuple(names)
         self.maps: dict[str, EvidentialMap] = {
-            n: EvidentialMap(self.spec, tile_cells, {"rule": n, "m_u_min": self.params.m_u_min, "alpha": self.params.alpha})
+            n: EvidentialMap(self.grid, tile_cells, {"rule": n, "m_u_min": self.params.m_u_min, "alpha": self.params.alpha})
             for n in self.names
         }
         self.required_isms: tuple[str, ...] = tuple(i for i in ISM_NAMES if any(i in RULES[n].isms for n in self.names))
-        self._warpers = {i: Warper(self.spec) for i in self.required_isms}
+        self._warpers = {i: Warper(self.grid) for i in self.required_isms}
         self.n_updates = 0
 
     def __getitem__(self, name: str) -> EvidentialMap:

@@ -228,17 +228,17 @@ def _k_warp(src, srs, coarse, n, u00, v00, du_di, du_dj, dv_di, dv_dj, out, ors,
                         ro[o + c] = gu * (gv * src[p + c] + fv * src[p + 3 + c]) + fu * (gv * src[q + c] + fv * src[q + 3 + c])
 
 
-def _pose_affine(spec: GridSpec, pose: SE2) -> tuple[float, float, float, float]:
+def _pose_affine(grid: GridSpec, pose: SE2) -> tuple[float, float, float, float]:
     """Coefficients of map (R, C) -> local (u, v): u = cu + cos a + sin b, v = cu - sin a + cos b."""
-    res = spec.resolution
+    res = grid.resolution
     return math.cos(pose.yaw), math.sin(pose.yaw), pose.x / res, pose.y / res
 
 
-def warp_window(spec: GridSpec, pose: SE2) -> tuple[int, int, int, int]:
+def warp_window(grid: GridSpec, pose: SE2) -> tuple[int, int, int, int]:
     """Map cells ``(r0, c0, h, w)`` that a local grid at ``pose`` can contribute to."""
-    n = spec.n_cells
+    n = grid.n_cells
     c0 = n / 2.0 - 0.5
-    cs, sn, tx, ty = _pose_affine(spec, pose)
+    cs, sn, tx, ty = _pose_affine(grid, pose)
     rows, cols = [], []
     for u in (-1.0, float(n)):
         for v in (-1.0, float(n)):
@@ -260,9 +260,9 @@ class Warper:
     keeps one ``Warper`` per ISM. Each returned window is a view that the next call overwrites.
     """
 
-    def __init__(self, spec: GridSpec):
-        self.spec = spec
-        n = spec.n_cells
+    def __init__(self, grid: GridSpec):
+        self.grid = grid
+        n = grid.n_cells
         self._side = side = int(math.ceil(n * math.sqrt(2.0))) + 4
         self._masses = np.empty(side * side * 3, dtype=np.float32)
         self._covered = np.empty(side * side, dtype=np.bool_)
@@ -272,14 +272,14 @@ class Warper:
 
     def warp(self, local: np.ndarray, pose: SE2) -> MapWindow:
         """Resample ``local`` ``(n, n, 3)`` taken at ego ``pose`` (first-pose frame, m/rad) into the map."""
-        spec = self.spec
+        grid = self.grid
         local = np.asarray(local)
-        if local.shape != (spec.n_cells, spec.n_cells, 3):
-            raise ValueError(f"local grid must have shape {(spec.n_cells, spec.n_cells, 3)}, got {local.shape}")
-        n = spec.n_cells
+        if local.shape != (grid.n_cells, grid.n_cells, 3):
+            raise ValueError(f"local grid must have shape {(grid.n_cells, grid.n_cells, 3)}, got {local.shape}")
+        n = grid.n_cells
         self._src[1 : n + 1, 1 : n + 1] = local
-        r0, c0, h, w = warp_window(spec, pose)
-        cs, sn, tx, ty = _pose_affine(spec, pose)
+        r0, c0, h, w = warp_window(grid, pose)
+        cs, sn, tx, ty = _pose_affine(grid, pose)
         cc = n / 2.0 - 0.5
         a0 = r0 + 0.5 + tx
         b0 = c0 + 0.5 + ty
@@ -296,9 +296,9 @@ class Warper:
         return MapWindow(r0, c0, masses, covered, spans)
 
 
-def warp_to_map(local: np.ndarray, pose: SE2, spec: GridSpec) -> MapWindow:
+def warp_to_map(local: np.ndarray, pose: SE2, grid: GridSpec) -> MapWindow:
     """Resample a local mass grid ``(n, n, 3)`` taken at ego ``pose`` (first-pose frame, m/rad) into the map."""
-    return Warper(spec).warp(local, pose)
+    return Warper(grid).warp(local, pose)
 
 
 class EvidentialMap:
@@ -308,8 +308,8 @@ class EvidentialMap:
     saved with the map.
     """
 
-    def __init__(self, spec: GridSpec | None = None, tile_cells: int = 256, metadata: dict[str, Any] | None = None):
-        self.spec = spec or GridSpec()
+    def __init__(self, grid: GridSpec | None = None, tile_cells: int = 256, metadata: dict[str, Any] | None = None):
+        self.grid = grid or GridSpec()
         if not isinstance(tile_cells, (int, np.integer)) or tile_cells < 8:
             raise ValueError(f"tile_cells must be an integer >= 8, got {tile_cells!r}")
         self.tile_cells = int(tile_cells)
@@ -431,12 +431,12 @@ class MapFileError(ValueError):
 
 
 def save_map(m: EvidentialMap, path: str | os.PathLike) -> Path:
-    """Save a map losslessly (compressed ``.npz`` with its grid spec and metadata), atomically."""
+    """Save a map losslessly (compressed ``.npz`` with its grid grid and metadata), atomically."""
     keys = sorted(m.tiles)
     header = {
         "format": _FORMAT,
         "version": _FORMAT_VERSION,
-        "spec": m.spec.to_dict(),
+        "spec": m.grid.to_dict(),
         "tile_cells": m.tile_cells,
         "metadata": m.metadata,
     }

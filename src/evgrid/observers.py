@@ -48,7 +48,7 @@ class TruthTracker:
         if occ is None:
             return
         if self._warper is None:
-            self._warper = Warper(self.map.spec)
+            self._warper = Warper(self.map.grid)
         window = self._warper.warp(_TRUTH_MASSES[np.clip(occ, 0, 2)], update.pose)
         self.map.apply(window, _replace_where_informed)
         self.changed |= tile_keys(self.map, *_window_box(window, 1))

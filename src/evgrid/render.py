@@ -217,7 +217,7 @@ def write_scene_figures(
     ref = maps.get("ray_ilm") or next(iter(maps.values()))
     r0, c0, h, w = ref.covered_bounds()
     step = max(1, -(-max(h, w) // _FIGURE_CELLS))
-    res = ref.spec.resolution
+    res = ref.grid.resolution
     panels = {n: sample_map(m, r0, c0, h, w, step)[0] for n, m in maps.items()}
     track = trajectory_cells(np.array([(x, y) for x, y, _ in trajectory]).reshape(-1, 2), res * step, r0 / step, c0 / step)
     files["maps"] = str(plot_panels(panels, out / "maps.png", title=f"{name}: the maps (first pose's frame, x up)",

@@ -82,10 +82,10 @@ def _k_accumulate(det, half, inv_res, img, count):
 
 
 @functools.lru_cache(maxsize=4)
-def _range_channel(spec: GridSpec) -> np.ndarray:
-    rows, cols = np.meshgrid(np.arange(spec.n_cells), np.arange(spec.n_cells), indexing="ij")
-    x, y = spec.cell_to_xy(rows, cols)
-    return (np.hypot(x, y) / spec.half_extent).astype(np.float32)
+def _range_channel(grid: GridSpec) -> np.ndarray:
+    rows, cols = np.meshgrid(np.arange(grid.n_cells), np.arange(grid.n_cells), indexing="ij")
+    x, y = grid.cell_to_xy(rows, cols)
+    return (np.hypot(x, y) / grid.half_extent).astype(np.float32)
 
 
 def radar_detections(
@@ -123,28 +123,28 @@ def radar_detections(
     return np.concatenate(parts).astype(np.float32)
 
 
-def detections_to_image(det: np.ndarray, spec: GridSpec = GridSpec()) -> np.ndarray:
+def detections_to_image(det: np.ndarray, grid: GridSpec = GridSpec()) -> np.ndarray:
     """The Ev-Net input ``(len(CHANNELS), n, n)`` float32 from a detection table of :func:`radar_detections`."""
     det = np.asarray(det)
     if det.ndim != 2 or det.shape[1] != len(DETECTION_COLUMNS):
         raise ValueError(f"detections must have shape (k, {len(DETECTION_COLUMNS)}), got {det.shape}")
-    n = spec.n_cells
+    n = grid.n_cells
     img = np.zeros((len(CHANNELS), n, n), dtype=np.float32)
     count = np.zeros((n, n), dtype=np.float32)
     if len(det):
-        _k_accumulate(np.ascontiguousarray(det, dtype=np.float64), n / 2.0, 1.0 / spec.resolution, img, count)
+        _k_accumulate(np.ascontiguousarray(det, dtype=np.float64), n / 2.0, 1.0 / grid.resolution, img, count)
         hit = count > 0
         for ch in (1, 2, 3):
             img[ch][hit] /= count[hit]
         img[0] = np.log1p(count)
-    img[5] = _range_channel(spec)
+    img[5] = _range_channel(grid)
     return img
 
 
 def radar_image(
     sweeps: Sequence[RadarSweep],
     ego_pose: SE3,
-    spec: GridSpec = GridSpec(),
+    grid: GridSpec = GridSpec(),
     now_us: int | None = None,
     params: RadarImageParams = RadarImageParams(),
 ) -> np.ndarray:
@@ -152,12 +152,12 @@ def radar_image(
 
     The caller chooses which sweeps to pass (e.g. the last ``params.n_sweeps`` of each radar).
     """
-    return detections_to_image(radar_detections(sweeps, ego_pose, now_us, params), spec)
+    return detections_to_image(radar_detections(sweeps, ego_pose, now_us, params), grid)
 
 
 def default_checkpoint() -> Path:
     """Path of the Ev-Net checkpoint shipped inside the package (trained on simulated scenes)."""
-    return Path(__file__).resolve().parent.parent / "learn" / "checkpoints" / "evnet_sim.safetensors"
+    return Path(__file__).resolve().parent / "checkpoints" / "evnet_sim.safetensors"
 
 
 class DeepIrm:
@@ -170,24 +170,24 @@ class DeepIrm:
     def __init__(
         self,
         checkpoint: str | Path | None = None,
-        spec: GridSpec = GridSpec(),
+        grid: GridSpec = GridSpec(),
         params: RadarImageParams = RadarImageParams(),
         threads: int = 1,
     ):
         import torch
 
-        from evgrid.learn.evnet import CheckpointError, load_checkpoint
+        from evgrid.ism.evnet import CheckpointError, load_checkpoint
 
         if not isinstance(threads, int) or threads < 1:
             raise ValueError(f"threads must be a positive integer, got {threads!r}")
         path = Path(checkpoint) if checkpoint is not None else default_checkpoint()
         loaded = load_checkpoint(path)
         trained_spec = loaded.extra.get("grid")
-        if trained_spec is not None and GridSpec.from_dict(trained_spec) != spec:
-            raise CheckpointError(f"{path}: trained on grid {trained_spec}, but the grid is {spec.to_dict()}")
+        if trained_spec is not None and GridSpec.from_dict(trained_spec) != grid:
+            raise CheckpointError(f"{path}: trained on grid {trained_spec}, but the grid is {grid.to_dict()}")
         if loaded.model.config.in_channels != len(CHANNELS):
             raise CheckpointError(f"{path}: model takes {loaded.model.config.in_channels} channels, inputs have {len(CHANNELS)}")
-        self.spec = spec
+        self.grid = grid
         self.params = params
         self.threads = threads
         self.checkpoint = path
@@ -201,8 +201,8 @@ class DeepIrm:
         from evgrid.mass import from_evidence
 
         torch = self._torch
-        if image.shape != (len(CHANNELS), self.spec.n_cells, self.spec.n_cells):
-            raise ValueError(f"input image must be {(len(CHANNELS),) + self.spec.shape}, got {image.shape}")
+        if image.shape != (len(CHANNELS), self.grid.n_cells, self.grid.n_cells):
+            raise ValueError(f"input image must be {(len(CHANNELS),) + self.grid.shape}, got {image.shape}")
         x = torch.from_numpy(np.ascontiguousarray(image, dtype=np.float32))[None]
         with torch.inference_mode():
             e = self.model(x.to(memory_format=torch.channels_last))[0]
@@ -210,4 +210,4 @@ class DeepIrm:
 
     def __call__(self, sweeps: Sequence[RadarSweep], ego_pose: SE3, now_us: int | None = None) -> np.ndarray:
         """Local mass grid from radar sweeps, in the ego frame at ``ego_pose``."""
-        return self.predict_image(radar_image(sweeps, ego_pose, self.spec, now_us, self.params))
+        return self.predict_image(radar_image(sweeps, ego_pose, self.grid, now_us, self.params))

@@ -15,6 +15,7 @@ import math
 import numpy as np
 
 from evgrid.data.frame import RADAR_CHANNELS, RADAR_COLUMNS, LidarSweep, RadarSweep
+from evgrid.data.mounts import LIDAR_MOUNT, RADAR_MOUNTS
 from evgrid.geometry import SE3
 
 __all__ = [
@@ -26,22 +27,9 @@ __all__ = [
     "street_radar_sweeps",
 ]
 
-#: nuScenes-like LIDAR_TOP mounting: 0.94 m ahead of the rear axle, 1.84 m up, x axis to the right.
-LIDAR_TOP_EXTRINSICS = SE3.from_quaternion(
-    [math.cos(-math.pi / 4), 0.0, 0.0, math.sin(-math.pi / 4)], [0.943, 0.0, 1.841]
-)
-
-#: nuScenes-like radar mountings (position in m, yaw in degrees), keyed by channel.
-RADAR_EXTRINSICS: dict[str, SE3] = {
-    ch: SE3.from_quaternion([math.cos(math.radians(yaw) / 2), 0.0, 0.0, math.sin(math.radians(yaw) / 2)], t)
-    for ch, t, yaw in (
-        ("RADAR_FRONT", (3.41, 0.0, 0.50), 0.0),
-        ("RADAR_FRONT_LEFT", (2.42, 0.80, 0.78), 90.0),
-        ("RADAR_FRONT_RIGHT", (2.42, -0.80, 0.78), -90.0),
-        ("RADAR_BACK_LEFT", (-0.56, 0.61, 0.53), 110.0),
-        ("RADAR_BACK_RIGHT", (-0.56, -0.62, 0.53), -110.0),
-    )
-}
+#: The nuScenes LIDAR_TOP and radar mountings (the one table in :mod:`evgrid.data.mounts`).
+LIDAR_TOP_EXTRINSICS = LIDAR_MOUNT.sensor_to_ego()
+RADAR_EXTRINSICS: dict[str, SE3] = {ch: m.sensor_to_ego() for ch, m in RADAR_MOUNTS.items()}
 
 
 def street_boxes(seed: int = 0) -> np.ndarray:

@@ -33,7 +33,9 @@ from evgrid.evaluate import CLASSES, iou_per_class
 from evgrid.geometry import GridSpec
 from evgrid.io import atomic_write
 from evgrid.ism.deep import CHANNELS, DETECTION_COLUMNS, RadarImageParams, detections_to_image, radar_detections
-from evgrid.learn.evnet import FREE, OCCUPIED, UNKNOWN, EvNet, EvNetConfig, evidential_loss, load_checkpoint, save_checkpoint
+from evgrid.classes import FREE, OCCUPIED, UNKNOWN
+from evgrid.ism.evnet import EvNet, EvNetConfig, load_checkpoint, save_checkpoint
+from evgrid.learn.loss import evidential_loss
 
 __all__ = [
     "TrainConfig",
@@ -423,7 +425,3 @@ def train(
         dist.destroy_process_group()
     return TrainResult(out, best_epoch, best, baseline, float(np.mean(epoch_times)) if epoch_times else math.nan)
 
-
-def load_trained(out_dir: str | os.PathLike) -> EvNet:
-    """The best model of a finished run."""
-    return load_checkpoint(Path(out_dir) / "best.safetensors").model

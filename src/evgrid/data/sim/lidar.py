@@ -17,7 +17,7 @@ import numpy as np
 from evgrid.data.sim import materials as M
 from evgrid.data.sim.config import LidarConfig
 from evgrid.data.sim.raycast import HIT_NONE, lidar_cast
-from evgrid.data.sim.sensors import LIDAR_MOUNT, SensorMount
+from evgrid.data.mounts import LIDAR_MOUNT, SensorMount
 from evgrid.data.sim.world import World
 
 __all__ = ["LidarModel"]

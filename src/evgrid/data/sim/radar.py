@@ -32,7 +32,7 @@ import numpy as np
 from evgrid.data.sim import materials as M
 from evgrid.data.sim.config import RadarConfig
 from evgrid.data.sim.raycast import radar_cast
-from evgrid.data.sim.sensors import SensorMount
+from evgrid.data.mounts import SensorMount
 from evgrid.data.sim.world import World
 
 __all__ = ["RadarModel", "RADAR_REAL", "RADAR_CLUTTER", "RADAR_GHOST", "RADAR_LABEL_NAMES"]

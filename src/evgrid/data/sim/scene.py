@@ -17,7 +17,7 @@ from evgrid.data.sim.config import SimConfig
 from evgrid.data.sim.lidar import LidarModel
 from evgrid.data.sim.radar import RadarModel
 from evgrid.data.sim.raycast import pack_boxes, rasterize_boxes
-from evgrid.data.sim.sensors import LIDAR_MOUNT, RADAR_MOUNTS
+from evgrid.data.mounts import LIDAR_MOUNT, RADAR_MOUNTS
 from evgrid.data.sim.trajectory import Trajectory
 from evgrid.data.sim.world import World, generate_world
 from evgrid.geometry import SE2, SE3

@@ -1,4 +1,4 @@
-"""Ev-Net: the deep inverse radar model (Bauer et al. 2019), its loss and its checkpoint files.
+"""Ev-Net: the deep inverse radar model (Bauer et al. 2019) and its checkpoint files.
 
 The published interface (paper sec. V-C; docs/decisions.md#ev-net-architecture): an accumulated radar detection image in
 the current ego frame goes in, max-pooled at the input; an encoder-decoder CNN; bilinear
@@ -7,7 +7,7 @@ into masses by :func:`evgrid.mass.from_evidence`. The exact layers of Ev-Net are
 this is a small U-Net with that interface (0.44 M parameters, 1.8 MB by default).
 
 Checkpoints are safetensors files (plain tensors, never code) with the model configuration
-in their metadata.
+in their metadata. The training loss lives with the training, in :mod:`evgrid.learn.loss`.
 """
 
 from __future__ import annotations
@@ -23,9 +23,8 @@ from torch import nn
 from torch.nn import functional as F
 
 # Targets: classes of the ray ILM's cells (docs/decisions.md#ev-net-targets-and-loss).
-from evgrid.classes import FREE, OCCUPIED, UNKNOWN
 
-__all__ = ["EvNetConfig", "EvNet", "evidential_loss", "save_checkpoint", "load_checkpoint", "CheckpointError"]
+__all__ = ["EvNetConfig", "EvNet", "save_checkpoint", "load_checkpoint", "CheckpointError"]
 
 
 
@@ -98,34 +97,6 @@ class EvNet(nn.Module):
             # upsample evidence, which stays non-negative under a convex (bilinear) mix
             e = F.interpolate(e, size=size, mode="bilinear", align_corners=False)
         return e
-
-
-def evidential_loss(evidence: torch.Tensor, target: torch.Tensor, valid: torch.Tensor | None = None) -> torch.Tensor:
-    """Ev-Net loss (paper eqs. (36)-(37)): per-class expectations of the per-cell losses, summed.
-
-    ``evidence`` ``(B, 2, H, W)`` = ``[e_f, e_o]`` >= 0; ``target`` ``(B, H, W)`` int with
-    FREE, OCCUPIED, UNKNOWN. Free and occupied cells: the expected squared error of Sensoy et
-    al. 2018, ``sum_k (y_k - p_k)^2 + p_k (1 - p_k) / (S + 1)``, p the Dirichlet mean; unknown
-    cells: ``(1 - m_u)^2`` with ``m_u = 2 / S``. A class absent from the batch adds nothing.
-    How this reads the paper's eq. (36): docs/decisions.md#ev-net-targets-and-loss.
-    """
-    if evidence.ndim != 4 or evidence.shape[1] != 2:
-        raise ValueError(f"evidence must be (B, 2, H, W), got {tuple(evidence.shape)}")
-    if target.shape != evidence.shape[:1] + evidence.shape[2:]:
-        raise ValueError(f"target must be (B, H, W) = {tuple(evidence.shape[:1] + evidence.shape[2:])}, got {tuple(target.shape)}")
-    alpha = evidence + 1.0
-    s = alpha.sum(dim=1)
-    p = alpha / s.unsqueeze(1)
-    y = F.one_hot(target.clamp(0, 1).long(), 2).permute(0, 3, 1, 2).to(p.dtype)
-    l_k = ((y - p) ** 2 + p * (1.0 - p) / (s + 1.0).unsqueeze(1)).sum(dim=1)
-    l_u = (1.0 - 2.0 / s) ** 2
-    ok = torch.ones_like(target, dtype=torch.bool) if valid is None else valid.bool()
-    total = evidence.new_zeros(())
-    for cls, per_cell in ((FREE, l_k), (OCCUPIED, l_k), (UNKNOWN, l_u)):
-        sel = (target == cls) & ok
-        if sel.any():
-            total = total + per_cell[sel].mean()
-    return total
 
 
 # --- checkpoints ---------------------------------------------------------------------------------

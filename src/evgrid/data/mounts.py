@@ -1,4 +1,5 @@
-"""Sensor mounting positions of the nuScenes vehicles (rear-axle ego frame, x forward, y left).
+"""Sensor mounting positions of the nuScenes vehicles (rear-axle ego frame, x forward, y left): the one
+table of mounts that the simulator and the synthetic test scans share.
 
 Translations are those of the nuScenes ``calibrated_sensor`` records; the rotations are
 reduced to their yaw (the real LIDAR_TOP record carries about 1 degree of roll and pitch,
