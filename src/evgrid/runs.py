@@ -97,12 +97,15 @@ def map_scene(
         if out_dir is not None and outputs.figures else None
     mapper.observers += [truth, scores, *([gif] if gif else []), *observers]
     t0 = time.perf_counter()
+    frame_ms: list[float] = []  # mapper and observers, without reading the frame
     for frame in frames:
+        t = time.perf_counter()
         mapper.process(frame)
+        frame_ms.append((time.perf_counter() - t) * 1e3)
         if progress is not None:
             progress()
     seconds = time.perf_counter() - t0
-    metrics = _scene_metrics(name, mapper, scores, seconds)
+    metrics = _scene_metrics(name, mapper, scores, seconds, frame_ms)
     files: dict[str, str] = {}
     if out_dir is not None:
         with results_folder(out_dir, overwrite) as out:
@@ -121,7 +124,25 @@ def map_scene(
     return SceneResult(name, jsonable(metrics), files, metrics["frames_per_second"])
 
 
-def _scene_metrics(name: str, mapper: OccupancyMapper, scores: SceneScores, seconds: float) -> dict[str, Any]:
+def _map_area_km2(maps: MapSet) -> float:
+    """Area of the tiles the maps hold (what the memory is proportional to)."""
+    m = next(iter(maps.maps.values()))
+    return len(m.tiles) * (m.tile_cells * m.grid.resolution) ** 2 * 1e-6
+
+
+def frame_time_summary(frame_ms: list[float]) -> dict[str, float]:
+    """Milliseconds per frame (mapper and observers): mean, median, 95th percentile, and the mean
+    of the first and last tenth of the scene, which stay equal when nothing grows with the drive."""
+    if not frame_ms:
+        return {}
+    a = np.asarray(frame_ms)
+    tenth = max(1, len(a) // 10)
+    return {"mean": float(a.mean()), "median": float(np.median(a)), "p95": float(np.percentile(a, 95)),
+            "first_tenth_mean": float(a[:tenth].mean()), "last_tenth_mean": float(a[-tenth:].mean())}
+
+
+def _scene_metrics(name: str, mapper: OccupancyMapper, scores: SceneScores, seconds: float,
+                   frame_ms: list[float] = ()) -> dict[str, Any]:
     n_kf = len(scores.keyframes)
     return {
         "scene": name,
@@ -133,6 +154,8 @@ def _scene_metrics(name: str, mapper: OccupancyMapper, scores: SceneScores, seco
         "keyframes_per_second": n_kf / seconds if seconds > 0 else math.nan,
         **scores.final(),
         "timings_ms": mapper.timing_summary(),
+        "frame_ms": frame_time_summary(list(frame_ms)),
+        "map_area_km2": _map_area_km2(mapper.maps),
         "skipped": mapper.counts(),
         "pose_jumps": mapper.poses.jumps,
         "convergence": [{"iou": {}, **rec} for rec in scores.keyframes],
