@@ -34,6 +34,9 @@ def test_map_writes_per_scene_results_and_table(tmp_path, tiny_checkpoint):
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert set(summary["maps"]) == {"ray_ilm", "deep_acc", "deep_replace", "deep_disc", "ray_irm", "fused"}
     assert summary["scenes"] == ["sim-000004"] and summary["frames_per_second"] > 0
+    assert (tmp_path / "convergence_truth.png").is_file()
+    assert summary["convergence_truth"]["t_s"] == [1.0, 2.0, 5.0, 10.0]
+    assert summary["convergence_truth"]["maps"]["fused"]["area_m2"][0]["mean"] > 0
 
 
 def test_evaluate_over_two_scenes_in_two_processes(tmp_path, tiny_checkpoint):
@@ -47,7 +50,10 @@ def test_evaluate_over_two_scenes_in_two_processes(tmp_path, tiny_checkpoint):
     config = json.loads((tmp_path / "sim-000009" / "config.json").read_text())["mapper"]
     assert config["fusion"]["m_u_min"] == 0.4 and config["lidar"]["min_range_m"] == 1.5
     assert config["radar"]["n_sweeps"] == 10  # the ISM parameters used are written down
-    assert "against the true occupancy" in (tmp_path / "table.md").read_text()
+    table = (tmp_path / "table.md").read_text()
+    assert "against the true occupancy" in table and "convergence against the true occupancy" in table
+    assert summary["maps_interval"]["fused"]["free"]["n"] == 2
+    assert summary["maps_interval"]["fused"]["free"]["lo"] <= summary["maps"]["fused"]["free"] <= summary["maps_interval"]["fused"]["free"]["hi"]
 
 
 def test_bad_options_are_rejected(tmp_path):

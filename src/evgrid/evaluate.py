@@ -23,6 +23,8 @@ __all__ = [
     "UNKNOWN",
     "PAPER_TABLE_I",
     "classify",
+    "bootstrap_interval",
+    "iou_intervals",
     "iou_per_class",
     "compare_maps",
     "compare_truth",
@@ -151,11 +153,12 @@ def observable(cls: np.ndarray) -> np.ndarray:
 
 
 def tile_confusions_vs_truth(
-    maps: Mapping[str, EvidentialMap], truth: EvidentialMap, reference: str, key: tuple[int, int]
+    maps: Mapping[str, EvidentialMap], truth: EvidentialMap, reference: str | None, key: tuple[int, int]
 ) -> np.ndarray:
     """Confusion counts ``(len(maps), 3, 3)`` of every map against the true occupancy on one tile.
 
-    Cells count where the truth is known, the reference map covered them, and they are
+    Cells count where the truth is known, the reference map covered them (any cell with
+    ``reference=None``: what a map fills beyond the lidar's reach counts too), and they are
     observable (:func:`observable`, decided with the neighbouring tiles' cells).
     """
     out = np.zeros((len(maps), 3, 3), dtype=np.int64)
@@ -166,10 +169,12 @@ def tile_confusions_vs_truth(
     halo, halo_cov = truth.read(r0 - 1, c0 - 1, ts + 2, ts + 2)
     t_all = classify(halo)
     t_cls = t_all[1:-1, 1:-1]
-    ref = _tile(maps[reference], key)
-    if ref is None:
-        return out
-    mask = halo_cov[1:-1, 1:-1] & ref[1] & observable(t_all)[1:-1, 1:-1]
+    mask = halo_cov[1:-1, 1:-1] & observable(t_all)[1:-1, 1:-1]
+    if reference is not None:
+        ref = _tile(maps[reference], key)
+        if ref is None:
+            return out
+        mask &= ref[1]
     for i, m in enumerate(maps.values()):
         t = _tile(m, key)
         if t is None:
@@ -214,20 +219,57 @@ def mean_iou(per_scene: Iterable[Mapping[str, Mapping[str, float]]]) -> dict[str
     }
 
 
-def markdown_table(results: Mapping[str, Mapping[str, float]], title: str = "ours", paper: bool = True) -> str:
-    """A Markdown table of per-class mIoU in %, with the paper's Table I beside it."""
+def bootstrap_interval(values: Iterable[float], level: float = 0.95, n_resamples: int = 4000, seed: int = 0) -> dict[str, float]:
+    """Mean over scenes with a percentile-bootstrap confidence interval (resampling scenes).
+
+    NaNs (a class absent from a scene) are left out; ``n`` says how many scenes remain. With
+    fewer than two scenes the interval is the mean itself.
+    """
+    v = np.array([x for x in values if x is not None and not math.isnan(x)], dtype=np.float64)
+    if not len(v):
+        return {"mean": math.nan, "lo": math.nan, "hi": math.nan, "n": 0}
+    if len(v) < 2:
+        return {"mean": float(v[0]), "lo": float(v[0]), "hi": float(v[0]), "n": 1}
+    means = v[np.random.default_rng(seed).integers(0, len(v), (n_resamples, len(v)))].mean(axis=1)
+    lo, hi = np.quantile(means, [(1 - level) / 2, (1 + level) / 2])
+    return {"mean": float(v.mean()), "lo": float(lo), "hi": float(hi), "n": int(len(v))}
+
+
+def iou_intervals(per_scene: Iterable[Mapping[str, Mapping[str, float]]], level: float = 0.95) -> dict[str, dict[str, dict]]:
+    """Per-map, per-class mean IoU over scenes with its bootstrap interval (see :func:`bootstrap_interval`)."""
+    acc: dict[str, dict[str, list[float]]] = {}
+    for scene in per_scene:
+        for name, ious in scene.items():
+            for cls, v in ious.items():
+                acc.setdefault(name, {}).setdefault(cls, []).append(math.nan if v is None else v)
+    return {name: {cls: bootstrap_interval(v, level) for cls, v in d.items()} for name, d in acc.items()}
+
+
+def markdown_table(results: Mapping[str, Mapping[str, float]], title: str = "ours", paper: bool = True,
+                   intervals: Mapping[str, Mapping[str, Mapping[str, float]]] | None = None) -> str:
+    """A Markdown table of per-class mIoU in %, with the paper's Table I beside it.
+
+    With ``intervals`` (from :func:`iou_intervals`) each value carries its 95% interval over scenes.
+    """
     head = "| map | free | occupied | unknown |"
     if paper:
         head += " paper free | paper occupied | paper unknown |"
     sep = "|" + "---|" * (head.count("|") - 1)
     lines = [f"**{title}** (mIoU in %)", "", head, sep]
     for name, ious in results.items():
-        row = f"| `{name}` | " + " | ".join(_pct(ious.get(c)) for c in CLASSES) + " |"
+        ci = (intervals or {}).get(name, {})
+        row = f"| `{name}` | " + " | ".join(_pct(ious.get(c)) + _interval(ci.get(c)) for c in CLASSES) + " |"
         if paper:
             p = PAPER_TABLE_I.get(name)
             row += " " + " | ".join(f"{p[c]:.2f}" if p else "-" for c in CLASSES) + " |"
         lines.append(row)
     return "\n".join(lines) + "\n"
+
+
+def _interval(ci: Mapping[str, float] | None) -> str:
+    if not ci or ci.get("n", 0) < 2:
+        return ""
+    return f" ({_pct(ci['lo'])}-{_pct(ci['hi'])})"
 
 
 def _pct(v: float | None) -> str:

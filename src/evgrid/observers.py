@@ -11,6 +11,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from evgrid.classes import FREE, OCCUPIED
 from evgrid.evaluate import iou_from_confusion, tile_confusions_vs_map, tile_confusions_vs_truth, tile_keys
 from evgrid.geometry import GridSpec
 from evgrid.grid import EvidentialMap, MapWindow, Warper
@@ -98,6 +99,11 @@ class SceneScores:
         self.vs_ref = TileScores(names, lambda k: tile_confusions_vs_map(maps, self.reference, k)) if self.reference else None
         self.vs_truth = (TileScores(names, lambda k: tile_confusions_vs_truth(maps, truth.map, truth_ref, k))
                          if truth is not None else None)
+        # the same against every true cell, not only those the lidar covered: the perception field
+        self.field = (TileScores(names, lambda k: tile_confusions_vs_truth(maps, truth.map, None, k))
+                      if truth is not None else None)
+        res = next(iter(maps.values())).grid.resolution
+        self._cell_m2 = res * res
         self.keyframes: list[dict[str, Any]] = []
 
     def on_update(self, update: MapUpdate) -> None:
@@ -107,6 +113,7 @@ class SceneScores:
             self.vs_ref.dirty |= keys
         if self.vs_truth is not None:
             self.vs_truth.dirty |= keys | self.truth.changed
+            self.field.dirty |= keys | self.truth.changed
             self.truth.changed = set()
         if not update.frame.is_keyframe:
             return
@@ -118,7 +125,19 @@ class SceneScores:
             if self.vs_truth is not None and self.truth.map.tiles:
                 self.vs_truth.refresh()
                 rec["iou_truth"] = {n: {c: v for c, v in d.items() if c != "unknown"} for n, d in self.vs_truth.iou().items()}
+                self.field.refresh()
+                rec["field"] = self.perception_field()
         self.keyframes.append(rec)
+
+    def perception_field(self) -> dict[str, dict[str, float]]:
+        """Per map, against every true cell seen so far: free and occupied IoU, and the area (m^2)
+        classified correctly as free or occupied (the paper claims the deep prior enlarges this perception field)."""
+        out = {}
+        for i, (n, d) in enumerate(self.field.iou().items()):
+            c = self.field.total[i]
+            out[n] = {"free": d["free"], "occupied": d["occupied"],
+                      "area_m2": float(c[FREE, FREE] + c[OCCUPIED, OCCUPIED]) * self._cell_m2}
+        return out
 
     def final(self) -> dict[str, Any]:
         """Per-class IoU at the end of the scene: ``vs_ray_ilm`` and, with truth, ``vs_truth``."""

@@ -20,6 +20,7 @@ __all__ = [
     "masses_to_rgb",
     "plot_panels",
     "plot_convergence",
+    "plot_perception_field",
     "write_gif",
     "trajectory_cells",
     "sample_map",
@@ -129,6 +130,34 @@ def plot_convergence(
         ax.tick_params(labelsize=7)
     axes[0].legend(fontsize=7)
     return _save(fig, path, title)
+
+
+def plot_perception_field(conv: Mapping, path: str | os.PathLike, title: str = "") -> Path:
+    """Free and occupied IoU against the truth and the area classified correctly after 1, 2, 5, 10 s of
+    driving, mean over scenes with 95% bootstrap intervals (``summary["convergence_truth"]``)."""
+    plt = _pyplot()
+
+    t = np.asarray(conv["t_s"], dtype=float)
+    fig, axes = plt.subplots(1, 3, figsize=(12, 3.4), dpi=110)
+    panels = (("free", 1.0, "free IoU vs truth"), ("occupied", 1.0, "occupied IoU vs truth"),
+              ("area_m2", 1e-3, "classified correctly [1000 m²]"))
+    for k, (name, q) in enumerate(conv["maps"].items()):
+        dx = (k - (len(conv["maps"]) - 1) / 2) * 0.08  # side by side, so the intervals stay readable
+        for ax, (key, scale, label) in zip(axes, panels):
+            cis = q[key]
+            y = np.array([c["mean"] for c in cis], dtype=float) * scale
+            lo = np.array([c["lo"] for c in cis], dtype=float) * scale
+            hi = np.array([c["hi"] for c in cis], dtype=float) * scale
+            ax.errorbar(t * np.exp(dx), y, yerr=[y - lo, hi - y], label=name, lw=1.2, capsize=2, marker="o", ms=3)
+            ax.set_title(label, fontsize=9)
+    for ax in axes:
+        ax.set_xscale("log")
+        ax.set_xticks(t, [f"{v:g}" for v in t])
+        ax.set_xlabel("driving time [s]", fontsize=8)
+        ax.grid(alpha=0.3)
+        ax.tick_params(labelsize=7)
+    axes[0].legend(fontsize=7)
+    return _save(fig, path, title or "perception field over time (mean over scenes, 95% bootstrap interval)")
 
 
 def write_gif(frames: Sequence[np.ndarray], path: str | os.PathLike, fps: float = 4.0) -> Path:

@@ -22,7 +22,7 @@ import numpy as np
 from evgrid.classes import CLASSES
 from evgrid.config import MapperConfig, OutputConfig, RunConfig
 from evgrid.data.frame import Frame
-from evgrid.evaluate import compare_maps, markdown_table, mean_iou
+from evgrid.evaluate import bootstrap_interval, compare_maps, iou_intervals, markdown_table, mean_iou
 from evgrid.fusion import FusionParams, MapSet
 from evgrid.io import jsonable, write_json
 from evgrid.mapper import OccupancyMapper
@@ -124,6 +124,26 @@ def map_scene(
     return SceneResult(name, jsonable(metrics), files, metrics["frames_per_second"])
 
 
+#: Seconds of driving after which convergence is reported (paper: faster convergence with the deep prior).
+CONVERGENCE_TIMES_S: tuple[float, ...] = (1.0, 2.0, 5.0, 10.0)
+
+
+def convergence_at(keyframes: list[dict[str, Any]], times_s: tuple[float, ...] = CONVERGENCE_TIMES_S) -> dict[str, Any]:
+    """Each map's perception field (free and occupied IoU against the truth, and the area classified
+    correctly) at the first keyframe at least ``t`` seconds after the scene's first; ``None`` past its end."""
+    kfs = [k for k in keyframes if "field" in k]
+    if not kfs:
+        return {}
+    t0 = keyframes[0]["timestamp"]
+    at = []
+    for t in times_s:
+        later = [k for k in kfs if (k["timestamp"] - t0) * 1e-6 >= t - 1e-6]
+        at.append(later[0]["field"] if later else None)
+    names = next(iter(kfs))["field"].keys()
+    return {"t_s": list(times_s),
+            "maps": {n: {q: [(f[n][q] if f else None) for f in at] for q in ("free", "occupied", "area_m2")} for n in names}}
+
+
 def _map_area_km2(maps: MapSet) -> float:
     """Area of the tiles the maps hold (what the memory is proportional to)."""
     m = next(iter(maps.maps.values()))
@@ -159,6 +179,7 @@ def _scene_metrics(name: str, mapper: OccupancyMapper, scores: SceneScores, seco
         "skipped": mapper.counts(),
         "pose_jumps": mapper.poses.jumps,
         "convergence": [{"iou": {}, **rec} for rec in scores.keyframes],
+        "convergence_truth": convergence_at(scores.keyframes),
         "trajectory": mapper.trajectory,
     }
 
@@ -182,9 +203,19 @@ def summarize(per_scene: list[dict[str, Any]]) -> dict[str, Any]:
     maps = {"ray_ilm": {c: 1.0 for c in CLASSES}} if vs_ilm else {}
     maps.update(vs_ilm)
     out: dict[str, Any] = {"maps": maps, "reference": "ray_ilm", "scenes": [m["scene"] for m in per_scene]}
+    out["maps_interval"] = iou_intervals(m["vs_ray_ilm"] for m in per_scene if "vs_ray_ilm" in m)
     truth = [clean(m["vs_truth"]) for m in per_scene if m.get("vs_truth")]
     if truth:
         out["vs_truth"] = mean_iou(truth)
+        out["vs_truth_interval"] = iou_intervals(m["vs_truth"] for m in per_scene if m.get("vs_truth"))
+    conv = [m["convergence_truth"] for m in per_scene if m.get("convergence_truth")]
+    if conv:
+        out["convergence_truth"] = {
+            "t_s": conv[0]["t_s"],
+            "maps": {n: {q: [bootstrap_interval(c["maps"][n][q][i] for c in conv if n in c["maps"])
+                             for i in range(len(conv[0]["t_s"]))]
+                         for q in ("free", "occupied", "area_m2")} for n in conv[0]["maps"]},
+        }
     frames = sum(m["frames"] for m in per_scene)
     seconds = sum(m["seconds"] for m in per_scene)
     out["frames_per_second"] = frames / seconds if seconds else math.nan
@@ -193,6 +224,28 @@ def summarize(per_scene: list[dict[str, Any]]) -> dict[str, Any]:
     skipped = sorted({k for m in per_scene for k in m.get("skipped", {})})
     out["skipped"] = {k: sum(m.get("skipped", {}).get(k, 0) for m in per_scene) for k in skipped}
     return jsonable(out)
+
+
+def convergence_table(conv: Mapping[str, Any]) -> str:
+    """Markdown: per map, free and occupied IoU against the truth and the area classified correctly after each time."""
+    ts = conv["t_s"]
+    head = "| map | " + " | ".join(f"free IoU {t:g} s" for t in ts) + " | " + \
+        " | ".join(f"occ. IoU {t:g} s" for t in ts) + " | " + " | ".join(f"correct m² {t:g} s" for t in ts) + " |"
+    lines = ["**convergence against the true occupancy** (mean over scenes, 95% bootstrap interval; "
+             "every true cell seen so far counts, covered by the lidar or not)", "", head,
+             "|" + "---|" * (1 + 3 * len(ts))]
+
+    def cell(ci: Mapping[str, float], scale: float, fmt: str) -> str:
+        if ci["n"] == 0:
+            return "n/a"
+        v = format(ci["mean"] * scale, fmt)
+        return v if ci["n"] < 2 else f"{v} ({format(ci['lo'] * scale, fmt)}-{format(ci['hi'] * scale, fmt)})"
+
+    for name, q in conv["maps"].items():
+        row = [cell(c, 100, ".1f") for c in q["free"]] + [cell(c, 100, ".1f") for c in q["occupied"]] + \
+            [cell(c, 1, ".0f") for c in q["area_m2"]]
+        lines.append(f"| `{name}` | " + " | ".join(row) + " |")
+    return "\n".join(lines) + "\n"
 
 
 def map_scenes(
@@ -238,9 +291,17 @@ def map_scenes(
         summary = summarize(per_scene)
         write_json(out / "summary.json", summary)
         table = markdown_table({k: v for k, v in summary["maps"].items() if k != "ray_ilm"},
-                               title=f"{len(names)} scene(s), against ray_ilm")
+                               title=f"{len(names)} scene(s), against ray_ilm; 95% bootstrap interval over scenes",
+                               intervals=summary.get("maps_interval"))
         if "vs_truth" in summary:
-            table += "\n" + markdown_table(summary["vs_truth"], title="against the true occupancy (simulator)", paper=False)
+            table += "\n" + markdown_table(summary["vs_truth"], title="against the true occupancy (simulator)", paper=False,
+                                           intervals=summary.get("vs_truth_interval"))
+        if "convergence_truth" in summary:
+            table += "\n" + convergence_table(summary["convergence_truth"])
+            if outputs.figures:
+                from evgrid.render import plot_perception_field
+
+                plot_perception_field(summary["convergence_truth"], out / "convergence_truth.png")
         from evgrid.io import atomic_write_text
 
         atomic_write_text(out / "table.md", table)
