@@ -9,7 +9,6 @@ results unless told to overwrite, and a run that fails leaves no empty folder be
 from __future__ import annotations
 
 import contextlib
-import logging
 import math
 import os
 import time
@@ -29,9 +28,7 @@ from evgrid.mapper import OccupancyMapper
 from evgrid.observers import GifRecorder, SceneScores, TruthTracker
 
 __all__ = ["SceneResult", "map_scene", "map_scenes", "summarize", "sweep_m_u_min", "choose_m_u_min", "results_folder",
-           "ResultsExistError"]
-
-logger = logging.getLogger(__name__)
+           "ResultsExistError", "convergence_at", "convergence_table", "frame_time_summary"]
 
 
 class ResultsExistError(FileExistsError):
