@@ -1,0 +1,745 @@
+"""Scenes from robot recordings: ROS 1 bags, ROS 2 bags (sqlite3 or MCAP storage) and plain MCAP files.
+
+A *rig file* (YAML, see docs/ros.md and docs/rig_example.yaml) says which topics hold the lidar
+and the radars, which frames are the world and the vehicle, how point-cloud fields are named and
+which lidar sweeps are keyframes. :func:`load_bag` turns the recording into a scene of
+:class:`~evgrid.data.frame.Frame` like every other source:
+
+* one frame per lidar message (``sensor_msgs/PointCloud2``), at its header stamp;
+* the radar sweeps (``sensor_msgs/PointCloud2`` with named fields, or ``radar_msgs/RadarScan``)
+  whose stamps fall in ``(previous frame, this frame]``, oldest first;
+* ego poses (base frame in the world frame) from ``/tf`` or a ``nav_msgs/Odometry`` topic,
+  interpolated at each sweep's own stamp (linear in translation, spherical in rotation);
+* extrinsics (sensor frame in the base frame) from ``/tf_static`` or the rig file.
+
+Recordings are read twice: once for the poses (small messages), once, lazily, for the sweeps.
+A truncated recording is read up to where it breaks; the scene's ``stopped`` says where, and a
+warning is logged.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterator, Mapping
+
+import numpy as np
+
+from evgrid.data.frame import LIDAR_CHANNEL, LIDAR_COLUMNS, RADAR_COLUMNS, Frame, LidarSweep, RadarSweep
+from evgrid.geometry import SE3
+
+__all__ = ["BagError", "RigError", "RigConfig", "LidarTopic", "RadarTopic", "load_rig", "load_bag", "BagScene",
+           "TransformBuffer", "bag_kind"]
+
+logger = logging.getLogger(__name__)
+
+
+class BagError(ValueError):
+    """A recording that cannot be mapped as the rig file describes it (missing topic, frame or field)."""
+
+
+class RigError(ValueError):
+    """A rig file that is not valid."""
+
+
+#: Radar columns a cloud must provide (or that the rig must map): position and cross-section.
+RADAR_REQUIRED = ("x", "y", "z", "rcs")
+#: Values of the ARS 408 validity columns when a radar does not report them: stationary,
+#: unambiguous, valid, false-alarm probability < 25 % (what the ISMs would accept anyway).
+RADAR_DEFAULTS = {"dyn_prop": 1.0, "ambig_state": 3.0, "invalid_state": 0.0, "pdh0": 1.0}
+_RADIAL = "radial_velocity"
+
+
+# --- the rig file -------------------------------------------------------------------------------
+
+
+def _fields(d: Any, allowed: tuple[str, ...], where: str) -> dict[str, str]:
+    if d is None:
+        return {}
+    if not isinstance(d, Mapping):
+        raise RigError(f"{where}: 'fields' must map column names to field names, got {d!r}")
+    bad = [k for k in d if k not in allowed]
+    if bad:
+        raise RigError(f"{where}: unknown column(s) {bad} in 'fields'; columns are {list(allowed)}")
+    for k, v in d.items():
+        if not isinstance(v, str) or not v:
+            raise RigError(f"{where}: fields.{k} must be a field name, got {v!r}")
+    return dict(d)
+
+
+@dataclass(frozen=True)
+class LidarTopic:
+    """The lidar: its topic, optionally its frame (else the header's) and field names per column."""
+
+    topic: str
+    frame: str | None = None
+    fields: Mapping[str, str] = field(default_factory=dict)
+
+    def field_name(self, column: str) -> str:
+        return self.fields.get(column, column)
+
+
+@dataclass(frozen=True)
+class RadarTopic:
+    """One radar: its topic, the channel name its sweeps get, optionally its frame and field names."""
+
+    topic: str
+    channel: str
+    frame: str | None = None
+    fields: Mapping[str, str] = field(default_factory=dict)
+
+    def field_name(self, column: str) -> str:
+        return self.fields.get(column, column)
+
+
+@dataclass(frozen=True)
+class RigConfig:
+    """What the recording's topics and frames mean (see docs/ros.md)."""
+
+    lidar: LidarTopic
+    radars: tuple[RadarTopic, ...] = ()
+    world_frame: str = "odom"
+    base_frame: str = "base_link"
+    odometry_topic: str | None = None  # None: ego poses from tf_topic
+    tf_topic: str = "/tf"
+    tf_static_topic: str = "/tf_static"
+    extrinsics: Mapping[str, SE3] = field(default_factory=dict)  # frame -> sensor_to_ego, beats /tf_static
+    keyframe_every: int | None = 10  # every N-th lidar frame from the first ...
+    keyframe_rate_hz: float | None = None  # ... or the first frame at or after each tick of this rate
+    sync_tolerance_s: float = 0.5  # how late (in bag time) a radar sweep may arrive after its frame
+    max_pose_gap_s: float = 0.1  # how far beyond the pose track a sweep may lie and still get a pose
+    scene: str | None = None  # scene name; default: the recording's file name
+
+    def __post_init__(self) -> None:
+        if (self.keyframe_every is None) == (self.keyframe_rate_hz is None):
+            raise RigError("rig: give exactly one of keyframes.every and keyframes.rate_hz")
+        if self.keyframe_every is not None and (not isinstance(self.keyframe_every, int) or self.keyframe_every < 1):
+            raise RigError(f"rig: keyframes.every must be an integer >= 1, got {self.keyframe_every!r}")
+        if self.keyframe_rate_hz is not None and not (self.keyframe_rate_hz > 0 and math.isfinite(self.keyframe_rate_hz)):
+            raise RigError(f"rig: keyframes.rate_hz must be positive, got {self.keyframe_rate_hz!r}")
+        for name in ("sync_tolerance_s", "max_pose_gap_s"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and v >= 0 and math.isfinite(v)):
+                raise RigError(f"rig: {name} must be a non-negative number of seconds, got {v!r}")
+        channels = [r.channel for r in self.radars]
+        dup = sorted({c for c in channels if channels.count(c) > 1})
+        if dup:
+            raise RigError(f"rig: radar channel(s) {dup} named twice")
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any], where: str = "rig") -> "RigConfig":
+        """From the parsed YAML; raises :class:`RigError` naming the bad key."""
+        if not isinstance(d, Mapping):
+            raise RigError(f"{where}: must be a mapping, got {type(d).__name__}")
+        known = {"scene", "world_frame", "base_frame", "poses", "lidar", "radars", "keyframes", "extrinsics",
+                 "sync_tolerance_s", "max_pose_gap_s"}
+        bad = sorted(set(d) - known)
+        if bad:
+            raise RigError(f"{where}: unknown key(s) {bad}; keys are {sorted(known)}")
+        lid = d.get("lidar")
+        if not isinstance(lid, Mapping) or not isinstance(lid.get("topic"), str):
+            raise RigError(f"{where}: 'lidar' must give at least a 'topic'")
+        lidar = LidarTopic(lid["topic"], lid.get("frame"), _fields(lid.get("fields"), LIDAR_COLUMNS, f"{where} lidar"))
+        radars = []
+        for i, r in enumerate(d.get("radars") or ()):
+            w = f"{where} radars[{i}]"
+            if not isinstance(r, Mapping) or not isinstance(r.get("topic"), str):
+                raise RigError(f"{w}: each radar needs a 'topic'")
+            ch = r.get("channel") or r["topic"].strip("/").replace("/", "_").upper()
+            radars.append(RadarTopic(r["topic"], str(ch), r.get("frame"),
+                                     _fields(r.get("fields"), RADAR_COLUMNS + (_RADIAL,), w)))
+        poses = d.get("poses") or {}
+        if not isinstance(poses, Mapping):
+            raise RigError(f"{where}: 'poses' must be a mapping")
+        source = poses.get("source", "tf")
+        if source not in ("tf", "odometry"):
+            raise RigError(f"{where}: poses.source must be 'tf' or 'odometry', got {source!r}")
+        if source == "odometry" and not isinstance(poses.get("topic"), str):
+            raise RigError(f"{where}: poses.source 'odometry' needs poses.topic")
+        kf = d.get("keyframes") or {"every": 10}
+        if not isinstance(kf, Mapping):
+            raise RigError(f"{where}: 'keyframes' must be a mapping with 'every' or 'rate_hz'")
+        ext = {}
+        for frame, e in (d.get("extrinsics") or {}).items():
+            ext[str(frame)] = _extrinsic(e, f"{where} extrinsics.{frame}")
+        return cls(
+            lidar=lidar, radars=tuple(radars),
+            world_frame=str(d.get("world_frame", "odom")), base_frame=str(d.get("base_frame", "base_link")),
+            odometry_topic=poses.get("topic") if source == "odometry" else None,
+            tf_topic=str(poses.get("tf_topic", "/tf")), tf_static_topic=str(poses.get("tf_static_topic", "/tf_static")),
+            extrinsics=ext, keyframe_every=kf.get("every"), keyframe_rate_hz=kf.get("rate_hz"),
+            sync_tolerance_s=d.get("sync_tolerance_s", 0.5), max_pose_gap_s=d.get("max_pose_gap_s", 0.1),
+            scene=d.get("scene"),
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain data that :meth:`from_dict` reads back (extrinsics as translation + quaternion)."""
+        from evgrid.geometry import matrix_to_quaternion
+
+        out: dict[str, Any] = {
+            "world_frame": self.world_frame, "base_frame": self.base_frame,
+            "poses": ({"source": "odometry", "topic": self.odometry_topic} if self.odometry_topic
+                      else {"source": "tf", "tf_topic": self.tf_topic, "tf_static_topic": self.tf_static_topic}),
+            "lidar": {"topic": self.lidar.topic, **({"frame": self.lidar.frame} if self.lidar.frame else {}),
+                      **({"fields": dict(self.lidar.fields)} if self.lidar.fields else {})},
+            "radars": [{"topic": r.topic, "channel": r.channel, **({"frame": r.frame} if r.frame else {}),
+                        **({"fields": dict(r.fields)} if r.fields else {})} for r in self.radars],
+            "keyframes": {"every": self.keyframe_every} if self.keyframe_every else {"rate_hz": self.keyframe_rate_hz},
+            "sync_tolerance_s": self.sync_tolerance_s, "max_pose_gap_s": self.max_pose_gap_s,
+        }
+        if self.scene:
+            out["scene"] = self.scene
+        if self.extrinsics:
+            out["extrinsics"] = {k: {"translation": [float(v) for v in p.translation],
+                                     "rotation_wxyz": [float(v) for v in matrix_to_quaternion(p.rotation)]}
+                                 for k, p in self.extrinsics.items()}
+        return out
+
+
+def _extrinsic(e: Any, where: str) -> SE3:
+    if not isinstance(e, Mapping) or "translation" not in e:
+        raise RigError(f"{where}: give 'translation' [x, y, z] and 'yaw_deg' or 'rotation_wxyz'")
+    t = e["translation"]
+    if not (isinstance(t, (list, tuple)) and len(t) == 3):
+        raise RigError(f"{where}: translation must be [x, y, z] in metres, got {t!r}")
+    try:
+        if "rotation_wxyz" in e:
+            return SE3.from_quaternion(e["rotation_wxyz"], t)
+        yaw = math.radians(float(e.get("yaw_deg", 0.0)))
+        c, s = math.cos(yaw), math.sin(yaw)
+        return SE3(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]), np.asarray(t, dtype=np.float64))
+    except (TypeError, ValueError) as err:
+        raise RigError(f"{where}: {err}") from None
+
+
+def load_rig(path: str | Path) -> RigConfig:
+    """Read a rig file (YAML); raises :class:`RigError` (or FileNotFoundError) naming the problem."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no rig file at {path}")
+    try:
+        import yaml
+    except ImportError:
+        raise ImportError("reading a rig file needs PyYAML (pip install 'evgrid[ros]')") from None
+    try:
+        d = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as e:
+        raise RigError(f"{path}: not valid YAML: {str(e).splitlines()[0]}") from None
+    return RigConfig.from_dict(d, str(path))
+
+
+# --- reading recordings ---------------------------------------------------------------------------
+
+
+def bag_kind(path: str | Path) -> str:
+    """``ros1`` (a ``.bag`` file), ``ros2-sqlite3`` / ``ros2-mcap`` (a rosbag2 folder) or ``mcap`` (a file)."""
+    p = Path(path)
+    if p.is_dir():
+        meta = p / "metadata.yaml"
+        if not meta.is_file():
+            raise BagError(f"{p} is a folder without metadata.yaml: not a ROS 2 bag")
+        text = meta.read_text()
+        if "storage_identifier: mcap" in text:
+            return "ros2-mcap"
+        return "ros2-sqlite3"
+    if not p.is_file():
+        raise FileNotFoundError(f"no recording at {p}")
+    if p.suffix == ".bag":
+        return "ros1"
+    if p.suffix == ".mcap":
+        return "mcap"
+    if p.suffix == ".db3":
+        return "ros2-sqlite3"
+    raise BagError(f"{p}: unknown recording type (expected a .bag or .mcap file or a ROS 2 bag folder)")
+
+
+class _Recording:
+    """Messages of some topics, in bag order, deserialised; notes where a damaged file stopped."""
+
+    def __init__(self, path: str | Path):
+        from evgrid.ros import require
+
+        require("rosbags")
+        self.path = Path(path)
+        self.kind = bag_kind(self.path)
+        self.topics: dict[str, str] = {}  # topic -> message type, as far as read
+        self.stopped: str | None = None
+
+    def _mcap_files(self) -> list[Path]:
+        if self.kind == "mcap":
+            return [self.path]
+        files = sorted(self.path.glob("*.mcap"))
+        if not files:
+            raise BagError(f"{self.path}: ROS 2 bag with MCAP storage but no .mcap file in it")
+        return files
+
+    def messages(self, topics: set[str], count_only: set[str] = frozenset()) -> Iterator[tuple[str, int, Any]]:
+        """(topic, bag time ns, message) for ``topics``; ``count_only`` topics yield ``None`` messages."""
+        self.stopped = None
+        if self.kind in ("mcap", "ros2-mcap"):
+            for f in self._mcap_files():
+                yield from self._mcap_messages(f, topics, count_only)
+                if self.stopped:
+                    return
+        else:
+            yield from self._rosbags_messages(topics, count_only)
+
+    def _mcap_messages(self, path: Path, topics: set[str], count_only: set[str]) -> Iterator[tuple[str, int, Any]]:
+        from evgrid.ros import require, typestore
+
+        require("mcap")
+        from mcap.records import Channel, Message, Schema
+        from mcap.stream_reader import StreamReader
+        from rosbags.typesys import get_types_from_msg
+
+        store = typestore(2)
+        schemas: dict[int, Schema] = {}
+        channels: dict[int, tuple[str, str]] = {}
+        last_t = None
+        with open(path, "rb") as fh:
+            reader = StreamReader(fh, validate_crcs=False)
+            try:
+                for rec in reader.records:
+                    if isinstance(rec, Schema):
+                        schemas[rec.id] = rec
+                    elif isinstance(rec, Channel):
+                        sch = schemas.get(rec.schema_id)
+                        name = sch.name if sch else ""
+                        if sch is not None and name not in store.fielddefs and sch.encoding == "ros2msg":
+                            store.register(get_types_from_msg(sch.data.decode(), name))
+                        channels[rec.id] = (rec.topic, name)
+                        self.topics[rec.topic] = name
+                    elif isinstance(rec, Message):
+                        topic, typ = channels.get(rec.channel_id, ("", ""))
+                        last_t = rec.log_time
+                        if topic in count_only:
+                            yield topic, rec.log_time, None
+                        elif topic in topics:
+                            yield topic, rec.log_time, store.deserialize_cdr(rec.data, typ)
+            except Exception as e:  # noqa: BLE001 - any damage ends the readable part
+                self.stopped = (f"{path} is damaged or truncated at byte {fh.tell()}"
+                                f"{f' after bag time {last_t} ns' if last_t is not None else ''}: "
+                                f"{type(e).__name__} {e}".rstrip())
+
+    def _rosbags_messages(self, topics: set[str], count_only: set[str]) -> Iterator[tuple[str, int, Any]]:
+        from rosbags.highlevel import AnyReader
+
+        from evgrid.ros import typestore
+
+        paths = [self.path.parent if self.path.suffix == ".db3" else self.path]
+        last_t = None
+        try:
+            with AnyReader(paths, default_typestore=typestore(2 if self.kind != "ros1" else 1)) as reader:
+                self.topics.update({c.topic: c.msgtype for c in reader.connections})
+                conns = [c for c in reader.connections if c.topic in topics | set(count_only)]
+                for conn, t, raw in reader.messages(connections=conns):
+                    last_t = t
+                    if conn.topic in count_only:
+                        yield conn.topic, t, None
+                    else:
+                        yield conn.topic, t, reader.deserialize(raw, conn.msgtype)
+        except Exception as e:  # noqa: BLE001 - rosbags raises several types for damaged files
+            if last_t is None and not self.topics:
+                raise BagError(f"{self.path}: cannot read the recording: {type(e).__name__} {e}") from None
+            self.stopped = f"{self.path} is damaged or truncated after bag time {last_t} ns: {type(e).__name__} {e}"
+
+
+# --- transforms -------------------------------------------------------------------------------------
+
+
+class TransformBuffer:
+    """The tf tree over time: per child frame its parent and samples; static edges apart.
+
+    :meth:`lookup` gives the pose of a frame in an ancestor frame at a time, interpolating
+    every dynamic edge on the way (and returning a stored sample itself when the time is one).
+    """
+
+    def __init__(self, max_gap_us: int = 100_000):
+        self.max_gap_us = max_gap_us
+        self._dyn: dict[str, tuple[str, list[int], list[tuple]]] = {}
+        self._static: dict[str, tuple[str, SE3]] = {}
+        self._arrays: dict[str, tuple[str, np.ndarray, np.ndarray, np.ndarray]] = {}
+
+    def add(self, parent: str, child: str, t_us: int, translation: tuple, q_xyzw: tuple, static: bool = False) -> None:
+        """One transform: the pose of ``child`` in ``parent``."""
+        parent, child = parent.lstrip("/"), child.lstrip("/")
+        if static:
+            from evgrid.ros import transform_to_se3
+
+            self._static[child] = (parent, transform_to_se3(translation, q_xyzw))
+            return
+        p, ts, vals = self._dyn.setdefault(child, (parent, [], []))
+        ts.append(int(t_us))
+        vals.append((*translation, *q_xyzw))
+        self._arrays.pop(child, None)
+
+    def frames(self) -> set[str]:
+        """Every frame named as a child or a parent."""
+        out = set(self._dyn) | set(self._static)
+        out |= {p for p, *_ in self._dyn.values()} | {p for p, _ in self._static.values()}
+        return out
+
+    def _edge(self, child: str) -> tuple[str, np.ndarray, np.ndarray, np.ndarray]:
+        a = self._arrays.get(child)
+        if a is None:
+            parent, ts, vals = self._dyn[child]
+            t = np.asarray(ts, dtype=np.int64)
+            v = np.asarray(vals, dtype=np.float64)
+            order = np.argsort(t, kind="stable")
+            t, v = t[order], v[order]
+            a = self._arrays[child] = (parent, t, v[:, :3], v[:, 3:])
+        return a
+
+    def parent(self, child: str) -> str | None:
+        """The parent frame of ``child`` (dynamic edges first), or None for a root."""
+        child = child.lstrip("/")
+        if child in self._dyn:
+            return self._dyn[child][0]
+        if child in self._static:
+            return self._static[child][0]
+        return None
+
+    def _sample(self, child: str, t_us: int) -> SE3 | None:
+        from evgrid.ros import transform_to_se3
+
+        _, ts, trans, quat = self._edge(child)
+        i = int(np.searchsorted(ts, t_us))
+        if i < len(ts) and ts[i] == t_us:
+            return transform_to_se3(trans[i], quat[i])
+        if i == 0:
+            return transform_to_se3(trans[0], quat[0]) if ts[0] - t_us <= self.max_gap_us else None
+        if i == len(ts):
+            return transform_to_se3(trans[-1], quat[-1]) if t_us - ts[-1] <= self.max_gap_us else None
+        f = (t_us - ts[i - 1]) / (ts[i] - ts[i - 1])
+        tr = (1 - f) * trans[i - 1] + f * trans[i]
+        return transform_to_se3(tr, _slerp(quat[i - 1], quat[i], f))
+
+    def lookup(self, target: str, source: str, t_us: int) -> SE3 | None:
+        """Pose of ``source`` in ``target`` at ``t_us`` (None: no chain, or the time is off the track)."""
+        target, frame = target.lstrip("/"), source.lstrip("/")
+        pose: SE3 | None = None
+        seen = set()
+        while frame != target:
+            if frame in seen:
+                return None
+            seen.add(frame)
+            if frame in self._dyn:
+                parent = self._dyn[frame][0]
+                step = self._sample(frame, t_us)
+                if step is None:
+                    return None
+            elif frame in self._static:
+                parent, step = self._static[frame]
+            else:
+                return None
+            pose = step if pose is None else step @ pose
+            frame = parent
+        return pose if pose is not None else SE3.identity()
+
+
+def _slerp(q0: np.ndarray, q1: np.ndarray, f: float) -> np.ndarray:
+    """Spherical interpolation of unit quaternions (x, y, z, w); yaw-only pairs stay yaw-only."""
+    if q0[0] == q0[1] == q1[0] == q1[1] == 0.0:  # planar: interpolate the yaw itself
+        y0, y1 = 2 * math.atan2(q0[2], q0[3]), 2 * math.atan2(q1[2], q1[3])
+        y = y0 + f * math.remainder(y1 - y0, 2 * math.pi)
+        return np.array([0.0, 0.0, math.sin(y / 2), math.cos(y / 2)])
+    a = q0 / np.linalg.norm(q0)
+    b = q1 / np.linalg.norm(q1)
+    d = float(a @ b)
+    if d < 0:
+        b, d = -b, -d
+    if d > 0.9995:
+        q = a + f * (b - a)
+        return q / np.linalg.norm(q)
+    th = math.acos(d)
+    return (math.sin((1 - f) * th) * a + math.sin(f * th) * b) / math.sin(th)
+
+
+# --- sweeps ---------------------------------------------------------------------------------------
+
+
+def _lidar_points(msg: Any, lidar: LidarTopic, where: str) -> np.ndarray:
+    from evgrid.ros import cloud_fields, cloud_to_columns
+
+    have = set(cloud_fields(msg))
+    names, fill = [], []
+    for col in LIDAR_COLUMNS:
+        name = lidar.field_name(col)
+        if name in have:
+            names.append(name)
+        elif col in ("x", "y", "z") or col in lidar.fields:
+            raise BagError(f"{where}: lidar field {name!r} (column {col}) not in the cloud; it has {sorted(have)}")
+        else:
+            fill.append(col)  # intensity / ring: optional
+    pts = cloud_to_columns(msg, names)
+    if not fill:
+        return pts
+    out = np.zeros((len(pts), len(LIDAR_COLUMNS)), dtype=np.float32)
+    cols = [c for c in LIDAR_COLUMNS if c not in fill]
+    out[:, [LIDAR_COLUMNS.index(c) for c in cols]] = pts
+    return out
+
+
+def _radar_cloud_points(msg: Any, radar: RadarTopic, where: str) -> np.ndarray:
+    from evgrid.ros import cloud_fields, cloud_to_columns
+
+    have = set(cloud_fields(msg))
+    out = np.zeros((int(msg.height) * int(msg.width), len(RADAR_COLUMNS)), dtype=np.float32)
+    take = {c: radar.field_name(c) for c in RADAR_COLUMNS if radar.field_name(c) in have}
+    for col in radar.fields:
+        if col != _RADIAL and col not in take:
+            raise BagError(f"{where}: radar field {radar.fields[col]!r} (column {col}) not in the cloud; it has {sorted(have)}")
+    missing = [radar.field_name(c) for c in RADAR_REQUIRED if c not in take]
+    if missing:
+        raise BagError(f"{where}: radar field(s) {missing} not in the cloud; it has {sorted(have)} (map them under fields:)")
+    if take:
+        vals = cloud_to_columns(msg, list(take.values()))
+        for i, col in enumerate(take):
+            out[:, RADAR_COLUMNS.index(col)] = vals[:, i]
+    if "vx_comp" not in take or "vy_comp" not in take:
+        radial = radar.field_name(_RADIAL)
+        if radial not in have:
+            raise BagError(f"{where}: radar needs fields vx_comp and vy_comp or a radial velocity field {radial!r}; "
+                           f"the cloud has {sorted(have)}")
+        _set_radial(out, cloud_to_columns(msg, [radial])[:, 0])
+    for raw, comp in (("vx", "vx_comp"), ("vy", "vy_comp")):
+        if raw not in take:
+            out[:, RADAR_COLUMNS.index(raw)] = out[:, RADAR_COLUMNS.index(comp)]
+    for col, v in RADAR_DEFAULTS.items():
+        if col not in take:
+            out[:, RADAR_COLUMNS.index(col)] = v
+    return out
+
+
+def _set_radial(out: np.ndarray, v_r: np.ndarray) -> None:
+    """Velocity columns from a radial (Doppler) speed: the speed along the line of sight, as a vector."""
+    x, y, z = (out[:, i].astype(np.float64) for i in range(3))
+    r = np.sqrt(x * x + y * y + z * z)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ux = np.where(r > 0, x / r, 0.0)
+        uy = np.where(r > 0, y / r, 0.0)
+    out[:, RADAR_COLUMNS.index("vx_comp")] = v_r * ux
+    out[:, RADAR_COLUMNS.index("vy_comp")] = v_r * uy
+
+
+def _radar_scan_points(msg: Any) -> np.ndarray:
+    """``radar_msgs/RadarScan`` returns -> radar columns (amplitude taken as RCS in dBsm)."""
+    ret = msg.returns
+    out = np.zeros((len(ret), len(RADAR_COLUMNS)), dtype=np.float32)
+    if not len(ret):
+        return out
+    a = np.array([(r.range, r.azimuth, r.elevation, r.doppler_velocity, r.amplitude) for r in ret], dtype=np.float64)
+    ce = np.cos(a[:, 2])
+    out[:, 0] = a[:, 0] * ce * np.cos(a[:, 1])
+    out[:, 1] = a[:, 0] * ce * np.sin(a[:, 1])
+    out[:, 2] = a[:, 0] * np.sin(a[:, 2])
+    out[:, 3] = a[:, 4]
+    _set_radial(out, a[:, 3])
+    out[:, 4] = out[:, 6]
+    out[:, 5] = out[:, 7]
+    for col, v in RADAR_DEFAULTS.items():
+        out[:, RADAR_COLUMNS.index(col)] = v
+    return out
+
+
+# --- the scene ------------------------------------------------------------------------------------
+
+
+@dataclass
+class _PoseTrack:
+    tf: TransformBuffer
+    world: str
+    base: str
+
+    def ego(self, t_us: int) -> SE3 | None:
+        return self.tf.lookup(self.world, self.base, t_us)
+
+
+class BagScene:
+    """A recording as a :class:`~evgrid.data.frame.Scene`; frames are read lazily on iteration.
+
+    ``stopped`` says where a damaged recording stopped being readable (None when whole);
+    ``counts`` what was skipped on the last full iteration (frames without a pose, radar
+    sweeps that arrived after their frame or after the last lidar sweep).
+    """
+
+    def __init__(self, path: str | Path, rig: RigConfig):
+        self.path = Path(path)
+        self.rig = rig
+        self.name = rig.scene or self.path.stem
+        self._rec = _Recording(self.path)
+        self.stopped: str | None = None
+        self.counts: dict[str, int] = {}
+        self._scan_poses()
+
+    def __repr__(self) -> str:
+        return f"BagScene({self.name!r}, {self._rec.kind}, {self._n_lidar} lidar sweeps)"
+
+    @property
+    def kind(self) -> str:
+        """The recording's format (see :func:`bag_kind`)."""
+        return self._rec.kind
+
+    def _scan_poses(self) -> None:
+        rig = self.rig
+        tf = TransformBuffer(int(round(rig.max_pose_gap_s * 1e6)))
+        pose_topics = {rig.tf_static_topic} | ({rig.odometry_topic} if rig.odometry_topic else {rig.tf_topic})
+        count = {rig.lidar.topic} | {r.topic for r in rig.radars}
+        self._n_lidar = 0
+        for topic, _, msg in self._rec.messages(pose_topics, count - pose_topics):
+            if topic == rig.lidar.topic:
+                self._n_lidar += 1
+            elif msg is None:
+                continue
+            elif topic == rig.odometry_topic:
+                p = msg.pose.pose
+                from evgrid.ros import stamp_to_us
+
+                tf.add(msg.header.frame_id, msg.child_frame_id, stamp_to_us(msg.header.stamp),
+                       (p.position.x, p.position.y, p.position.z),
+                       (p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w))
+            else:
+                from evgrid.ros import stamp_to_us
+
+                for tr in msg.transforms:
+                    tt, q = tr.transform.translation, tr.transform.rotation
+                    tf.add(tr.header.frame_id, tr.child_frame_id, stamp_to_us(tr.header.stamp), (tt.x, tt.y, tt.z),
+                           (q.x, q.y, q.z, q.w), static=topic == rig.tf_static_topic)
+        self.stopped = self._rec.stopped
+        if self.stopped:
+            logger.warning("%s; mapping what was read before", self.stopped)
+        self._check(tf)
+        self._tf = tf
+        self._poses = _PoseTrack(tf, rig.world_frame, rig.base_frame)
+        self._extrinsics: dict[str, SE3] = {}
+
+    def _check(self, tf: TransformBuffer) -> None:
+        rig, have = self.rig, self._rec.topics
+        need = [rig.lidar.topic, *(r.topic for r in rig.radars)]
+        need.append(rig.odometry_topic or rig.tf_topic)
+        missing = [t for t in need if t not in have]
+        if missing:
+            raise BagError(f"{self.path}: topic(s) {missing} not in the recording; it has {sorted(have)}")
+        for r in rig.radars:
+            typ = have[r.topic]
+            if typ not in ("sensor_msgs/msg/PointCloud2", "radar_msgs/msg/RadarScan"):
+                raise BagError(f"{self.path}: radar topic {r.topic} is {typ}; evgrid reads sensor_msgs/PointCloud2 "
+                               "or radar_msgs/RadarScan")
+        if have[rig.lidar.topic] != "sensor_msgs/msg/PointCloud2":
+            raise BagError(f"{self.path}: lidar topic {rig.lidar.topic} is {have[rig.lidar.topic]}, "
+                           "not sensor_msgs/PointCloud2")
+        frames = tf.frames()
+        missing = [f for f in (rig.world_frame, rig.base_frame) if f not in frames]
+        if missing:
+            src = rig.odometry_topic or rig.tf_topic
+            raise BagError(f"{self.path}: frame(s) {missing} not in {src}; its frames are {sorted(frames)}")
+
+    def _extrinsic(self, frame: str, where: str) -> SE3:
+        frame = frame.lstrip("/")
+        e = self._extrinsics.get(frame)
+        if e is None:
+            e = self.rig.extrinsics.get(frame)
+            if e is None:
+                # a sensor hangs off the base through static transforms only
+                e = self._tf.lookup(self.rig.base_frame, frame, 0) if self._static_chain(frame) else None
+            if e is None:
+                raise BagError(f"{where}: no extrinsics for frame {frame!r}: not in {self.rig.tf_static_topic} "
+                               f"below {self.rig.base_frame!r} nor under extrinsics: in the rig file")
+            self._extrinsics[frame] = e
+        return e
+
+    def _static_chain(self, frame: str) -> bool:
+        f, seen = frame, set()
+        while f != self.rig.base_frame:
+            if f in seen or f not in self._tf._static:
+                return False
+            seen.add(f)
+            f = self._tf._static[f][0]
+        return True
+
+    def __len__(self) -> int:
+        return self._n_lidar
+
+    def _is_keyframe(self, index: int, t_us: int, state: dict) -> bool:
+        rig = self.rig
+        if rig.keyframe_every is not None:
+            return index % rig.keyframe_every == 0
+        period = 1e6 / rig.keyframe_rate_hz
+        nxt = state.get("next")
+        if nxt is None or t_us >= nxt:
+            base = t_us if nxt is None else nxt
+            state["next"] = base + period * (math.floor((t_us - base) / period) + 1)
+            return True
+        return False
+
+    def __iter__(self) -> Iterator[Frame]:
+        from evgrid.ros import stamp_to_us
+
+        rig = self.rig
+        radar_by_topic = {r.topic: r for r in rig.radars}
+        tol_ns = int(rig.sync_tolerance_s * 1e9)
+        lidar_q: list[tuple[int, np.ndarray, str]] = []
+        radar_q: list[RadarSweep] = []
+        counts = {"frames_no_pose": 0, "radar_sweeps_late": 0, "radar_sweeps_no_pose": 0, "radar_sweeps_after_end": 0}
+        state: dict = {"index": 0, "last_t": None, "kf": {}}
+
+        def emit(upto_ns: int | None) -> Iterator[Frame]:
+            while lidar_q and (upto_ns is None or lidar_q[0][0] * 1000 + tol_ns < upto_ns):
+                t, pts, frame_id = lidar_q.pop(0)
+                ego = self._poses.ego(t)
+                if ego is None:
+                    counts["frames_no_pose"] += 1
+                    logger.warning("%s: no ego pose at lidar stamp %d us (%s -> %s); frame skipped",
+                                   self.path, t, rig.world_frame, rig.base_frame)
+                    continue
+                last = state["last_t"]
+                mine = [s for s in radar_q if s.timestamp <= t and (last is None or s.timestamp > last)]
+                radar_q[:] = [s for s in radar_q if s.timestamp > t]
+                radar = {r.channel: tuple(sorted((s for s in mine if s.channel == r.channel), key=lambda s: s.timestamp))
+                         for r in rig.radars}
+                i = state["index"]
+                kf = self._is_keyframe(i, t, state["kf"])
+                s2e = self._extrinsic(frame_id, f"{self.path} lidar {rig.lidar.topic}")
+                lidar = LidarSweep(pts, s2e, ego, t, LIDAR_CHANNEL)
+                state["index"] = i + 1
+                state["last_t"] = t
+                yield Frame(scene=self.name, index=i, timestamp=t, ego_pose=ego, is_keyframe=kf, lidar=lidar, radar=radar)
+
+        topics = {rig.lidar.topic, *radar_by_topic}
+        for topic, bag_t, msg in self._rec.messages(topics):
+            where = f"{self.path} {topic}"
+            t = stamp_to_us(msg.header.stamp)
+            if topic == rig.lidar.topic:
+                lidar_q.append((t, _lidar_points(msg, rig.lidar, where), rig.lidar.frame or msg.header.frame_id))
+            else:
+                r = radar_by_topic[topic]
+                if state["last_t"] is not None and t <= state["last_t"]:
+                    counts["radar_sweeps_late"] += 1
+                    continue
+                pts = _radar_scan_points(msg) if hasattr(msg, "returns") else _radar_cloud_points(msg, r, where)
+                ego = self._poses.ego(t)
+                if ego is None:
+                    counts["radar_sweeps_no_pose"] += 1
+                    continue
+                s2e = self._extrinsic(r.frame or msg.header.frame_id, where)
+                radar_q.append(RadarSweep(pts, s2e, ego, t, r.channel))
+            yield from emit(bag_t)
+        yield from emit(None)
+        counts["radar_sweeps_after_end"] = len(radar_q)
+        self.counts = counts
+        if self._rec.stopped:
+            self.stopped = self._rec.stopped
+            logger.warning("%s; the scene ends at frame %d", self.stopped, state["index"])
+
+
+def load_bag(path: str | Path, rig: RigConfig | str | Path) -> BagScene:
+    """A recording (``.bag``, ``.mcap`` or a ROS 2 bag folder) as a scene, read as the rig file says.
+
+    Raises :class:`BagError` naming missing topics or frames (fields are checked as sweeps are
+    read), :class:`RigError` for a bad rig file.
+    """
+    if not isinstance(rig, RigConfig):
+        rig = load_rig(rig)
+    return BagScene(path, rig)
