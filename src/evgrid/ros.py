@@ -76,8 +76,11 @@ def typestore(ros_version: int = 2) -> Any:
 
     store = get_typestore(Stores.ROS2_HUMBLE if ros_version == 2 else Stores.ROS1_NOETIC)
     types: dict = {}
-    for name, text in EXTRA_MSGS.items():
-        types.update(get_types_from_msg(text, name))
+    extra = dict(EXTRA_MSGS)
+    extra.setdefault("tf2_msgs/msg/TFMessage", "geometry_msgs/TransformStamped[] transforms\n")  # not in Noetic's store
+    for name, text in extra.items():
+        if name not in store.fielddefs:
+            types.update(get_types_from_msg(text, name))
     store.register(types)
     return store
 
