@@ -202,15 +202,16 @@ def test_rig_file_errors_and_round_trip(tmp_path):
     np.testing.assert_allclose(back.extrinsics["l"].matrix(), rig.extrinsics["l"].matrix(), atol=1e-12)
 
 
-def test_truncated_recording_maps_what_is_readable(frames, tmp_path, caplog):
-    bag, rig = write_bag(frames, tmp_path / "whole.mcap", storage="plain-mcap")
-    cut = tmp_path / "cut.mcap"
+@pytest.mark.parametrize("storage,suffix", [("plain-mcap", ".mcap"), ("ros1", ".bag")])
+def test_truncated_recording_maps_what_is_readable(frames, tmp_path, caplog, storage, suffix):
+    bag, rig = write_bag(frames, tmp_path / f"whole{suffix}", storage=storage)
+    cut = tmp_path / f"cut{suffix}"
     data = bag.read_bytes()
-    cut.write_bytes(data[: int(len(data) * 0.6)])
+    cut.write_bytes(data[: int(len(data) * 0.6)])  # a ROS 1 bag loses its index, an MCAP file its summary
     with caplog.at_level(logging.WARNING, logger="evgrid.data.bag"):
         scene = load_bag(cut, rig)
         got = list(scene)
-    assert scene.stopped is not None and "cut.mcap" in scene.stopped and "truncated" in scene.stopped
+    assert scene.stopped is not None and cut.name in scene.stopped and "truncated" in scene.stopped
     assert any("truncated" in r.message for r in caplog.records)
     assert 0 < len(got) < len(frames)
     assert_same_frames(frames[: len(got)], got)
@@ -233,6 +234,15 @@ def test_transform_chain_and_exact_planar_quaternions():
     for yaw in rng.uniform(-math.pi, math.pi, 500):
         pose = SE3.from_se2(SE2(1.0, -2.0, float(yaw)))
         assert transform_to_se3(*se3_to_transform(pose)) == pose  # bit-exact, not just close
+
+
+def test_the_documented_rig_example_loads():
+    from pathlib import Path
+
+    rig = load_rig(Path(__file__).resolve().parents[1] / "docs" / "rig_example.yaml")
+    assert [r.channel for r in rig.radars] == ["RADAR_FRONT", "RADAR_BACK"]
+    assert rig.radars[0].fields == {"rcs": "snr", "radial_velocity": "v_r"}
+    assert set(rig.extrinsics) == {"velodyne", "radar_front"} and rig.keyframe_every == 10
 
 
 def test_bag_errors_for_unreadable_paths(tmp_path):

@@ -330,6 +330,13 @@ class _Recording:
 
         paths = [self.path.parent if self.path.suffix == ".db3" else self.path]
         last_t = None
+        if self.kind == "ros1":
+            try:  # a bag whose recording was cut has no index: read it record by record instead
+                with AnyReader(paths):
+                    pass
+            except Exception:  # noqa: BLE001
+                yield from self._ros1_scan(topics, count_only)
+                return
         try:
             with AnyReader(paths, default_typestore=typestore(2 if self.kind != "ros1" else 1)) as reader:
                 self.topics.update({c.topic: c.msgtype for c in reader.connections})
@@ -344,6 +351,90 @@ class _Recording:
             if last_t is None and not self.topics:
                 raise BagError(f"{self.path}: cannot read the recording: {type(e).__name__} {e}") from None
             self.stopped = f"{self.path} is damaged or truncated after bag time {last_t} ns: {type(e).__name__} {e}"
+
+
+    def _ros1_scan(self, topics: set[str], count_only: set[str]) -> Iterator[tuple[str, int, Any]]:
+        """Messages of a ROS 1 bag (format 2.0) read record by record, without its index."""
+        from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+        from rosbags.typesys.msg import normalize_msgtype
+
+        store = get_typestore(Stores.EMPTY)
+        conns: dict[int, tuple[str, str]] = {}
+        last_t = None
+        with open(self.path, "rb") as fh:
+            if fh.readline() != b"#ROSBAG V2.0\n":
+                raise BagError(f"{self.path} is not a ROS 1 bag (format 2.0)")
+            try:
+                for op, hdr, data in _ros1_records(fh):
+                    for op2, hdr2, data2 in (_ros1_chunk(hdr, data) if op == 0x05 else [(op, hdr, data)]):
+                        if op2 == 0x07:  # connection: topic, type and message definition
+                            ch = _ros1_header(data2)
+                            typ = normalize_msgtype(ch["type"].decode())
+                            if typ not in store.fielddefs:
+                                store.register(get_types_from_msg(ch["message_definition"].decode(), typ))
+                            topic = hdr2["topic"].decode()
+                            conns[int.from_bytes(hdr2["conn"], "little")] = (topic, typ)
+                            self.topics[topic] = typ
+                        elif op2 == 0x02:  # message data
+                            topic, typ = conns[int.from_bytes(hdr2["conn"], "little")]
+                            sec, nsec = int.from_bytes(hdr2["time"][:4], "little"), int.from_bytes(hdr2["time"][4:], "little")
+                            last_t = sec * 1_000_000_000 + nsec
+                            if topic in count_only:
+                                yield topic, last_t, None
+                            elif topic in topics:
+                                yield topic, last_t, store.deserialize_ros1(data2, typ)
+            except Exception as e:  # noqa: BLE001 - any damage ends the readable part
+                self.stopped = (f"{self.path} is damaged or truncated at byte {fh.tell()}"
+                                f"{f' after bag time {last_t} ns' if last_t is not None else ''}: "
+                                f"{type(e).__name__} {e}".rstrip())
+
+
+def _ros1_header(buf: bytes) -> dict[str, bytes]:
+    """Fields ``name=value`` of a ROS 1 record header (each prefixed by its uint32 length)."""
+    out, i = {}, 0
+    while i < len(buf):
+        n = int.from_bytes(buf[i:i + 4], "little")
+        name, _, value = buf[i + 4:i + 4 + n].partition(b"=")
+        out[name.decode()] = value
+        i += 4 + n
+    return out
+
+
+def _ros1_records(fh: Any) -> Iterator[tuple[int, dict[str, bytes], bytes]]:
+    """(op code, header fields, data) of each record of a ROS 1 bag stream; EOFError when one is cut short."""
+    while True:
+        raw = fh.read(4)
+        if not raw:
+            return
+        parts = []
+        for k in range(2):
+            if len(raw) < 4:
+                raise EOFError("record length cut short")
+            n = int.from_bytes(raw, "little")
+            body = fh.read(n)
+            if len(body) < n:
+                raise EOFError("record cut short")
+            parts.append(body)
+            raw = fh.read(4) if k == 0 else b""
+        hdr = _ros1_header(parts[0])
+        yield hdr["op"][0], hdr, parts[1]
+
+
+def _ros1_chunk(hdr: dict[str, bytes], data: bytes) -> Iterator[tuple[int, dict[str, bytes], bytes]]:
+    import io
+
+    comp = hdr.get("compression", b"none").decode()
+    if comp == "bz2":
+        import bz2
+
+        data = bz2.decompress(data)
+    elif comp == "lz4":
+        import lz4.frame
+
+        data = lz4.frame.decompress(data)
+    elif comp != "none":
+        raise BagError(f"unknown ROS 1 chunk compression {comp!r}")
+    return _ros1_records(io.BytesIO(data))
 
 
 # --- transforms -------------------------------------------------------------------------------------
