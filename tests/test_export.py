@@ -33,6 +33,7 @@ def _three_by_three() -> EvidentialMap:
 
 
 def test_nav2_hand_computed_three_by_three(tmp_path):
+    pytest.importorskip("yaml")
     m = _three_by_three()
     pgm, yml = write_nav2(m, tmp_path / "map")
     assert (pgm.name, yml.name) == ("map.pgm", "map.yaml")
@@ -70,7 +71,7 @@ def run(tmp_path_factory):
     pytest.importorskip("rosbags")
     pytest.importorskip("mcap")
     out = tmp_path_factory.mktemp("run")
-    obs = [make_observer("mcap", out / "run.mcap")]
+    obs = [make_observer("mcap", out / "run.mcap"), make_observer("nav2", out / "nav2", maps=("fused",))]
     try:
         import rerun  # noqa: F401
 
@@ -154,10 +155,13 @@ def test_rerun_recording_has_maps_isms_and_trajectory(run):
 
 
 def test_export_map_every_format(run, tmp_path):
-    mapper, _, _ = run
+    mapper, _, out = run
     m = mapper.maps.maps["fused"]
     files = {f: export_map(m, tmp_path / "fused", f) for f in FORMATS if f != "rerun" or "rerun" in sys.modules}
     assert [p.name for p in files["nav2"]] == ["fused.pgm", "fused.yaml"]
+    # the run's nav2 observer wrote the same final map (and only the one asked for)
+    assert sorted(p.name for p in (out / "nav2").iterdir()) == ["fused.pgm", "fused.yaml"]
+    assert (out / "nav2" / "fused.pgm").read_bytes() == files["nav2"][0].read_bytes()
     data, res, _ = read_nav2(files["nav2"][1])
     r0, c0, h, w = m.covered_bounds()
     assert data.shape == (w, h) and res == m.grid.resolution
@@ -168,6 +172,8 @@ def test_export_map_every_format(run, tmp_path):
     assert np.array_equal(data[data == 100], np.full((data == 100).sum(), 100)) and (occ[data == 100] >= 65).all()
     with pytest.raises(ValueError, match="nav2"):
         export_map(m, tmp_path / "x", "png")
+    with pytest.raises(ValueError, match="rerun"):
+        make_observer("gif", tmp_path / "x")
 
 
 def test_missing_extras_say_how_to_install(monkeypatch):

@@ -46,10 +46,20 @@ def export_map(m: EvidentialMap, path: str | os.PathLike, format: str, name: str
 
 
 def make_observer(format: str, path: str | os.PathLike | None, **kwargs):
-    """A mapper observer recording a run as ``mcap`` (to ``path``) or ``rerun`` (``path`` None: live viewer).
+    """A mapper observer that records a run; call its ``close()`` after the last frame.
 
-    Call its ``close()`` after the last frame.
+    ``nav2``: the final maps as ``path/NAME.pgm`` + ``.yaml`` (``path`` a folder);
+    ``mcap``: maps and poses while mapping (``path`` a ``.mcap`` file);
+    ``rerun``: a ``.rrd`` recording at ``path``, or with ``path`` None a live viewer.
+    ``kwargs`` go to :class:`~evgrid.export.nav2.Nav2Exporter`,
+    :class:`~evgrid.export.mcap.McapExporter` or :class:`~evgrid.export.rerun.RerunRecorder`.
     """
+    if format == "nav2":
+        from evgrid.export.nav2 import Nav2Exporter
+
+        if path is None:
+            raise ValueError("the nav2 export needs a folder")
+        return Nav2Exporter(path, **kwargs)
     if format == "mcap":
         from evgrid.export.mcap import McapExporter
 
@@ -60,4 +70,4 @@ def make_observer(format: str, path: str | os.PathLike | None, **kwargs):
         from evgrid.export.rerun import RerunRecorder
 
         return RerunRecorder(path, **kwargs)
-    raise ValueError(f"run exports are 'mcap' or 'rerun', got {format!r} (nav2 maps come from saved maps: export_map)")
+    raise ValueError(f"export format must be one of {FORMATS}, got {format!r}")

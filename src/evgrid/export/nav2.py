@@ -30,7 +30,7 @@ from evgrid.grid import EvidentialMap
 from evgrid.validation import check_number
 
 __all__ = ["Nav2Thresholds", "classify", "map_to_occupancy", "write_nav2", "read_nav2", "FREE", "OCCUPIED", "UNKNOWN",
-           "PIXEL"]
+           "PIXEL", "Nav2Exporter"]
 
 #: Classes (the values of nav_msgs/OccupancyGrid for a trinary map).
 FREE, OCCUPIED, UNKNOWN = 0, 100, -1
@@ -134,8 +134,9 @@ def read_nav2(yaml_path: str | os.PathLike) -> tuple[np.ndarray, float, tuple[fl
     ``p < free_thresh``, else unknown (-1) in trinary mode or ``99 * (p - free) / (occ - free)``
     in scale mode.
     """
-    import yaml
+    from evgrid.ros import require
 
+    yaml = require("yaml")
     yaml_path = Path(yaml_path)
     d = yaml.safe_load(yaml_path.read_text())
     img = _read_pgm(yaml_path.parent / d["image"]).astype(np.float64)
@@ -154,3 +155,25 @@ def read_nav2(yaml_path: str | os.PathLike) -> tuple[np.ndarray, float, tuple[fl
     if len(origin) != 3 or not all(math.isfinite(v) for v in origin):
         raise ValueError(f"{yaml_path}: origin must be [x, y, yaw], got {d['origin']!r}")
     return out[::-1].copy(), float(d["resolution"]), origin  # OccupancyGrid rows run bottom-up
+
+
+class Nav2Exporter:
+    """Observer that writes each final map as ``<folder>/<NAME>.pgm`` + ``.yaml`` at :meth:`close`."""
+
+    def __init__(self, folder: str | os.PathLike, maps: tuple[str, ...] | None = None,
+                 thresholds: Nav2Thresholds = Nav2Thresholds()):
+        self.folder = Path(folder)
+        self.names = maps
+        self.thresholds = thresholds
+        self._maps: dict[str, EvidentialMap] = {}
+
+    def on_update(self, update) -> None:
+        self._maps = update.maps.maps
+
+    def close(self) -> list[Path]:
+        """Write the maps (those observed at all); returns the files written."""
+        out: list[Path] = []
+        for name, m in self._maps.items():
+            if (self.names is None or name in self.names) and m.covered_bounds()[2]:
+                out += write_nav2(m, self.folder / name, self.thresholds)
+        return out
