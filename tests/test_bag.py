@@ -96,14 +96,14 @@ def test_radar_scan_messages(frames, tmp_path):
     assert n > 0
 
 
-def _handmade(tmp_path, *, radar_fields=("x", "y", "z", "snr", "v_r"), storage="mcap"):
-    """Odometry at 10 Hz driving along x at 2 m/s while turning at 0.5 rad/s; lidar and radar between samples."""
+def _handmade(tmp_path, *, radar_fields=("x", "y", "z", "snr", "v_r"), storage="mcap", yaw_rate=0.5, compensated=True):
+    """Odometry at 10 Hz driving along x at 2 m/s while turning at ``yaw_rate``; lidar and radar between samples."""
     path = tmp_path / "hand"
     w = RecordingWriter(path, storage)
     s = w.store
     for k in range(11):
         t = 1_000_000 + 100_000 * k
-        pose = SE3.from_se2(SE2(0.2 * k, 0.0, 0.05 * k))
+        pose = SE3.from_se2(SE2(0.2 * k, 0.0, 0.1 * yaw_rate * k))
         (tx, ty, tz), (qx, qy, qz, qw) = se3_to_transform(pose)
         odo = s.types["nav_msgs/msg/Odometry"](
             header=transform_msg("odom", "base_link", t, pose, s).header, child_frame_id="base_link",
@@ -131,7 +131,8 @@ def _handmade(tmp_path, *, radar_fields=("x", "y", "z", "snr", "v_r"), storage="
         "world_frame": "odom", "base_frame": "base_link",
         "poses": {"source": "odometry", "topic": "/odom"},
         "lidar": {"topic": "/velodyne_points"},
-        "radars": [{"topic": "/radar/points", "channel": "RADAR_FRONT", "fields": {"rcs": "snr", "radial_velocity": "v_r"}}],
+        "radars": [{"topic": "/radar/points", "channel": "RADAR_FRONT", "fields": {"rcs": "snr", "radial_velocity": "v_r"},
+                    "compensated": compensated}],
         "extrinsics": {"velodyne": {"translation": [1.0, 0.0, 1.8], "yaw_deg": -90},
                        "radar": {"translation": [3.5, 0.0, 0.5], "rotation_wxyz": [1, 0, 0, 0]}},
         "keyframes": {"rate_hz": 2.5},
@@ -164,6 +165,18 @@ def test_odometry_interpolation_rig_extrinsics_and_field_names(tmp_path):
     assert p[RADAR_COLUMNS.index("invalid_state")] == 0.0 and p[RADAR_COLUMNS.index("ambig_state")] == 3.0
 
 
+def test_raw_doppler_is_compensated_with_the_ego_motion(tmp_path):
+    # driving straight along x at 2 m/s; the radar's target at (3, 4, 0) m is static, so its raw
+    # radial speed is -2 m/s * 3/5 = -1.2 m/s (the handmade radar reports -2.5: 1.3 m/s its own)
+    path, rig = _handmade(tmp_path, yaw_rate=0.0, compensated=False)
+    assert load_rig(write_rig(rig, tmp_path / "rig.yaml")).radars[0].compensated is False
+    (sweep,) = next(iter(load_bag(path, rig))).radar["RADAR_FRONT"]
+    p = sweep.points[0]
+    assert (p[RADAR_COLUMNS.index("vx")], p[RADAR_COLUMNS.index("vy")]) == pytest.approx((-2.5 * 0.6, -2.5 * 0.8))
+    assert p[RADAR_COLUMNS.index("vx_comp")] == pytest.approx(-1.3 * 0.6, abs=1e-5)
+    assert p[RADAR_COLUMNS.index("vy_comp")] == pytest.approx(-1.3 * 0.8, abs=1e-5)
+
+
 def test_missing_topic_field_and_frame_are_named(mcap_bag, tmp_path):
     bag, rig_path = mcap_bag
     rig = load_rig(rig_path).to_dict()
@@ -180,7 +193,7 @@ def test_missing_topic_field_and_frame_are_named(mcap_bag, tmp_path):
     with pytest.raises(BagError, match="velodyne"):
         list(load_bag(bag, RigConfig.from_dict(bad)))
     path, hand = _handmade(tmp_path, radar_fields=("x", "y", "z", "snr"))
-    with pytest.raises(BagError, match="v_r"):  # neither velocity vector nor radial speed
+    with pytest.raises(BagError, match="v_r"):  # neither a velocity vector nor a radial speed
         list(load_bag(path, hand))
 
 

@@ -89,6 +89,7 @@ class RadarTopic:
     channel: str
     frame: str | None = None
     fields: Mapping[str, str] = field(default_factory=dict)
+    compensated: bool = True  # False: raw Doppler, compensated here with the ego motion of the poses
 
     def field_name(self, column: str) -> str:
         return self.fields.get(column, column)
@@ -148,8 +149,11 @@ class RigConfig:
             if not isinstance(r, Mapping) or not isinstance(r.get("topic"), str):
                 raise RigError(f"{w}: each radar needs a 'topic'")
             ch = r.get("channel") or r["topic"].strip("/").replace("/", "_").upper()
+            comp = r.get("compensated", True)
+            if not isinstance(comp, bool):
+                raise RigError(f"{w}: compensated must be true or false, got {comp!r}")
             radars.append(RadarTopic(r["topic"], str(ch), r.get("frame"),
-                                     _fields(r.get("fields"), RADAR_COLUMNS + (_RADIAL,), w)))
+                                     _fields(r.get("fields"), RADAR_COLUMNS + (_RADIAL,), w), comp))
         poses = d.get("poses") or {}
         if not isinstance(poses, Mapping):
             raise RigError(f"{where}: 'poses' must be a mapping")
@@ -185,7 +189,8 @@ class RigConfig:
             "lidar": {"topic": self.lidar.topic, **({"frame": self.lidar.frame} if self.lidar.frame else {}),
                       **({"fields": dict(self.lidar.fields)} if self.lidar.fields else {})},
             "radars": [{"topic": r.topic, "channel": r.channel, **({"frame": r.frame} if r.frame else {}),
-                        **({"fields": dict(r.fields)} if r.fields else {})} for r in self.radars],
+                        **({"fields": dict(r.fields)} if r.fields else {}),
+                        **({} if r.compensated else {"compensated": False})} for r in self.radars],
             "keyframes": {"every": self.keyframe_every} if self.keyframe_every else {"rate_hz": self.keyframe_rate_hz},
             "sync_tolerance_s": self.sync_tolerance_s, "max_pose_gap_s": self.max_pose_gap_s,
         }
@@ -507,6 +512,24 @@ class TransformBuffer:
         tr = (1 - f) * trans[i - 1] + f * trans[i]
         return transform_to_se3(tr, _slerp(quat[i - 1], quat[i], f))
 
+    def span(self, target: str, source: str) -> tuple[int, int] | None:
+        """Times (us) over which every dynamic transform from ``source`` up to ``target`` has samples."""
+        lo, hi = -(2**62), 2**62
+        frame, seen = source.lstrip("/"), set()
+        while frame != target.lstrip("/"):
+            if frame in seen:
+                return None
+            seen.add(frame)
+            if frame in self._dyn:
+                parent, ts, _, _ = self._edge(frame)
+                lo, hi = max(lo, int(ts[0])), min(hi, int(ts[-1]))
+            elif frame in self._static:
+                parent = self._static[frame][0]
+            else:
+                return None
+            frame = parent
+        return lo, hi
+
     def lookup(self, target: str, source: str, t_us: int) -> SE3 | None:
         """Pose of ``source`` in ``target`` at ``t_us`` (None: no chain, or the time is off the track)."""
         target, frame = target.lstrip("/"), source.lstrip("/")
@@ -590,11 +613,15 @@ def _radar_cloud_points(msg: Any, radar: RadarTopic, where: str) -> np.ndarray:
         for i, col in enumerate(take):
             out[:, RADAR_COLUMNS.index(col)] = vals[:, i]
     if "vx_comp" not in take or "vy_comp" not in take:
-        radial = radar.field_name(_RADIAL)
-        if radial not in have:
-            raise BagError(f"{where}: radar needs fields vx_comp and vy_comp or a radial velocity field {radial!r}; "
-                           f"the cloud has {sorted(have)}")
-        _set_radial(out, cloud_to_columns(msg, [radial])[:, 0])
+        if "vx" in take and "vy" in take:  # a velocity vector (compensated below if the rig says it is raw)
+            out[:, RADAR_COLUMNS.index("vx_comp")] = out[:, RADAR_COLUMNS.index("vx")]
+            out[:, RADAR_COLUMNS.index("vy_comp")] = out[:, RADAR_COLUMNS.index("vy")]
+        else:
+            radial = radar.field_name(_RADIAL)
+            if radial not in have:
+                raise BagError(f"{where}: radar needs velocity fields (vx_comp and vy_comp, or vx and vy) or a radial "
+                               f"velocity field {radial!r}; the cloud has {sorted(have)}")
+            _set_radial(out, cloud_to_columns(msg, [radial])[:, 0])
     for raw, comp in (("vx", "vx_comp"), ("vy", "vy_comp")):
         if raw not in take:
             out[:, RADAR_COLUMNS.index(raw)] = out[:, RADAR_COLUMNS.index(comp)]
@@ -613,6 +640,22 @@ def _set_radial(out: np.ndarray, v_r: np.ndarray) -> None:
         uy = np.where(r > 0, y / r, 0.0)
     out[:, RADAR_COLUMNS.index("vx_comp")] = v_r * ux
     out[:, RADAR_COLUMNS.index("vy_comp")] = v_r * uy
+
+
+def _compensate(out: np.ndarray, v_sensor: np.ndarray) -> None:
+    """Ego-motion compensation of raw Doppler velocities: add the sensor's own speed along each line of sight.
+
+    A static target seen from a sensor moving at ``v_sensor`` (sensor frame, m/s) has the raw
+    radial speed ``-v_sensor . u`` (u: unit vector to the target); adding ``(v_sensor . u) u``
+    to the raw vector ``(vx, vy)`` leaves the target's own motion, as ``vx_comp, vy_comp``.
+    """
+    p = out[:, :3].astype(np.float64)
+    r = np.linalg.norm(p, axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        u = np.where(r[:, None] > 0, p / r[:, None], 0.0)
+    along = u @ v_sensor
+    out[:, RADAR_COLUMNS.index("vx_comp")] = out[:, RADAR_COLUMNS.index("vx")] + along * u[:, 0]
+    out[:, RADAR_COLUMNS.index("vy_comp")] = out[:, RADAR_COLUMNS.index("vy")] + along * u[:, 1]
 
 
 def _radar_scan_points(msg: Any) -> np.ndarray:
@@ -753,6 +796,20 @@ class BagScene:
     def __len__(self) -> int:
         return self._n_lidar
 
+    def _sensor_velocity(self, t_us: int, sensor_to_ego: SE3, dt_us: int = 50_000) -> np.ndarray | None:
+        """Velocity (m/s) of a sensor's origin in its own frame at ``t_us``: poses differenced over ``t_us +- dt_us``
+        (one-sided at the ends of the pose track)."""
+        span = self._tf.span(self.rig.world_frame, self.rig.base_frame)
+        if span is None:
+            return None
+        ta, tb = max(t_us - dt_us, span[0]), min(t_us + dt_us, span[1])
+        a, b, now = self._poses.ego(ta), self._poses.ego(tb), self._poses.ego(t_us)
+        if a is None or b is None or now is None or tb <= ta:
+            return None
+        pa, pb = (a @ sensor_to_ego).translation, (b @ sensor_to_ego).translation
+        v_world = (pb - pa) / ((tb - ta) * 1e-6)
+        return (now @ sensor_to_ego).rotation.T @ v_world
+
     def _is_keyframe(self, index: int, t_us: int, state: dict) -> bool:
         rig = self.rig
         if rig.keyframe_every is not None:
@@ -815,6 +872,12 @@ class BagScene:
                     counts["radar_sweeps_no_pose"] += 1
                     continue
                 s2e = self._extrinsic(r.frame or msg.header.frame_id, where)
+                if not r.compensated:
+                    v = self._sensor_velocity(t, s2e)
+                    if v is None:
+                        counts["radar_sweeps_no_pose"] += 1
+                        continue
+                    _compensate(pts, v)
                 radar_q.append(RadarSweep(pts, s2e, ego, t, r.channel))
             yield from emit(bag_t)
         yield from emit(None)
