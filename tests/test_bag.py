@@ -192,6 +192,9 @@ def test_missing_topic_field_and_frame_are_named(mcap_bag, tmp_path):
     bad = dict(rig, lidar={"topic": rig["lidar"]["topic"], "frame": "velodyne"})
     with pytest.raises(BagError, match="velodyne"):
         list(load_bag(bag, RigConfig.from_dict(bad)))
+    bad = dict(rig, poses={"source": "odometry", "topic": "/lidar_top/points"})
+    with pytest.raises(BagError, match="not nav_msgs/msg/Odometry"):
+        load_bag(bag, bad)  # a rig may be given as its dict too
     path, hand = _handmade(tmp_path, radar_fields=("x", "y", "z", "snr"))
     with pytest.raises(BagError, match="v_r"):  # neither a velocity vector nor a radial speed
         list(load_bag(path, hand))

@@ -24,6 +24,7 @@ from evgrid.geometry import SE3, quaternion_to_matrix
 __all__ = [
     "require",
     "typestore",
+    "new_typestore",
     "POINTFIELD_DTYPES",
     "cloud_fields",
     "cloud_to_columns",
@@ -70,7 +71,12 @@ def require(module: str, extra: str = "ros") -> Any:
 
 @functools.lru_cache(maxsize=2)
 def typestore(ros_version: int = 2) -> Any:
-    """The rosbags type store of ROS 2 Humble (or ROS 1 Noetic) with radar_msgs and grid_map_msgs added."""
+    """The rosbags type store of ROS 2 Humble (or ROS 1 Noetic) with radar_msgs and grid_map_msgs added (shared: do not register more)."""
+    return new_typestore(ros_version)
+
+
+def new_typestore(ros_version: int = 2) -> Any:
+    """A fresh type store as :func:`typestore`'s, for a reader that registers a recording's own definitions."""
     require("rosbags")
     from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 

@@ -292,14 +292,14 @@ class _Recording:
             yield from self._rosbags_messages(topics, count_only)
 
     def _mcap_messages(self, path: Path, topics: set[str], count_only: set[str]) -> Iterator[tuple[str, int, Any]]:
-        from evgrid.ros import require, typestore
+        from evgrid.ros import new_typestore, require
 
         require("mcap")
         from mcap.records import Channel, Message, Schema
         from mcap.stream_reader import StreamReader
         from rosbags.typesys import get_types_from_msg
 
-        store = typestore(2)
+        store = new_typestore(2)  # the file's own definitions are added to it
         schemas: dict[int, Schema] = {}
         channels: dict[int, tuple[str, str]] = {}
         last_t = None
@@ -716,27 +716,33 @@ class BagScene:
         """The recording's format (see :func:`bag_kind`)."""
         return self._rec.kind
 
+    def _pose_types(self) -> dict[str, str]:
+        rig = self.rig
+        out = {rig.odometry_topic: "nav_msgs/msg/Odometry"} if rig.odometry_topic else {rig.tf_topic: "tf2_msgs/msg/TFMessage"}
+        out[rig.tf_static_topic] = "tf2_msgs/msg/TFMessage"
+        return out
+
     def _scan_poses(self) -> None:
+        from evgrid.ros import stamp_to_us
+
         rig = self.rig
         tf = TransformBuffer(int(round(rig.max_pose_gap_s * 1e6)))
-        pose_topics = {rig.tf_static_topic} | ({rig.odometry_topic} if rig.odometry_topic else {rig.tf_topic})
+        types = self._pose_types()
         count = {rig.lidar.topic} | {r.topic for r in rig.radars}
         self._n_lidar = 0
-        for topic, _, msg in self._rec.messages(pose_topics, count - pose_topics):
+        for topic, _, msg in self._rec.messages(set(types), count - set(types)):
             if topic == rig.lidar.topic:
                 self._n_lidar += 1
-            elif msg is None:
+            if msg is None:
                 continue
-            elif topic == rig.odometry_topic:
+            if self._rec.topics[topic] != types[topic]:
+                raise BagError(f"{self.path}: pose topic {topic} is {self._rec.topics[topic]}, not {types[topic]}")
+            if topic == rig.odometry_topic:
                 p = msg.pose.pose
-                from evgrid.ros import stamp_to_us
-
                 tf.add(msg.header.frame_id, msg.child_frame_id, stamp_to_us(msg.header.stamp),
                        (p.position.x, p.position.y, p.position.z),
                        (p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w))
             else:
-                from evgrid.ros import stamp_to_us
-
                 for tr in msg.transforms:
                     tt, q = tr.transform.translation, tr.transform.rotation
                     tf.add(tr.header.frame_id, tr.child_frame_id, stamp_to_us(tr.header.stamp), (tt.x, tt.y, tt.z),
@@ -764,6 +770,9 @@ class BagScene:
         if have[rig.lidar.topic] != "sensor_msgs/msg/PointCloud2":
             raise BagError(f"{self.path}: lidar topic {rig.lidar.topic} is {have[rig.lidar.topic]}, "
                            "not sensor_msgs/PointCloud2")
+        for topic, typ in self._pose_types().items():
+            if topic in have and have[topic] != typ:
+                raise BagError(f"{self.path}: pose topic {topic} is {have[topic]}, not {typ}")
         frames = tf.frames()
         missing = [f for f in (rig.world_frame, rig.base_frame) if f not in frames]
         if missing:
@@ -888,12 +897,14 @@ class BagScene:
             logger.warning("%s; the scene ends at frame %d", self.stopped, state["index"])
 
 
-def load_bag(path: str | Path, rig: RigConfig | str | Path) -> BagScene:
-    """A recording (``.bag``, ``.mcap`` or a ROS 2 bag folder) as a scene, read as the rig file says.
+def load_bag(path: str | Path, rig: RigConfig | Mapping[str, Any] | str | Path) -> BagScene:
+    """A recording (``.bag``, ``.mcap`` or a ROS 2 bag folder) as a scene, read as the rig (a file, its dict or a RigConfig) says.
 
     Raises :class:`BagError` naming missing topics or frames (fields are checked as sweeps are
     read), :class:`RigError` for a bad rig file.
     """
-    if not isinstance(rig, RigConfig):
+    if isinstance(rig, Mapping):
+        rig = RigConfig.from_dict(rig)
+    elif not isinstance(rig, RigConfig):
         rig = load_rig(rig)
     return BagScene(path, rig)
