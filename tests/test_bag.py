@@ -21,7 +21,7 @@ from evgrid.data.frame import RADAR_COLUMNS  # noqa: E402
 from evgrid.fusion import MAP_NAMES  # noqa: E402
 from evgrid.geometry import SE2, SE3  # noqa: E402
 from evgrid.mapper import OccupancyMapper  # noqa: E402
-from evgrid.ros import RecordingWriter, columns_to_cloud, se3_to_transform, tf_message, transform_msg, transform_to_se3  # noqa: E402
+from evgrid.ros import RecordingWriter, columns_to_cloud, se3_to_transform, transform_msg, transform_to_se3  # noqa: E402
 from evgrid.sources import BagSource, source_from_dict, source_to_dict  # noqa: E402
 
 
