@@ -62,7 +62,8 @@ def main() -> None:
               f"written in {t1 - t0:.1f} s; {args.storage} bag {size / 2**20:.0f} MiB written in {t2 - t1:.1f} s")
         map_fps(load_sim_scene(npz), config)  # warm-up: numba kernels
         rows = []
-        for label, load in (("npz (SimFilesSource)", lambda: load_sim_scene(npz)), (f"bag ({args.storage})", lambda: load_bag(bag, rig))):
+        sources = (("npz (SimFilesSource)", lambda: load_sim_scene(npz)), (f"bag ({args.storage})", lambda: load_bag(bag, rig)))
+        for label, load in sources:
             t0 = time.perf_counter()
             sc = load()
             open_s = time.perf_counter() - t0

@@ -21,7 +21,14 @@ from evgrid.data.frame import RADAR_COLUMNS  # noqa: E402
 from evgrid.fusion import MAP_NAMES  # noqa: E402
 from evgrid.geometry import SE2, SE3  # noqa: E402
 from evgrid.mapper import OccupancyMapper  # noqa: E402
-from evgrid.ros import RecordingWriter, columns_to_cloud, se3_to_transform, transform_msg, transform_to_se3  # noqa: E402
+from evgrid.ros import (  # noqa: E402
+    RecordingWriter,
+    columns_to_cloud,
+    se3_to_transform,
+    tf_message,
+    transform_msg,
+    transform_to_se3,
+)
 from evgrid.sources import BagSource, source_from_dict, source_to_dict  # noqa: E402
 
 
@@ -259,6 +266,25 @@ def test_the_documented_rig_example_loads():
     assert [r.channel for r in rig.radars] == ["RADAR_FRONT", "RADAR_BACK"]
     assert rig.radars[0].fields == {"rcs": "snr", "radial_velocity": "v_r"}
     assert set(rig.extrinsics) == {"velodyne", "radar_front"} and rig.keyframe_every == 10
+
+
+def test_lidar_recorded_out_of_order_is_put_in_place_and_duplicates_dropped(tmp_path):
+    w = RecordingWriter(tmp_path / "x.mcap", "plain-mcap")
+    s = w.store
+    for k in range(10):
+        t = 1_000_000 + 100_000 * k
+        w.write("/tf", "tf2_msgs/msg/TFMessage", t * 1000,
+                tf_message([transform_msg("odom", "base_link", t, SE3.identity(), s)], s))
+    for k in (0, 2, 1, 3, 3):  # bag times 1 ms after the stamps, in this order
+        t = 1_000_000 + 100_000 * k
+        cloud = columns_to_cloud(np.full((2, 3), k, np.float32), "xyz", 1, k * 100_000_000, "base_link", s)
+        w.write("/l", "sensor_msgs/msg/PointCloud2", t * 1000 + 1_000_000, cloud)
+    w.close()
+    scene = load_bag(tmp_path / "x.mcap", {"lidar": {"topic": "/l"}})
+    got = list(scene)
+    assert [f.timestamp for f in got] == [1_000_000, 1_100_000, 1_200_000, 1_300_000]
+    assert [f.lidar.points[0, 0] for f in got] == [0, 1, 2, 3] and [f.index for f in got] == [0, 1, 2, 3]
+    assert scene.counts["lidar_sweeps_late"] == 1
 
 
 def test_bag_errors_for_unreadable_paths(tmp_path):

@@ -71,7 +71,10 @@ def require(module: str, extra: str = "ros") -> Any:
 
 @functools.lru_cache(maxsize=2)
 def typestore(ros_version: int = 2) -> Any:
-    """The rosbags type store of ROS 2 Humble (or ROS 1 Noetic) with radar_msgs and grid_map_msgs added (shared: do not register more)."""
+    """The rosbags type store of ROS 2 Humble (or ROS 1 Noetic) with radar_msgs and grid_map_msgs added.
+
+    Shared by every caller: register nothing more on it (use :func:`new_typestore`).
+    """
     return new_typestore(ros_version)
 
 

@@ -19,6 +19,7 @@ warning is logged.
 
 from __future__ import annotations
 
+import bisect
 import logging
 import math
 from dataclasses import dataclass, field
@@ -695,8 +696,10 @@ class BagScene:
     """A recording as a :class:`~evgrid.data.frame.Scene`; frames are read lazily on iteration.
 
     ``stopped`` says where a damaged recording stopped being readable (None when whole);
-    ``counts`` what was skipped on the last full iteration (frames without a pose, radar
-    sweeps that arrived after their frame or after the last lidar sweep).
+    ``counts`` what was skipped on the last full iteration (frames without a pose, lidar
+    sweeps recorded too late or twice, radar sweeps recorded after their frame was made, without
+    a pose, or after the last lidar sweep). Frame indices (and ``keyframes: every``) count the
+    frames made.
     """
 
     def __init__(self, path: str | Path, rig: RigConfig):
@@ -839,7 +842,8 @@ class BagScene:
         tol_ns = int(rig.sync_tolerance_s * 1e9)
         lidar_q: list[tuple[int, np.ndarray, str]] = []
         radar_q: list[RadarSweep] = []
-        counts = {"frames_no_pose": 0, "radar_sweeps_late": 0, "radar_sweeps_no_pose": 0, "radar_sweeps_after_end": 0}
+        counts = dict.fromkeys(("frames_no_pose", "lidar_sweeps_late", "radar_sweeps_late", "radar_sweeps_no_pose",
+                                "radar_sweeps_after_end"), 0)
         state: dict = {"index": 0, "last_t": None, "kf": {}}
 
         def emit(upto_ns: int | None) -> Iterator[Frame]:
@@ -869,7 +873,12 @@ class BagScene:
             where = f"{self.path} {topic}"
             t = stamp_to_us(msg.header.stamp)
             if topic == rig.lidar.topic:
-                lidar_q.append((t, _lidar_points(msg, rig.lidar, where), rig.lidar.frame or msg.header.frame_id))
+                if (state["last_t"] is not None and t <= state["last_t"]) or any(q[0] == t for q in lidar_q):
+                    counts["lidar_sweeps_late"] += 1  # recorded after its frame was made, or a duplicate
+                    continue
+                # recorded out of order within the tolerance: put it in its place
+                bisect.insort(lidar_q, (t, _lidar_points(msg, rig.lidar, where), rig.lidar.frame or msg.header.frame_id),
+                              key=lambda q: q[0])
             else:
                 r = radar_by_topic[topic]
                 if state["last_t"] is not None and t <= state["last_t"]:
