@@ -3,7 +3,8 @@
 Entities: ``maps/NAME`` (a window of ``window_m`` metres around the vehicle, RGB = m_f, m_o, m_u
 as in every evgrid figure), ``isms/NAME`` (the local ISM grids of the update), ``trajectory``
 (ego positions in the map frame, metres) and ``ego`` (the current position), on the timeline
-``time`` (the frames' timestamps) and ``update`` (the update's number). At :meth:`close`,
+``time`` (the frames' timestamps) and ``update`` (the update's number); pictures at keyframes
+unless asked for at every update. At :meth:`close`,
 ``final/NAME`` holds each whole map.
 """
 
@@ -37,8 +38,9 @@ def _whole(m: EvidentialMap, max_cells: int = 2048) -> np.ndarray:
 class RerunRecorder:
     """Observer that logs each update to rerun: to ``path`` (``.rrd``) or, with ``path=None``, a spawned viewer.
 
-    ``keyframes_only`` limits map pictures to keyframes (ISMs and the trajectory are logged at
-    every update); ``window_m`` and ``step`` size the map pictures (cells read: ``(window_m / res / step)^2``).
+    ``keyframes_only`` limits the map and ISM pictures to keyframes (the trajectory is logged at
+    every update; a live viewer may want every update); ``window_m`` and ``step`` size the
+    pictures (cells read: ``(window_m / res / step)^2``, ISMs at every ``step``-th cell).
     """
 
     def __init__(self, path: str | os.PathLike | None = None, window_m: float = 80.0, step: int = 2,
@@ -70,12 +72,12 @@ class RerunRecorder:
         self.trajectory.append((update.pose.x, update.pose.y))
         rec.log("trajectory", rr.LineStrips2D([np.asarray(self.trajectory)]))
         rec.log("ego", rr.Points2D([self.trajectory[-1]], radii=1.0))
-        if self.isms:
-            for name, ism in update.isms.items():
-                rec.log(f"isms/{name}", rr.Image(masses_to_rgb(ism[:: self.step, :: self.step])))
         self._maps = update.maps.maps
         if self.keyframes_only and not update.frame.is_keyframe:
             return
+        if self.isms:
+            for name, ism in update.isms.items():
+                rec.log(f"isms/{name}", rr.Image(masses_to_rgb(ism[:: self.step, :: self.step])))
         for name, m in update.maps.maps.items():
             n = int(round(self.window_m / m.grid.resolution))
             rc, cc = m.grid.map_xy_to_cell(update.pose.x, update.pose.y)
