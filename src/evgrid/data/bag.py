@@ -335,29 +335,28 @@ class _Recording:
         from evgrid.ros import typestore
 
         paths = [self.path.parent if self.path.suffix == ".db3" else self.path]
-        last_t = None
-        if self.kind == "ros1":
-            try:  # a bag whose recording was cut has no index: read it record by record instead
-                with AnyReader(paths):
-                    pass
-            except Exception:  # noqa: BLE001
+        try:
+            reader = AnyReader(paths, default_typestore=typestore(2 if self.kind != "ros1" else 1))
+            reader.open()
+        except Exception as e:  # noqa: BLE001 - rosbags raises several types for damaged files
+            if self.kind == "ros1":  # a bag whose recording was cut has no index: read it record by record
                 yield from self._ros1_scan(topics, count_only)
                 return
+            raise BagError(f"{self.path}: cannot read the recording: {type(e).__name__} {e}") from None
+        last_t = None
         try:
-            with AnyReader(paths, default_typestore=typestore(2 if self.kind != "ros1" else 1)) as reader:
-                self.topics.update({c.topic: c.msgtype for c in reader.connections})
-                conns = [c for c in reader.connections if c.topic in topics | set(count_only)]
-                for conn, t, raw in reader.messages(connections=conns):
-                    last_t = t
-                    if conn.topic in count_only:
-                        yield conn.topic, t, None
-                    else:
-                        yield conn.topic, t, reader.deserialize(raw, conn.msgtype)
-        except Exception as e:  # noqa: BLE001 - rosbags raises several types for damaged files
-            if last_t is None and not self.topics:
-                raise BagError(f"{self.path}: cannot read the recording: {type(e).__name__} {e}") from None
+            self.topics.update({c.topic: c.msgtype for c in reader.connections})
+            conns = [c for c in reader.connections if c.topic in topics | set(count_only)]
+            for conn, t, raw in reader.messages(connections=conns):
+                last_t = t
+                if conn.topic in count_only:
+                    yield conn.topic, t, None
+                else:
+                    yield conn.topic, t, reader.deserialize(raw, conn.msgtype)
+        except Exception as e:  # noqa: BLE001 - any damage ends the readable part
             self.stopped = f"{self.path} is damaged or truncated after bag time {last_t} ns: {type(e).__name__} {e}"
-
+        finally:
+            reader.close()
 
     def _ros1_scan(self, topics: set[str], count_only: set[str]) -> Iterator[tuple[str, int, Any]]:
         """Messages of a ROS 1 bag (format 2.0) read record by record, without its index."""
