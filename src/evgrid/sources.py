@@ -2,7 +2,8 @@
 
 * :class:`SimSource` - the built-in simulator, by seed (the default when no dataset is given);
 * :class:`SimFilesSource` - scenes written by ``evgrid simulate`` (``.npz`` folder);
-* :class:`NuScenesSource` - nuScenes (or a simulated dataset in its layout) through the devkit.
+* :class:`NuScenesSource` - nuScenes (or a simulated dataset in its layout) through the devkit;
+* :class:`BagSource` - a robot recording (ROS 1/2 bag or MCAP) read as its rig file says.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ from typing import Protocol, Sequence
 
 from evgrid.data.frame import Scene
 
-__all__ = ["SceneSource", "SimSource", "SimFilesSource", "NuScenesSource", "sim_split", "source_to_dict", "source_from_dict"]
+__all__ = ["SceneSource", "SimSource", "SimFilesSource", "NuScenesSource", "BagSource", "sim_split", "source_to_dict", "source_from_dict"]
 
 
 def sim_split(seed: int) -> str:
@@ -118,6 +119,26 @@ class NuScenesSource:
         return scenes[name]
 
 
+@dataclass(frozen=True)
+class BagSource:
+    """One recording (``.bag``, ``.mcap`` or a ROS 2 bag folder) and its rig file; one scene, see :func:`evgrid.data.bag.load_bag`."""
+
+    path: str
+    rig: str
+
+    def names(self) -> list[str]:
+        from evgrid.data.bag import load_rig
+
+        return [load_rig(self.rig).scene or Path(self.path).stem]
+
+    def load(self, name: str) -> Scene:
+        from evgrid.data.bag import load_bag
+
+        if name not in self.names():
+            raise KeyError(f"no scene {name!r} in {self.path}; it holds {self.names()}")
+        return load_bag(self.path, self.rig)
+
+
 def scenes_of(source: SceneSource, names: Sequence[str] | None = None) -> list[str]:
     """The names to run: all of the source's, or those asked for (checked)."""
     known = source.names()
@@ -130,7 +151,7 @@ def scenes_of(source: SceneSource, names: Sequence[str] | None = None) -> list[s
 
 
 def _kinds() -> dict[str, type]:
-    return {"sim": SimSource, "sim_files": SimFilesSource, "nuscenes": NuScenesSource}
+    return {"sim": SimSource, "sim_files": SimFilesSource, "nuscenes": NuScenesSource, "bag": BagSource}
 
 
 def source_to_dict(source: SceneSource) -> dict | None:

@@ -1,0 +1,187 @@
+"""Exports (evgrid.export): map_server's PGM + YAML, MCAP for Foxglove, rerun recordings."""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+import pytest
+
+from evgrid.config import MapperConfig
+from evgrid.data import SimConfig, simulate_scene
+from evgrid.export import FORMATS, export_map, make_observer
+from evgrid.export.nav2 import FREE, OCCUPIED, UNKNOWN, Nav2Thresholds, classify, read_nav2, write_nav2
+from evgrid.geometry import GridSpec
+from evgrid.grid import EvidentialMap
+from evgrid.mapper import OccupancyMapper
+
+O, F, U = OCCUPIED, FREE, UNKNOWN
+
+
+def _three_by_three() -> EvidentialMap:
+    """Map cells R, C in 0..2 (rows towards -x, columns towards -y), 0.1 m cells."""
+    m = EvidentialMap(GridSpec(8, 0.8), tile_cells=8)
+    masses = np.array([
+        [[0.0, 0.9, 0.1], [0.9, 0.0, 0.1], [0.1, 0.3, 0.6]],     # P(occ) .95 occ, .05 free, m_u .6 > .5 unknown
+        [[0.3, 0.4, 0.3], [0.7, 0.1, 0.2], [0.8, 0.05, 0.15]],   # .55 unknown, .2 unknown (>= .196), .125 free
+        [[0.0, 0.6, 0.4], [0.25, 0.45, 0.3], [0.05, 0.7, 0.25]],  # .8 occ, .6 unknown, .825 occ
+    ], dtype=np.float32)
+    tile = m._tile((0, 0))[0]
+    tile[:3, :3] = masses
+    m.covered_tiles[(0, 0)][:3, :3] = True
+    return m
+
+
+def test_nav2_hand_computed_three_by_three(tmp_path):
+    pytest.importorskip("yaml")
+    m = _three_by_three()
+    pgm, yml = write_nav2(m, tmp_path / "map")
+    assert (pgm.name, yml.name) == ("map.pgm", "map.yaml")
+    # image rows top-down: row p is map column C = p (largest y first); image column q is map
+    # row R = 2 - q (smallest x first)
+    raw = pgm.read_bytes()
+    assert raw.startswith(b"P5\n3 3\n255\n")
+    image = np.frombuffer(raw[-9:], np.uint8).reshape(3, 3)
+    np.testing.assert_array_equal(image, [[0, 205, 0], [205, 205, 254], [0, 254, 205]])
+    data, res, origin = read_nav2(yml)  # map_server's trinary rule; OccupancyGrid rows bottom-up
+    np.testing.assert_array_equal(data, [[O, F, U], [U, U, F], [O, U, O]])
+    assert res == 0.1
+    assert origin == pytest.approx((-0.3, -0.3, 0.0))  # outer corner of the lower-left pixel
+    # the lower-left cell (i = 0, j = 0) is centred at x = y = -0.25 m: map cell R = C = 2
+    assert m.grid.map_xy_to_cell(-0.25, -0.25) == (2, 2)
+    text = yml.read_text()
+    for key in ("image: map.pgm", "mode: trinary", "negate: 0", "occupied_thresh: 0.65", "free_thresh: 0.196"):
+        assert key in text
+
+
+def test_classify_thresholds():
+    m = np.array([[0.0, 0.6, 0.4], [0.5, 0.0, 0.5], [0.0, 0.3, 0.7]], np.float32)
+    np.testing.assert_array_equal(classify(m), [O, U, U])  # .8 occ; P .25 unknown; m_u .7 unknown
+    np.testing.assert_array_equal(classify(m, th=Nav2Thresholds(free_thresh=0.3, unknown_mass=0.8)), [O, F, U])
+    np.testing.assert_array_equal(classify(m, covered=np.array([False, True, True])), [U, U, U])
+    with pytest.raises(ValueError, match="free_thresh"):
+        Nav2Thresholds(occupied_thresh=0.2, free_thresh=0.3)
+    with pytest.raises(ValueError, match="no observed cell"):
+        write_nav2(EvidentialMap(GridSpec(8, 0.8), 8), "/nonexistent/x")
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    """A short mapped scene with the MCAP and rerun observers attached."""
+    pytest.importorskip("rosbags")
+    pytest.importorskip("mcap")
+    out = tmp_path_factory.mktemp("run")
+    obs = [make_observer("mcap", out / "run.mcap"), make_observer("nav2", out / "nav2", maps=("fused",))]
+    try:
+        import rerun  # noqa: F401
+
+        obs.append(make_observer("rerun", out / "run.rrd"))
+    except ImportError:
+        pass
+    mapper = OccupancyMapper(MapperConfig(maps=("ray_ilm", "ray_irm", "fused")), observers=tuple(obs))
+    frames = list(simulate_scene(2, SimConfig(duration_s=1.0)))
+    for f in frames:
+        mapper.process(f)
+    for o in obs:
+        o.close()
+    return mapper, frames, out
+
+
+def _decoded(path, start_ns: int = 0):
+    """Messages from ``start_ns`` on, decoded by mcap-ros2-support (pure Python: slow on big grids)."""
+    pytest.importorskip("mcap_ros2")
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    with open(path, "rb") as fh:
+        reader = make_reader(fh, decoder_factories=[DecoderFactory()])
+        return [(ch.topic, schema.name, msg.log_time, dec)
+                for schema, ch, msg, dec in reader.iter_decoded_messages(starting_at=start_ns)]
+
+
+def _topic_counts(path) -> dict[str, int]:
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as fh:
+        summary = make_reader(fh).get_summary()
+    return {summary.channels[k].topic: n for k, n in summary.statistics.channel_message_counts.items()}
+
+
+def test_mcap_run_reads_back_with_the_reference_reader(run):
+    mapper, frames, out = run
+    counts = _topic_counts(out / "run.mcap")
+    assert counts["/tf"] == mapper.n_updates
+    msgs = _decoded(out / "run.mcap", frames[-2].timestamp * 1000)  # the last pose (updates: every other frame), final maps
+    tfs = [d for t, _, _, d in msgs if t == "/tf"]
+    x, y, yaw = mapper.trajectory[-1]
+    tr = tfs[-1].transforms[0]
+    assert (tr.header.frame_id, tr.child_frame_id) == ("map", "base_link")
+    assert (tr.transform.translation.x, tr.transform.translation.y) == pytest.approx((x, y))
+    assert 2 * np.arctan2(tr.transform.rotation.z, tr.transform.rotation.w) == pytest.approx(yaw)
+    n_kf = sum(f.is_keyframe for f in frames)
+    for name, m in mapper.maps.maps.items():
+        # each keyframe, and the final map at close()
+        assert counts[f"/evgrid/{name}/occupancy"] == counts[f"/evgrid/{name}/grid_map"] == n_kf + 1
+        grids = [d for t, s, _, d in msgs if t == f"/evgrid/{name}/occupancy"]
+        gms = [d for t, s, _, d in msgs if t == f"/evgrid/{name}/grid_map"]
+        assert len(grids) == len(gms) == 1
+        r0, c0, h, w = m.covered_bounds()
+        res = m.grid.resolution
+        g = grids[-1]
+        assert (g.info.width, g.info.height, g.info.resolution) == (h, w, res)
+        assert (g.info.origin.position.x, g.info.origin.position.y) == pytest.approx((-(r0 + h) * res, -(c0 + w) * res))
+        masses, cov = m.read(r0, c0, h, w)
+        data = np.asarray(g.data, dtype=np.int8).reshape(w, h)  # rows along +y, columns along +x
+        # cell (i, j) is map cell R = r0 + h - 1 - i, C = c0 + w - 1 - j
+        want = np.clip(np.rint(100 * (masses[..., 1] + 0.5 * masses[..., 2])), 0, 100).astype(np.int8)
+        want[classify(masses, cov) == UNKNOWN] = -1
+        np.testing.assert_array_equal(data, want[::-1, ::-1].T)
+        gm = gms[-1]
+        assert list(gm.layers) == ["m_free", "m_occupied", "m_unknown"]
+        assert (gm.info.resolution, gm.info.length_x, gm.info.length_y) == (res, h * res, w * res)
+        assert (gm.info.pose.position.x, gm.info.pose.position.y) == pytest.approx((-(r0 + h / 2) * res, -(c0 + w / 2) * res))
+        for k, layer in enumerate(gm.data):
+            assert [d.label for d in layer.layout.dim] == ["column_index", "row_index"]
+            np.testing.assert_array_equal(np.asarray(layer.data, np.float32).reshape(w, h).T, masses[..., k])
+
+
+def test_rerun_recording_has_maps_isms_and_trajectory(run):
+    rr = pytest.importorskip("rerun")
+    _, _, out = run
+    rec = rr.dataframe.load_recording(str(out / "run.rrd"))
+    paths = {c.entity_path for c in rec.schema().component_columns()}
+    for p in ("/trajectory", "/ego", "/maps/fused", "/isms/ray_ilm", "/isms/ray_irm", "/final/fused"):
+        assert p in paths
+
+
+def test_export_map_every_format(run, tmp_path):
+    mapper, _, out = run
+    m = mapper.maps.maps["fused"]
+    files = {f: export_map(m, tmp_path / "fused", f) for f in FORMATS if f != "rerun" or "rerun" in sys.modules}
+    assert [p.name for p in files["nav2"]] == ["fused.pgm", "fused.yaml"]
+    # the run's nav2 observer wrote the same final map (and only the one asked for)
+    assert sorted(p.name for p in (out / "nav2").iterdir()) == ["fused.pgm", "fused.yaml"]
+    assert (out / "nav2" / "fused.pgm").read_bytes() == files["nav2"][0].read_bytes()
+    data, res, _ = read_nav2(files["nav2"][1])
+    r0, c0, h, w = m.covered_bounds()
+    assert data.shape == (w, h) and res == m.grid.resolution
+    (grid,) = [d for t, _, _, d in _decoded(files["mcap"][0]) if t == "/evgrid/fused/occupancy"]
+    # the OccupancyGrid and the nav2 map agree on every cell they both call free or occupied
+    occ = np.asarray(grid.data, np.int8).reshape(w, h)
+    assert np.array_equal(occ == -1, data == -1)
+    assert np.array_equal(data[data == 100], np.full((data == 100).sum(), 100)) and (occ[data == 100] >= 65).all()
+    with pytest.raises(ValueError, match="nav2"):
+        export_map(m, tmp_path / "x", "png")
+    with pytest.raises(ValueError, match="rerun"):
+        make_observer("gif", tmp_path / "x")
+
+
+def test_missing_extras_say_how_to_install(monkeypatch):
+    from evgrid.ros import require
+
+    monkeypatch.setitem(sys.modules, "rerun", None)
+    with pytest.raises(ImportError, match=r"pip install 'evgrid\[rerun\]'"):
+        require("rerun", "rerun")
+    monkeypatch.setitem(sys.modules, "rosbags", None)
+    with pytest.raises(ImportError, match=r"pip install 'evgrid\[ros\]'"):
+        require("rosbags")
