@@ -105,8 +105,18 @@ class OutputConfig:
     gif_window_m: float = 80.0
     gif_step: int = 8
     gif_max_frames: int = 240
+    # nav2 (PGM + YAML of the final maps), mcap (maps and poses per keyframe), rerun (.rrd)
+    exports: tuple[str, ...] = ()
+    export_window_m: float = 100.0  # the MCAP export's square around the vehicle
+    viewer: bool = False  # a live rerun viewer
 
     def __post_init__(self) -> None:
+        from evgrid.export import FORMATS
+
+        bad = [e for e in self.exports if e not in FORMATS]
+        if bad:
+            raise ValueError(f"OutputConfig.exports: unknown format(s) {bad}; choose from {FORMATS}")
+        check_number(self, "export_window_m", min=0.0, min_open=True)
         check_number(self, "gif_window_m", min=0.0, min_open=True)
         check_int(self, "gif_step", min=1)
         check_int(self, "gif_max_frames", min=2)

@@ -82,30 +82,36 @@ def map_scene(
     observers: tuple = (),
     overwrite: bool = False,
 ) -> SceneResult:
-    """Map a whole scene; with ``out_dir`` write ``config.json``, ``metrics.json``, figures, the GIF and (optionally) the maps.
+    """Map a whole scene; with ``out_dir`` write ``config.json``, ``metrics.json``, figures, the GIF,
+    the exports of ``outputs.exports`` and (optionally) the maps.
 
     ``observers`` (e.g. exporters) see every map update after the built-in ones.
     """
     name = name or getattr(frames, "name", "scene")
-    truth = TruthTracker(config.grid, config.tile_cells)
-    mapper = OccupancyMapper(config, deep)
-    scores = SceneScores(mapper.maps.maps, truth, track=outputs.convergence)
-    gif = GifRecorder(config.grid, outputs.gif_window_m, outputs.gif_step, outputs.gif_max_frames) \
-        if out_dir is not None and outputs.figures else None
-    mapper.observers += [truth, scores, *([gif] if gif else []), *observers]
-    t0 = time.perf_counter()
-    frame_ms: list[float] = []  # mapper and observers, without reading the frame
-    for frame in frames:
-        t = time.perf_counter()
-        mapper.process(frame)
-        frame_ms.append((time.perf_counter() - t) * 1e3)
-        if progress is not None:
-            progress()
-    seconds = time.perf_counter() - t0
-    metrics = _scene_metrics(name, mapper, scores, seconds, frame_ms)
-    files: dict[str, str] = {}
-    if out_dir is not None:
-        with results_folder(out_dir, overwrite) as out:
+    with results_folder(out_dir, overwrite) if out_dir is not None else contextlib.nullcontext() as out:
+        exporters = _exporters(outputs, out, name)
+        truth = TruthTracker(config.grid, config.tile_cells)
+        mapper = OccupancyMapper(config, deep)
+        scores = SceneScores(mapper.maps.maps, truth, track=outputs.convergence)
+        gif = GifRecorder(config.grid, outputs.gif_window_m, outputs.gif_step, outputs.gif_max_frames) \
+            if out is not None and outputs.figures else None
+        mapper.observers += [truth, scores, *([gif] if gif else []), *exporters, *observers]
+        t0 = time.perf_counter()
+        frame_ms: list[float] = []  # mapper and observers, without reading the frame
+        for frame in frames:
+            t = time.perf_counter()
+            mapper.process(frame)
+            frame_ms.append((time.perf_counter() - t) * 1e3)
+            if progress is not None:
+                progress()
+        seconds = time.perf_counter() - t0
+        files: dict[str, str] = {}
+        for fmt, exporter in zip(outputs.exports, exporters):
+            written = exporter.close()
+            files[f"export_{fmt}"] = str(written[0] if isinstance(written, list) else written)
+        metrics = _scene_metrics(name, mapper, scores, seconds, frame_ms)
+        metrics.update(_source_report(frames))
+        if out is not None:
             files["config"] = str(write_json(out / "config.json", RunConfig(config, outputs).to_dict()))
             files["metrics"] = str(write_json(out / "metrics.json", metrics))
             if outputs.figures and scores.keyframes:
@@ -119,6 +125,28 @@ def map_scene(
                 for m_name, m in mapper.maps.maps.items():
                     files[f"map_{m_name}"] = str(save_map(m, out / "maps" / f"{m_name}.npz"))
     return SceneResult(name, jsonable(metrics), files, metrics["frames_per_second"])
+
+
+def _exporters(outputs: OutputConfig, out: Path | None, name: str) -> list[Any]:
+    """The recorders ``outputs.exports`` asks for (into the scene's folder), and the live viewer."""
+    from evgrid.export import make_observer
+
+    if outputs.exports and out is None:
+        raise ValueError("exports need a results folder (out_dir)")
+    paths = {"nav2": lambda: out / "nav2", "mcap": lambda: out / f"{name}.mcap", "rerun": lambda: out / f"{name}.rrd"}
+    # MCAP keeps a fixed window around the vehicle per update, so a long drive's file grows with time, not area x time
+    kwargs = {"mcap": {"window_m": outputs.export_window_m}}
+    found = [make_observer(fmt, paths[fmt](), **kwargs.get(fmt, {})) for fmt in outputs.exports]
+    if outputs.viewer:
+        found.append(make_observer("rerun", None))
+    return found
+
+
+def _source_report(frames: Any) -> dict[str, Any]:
+    """What the data source itself reports about the scene (bags: where a cut recording stopped; loaders: gap counts)."""
+    found = {k: getattr(frames, k, None) for k in ("stopped", "counts", "stats")}
+    report = {k: v for k, v in found.items() if v and not callable(v)}
+    return {"source_report": report} if report else {}
 
 
 #: Seconds of driving after which convergence is reported (paper: faster convergence with the deep prior).
