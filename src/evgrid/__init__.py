@@ -40,6 +40,9 @@ _PUBLIC = {
     "SimSource": "evgrid.sources",
     "SimFilesSource": "evgrid.sources",
     "NuScenesSource": "evgrid.sources",
+    "BagSource": "evgrid.sources",
+    # exports
+    "export_map": "evgrid.export",
 }
 
 __all__ = ["__version__", *_PUBLIC]
