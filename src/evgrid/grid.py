@@ -348,13 +348,16 @@ class EvidentialMap:
                     slice(ca - c0, cb - c0),
                 )
 
-    def apply(self, window: MapWindow, fn: Callable[..., None], *masses: np.ndarray, pass_spans: bool = False) -> None:
+    def apply(self, window: MapWindow, fn: Callable[..., int | None], *masses: np.ndarray, pass_spans: bool = False) -> int:
         """Call ``fn(map_view, *window_views)`` on every covered piece; ``fn`` updates ``map_view`` in place.
 
         ``masses`` are ``(h, w, 3)`` arrays aligned with ``window`` (default: ``window.masses``).
         With ``pass_spans``, ``fn`` also gets ``spans=``: the window's covered columns per row of
         the piece (``(h', 2)`` int64, as the update rules of :mod:`evgrid.fusion` take them), so
         that it can skip the uncovered cells (which hold vacuous mass).
+
+        Returns the sum of what ``fn`` returned (None counting 0): for the update rules, the
+        number of invalid ISM cells they rejected, leaving those map cells untouched.
         """
         arrays = masses or (window.masses,)
         h, w = window.shape
@@ -362,6 +365,7 @@ class EvidentialMap:
             if a.shape != (h, w, 3):
                 raise ValueError(f"window arrays must have shape {(h, w, 3)}, got {a.shape}")
         spans = window.row_spans()
+        n_rejected = 0
         for key, tr, tc, wr, wc in self._pieces(window.r0, window.c0, h, w):
             piece = np.clip(spans[wr] - wc.start, 0, wc.stop - wc.start)
             rows_on = np.flatnonzero(piece[:, 1] > piece[:, 0])
@@ -374,10 +378,12 @@ class EvidentialMap:
             tile, tcov = self._tile(key)
             views = (arr[wr, wc] for arr in arrays)
             if pass_spans:
-                fn(tile[tr, tc], *views, spans=piece[a:b])
+                n = fn(tile[tr, tc], *views, spans=piece[a:b])
             else:
-                fn(tile[tr, tc], *views)
+                n = fn(tile[tr, tc], *views)
+            n_rejected += int(n or 0)
             tcov[tr, tc] |= window.covered[wr, wc]
+        return n_rejected
 
     def read(self, r0: int, c0: int, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
         """Dense copy of map cells ``[r0:r0+h, c0:c0+w]``: masses ``(h, w, 3)`` and coverage ``(h, w)``."""
