@@ -15,7 +15,7 @@ views, see :meth:`evgrid.grid.EvidentialMap.apply`):
 ISM cells that are vacuous leave a map cell unchanged under every rule, so kernels skip them.
 ISM cells that are not masses (NaN or inf, a negative mass, a sum off 1 by more than
 ``evgrid.kernels.MASS_ATOL``) leave it unchanged too: each rule returns how many it rejected,
-and :class:`MapSet` counts them. The paper's equations behind each rule:
+and :class:`MapSet` counts them (docs/hostile-input.md). The paper's equations behind each rule:
 docs/equations.md#the-six-maps-of-table-i.
 """
 
