@@ -96,6 +96,8 @@ def test_an_oversized_architecture_fails_fast_without_allocating(tmp_path):
         (_v1_meta('{"in_channels": true, "width": 4, "pool": 2, "depth": 2}'), "config.in_channels"),
         ({**_v1_meta(), "extra": "{broken"}, "extra"),
         ({**_v1_meta(), "extra": "[1, 2]"}, "extra"),
+        ({**_v1_meta(), "extra": '{"grid": "garbage"}'}, "extra.grid"),
+        ({**_v1_meta(), "extra": '{"grid": {"n_cells": "x", "length_m": 40.0}}'}, "extra.grid"),
         ({**_v1_meta(), "version": "2"}, "tensors_sha256"),
     ],
 )

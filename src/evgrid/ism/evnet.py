@@ -294,6 +294,13 @@ def load_checkpoint(path: str | os.PathLike, config: EvNetConfig | None = None) 
         raise CheckpointError(f"{path}: checkpoint metadata field 'extra' is not JSON ({e})") from e
     if not isinstance(extra, dict):
         raise CheckpointError(f"{path}: checkpoint metadata field 'extra' must be a JSON object, got {type(extra).__name__}")
+    if "grid" in extra:  # the grid it was trained on, which DeepIrm compares with its own
+        from evgrid.geometry import GridSpec
+
+        try:
+            GridSpec.from_dict(extra["grid"])
+        except (AttributeError, KeyError, TypeError, ValueError) as e:
+            raise CheckpointError(f"{path}: checkpoint metadata field 'extra.grid' is not a grid ({e})") from e
     if config is not None and config != saved:
         raise CheckpointError(f"{path}: checkpoint is for {saved}, but {config} was asked for")
 
