@@ -168,9 +168,20 @@ def _k_gamma(a, ars, b, brs, m_u_min, alpha, out, h, w):
             ro[j] = _gamma_cell(f1, o1, u1, f2, o2, u2, m_u_min, alpha)
 
 
+@numba.njit(inline="always", **_JIT)
+def _row_sum(bad, n):
+    # The update kernels flag invalid cells per row and sum the flags after it: a running count
+    # inside their cell loops would keep LLVM from vectorising them (a fifth of deep_disc's time).
+    s = 0
+    for j in range(n):
+        s += bad[j]
+    return s
+
+
 @numba.njit(**_CHECKED)
 def _k_count_invalid(a, ars, h, w):
     # Number of cells that are not masses (see _valid_cell): one read of the grid, no writes.
+    # (A loop that only counts vectorises with the count inside it.)
     n = 0
     for i in range(h):
         ra = a[i * ars:i * ars + 3 * w]
@@ -232,6 +243,7 @@ def _span(spans, i, w):
 def _k_dempster_into(mp, mrs, ism, irs, h, w, spans):
     # map <- map (+)_D ISM, paper eq. (5): the ray_ilm, deep_acc and ray_irm maps.
     n_bad = 0
+    bad = np.zeros(w, np.uint8)
     for i in range(h):
         lo, hi = _span(spans, i, w)
         mp_, ism_ = mp[i * mrs + 3 * lo:i * mrs + 3 * hi], ism[i * irs + 3 * lo:i * irs + 3 * hi]
@@ -240,12 +252,13 @@ def _k_dempster_into(mp, mrs, ism, irs, h, w, spans):
             f1, o1, u1 = np.float64(mp_[p]), np.float64(mp_[p + 1]), np.float64(mp_[p + 2])
             f2, o2, u2 = np.float64(ism_[p]), np.float64(ism_[p + 1]), np.float64(ism_[p + 2])
             ok = _valid_cell(f2, o2, u2)
-            n_bad += 0 if ok else 1
+            bad[j] = 0 if ok else 1
             f, o, u = _dempster_cell(f1, o1, u1, f2, o2, u2)
             keep = u2 >= 1.0 or not ok
             mp_[p] = f1 if keep else f
             mp_[p + 1] = o1 if keep else o
             mp_[p + 2] = u1 if keep else u
+        n_bad += _row_sum(bad, hi - lo)
     return n_bad
 
 
@@ -255,6 +268,7 @@ def _k_deep_replace_into(mp, mrs, ism, irs, h, w, spans, m_u_min):
     # limited by eq. (15); a cell takes it where it is strictly less unknown
     # (docs/decisions.md#the-six-maps).
     n_bad = 0
+    bad = np.zeros(w, np.uint8)
     for i in range(h):
         lo, hi = _span(spans, i, w)
         mp_, ism_ = mp[i * mrs + 3 * lo:i * mrs + 3 * hi], ism[i * irs + 3 * lo:i * irs + 3 * hi]
@@ -262,7 +276,7 @@ def _k_deep_replace_into(mp, mrs, ism, irs, h, w, spans, m_u_min):
             p = 3 * j
             f2, o2, u2 = np.float64(ism_[p]), np.float64(ism_[p + 1]), np.float64(ism_[p + 2])
             ok = _valid_cell(f2, o2, u2)
-            n_bad += 0 if ok else 1
+            bad[j] = 0 if ok else 1
             f, o, u = _normalise_cell(f2, o2, u2)
             f, o, u = _limit_unknown_cell(f, o, u, m_u_min)
             f1, o1, u1 = np.float64(mp_[p]), np.float64(mp_[p + 1]), np.float64(mp_[p + 2])
@@ -270,6 +284,7 @@ def _k_deep_replace_into(mp, mrs, ism, irs, h, w, spans, m_u_min):
             mp_[p] = f if take else f1
             mp_[p + 1] = o if take else o1
             mp_[p + 2] = u if take else u1
+        n_bad += _row_sum(bad, hi - lo)
     return n_bad
 
 
@@ -277,6 +292,7 @@ def _k_deep_replace_into(mp, mrs, ism, irs, h, w, spans, m_u_min):
 def _k_deep_disc_into(mp, mrs, ism, irs, h, w, spans, m_u_min, alpha):
     # deep_disc: paper eq. (29) with eqs. (15), (8) and (35), see _deep_disc_cell.
     n_bad = 0
+    bad = np.zeros(w, np.uint8)
     for i in range(h):
         lo, hi = _span(spans, i, w)
         mp_, ism_ = mp[i * mrs + 3 * lo:i * mrs + 3 * hi], ism[i * irs + 3 * lo:i * irs + 3 * hi]
@@ -285,12 +301,13 @@ def _k_deep_disc_into(mp, mrs, ism, irs, h, w, spans, m_u_min, alpha):
             f1, o1, u1 = np.float64(mp_[p]), np.float64(mp_[p + 1]), np.float64(mp_[p + 2])
             f2, o2, u2 = np.float64(ism_[p]), np.float64(ism_[p + 1]), np.float64(ism_[p + 2])
             ok = _valid_cell(f2, o2, u2)
-            n_bad += 0 if ok else 1
+            bad[j] = 0 if ok else 1
             f, o, u = _deep_disc_cell(f1, o1, u1, f2, o2, u2, m_u_min, alpha)
             keep = u2 >= 1.0 or not ok
             mp_[p] = f1 if keep else f
             mp_[p + 1] = o1 if keep else o
             mp_[p + 2] = u1 if keep else u
+        n_bad += _row_sum(bad, hi - lo)
     return n_bad
 
 
@@ -300,6 +317,7 @@ def _k_fused_into(mp, mrs, deep, drs, irm, irs, h, w, spans, m_u_min, alpha):
     # then Dempster (eq. (5)) with the ray IRM of the same step (docs/decisions.md#the-six-maps).
     # An invalid cell of either ISM skips that ISM's step only; both count.
     n_bad = 0
+    bad = np.zeros(w, np.uint8)
     for i in range(h):
         lo, hi = _span(spans, i, w)
         mp_ = mp[i * mrs + 3 * lo:i * mrs + 3 * hi]
@@ -317,10 +335,11 @@ def _k_fused_into(mp, mrs, deep, drs, irm, irs, h, w, spans, m_u_min, alpha):
             u = u1 if keep else u
             fr, or_, ur = np.float64(irm_[p]), np.float64(irm_[p + 1]), np.float64(irm_[p + 2])
             ok_r = _valid_cell(fr, or_, ur)
-            n_bad += (0 if ok_d else 1) + (0 if ok_r else 1)
+            bad[j] = (0 if ok_d else 1) + (0 if ok_r else 1)
             f2, o2, u2 = _dempster_cell(f, o, u, fr, or_, ur)
             keep = ur >= 1.0 or not ok_r
             mp_[p] = f if keep else f2
             mp_[p + 1] = o if keep else o2
             mp_[p + 2] = u if keep else u2
+        n_bad += _row_sum(bad, hi - lo)
     return n_bad
