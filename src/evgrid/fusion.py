@@ -13,11 +13,15 @@ views, see :meth:`evgrid.grid.EvidentialMap.apply`):
 ==============  ==========================================================================
 
 ISM cells that are vacuous leave a map cell unchanged under every rule, so kernels skip them.
-The paper's equations behind each rule: docs/equations.md#the-six-maps-of-table-i.
+ISM cells that are not masses (NaN or inf, a negative mass, a sum off 1 by more than
+``evgrid.kernels.MASS_ATOL``) leave it unchanged too: each rule returns how many it rejected,
+and :class:`MapSet` counts them (docs/hostile-input.md). The paper's equations behind each rule:
+docs/equations.md#the-six-maps-of-table-i.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass
 from typing import Callable, Mapping
@@ -27,10 +31,12 @@ import numpy as np
 from evgrid.geometry import SE2, GridSpec
 from evgrid.grid import EvidentialMap, MapWindow, Warper
 from evgrid.kernels import (
+    _k_count_invalid,
     _k_deep_disc_into,
     _k_deep_replace_into,
     _k_dempster_into,
     _k_fused_into,
+    _k_vacate_invalid,
     rows,
 )
 
@@ -63,6 +69,8 @@ ISM_NAMES: tuple[str, ...] = ("ray_ilm", "ray_irm", "deep_irm")
 # apart from verified space for no gain.
 M_U_MIN_DEFAULT = 0.3
 ALPHA_DEFAULT = 10.0  # paper, section IV-D, eq. (28)
+
+logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True, slots=True)
@@ -113,45 +121,46 @@ def _pair(cell: np.ndarray, ism: np.ndarray, spans: np.ndarray | None) -> tuple:
 # Each rule updates ``cell`` in place from ISM views of the same shape. ``spans`` (optional,
 # ``(h, 2)`` int64) limits row i to columns ``spans[i, 0]:spans[i, 1]``: the covered cells of
 # a warped window (:attr:`evgrid.grid.MapWindow.spans`); cells outside are left untouched.
+# Each returns the number of invalid ISM cells it rejected (their map cells are left untouched).
 
 def update_ray_ilm(
     cell: np.ndarray, ilm: np.ndarray, params: FusionParams = FusionParams(), spans: np.ndarray | None = None
-) -> None:
+) -> int:
     """``map = map (+)_D ray ILM``, in place on ``(h, w, 3)`` float32 views."""
     _check_views(cell, ilm)
-    _k_dempster_into(*_pair(cell, ilm, spans))
+    return int(_k_dempster_into(*_pair(cell, ilm, spans)))
 
 
 def update_deep_acc(
     cell: np.ndarray, deep: np.ndarray, params: FusionParams = FusionParams(), spans: np.ndarray | None = None
-) -> None:
+) -> int:
     """``map = map (+)_D deep IRM`` (paper: deep IRM (acc.)), in place."""
     _check_views(cell, deep)
-    _k_dempster_into(*_pair(cell, deep, spans))
+    return int(_k_dempster_into(*_pair(cell, deep, spans)))
 
 
 def update_deep_replace(
     cell: np.ndarray, deep: np.ndarray, params: FusionParams = FusionParams(), spans: np.ndarray | None = None
-) -> None:
+) -> int:
     """Replace a cell by ``limit_unknown(deep IRM, m_u_min)`` where that is less unknown (paper: deep IRM (replace))."""
     _check_views(cell, deep)
-    _k_deep_replace_into(*_pair(cell, deep, spans), float(params.m_u_min))
+    return int(_k_deep_replace_into(*_pair(cell, deep, spans), float(params.m_u_min)))
 
 
 def update_deep_disc(
     cell: np.ndarray, deep: np.ndarray, params: FusionParams = FusionParams(), spans: np.ndarray | None = None
-) -> None:
+) -> int:
     """``map = map (+)_Y (gamma (x) limit_unknown(deep IRM))`` (paper eqs. (29), (35); deep IRM (disc.)), in place."""
     _check_views(cell, deep)
-    _k_deep_disc_into(*_pair(cell, deep, spans), float(params.m_u_min), float(params.alpha))
+    return int(_k_deep_disc_into(*_pair(cell, deep, spans), float(params.m_u_min), float(params.alpha)))
 
 
 def update_ray_irm(
     cell: np.ndarray, irm: np.ndarray, params: FusionParams = FusionParams(), spans: np.ndarray | None = None
-) -> None:
+) -> int:
     """``map = map (+)_D ray IRM``, in place."""
     _check_views(cell, irm)
-    _k_dempster_into(*_pair(cell, irm, spans))
+    return int(_k_dempster_into(*_pair(cell, irm, spans)))
 
 
 def update_fused(
@@ -160,13 +169,16 @@ def update_fused(
     irm: np.ndarray,
     params: FusionParams = FusionParams(),
     spans: np.ndarray | None = None,
-) -> None:
-    """The deep_disc step with the deep IRM, then ``map (+)_D ray IRM`` (paper: fused IRM), in place."""
+) -> int:
+    """The deep_disc step with the deep IRM, then ``map (+)_D ray IRM`` (paper: fused IRM), in place.
+
+    An invalid cell of one ISM skips that ISM's step on the cell; the count is over both ISMs.
+    """
     _check_views(cell, deep, irm)
     fm, mrs, h, w = rows(cell)
     fd, drs, _, _ = rows(deep)
     fi, irs, _, _ = rows(irm)
-    _k_fused_into(fm, mrs, fd, drs, fi, irs, h, w, _row_spans(spans, h, w), float(params.m_u_min), float(params.alpha))
+    return int(_k_fused_into(fm, mrs, fd, drs, fi, irs, h, w, _row_spans(spans, h, w), float(params.m_u_min), float(params.alpha)))
 
 
 @dataclass(frozen=True, slots=True)
@@ -175,7 +187,7 @@ class UpdateRule:
 
     name: str
     isms: tuple[str, ...]
-    update: Callable[..., None]
+    update: Callable[..., int]
 
 
 RULES: dict[str, UpdateRule] = {
@@ -192,6 +204,11 @@ class MapSet:
     """Several maps of Table I over one scene, in the first pose's frame, updated in one pass.
 
     Each ISM needed by any map is warped once per update and shared by the maps that read it.
+
+    Invalid ISM cells never reach a map: ``n_rejected[ism]`` counts the cells of the local ISM
+    grids given to :meth:`warp` that were not masses and were taken as vacuous (no
+    information), and ``n_rejected_cells[map]`` the window cells that a map's update rule
+    rejected (non-zero only for windows that did not come from :meth:`warp`).
     """
 
     def __init__(
@@ -214,6 +231,8 @@ class MapSet:
         self.required_isms: tuple[str, ...] = tuple(i for i in ISM_NAMES if any(i in RULES[n].isms for n in self.names))
         self._warpers = {i: Warper(self.grid) for i in self.required_isms}
         self.n_updates = 0
+        self.n_rejected: dict[str, int] = {i: 0 for i in self.required_isms}
+        self.n_rejected_cells: dict[str, int] = {n: 0 for n in self.names}
 
     def __getitem__(self, name: str) -> EvidentialMap:
         return self.maps[name]
@@ -223,19 +242,56 @@ class MapSet:
         missing = [i for i in self.required_isms if i not in isms]
         if missing:
             raise ValueError(f"missing ISM grid(s) {missing}; these maps need {self.required_isms}")
-        return {i: self._warpers[i].warp(isms[i], pose) for i in self.required_isms}
+        return {i: self._warpers[i].warp(self._checked(i, isms[i]), pose) for i in self.required_isms}
 
-    def update(self, pose: SE2, isms: Mapping[str, np.ndarray]) -> None:
-        """Fuse one time step: local ISM grids keyed by ISM name, taken at ego ``pose`` in the first pose's frame."""
+    def _checked(self, name: str, local: np.ndarray) -> np.ndarray:
+        """``local``, or a copy whose invalid cells are vacuous (counted in ``n_rejected``).
+
+        Checked before the warp: its bilinear mix would blend an invalid cell into its
+        neighbours, where a negative mass can hide inside a valid-looking sum.
+        """
+        a = np.asarray(local)
+        if a.ndim != 3 or a.shape[2] != 3 or not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):
+            return a  # the warp reports what is wrong
+        a = np.ascontiguousarray(a, dtype=np.float32)  # what the warp reads anyway
+        flat, rs, h, w = rows(a)
+        if _k_count_invalid(flat, rs, h, w) == 0:
+            return a
+        a = a.copy()  # never write into the caller's grid
+        flat, rs, h, w = rows(a)
+        n_bad = int(_k_vacate_invalid(flat, rs, h, w))
+        if self.n_rejected[name] == 0:
+            logger.warning("%s: %d cell(s) of the local grid are not masses (NaN, inf, negative or not summing to 1); "
+                           "they are taken as vacuous and counted in MapSet.n_rejected", name, n_bad)
+        self.n_rejected[name] += n_bad
+        return a
+
+    def update(self, pose: SE2, isms: Mapping[str, np.ndarray]) -> dict[str, int]:
+        """Fuse one time step: local ISM grids keyed by ISM name, taken at ego ``pose`` in the first pose's frame.
+
+        Returns, per map, the window cells its rule rejected (see :meth:`update_windows`).
+        """
         windows = self.warp(pose, isms)
-        self.update_windows(windows)
+        return self.update_windows(windows)
 
-    def update_windows(self, windows: Mapping[str, MapWindow]) -> None:
-        """Fuse already-warped ISM windows (all from the same pose) into every map."""
+    def update_windows(self, windows: Mapping[str, MapWindow]) -> dict[str, int]:
+        """Fuse already-warped ISM windows (all from the same pose) into every map.
+
+        Window cells that are not masses leave their map cells untouched; returns how many each
+        map's rule rejected in this step (also added to ``n_rejected_cells``).
+        """
         any_w = next(iter(windows.values()))
+        rejected: dict[str, int] = {}
         for name in self.names:
             rule = RULES[name]
             arrays = tuple(windows[i].masses for i in rule.isms)
             params = self.params
-            self.maps[name].apply(any_w, lambda cell, *views, spans, _u=rule.update: _u(cell, *views, params, spans), *arrays, pass_spans=True)
+            rejected[name] = n = self.maps[name].apply(
+                any_w, lambda cell, *views, spans, _u=rule.update: _u(cell, *views, params, spans), *arrays, pass_spans=True
+            )
+            if n and self.n_rejected_cells[name] == 0:
+                logger.warning("%s: the update rule rejected %d window cell(s) that are not masses; "
+                               "counted in MapSet.n_rejected_cells", name, n)
+            self.n_rejected_cells[name] += n
         self.n_updates += 1
+        return rejected

@@ -17,6 +17,7 @@ import json
 import math
 import os
 import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterator
@@ -26,6 +27,7 @@ import numpy as np
 
 from evgrid.geometry import SE2, GridSpec
 from evgrid.io import atomic_write
+from evgrid.kernels import _k_count_invalid
 from evgrid.mass import vacuous
 
 __all__ = ["MapWindow", "EvidentialMap", "Warper", "warp_to_map", "warp_window", "save_map", "load_map", "MapFileError"]
@@ -348,13 +350,16 @@ class EvidentialMap:
                     slice(ca - c0, cb - c0),
                 )
 
-    def apply(self, window: MapWindow, fn: Callable[..., None], *masses: np.ndarray, pass_spans: bool = False) -> None:
+    def apply(self, window: MapWindow, fn: Callable[..., int | None], *masses: np.ndarray, pass_spans: bool = False) -> int:
         """Call ``fn(map_view, *window_views)`` on every covered piece; ``fn`` updates ``map_view`` in place.
 
         ``masses`` are ``(h, w, 3)`` arrays aligned with ``window`` (default: ``window.masses``).
         With ``pass_spans``, ``fn`` also gets ``spans=``: the window's covered columns per row of
         the piece (``(h', 2)`` int64, as the update rules of :mod:`evgrid.fusion` take them), so
         that it can skip the uncovered cells (which hold vacuous mass).
+
+        Returns the sum of what ``fn`` returned (None counting 0): for the update rules, the
+        number of invalid ISM cells they rejected, leaving those map cells untouched.
         """
         arrays = masses or (window.masses,)
         h, w = window.shape
@@ -362,6 +367,7 @@ class EvidentialMap:
             if a.shape != (h, w, 3):
                 raise ValueError(f"window arrays must have shape {(h, w, 3)}, got {a.shape}")
         spans = window.row_spans()
+        n_rejected = 0
         for key, tr, tc, wr, wc in self._pieces(window.r0, window.c0, h, w):
             piece = np.clip(spans[wr] - wc.start, 0, wc.stop - wc.start)
             rows_on = np.flatnonzero(piece[:, 1] > piece[:, 0])
@@ -374,10 +380,12 @@ class EvidentialMap:
             tile, tcov = self._tile(key)
             views = (arr[wr, wc] for arr in arrays)
             if pass_spans:
-                fn(tile[tr, tc], *views, spans=piece[a:b])
+                n = fn(tile[tr, tc], *views, spans=piece[a:b])
             else:
-                fn(tile[tr, tc], *views)
+                n = fn(tile[tr, tc], *views)
+            n_rejected += int(n or 0)
             tcov[tr, tc] |= window.covered[wr, wc]
+        return n_rejected
 
     def read(self, r0: int, c0: int, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
         """Dense copy of map cells ``[r0:r0+h, c0:c0+w]``: masses ``(h, w, 3)`` and coverage ``(h, w)``."""
@@ -451,7 +459,10 @@ def save_map(m: EvidentialMap, path: str | os.PathLike) -> Path:
 
 
 def load_map(path: str | os.PathLike) -> EvidentialMap:
-    """Load a map written by :func:`save_map`; raise :class:`MapFileError` for anything else."""
+    """Load a map written by :func:`save_map`; raise :class:`MapFileError` (one line naming the file) for anything else.
+
+    The tiles must hold valid masses: a corrupt file never yields a map with NaN or negative cells.
+    """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no map file at {path}")
@@ -464,16 +475,29 @@ def load_map(path: str | os.PathLike) -> EvidentialMap:
             keys, tiles, covered = z["keys"], z["tiles"], z["covered"]
     except MapFileError:
         raise
-    except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError, UnicodeDecodeError) as e:
+    except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError, KeyError, UnicodeDecodeError, AttributeError) as e:
         raise MapFileError(f"{path} is truncated or not an evgrid map: {e}") from e
-    if header.get("format") != _FORMAT:
-        raise MapFileError(f"{path} is not an evgrid map (format {header.get('format')!r})")
+    if not isinstance(header, dict) or header.get("format") != _FORMAT:
+        raise MapFileError(f"{path} is not an evgrid map (format {header.get('format') if isinstance(header, dict) else None!r})")
     if header.get("version") != _FORMAT_VERSION:
         raise MapFileError(f"{path} has map format version {header.get('version')!r}; this evgrid reads {_FORMAT_VERSION}")
-    ts = int(header["tile_cells"])
-    if tiles.shape != (len(keys), ts, ts, 3) or covered.shape != (len(keys), ts, ts) or tiles.dtype != np.float32:
-        raise MapFileError(f"{path} is inconsistent: {len(keys)} keys, tiles {tiles.shape} {tiles.dtype}")
-    m = EvidentialMap(GridSpec.from_dict(header["spec"]), ts, header.get("metadata", {}))
+    ts = header.get("tile_cells")
+    if isinstance(ts, bool) or not isinstance(ts, int) or ts < 8:
+        raise MapFileError(f"{path}: header field 'tile_cells' must be an integer >= 8, got {ts!r}")
+    try:
+        spec = GridSpec.from_dict(header["spec"])
+        metadata = dict(header.get("metadata", {}))
+    except (KeyError, TypeError, ValueError) as e:
+        raise MapFileError(f"{path}: header field 'spec' or 'metadata' is invalid ({e})") from e
+    if keys.shape != (len(keys), 2) or keys.dtype.kind != "i":
+        raise MapFileError(f"{path} is inconsistent: tile keys {keys.shape} {keys.dtype}")
+    if tiles.shape != (len(keys), ts, ts, 3) or covered.shape != (len(keys), ts, ts) or tiles.dtype != np.float32 or covered.dtype != np.bool_:
+        raise MapFileError(f"{path} is inconsistent: {len(keys)} keys, tiles {tiles.shape} {tiles.dtype}, coverage {covered.shape} {covered.dtype}")
+    tiles = np.ascontiguousarray(tiles)
+    n_bad = int(_k_count_invalid(tiles.reshape(-1), 0, 1, tiles.size // 3)) if tiles.size else 0
+    if n_bad:
+        raise MapFileError(f"{path}: {n_bad} cell(s) hold no valid mass (NaN, inf, negative, or not summing to 1); the file is corrupt")
+    m = EvidentialMap(spec, ts, metadata)
     for k, t, c in zip(keys, tiles, covered):
         key = (int(k[0]), int(k[1]))
         m.tiles[key] = np.ascontiguousarray(t)

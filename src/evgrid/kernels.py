@@ -7,6 +7,13 @@ another module would keep stale copies of an edited formula.
 Kernels take ``(h, w, 3)`` float32 views as a flat buffer and a row stride (see
 :func:`rows`), loop rows, and are branch-free with ``error_model="numpy"`` so that LLVM
 vectorises them (numba's default error model guards every division with a branch).
+
+Masses are checked where they enter: a cell with NaN or inf, a negative mass, or masses not
+summing to 1 within ``MASS_ATOL`` is invalid (:func:`_valid_cell`). The combination kernels
+count invalid input cells; the in-place map kernels leave the map cell under an invalid ISM
+cell untouched and return how many they rejected. These kernels are compiled without the
+``nnan``/``ninf`` fast-math flags, under which LLVM may assume that no value is NaN and fold the
+checks away; the other flags (and so vectorisation and the results for valid cells) are kept.
 """
 
 from __future__ import annotations
@@ -19,7 +26,18 @@ import numpy as np
 # --- per-cell formulas (float64 scalars in, normalised float64 triple out) ---------------------
 
 _JIT = dict(cache=True, fastmath=True, error_model="numpy")
+# fast math without nnan/ninf: comparisons keep their IEEE meaning for NaN and inf
+_CHECKED = dict(cache=True, fastmath={"nsz", "arcp", "contract", "afn", "reassoc"}, error_model="numpy")
 _TINY = 1e-30
+#: Masses of a valid cell sum to 1 within this (as evgrid.mass.validate checks).
+MASS_ATOL = 1e-5
+
+
+@numba.njit(inline="always", **_CHECKED)
+def _valid_cell(f, o, u):
+    # Paper eqs. (3)-(4): each mass >= 0, their sum 1. NaN fails every comparison and an inf
+    # makes the sum miss 1, so one expression rejects both (compiled without nnan/ninf).
+    return (f >= 0.0) and (o >= 0.0) and (u >= 0.0) and (abs(f + o + u - 1.0) <= MASS_ATOL)
 
 
 @numba.njit(inline="always", **_JIT)
@@ -150,6 +168,46 @@ def _k_gamma(a, ars, b, brs, m_u_min, alpha, out, h, w):
             ro[j] = _gamma_cell(f1, o1, u1, f2, o2, u2, m_u_min, alpha)
 
 
+@numba.njit(inline="always", **_JIT)
+def _row_sum(bad, n):
+    # The update kernels flag invalid cells per row and sum the flags after it: a running count
+    # inside their cell loops would keep LLVM from vectorising them (a fifth of deep_disc's time).
+    s = 0
+    for j in range(n):
+        s += bad[j]
+    return s
+
+
+@numba.njit(**_CHECKED)
+def _k_count_invalid(a, ars, h, w):
+    # Number of cells that are not masses (see _valid_cell): one read of the grid, no writes.
+    # (A loop that only counts vectorises with the count inside it.)
+    n = 0
+    for i in range(h):
+        ra = a[i * ars:i * ars + 3 * w]
+        for j in range(w):
+            p = 3 * j
+            ok = _valid_cell(np.float64(ra[p]), np.float64(ra[p + 1]), np.float64(ra[p + 2]))
+            n += 0 if ok else 1
+    return n
+
+
+@numba.njit(**_CHECKED)
+def _k_vacate_invalid(a, ars, h, w):
+    # Invalid cells become vacuous (no information), in place; returns how many there were.
+    n = 0
+    for i in range(h):
+        ra = a[i * ars:i * ars + 3 * w]
+        for j in range(w):
+            p = 3 * j
+            ok = _valid_cell(np.float64(ra[p]), np.float64(ra[p + 1]), np.float64(ra[p + 2]))
+            n += 0 if ok else 1
+            ra[p] = ra[p] if ok else 0.0
+            ra[p + 1] = ra[p + 1] if ok else 0.0
+            ra[p + 2] = ra[p + 2] if ok else 1.0
+    return n
+
+
 def rows(v: np.ndarray) -> tuple[np.ndarray, int, int, int]:
     """A ``(h, w, 3)`` float32 view with contiguous rows as ``(flat buffer, row stride, h, w)``.
 
@@ -169,8 +227,9 @@ def rows(v: np.ndarray) -> tuple[np.ndarray, int, int, int]:
 
 
 # --- in-place kernels over rows (see rows() above) ---------------------------------------------
-# Cells where the ISM is vacuous keep their old value exactly (a select, not a branch, so the
-# loops vectorise). Only columns spans[i, 0]:spans[i, 1] of row i are visited (the cells a
+# Cells where the ISM is vacuous or invalid (_valid_cell) keep their old value exactly (a
+# select, not a branch, so the loops vectorise); each kernel returns the number of invalid ISM
+# cells it rejected. Only columns spans[i, 0]:spans[i, 1] of row i are visited (the cells a
 # warped window covers); ends are clamped to [0, w], so any spans are memory-safe.
 
 @numba.njit(inline="always", **_JIT)
@@ -180,63 +239,85 @@ def _span(spans, i, w):
     return lo, hi
 
 
-@numba.njit(**_JIT)
+@numba.njit(**_CHECKED)
 def _k_dempster_into(mp, mrs, ism, irs, h, w, spans):
     # map <- map (+)_D ISM, paper eq. (5): the ray_ilm, deep_acc and ray_irm maps.
+    n_bad = 0
+    bad = np.zeros(w, np.uint8)
     for i in range(h):
         lo, hi = _span(spans, i, w)
         mp_, ism_ = mp[i * mrs + 3 * lo:i * mrs + 3 * hi], ism[i * irs + 3 * lo:i * irs + 3 * hi]
         for j in range(hi - lo):
             p = 3 * j
             f1, o1, u1 = np.float64(mp_[p]), np.float64(mp_[p + 1]), np.float64(mp_[p + 2])
-            u2 = np.float64(ism_[p + 2])
-            f, o, u = _dempster_cell(f1, o1, u1, np.float64(ism_[p]), np.float64(ism_[p + 1]), u2)
-            keep = u2 >= 1.0
+            f2, o2, u2 = np.float64(ism_[p]), np.float64(ism_[p + 1]), np.float64(ism_[p + 2])
+            ok = _valid_cell(f2, o2, u2)
+            bad[j] = 0 if ok else 1
+            f, o, u = _dempster_cell(f1, o1, u1, f2, o2, u2)
+            keep = u2 >= 1.0 or not ok
             mp_[p] = f1 if keep else f
             mp_[p + 1] = o1 if keep else o
             mp_[p + 2] = u1 if keep else u
+        n_bad += _row_sum(bad, hi - lo)
+    return n_bad
 
 
-@numba.njit(**_JIT)
+@numba.njit(**_CHECKED)
 def _k_deep_replace_into(mp, mrs, ism, irs, h, w, spans, m_u_min):
     # deep_replace: the replace update the paper describes after eq. (23), on the prediction
     # limited by eq. (15); a cell takes it where it is strictly less unknown
     # (docs/decisions.md#the-six-maps).
+    n_bad = 0
+    bad = np.zeros(w, np.uint8)
     for i in range(h):
         lo, hi = _span(spans, i, w)
         mp_, ism_ = mp[i * mrs + 3 * lo:i * mrs + 3 * hi], ism[i * irs + 3 * lo:i * irs + 3 * hi]
         for j in range(hi - lo):
             p = 3 * j
-            f, o, u = _normalise_cell(np.float64(ism_[p]), np.float64(ism_[p + 1]), np.float64(ism_[p + 2]))
+            f2, o2, u2 = np.float64(ism_[p]), np.float64(ism_[p + 1]), np.float64(ism_[p + 2])
+            ok = _valid_cell(f2, o2, u2)
+            bad[j] = 0 if ok else 1
+            f, o, u = _normalise_cell(f2, o2, u2)
             f, o, u = _limit_unknown_cell(f, o, u, m_u_min)
             f1, o1, u1 = np.float64(mp_[p]), np.float64(mp_[p + 1]), np.float64(mp_[p + 2])
-            take = (u < u1) and (ism_[p + 2] < 1.0)
+            take = (u < u1) and (ism_[p + 2] < 1.0) and ok
             mp_[p] = f if take else f1
             mp_[p + 1] = o if take else o1
             mp_[p + 2] = u if take else u1
+        n_bad += _row_sum(bad, hi - lo)
+    return n_bad
 
 
-@numba.njit(**_JIT)
+@numba.njit(**_CHECKED)
 def _k_deep_disc_into(mp, mrs, ism, irs, h, w, spans, m_u_min, alpha):
     # deep_disc: paper eq. (29) with eqs. (15), (8) and (35), see _deep_disc_cell.
+    n_bad = 0
+    bad = np.zeros(w, np.uint8)
     for i in range(h):
         lo, hi = _span(spans, i, w)
         mp_, ism_ = mp[i * mrs + 3 * lo:i * mrs + 3 * hi], ism[i * irs + 3 * lo:i * irs + 3 * hi]
         for j in range(hi - lo):
             p = 3 * j
             f1, o1, u1 = np.float64(mp_[p]), np.float64(mp_[p + 1]), np.float64(mp_[p + 2])
-            u2 = np.float64(ism_[p + 2])
-            f, o, u = _deep_disc_cell(f1, o1, u1, np.float64(ism_[p]), np.float64(ism_[p + 1]), u2, m_u_min, alpha)
-            keep = u2 >= 1.0
+            f2, o2, u2 = np.float64(ism_[p]), np.float64(ism_[p + 1]), np.float64(ism_[p + 2])
+            ok = _valid_cell(f2, o2, u2)
+            bad[j] = 0 if ok else 1
+            f, o, u = _deep_disc_cell(f1, o1, u1, f2, o2, u2, m_u_min, alpha)
+            keep = u2 >= 1.0 or not ok
             mp_[p] = f1 if keep else f
             mp_[p + 1] = o1 if keep else o
             mp_[p + 2] = u1 if keep else u
+        n_bad += _row_sum(bad, hi - lo)
+    return n_bad
 
 
-@numba.njit(**_JIT)
+@numba.njit(**_CHECKED)
 def _k_fused_into(mp, mrs, deep, drs, irm, irs, h, w, spans, m_u_min, alpha):
     # fused: the deep_disc step (paper eq. (29) with eqs. (15), (8), (35)) with the deep IRM,
     # then Dempster (eq. (5)) with the ray IRM of the same step (docs/decisions.md#the-six-maps).
+    # An invalid cell of either ISM skips that ISM's step only; both count.
+    n_bad = 0
+    bad = np.zeros(w, np.uint8)
     for i in range(h):
         lo, hi = _span(spans, i, w)
         mp_ = mp[i * mrs + 3 * lo:i * mrs + 3 * hi]
@@ -245,15 +326,20 @@ def _k_fused_into(mp, mrs, deep, drs, irm, irs, h, w, spans, m_u_min, alpha):
         for j in range(hi - lo):
             p = 3 * j
             f1, o1, u1 = np.float64(mp_[p]), np.float64(mp_[p + 1]), np.float64(mp_[p + 2])
-            ud = np.float64(deep_[p + 2])
-            f, o, u = _deep_disc_cell(f1, o1, u1, np.float64(deep_[p]), np.float64(deep_[p + 1]), ud, m_u_min, alpha)
-            keep = ud >= 1.0
+            fd, od, ud = np.float64(deep_[p]), np.float64(deep_[p + 1]), np.float64(deep_[p + 2])
+            ok_d = _valid_cell(fd, od, ud)
+            f, o, u = _deep_disc_cell(f1, o1, u1, fd, od, ud, m_u_min, alpha)
+            keep = ud >= 1.0 or not ok_d
             f = f1 if keep else f
             o = o1 if keep else o
             u = u1 if keep else u
-            ur = np.float64(irm_[p + 2])
-            f2, o2, u2 = _dempster_cell(f, o, u, np.float64(irm_[p]), np.float64(irm_[p + 1]), ur)
-            keep = ur >= 1.0
+            fr, or_, ur = np.float64(irm_[p]), np.float64(irm_[p + 1]), np.float64(irm_[p + 2])
+            ok_r = _valid_cell(fr, or_, ur)
+            bad[j] = (0 if ok_d else 1) + (0 if ok_r else 1)
+            f2, o2, u2 = _dempster_cell(f, o, u, fr, or_, ur)
+            keep = ur >= 1.0 or not ok_r
             mp_[p] = f if keep else f2
             mp_[p + 1] = o if keep else o2
             mp_[p + 2] = u if keep else u2
+        n_bad += _row_sum(bad, hi - lo)
+    return n_bad

@@ -9,6 +9,10 @@ formulas (``_*_cell`` in :mod:`evgrid.kernels`) are shared with the map update r
 Numerics: every kernel works in float64 and renormalises its output by its own sum, which
 equals the paper's ``1 - K`` (Dempster) or ``1`` (Yager) in exact arithmetic. This keeps any
 chain of updates on the simplex in float32.
+
+Every function checks its mass arguments first (one compiled pass) and raises ValueError
+naming the argument when a cell holds NaN or inf, a negative mass, or masses not summing to 1
+within 1e-5; nothing is written then. Renormalising an invalid input would hide the error.
 """
 
 from __future__ import annotations
@@ -17,7 +21,7 @@ import math
 
 import numpy as np
 
-from evgrid.kernels import _k_dempster, _k_gamma, _k_yager, rows
+from evgrid.kernels import MASS_ATOL, _k_count_invalid, _k_dempster, _k_gamma, _k_yager, rows
 
 __all__ = [
     "VACUOUS",
@@ -36,7 +40,7 @@ __all__ = [
 #: The vacuous mass [m_f, m_o, m_u] = [0, 0, 1]: no information.
 VACUOUS = np.array([0.0, 0.0, 1.0], dtype=np.float32)
 
-_SUM_ATOL = 1e-5
+_SUM_ATOL = MASS_ATOL
 
 
 def vacuous(shape: tuple[int, ...]) -> np.ndarray:
@@ -67,12 +71,24 @@ def validate(m: np.ndarray, name: str = "m", atol: float = _SUM_ATOL) -> np.ndar
     return a
 
 
-def _pair3d(m1: np.ndarray, m2: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[int, ...]]:
-    a = np.asarray(m1)
-    b = np.asarray(m2)
-    for name, x in (("m1", a), ("m2", b)):
-        if x.ndim == 0 or x.shape[-1] != 3:
-            raise ValueError(f"{name}: the last axis must be [m_f, m_o, m_u] of length 3, got shape {x.shape}")
+def _masses32(m: np.ndarray, name: str) -> np.ndarray:
+    """``m`` as a C-contiguous float32 mass array ``(..., 3)``; ValueError naming ``name`` if it is not one."""
+    a = np.asarray(m)
+    if a.ndim == 0 or a.shape[-1] != 3:
+        raise ValueError(f"{name}: the last axis must be [m_f, m_o, m_u] of length 3, got shape {a.shape}")
+    if not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):
+        raise ValueError(f"{name}: masses must be real numbers, got dtype {a.dtype}")
+    a = np.ascontiguousarray(a, dtype=np.float32)
+    flat, rs, h, w = rows(a.reshape(1, -1, 3))
+    if _k_count_invalid(flat, rs, h, w):
+        validate(a, name)  # says what is wrong
+        raise ValueError(f"{name}: not a mass array (NaN, inf, negative, or not summing to 1)")
+    return a
+
+
+def _pair3d(m1: np.ndarray, m2: np.ndarray, names: tuple[str, str] = ("m1", "m2")) -> tuple[np.ndarray, np.ndarray, tuple[int, ...]]:
+    a = _masses32(m1, names[0])
+    b = _masses32(m2, names[1])
     shape = np.broadcast_shapes(a.shape, b.shape)
     a3 = np.ascontiguousarray(np.broadcast_to(a, shape) if a.shape != shape else a, dtype=np.float32)
     b3 = np.ascontiguousarray(np.broadcast_to(b, shape) if b.shape != shape else b, dtype=np.float32)
@@ -97,8 +113,8 @@ def _combine(kernel, m1: np.ndarray, m2: np.ndarray, out: np.ndarray | None) -> 
 
 def conflict(m1: np.ndarray, m2: np.ndarray) -> np.ndarray:
     """Conflict ``K = m_f1 m_o2 + m_o1 m_f2`` (paper eq. (7)), shape ``(...)``."""
-    a = np.asarray(m1, dtype=np.float32)
-    b = np.asarray(m2, dtype=np.float32)
+    a = _masses32(m1, "m1")
+    b = _masses32(m2, "m2")
     return (a[..., 0] * b[..., 1] + a[..., 1] * b[..., 0]).astype(np.float32)
 
 
@@ -124,9 +140,8 @@ def _check_unit(name: str, v: np.ndarray | float) -> np.ndarray:
 
 def discount(m: np.ndarray, gamma: np.ndarray | float) -> np.ndarray:
     """Discounting ``gamma (x) m = [g m_f, g m_o, 1 - g + g m_u]`` (paper eq. (8)), gamma in [0, 1]."""
+    _masses32(m, "m")
     a = np.asarray(m, dtype=np.float64)
-    if a.ndim == 0 or a.shape[-1] != 3:
-        raise ValueError(f"m: the last axis must be of length 3, got shape {a.shape}")
     g = _check_unit("gamma", gamma)
     out = np.stack([g * a[..., 0], g * a[..., 1], 1.0 - g + g * a[..., 2]], axis=-1)
     return out.astype(np.float32)
@@ -140,9 +155,8 @@ def limit_unknown(m: np.ndarray, m_u_min: float) -> np.ndarray:
     (docs/decisions.md#box-plus-on-a-vacuous-mass).
     """
     _check_unit("m_u_min", m_u_min)
+    _masses32(m, "m")
     a = np.asarray(m, dtype=np.float64)
-    if a.ndim == 0 or a.shape[-1] != 3:
-        raise ValueError(f"m: the last axis must be of length 3, got shape {a.shape}")
     d = np.maximum(0.0, float(m_u_min) - a[..., 2])
     s = a[..., 0] + a[..., 1]
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -169,9 +183,7 @@ def from_evidence(e: np.ndarray) -> np.ndarray:
 
 def pignistic_occupied(m: np.ndarray) -> np.ndarray:
     """Occupancy probability ``p_o = m_o + m_u / 2`` (paper eq. (13)), shape ``(...)``."""
-    a = np.asarray(m, dtype=np.float32)
-    if a.ndim == 0 or a.shape[-1] != 3:
-        raise ValueError(f"m: the last axis must be of length 3, got shape {a.shape}")
+    a = _masses32(m, "m")
     return (a[..., 1] + 0.5 * a[..., 2]).astype(np.float32)
 
 
@@ -188,7 +200,7 @@ def deep_discount_factor(
     _check_unit("m_u_min", m_u_min)
     if not (math.isfinite(alpha) and alpha >= 0):
         raise ValueError(f"alpha must be finite and >= 0, got {alpha!r}")
-    a, b, shape = _pair3d(m_map, m_pred)
+    a, b, shape = _pair3d(m_map, m_pred, ("m_map", "m_pred"))
     out = np.empty(shape[:-1], dtype=np.float32)
     fa, ars, h, w = rows(a)
     fb, brs, _, _ = rows(b)

@@ -78,7 +78,7 @@ def radar_column(name: str) -> int:
 def _check_points(points: np.ndarray, n_cols: int, what: str) -> np.ndarray:
     p = np.asarray(points)
     if p.ndim != 2 or p.shape[1] != n_cols:
-        raise ValueError(f"{what}.points must have shape (n, {n_cols}), got {p.shape}")
+        raise ValueError(f"{what}.points must have shape (n, {n_cols}), got {p.shape}" + (" (transposed? pass points.T)" if p.ndim == 2 and p.shape[0] < p.shape[1] else ""))
     return np.ascontiguousarray(p, dtype=np.float32)
 
 

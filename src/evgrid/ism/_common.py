@@ -161,9 +161,20 @@ def bit_scratch(grid: GridSpec, name: str, count: int = 1) -> tuple[np.ndarray, 
     return pair
 
 
-def as_points(points: object, min_cols: int, what: str) -> np.ndarray:
-    """Validate a point array ``(n, >= min_cols)`` of real numbers; return it C-contiguous float32 or float64."""
+def as_points(points: object, min_cols: int, what: str, max_cols: int | None = None) -> np.ndarray:
+    """Validate a point array ``(n, >= min_cols)`` of real numbers; return it C-contiguous float32 or float64.
+
+    ``max_cols`` is the most columns a point layout has (default ``min_cols``): an array with
+    more columns than that and at most that many rows is the devkit's ``(columns, n)`` layout,
+    which would otherwise be read as a few points with n coordinates each, and is refused.
+    """
     a = np.asarray(points)
+    cols = min_cols if max_cols is None else max_cols
+    if a.ndim == 2 and a.shape[0] <= cols < a.shape[1]:
+        raise ValueError(
+            f"{what}: points of shape {a.shape} look transposed (one column per point, as the nuScenes devkit "
+            f"stores them); pass one row per point, shape (n, {min_cols if cols == min_cols else f'{min_cols}..{cols}'}), e.g. points.T"
+        )
     if a.ndim != 2 or a.shape[1] < min_cols:
         raise ValueError(f"{what}: points must have shape (n, {min_cols}) or more columns, got shape {a.shape}")
     if not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):

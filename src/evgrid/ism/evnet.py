@@ -7,13 +7,20 @@ into masses by :func:`evgrid.mass.from_evidence`. The exact layers of Ev-Net are
 this is a small U-Net with that interface (0.44 M parameters, 1.8 MB by default).
 
 Checkpoints are safetensors files (plain tensors, never code) with the model configuration
-in their metadata. The training loss lives with the training, in :mod:`evgrid.learn.loss`.
+in their metadata and, from format version 2, a SHA-256 of the tensors, checked at load. The
+header is read and checked (names, dtypes, shapes against the architecture it names, within
+bounds) before any tensor is allocated. The training loss lives with the training, in
+:mod:`evgrid.learn.loss`.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
+import logging
+import math
 import os
+import struct
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -24,8 +31,9 @@ from torch.nn import functional as F
 
 # Targets: classes of the ray ILM's cells (docs/decisions.md#ev-net-targets-and-loss).
 
-__all__ = ["EvNetConfig", "EvNet", "save_checkpoint", "load_checkpoint", "CheckpointError"]
+__all__ = ["EvNetConfig", "EvNet", "save_checkpoint", "load_checkpoint", "upgrade_checkpoint", "CheckpointError"]
 
+logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -40,7 +48,7 @@ class EvNetConfig:
     def __post_init__(self) -> None:
         for name in ("in_channels", "width", "pool", "depth"):
             v = getattr(self, name)
-            if not isinstance(v, int) or v < 1:
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"EvNetConfig.{name} must be a positive integer, got {v!r}")
 
 
@@ -102,18 +110,129 @@ class EvNet(nn.Module):
 # --- checkpoints ---------------------------------------------------------------------------------
 
 _FORMAT = "evgrid-evnet"
-_FORMAT_VERSION = 1
+_FORMAT_VERSION = 2
+_READABLE_VERSIONS = ("1", "2")
+_DIGEST_KEY = "tensors_sha256"
+
+# Bounds on what a checkpoint may ask for, checked before anything is allocated: far above any
+# useful Ev-Net (the shipped one has 0.44 M parameters), far below what would exhaust memory.
+_CONFIG_MAX = {"in_channels": 64, "width": 512, "pool": 64, "depth": 8}
+_MAX_PARAMS = 64_000_000
+_MAX_HEADER_BYTES = 1 << 24
+
+# safetensors dtype codes of the tensors an EvNet holds
+_DTYPE_CODES = {torch.float32: "F32", torch.int64: "I64"}
 
 
 class CheckpointError(ValueError):
-    """A checkpoint file that cannot be used: unreadable, not an Ev-Net, or of another shape."""
+    """A checkpoint file that cannot be used: unreadable, not an Ev-Net, corrupt, or of another shape."""
 
 
-def save_checkpoint(model: EvNet, path: str | os.PathLike, extra: dict[str, Any] | None = None) -> Path:
-    """Write the model's weights and config as a safetensors file, atomically; ``extra`` goes in its metadata."""
+def _parse_header(prefix: bytes, size: int, path: Path) -> tuple[dict[str, Any], int]:
+    """The JSON header (tensor entries and ``__metadata__``) of a safetensors file of ``size`` bytes
+    starting with ``prefix``, and where its data section starts."""
+    if size < 8 or len(prefix) < 8:
+        raise CheckpointError(f"{path}: not a safetensors checkpoint ({size} bytes)")
+    (n,) = struct.unpack("<Q", prefix[:8])
+    if n > min(_MAX_HEADER_BYTES, size - 8) or len(prefix) < 8 + n:
+        raise CheckpointError(f"{path}: not a safetensors checkpoint, or truncated (header of {n} bytes in a file of {size})")
+    try:
+        header = json.loads(prefix[8 : 8 + n].decode("utf-8"))
+    except (UnicodeDecodeError, ValueError) as e:
+        raise CheckpointError(f"{path}: not a safetensors checkpoint (unreadable header: {e})") from e
+    if not isinstance(header, dict):
+        raise CheckpointError(f"{path}: not a safetensors checkpoint (header is not a JSON object)")
+    return header, 8 + n
+
+
+def _read_header(path: Path) -> tuple[dict[str, Any], int, int]:
+    """Header, data start and size of a checkpoint file, reading only the header."""
+    try:
+        with open(path, "rb") as f:
+            size = os.fstat(f.fileno()).st_size
+            prefix = f.read(8)
+            if len(prefix) == 8:
+                n = struct.unpack("<Q", prefix)[0]
+                if n <= min(_MAX_HEADER_BYTES, size - 8):
+                    prefix += f.read(n)
+    except OSError as e:
+        raise CheckpointError(f"{path}: cannot read the checkpoint ({e})") from e
+    header, start = _parse_header(prefix, size, path)
+    return header, start, size
+
+
+def _entries(header: dict[str, Any], path: Path) -> dict[str, tuple[str, tuple[int, ...], int, int]]:
+    """Tensor entries of a header: name -> (dtype code, shape, begin, end) within the data section."""
+    out = {}
+    for name, e in header.items():
+        if name == "__metadata__":
+            continue
+        try:
+            dtype, shape, (begin, end) = e["dtype"], tuple(e["shape"]), e["data_offsets"]
+            if not (isinstance(dtype, str) and all(isinstance(d, int) and d >= 0 for d in shape)
+                    and isinstance(begin, int) and isinstance(end, int)):
+                raise TypeError
+        except (KeyError, TypeError, ValueError):
+            raise CheckpointError(f"{path}: broken entry for tensor {name!r} in the header") from None
+        out[name] = (dtype, shape, begin, end)
+    return out
+
+
+def _digest(entries: dict[str, tuple[str, tuple[int, ...], int, int]], data: bytes) -> str:
+    """SHA-256 over every tensor (name, dtype, shape and bytes), in name order."""
+    h = hashlib.sha256()
+    for name in sorted(entries):
+        dtype, shape, begin, end = entries[name]
+        h.update(f"{name}|{dtype}|{list(shape)}|{end - begin}\n".encode())
+        h.update(data[begin:end])
+    return h.hexdigest()
+
+
+def _metadata_field(meta: dict[str, str], name: str, path: Path) -> str:
+    v = meta.get(name)
+    if not isinstance(v, str):
+        raise CheckpointError(f"{path}: checkpoint metadata field {name!r} is missing or not text")
+    return v
+
+
+def _config_from(meta: dict[str, str], path: Path) -> EvNetConfig:
+    """The EvNetConfig named by the metadata, within bounds (nothing allocated yet)."""
+    try:
+        cfg = json.loads(_metadata_field(meta, "config", path))
+    except ValueError as e:
+        raise CheckpointError(f"{path}: checkpoint metadata field 'config' is not JSON ({e})") from e
+    if not isinstance(cfg, dict):
+        raise CheckpointError(f"{path}: checkpoint metadata field 'config' must be a JSON object, got {cfg!r:.80}")
+    unknown = sorted(set(cfg) - set(_CONFIG_MAX))
+    if unknown:
+        raise CheckpointError(f"{path}: checkpoint metadata field 'config' has unknown key(s) {unknown}")
+    for key, hi in _CONFIG_MAX.items():
+        v = cfg.get(key)
+        if v is not None and (isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= hi):
+            raise CheckpointError(f"{path}: checkpoint metadata field 'config.{key}' must be an integer in [1, {hi}], got {v!r:.80}")
+    try:
+        return EvNetConfig(**cfg)
+    except (TypeError, ValueError) as e:
+        raise CheckpointError(f"{path}: checkpoint metadata field 'config' is invalid ({e})") from e
+
+
+def _expected(config: EvNetConfig, path: Path) -> dict[str, tuple[str, tuple[int, ...]]]:
+    """Name -> (dtype code, shape) of every tensor of an EvNet of ``config``, built on the meta device (no memory)."""
+    with torch.device("meta"):
+        sd = EvNet(config).state_dict()
+    n = sum(v.numel() for v in sd.values())
+    if n > _MAX_PARAMS:
+        raise CheckpointError(f"{path}: checkpoint metadata field 'config' describes {n:,} parameters, more than the {_MAX_PARAMS:,} allowed")
+    return {k: (_DTYPE_CODES.get(v.dtype, str(v.dtype)), tuple(v.shape)) for k, v in sd.items()}
+
+
+def _tensor_bytes(dtype: str, shape: tuple[int, ...]) -> int:
+    return {"F32": 4, "I64": 8}[dtype] * math.prod(shape)
+
+
+def _serialise(model: EvNet, extra: dict[str, Any] | None) -> bytes:
+    """A format-2 checkpoint of ``model``: safetensors bytes with config, extra and tensor digest."""
     from safetensors.torch import save
-
-    from evgrid.io import atomic_write
 
     meta = {
         "format": _FORMAT,
@@ -122,54 +241,124 @@ def save_checkpoint(model: EvNet, path: str | os.PathLike, extra: dict[str, Any]
         "extra": json.dumps(extra or {}),
     }
     tensors = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
-    data = save(tensors, metadata=meta)
+    # the data section does not depend on the metadata: serialise once to hash it, then with the hash
+    buf = save(tensors, metadata=meta)
+    header, start = _parse_header(buf, len(buf), Path("<memory>"))
+    meta[_DIGEST_KEY] = _digest(_entries(header, Path("<memory>")), memoryview(buf)[start:])
+    return save(tensors, metadata=meta)
+
+
+def save_checkpoint(model: EvNet, path: str | os.PathLike, extra: dict[str, Any] | None = None) -> Path:
+    """Write the model's weights and config as a safetensors file (format 2), atomically; ``extra`` goes in its metadata."""
+    from evgrid.io import atomic_write
+
+    data = _serialise(model, extra)
     return atomic_write(path, lambda f: f.write(data))
 
 
 @dataclass
 class LoadedCheckpoint:
-    """A loaded Ev-Net with the metadata saved beside it."""
+    """A loaded Ev-Net with the metadata saved beside it; ``version`` is the file's format version."""
 
     model: EvNet
     path: Path
     extra: dict[str, Any] = field(default_factory=dict)
+    version: int = _FORMAT_VERSION
 
 
 def load_checkpoint(path: str | os.PathLike, config: EvNetConfig | None = None) -> LoadedCheckpoint:
-    """Load an Ev-Net from a safetensors file (no code is run); raise CheckpointError naming file and problem."""
-    from safetensors import SafetensorError, safe_open
+    """Load an Ev-Net from a safetensors file (no code is run); raise CheckpointError naming file and problem.
+
+    Format 2 files must match their SHA-256; format 1 files (no digest) load with a warning
+    recommending :func:`upgrade_checkpoint`.
+    """
+    from safetensors import SafetensorError
+    from safetensors.torch import load
 
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no Ev-Net checkpoint at {path}")
-    try:
-        with safe_open(str(path), framework="pt") as f:
-            meta = f.metadata() or {}
-            tensors = {k: f.get_tensor(k) for k in f.keys()}
-    except (SafetensorError, OSError, ValueError, RuntimeError) as e:
-        raise CheckpointError(f"{path}: not a readable safetensors checkpoint ({e})") from e
+    header, start, size = _read_header(path)
+    meta = header.get("__metadata__") or {}
+    if not isinstance(meta, dict):
+        raise CheckpointError(f"{path}: checkpoint metadata is not a JSON object")
     if meta.get("format") != _FORMAT:
-        raise CheckpointError(f"{path}: not an evgrid Ev-Net checkpoint (format {meta.get('format')!r})")
-    if meta.get("version") != str(_FORMAT_VERSION):
-        raise CheckpointError(f"{path}: checkpoint format version {meta.get('version')!r}, this evgrid reads {_FORMAT_VERSION}")
+        raise CheckpointError(f"{path}: not an evgrid Ev-Net checkpoint (metadata field 'format' is {meta.get('format')!r})")
+    version = meta.get("version")
+    if version not in _READABLE_VERSIONS:
+        raise CheckpointError(f"{path}: checkpoint format version {version!r} (metadata field 'version'), this evgrid reads {', '.join(_READABLE_VERSIONS)}")
+    saved = _config_from(meta, path)
     try:
-        saved = EvNetConfig(**json.loads(meta["config"]))
         extra = json.loads(meta.get("extra", "{}"))
-    except (KeyError, TypeError, ValueError) as e:
-        raise CheckpointError(f"{path}: broken config in the checkpoint metadata ({e})") from e
+    except (TypeError, ValueError) as e:
+        raise CheckpointError(f"{path}: checkpoint metadata field 'extra' is not JSON ({e})") from e
+    if not isinstance(extra, dict):
+        raise CheckpointError(f"{path}: checkpoint metadata field 'extra' must be a JSON object, got {type(extra).__name__}")
+    if "grid" in extra:  # the grid it was trained on, which DeepIrm compares with its own
+        from evgrid.geometry import GridSpec
+
+        try:
+            GridSpec.from_dict(extra["grid"])
+        except (AttributeError, KeyError, TypeError, ValueError) as e:
+            raise CheckpointError(f"{path}: checkpoint metadata field 'extra.grid' is not a grid ({e})") from e
     if config is not None and config != saved:
         raise CheckpointError(f"{path}: checkpoint is for {saved}, but {config} was asked for")
-    model = EvNet(saved)
-    expected = model.state_dict()
-    missing = sorted(set(expected) - set(tensors))
-    unexpected = sorted(set(tensors) - set(expected))
+
+    # the header against the architecture, before a byte of tensor data is allocated
+    expected = _expected(saved, path)
+    entries = _entries(header, path)
+    missing = sorted(set(expected) - set(entries))
+    unexpected = sorted(set(entries) - set(expected))
     if missing or unexpected:
         raise CheckpointError(f"{path}: weights do not match {saved}: missing {missing[:3]}, unexpected {unexpected[:3]}")
+    n_data = size - start
+    for k, (dtype, shape, begin, end) in entries.items():
+        want_dtype, want_shape = expected[k]
+        if shape != want_shape:
+            raise CheckpointError(f"{path}: weight {k} has shape {shape}, expected {want_shape}")
+        if dtype != want_dtype:
+            raise CheckpointError(f"{path}: weight {k} has dtype {dtype}, expected {want_dtype}")
+        if not (0 <= begin <= end <= n_data) or end - begin != _tensor_bytes(dtype, shape):
+            raise CheckpointError(f"{path}: weight {k} has data offsets [{begin}, {end}) that do not fit the file; it is truncated or corrupt")
+    if n_data != sum(_tensor_bytes(d, sh) for d, sh, _, _ in entries.values()):
+        raise CheckpointError(f"{path}: {n_data} bytes of tensor data where the header describes {sum(_tensor_bytes(d, sh) for d, sh, _, _ in entries.values())}")
+    try:
+        buf = path.read_bytes()  # now known to be the size of the architecture's weights
+    except OSError as e:
+        raise CheckpointError(f"{path}: cannot read the checkpoint ({e})") from e
+    data = memoryview(buf)[start:]
+    if len(data) != n_data:
+        raise CheckpointError(f"{path}: the file changed while it was read")
+    if version == "1":
+        logger.warning("%s: checkpoint format 1 has no checksum of its weights; upgrade it with "
+                       "evgrid.ism.evnet.upgrade_checkpoint(src, dst) (evgrid upgrade-checkpoint SRC DST)", path)
+    else:
+        digest = _metadata_field(meta, _DIGEST_KEY, path)
+        if _digest(entries, data) != digest:
+            raise CheckpointError(f"{path}: the weights do not match the checksum in the metadata (field {_DIGEST_KEY!r}); the file is corrupt")
+    try:
+        tensors = load(buf)
+    except (SafetensorError, ValueError, RuntimeError) as e:
+        raise CheckpointError(f"{path}: not a readable safetensors checkpoint ({e})") from e
     for k, v in tensors.items():
-        if v.shape != expected[k].shape:
-            raise CheckpointError(f"{path}: weight {k} has shape {tuple(v.shape)}, expected {tuple(expected[k].shape)}")
         if v.is_floating_point() and not torch.isfinite(v).all():
             raise CheckpointError(f"{path}: weight {k} holds NaN or inf")
+    model = EvNet(saved)
     model.load_state_dict(tensors)
     model.eval()
-    return LoadedCheckpoint(model, path, extra)
+    return LoadedCheckpoint(model, path, extra, int(version))
+
+
+def upgrade_checkpoint(src: str | os.PathLike, dst: str | os.PathLike) -> Path:
+    """Rewrite a checkpoint in the current format (with its checksum), same weights and metadata; ``dst`` may be ``src``."""
+    loaded = load_checkpoint(src)
+    data = _serialise(loaded.model, loaded.extra)
+    from safetensors.torch import load
+
+    from evgrid.io import atomic_write
+
+    # the weights written are the weights read, bit for bit
+    before, after = loaded.model.state_dict(), load(data)
+    if set(before) != set(after) or not all(torch.equal(before[k], after[k]) for k in before):
+        raise CheckpointError(f"{src}: upgrading changed the weights; nothing was written")
+    return atomic_write(dst, lambda f: f.write(data))

@@ -39,7 +39,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from evgrid.data.frame import LidarSweep
+from evgrid.data.frame import LIDAR_COLUMNS, LidarSweep
 from evgrid.geometry import SE3, GridSpec
 from evgrid.ism._common import (
     FREE,
@@ -236,7 +236,7 @@ def _resolve_inputs(
         if sensor_to_ego is not None or ego_pose is not None:
             raise ValueError("ray_ilm: pass either a LidarSweep or raw points with sensor_to_ego/ego_pose, not both")
         return sweep.points, sweep.sensor_to_ego, sweep.ego_pose
-    pts = as_points(sweep, 3, "ray_ilm")
+    pts = as_points(sweep, 3, "ray_ilm", max_cols=len(LIDAR_COLUMNS))
     if sensor_to_ego is None:
         sensor_to_ego = SE3.identity()
     elif not isinstance(sensor_to_ego, SE3):

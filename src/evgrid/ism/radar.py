@@ -755,7 +755,7 @@ def ray_irm_xy(
     ``params.n_sweeps`` plays no part here: every detection given is used.
     """
     threads = _check_common(grid, params, threads, out)
-    det = as_points(detections_xy, 2, "ray_irm_xy")
+    det = as_points(detections_xy, 2, "ray_irm_xy", max_cols=2)
     if det.shape[1] != 2:
         raise ValueError(f"ray_irm_xy: detections_xy must have shape (n, 2), got {det.shape}")
     org = np.asarray(origins_xy, dtype=np.float64)

@@ -33,6 +33,7 @@ from __future__ import annotations
 import json
 import os
 import zipfile
+import zlib
 from pathlib import Path
 from typing import Callable, Iterator
 
@@ -44,7 +45,7 @@ from evgrid.data.sim.materials import CLASS_NAMES
 from evgrid.data.sim.scene import SimScene
 from evgrid.geometry import SE3
 
-__all__ = ["save_sim_scene", "load_sim_scene", "StoredScene", "SIM_NPZ_FORMAT"]
+__all__ = ["save_sim_scene", "load_sim_scene", "StoredScene", "SceneFileError", "SIM_NPZ_FORMAT"]
 
 SIM_NPZ_FORMAT = "evgrid-sim-npz"
 _VERSION = 1
@@ -230,21 +231,95 @@ class StoredScene:
         )
 
 
+class SceneFileError(ValueError):
+    """A simulated scene file that cannot be used (empty, truncated, corrupt, foreign or inconsistent)."""
+
+
+def _read_arrays(path: Path) -> dict[str, np.ndarray]:
+    """Every array of an ``.npz``; SceneFileError naming the file (and the array) for anything unreadable."""
+    if path.stat().st_size == 0:
+        raise SceneFileError(f"{path}: the scene file is empty (0 bytes); simulate it again with `evgrid simulate`")
+    try:
+        z = np.load(path, allow_pickle=False)
+    except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError) as e:
+        raise SceneFileError(f"{path}: not a readable .npz scene file, truncated or corrupt ({e})") from e
+    if not isinstance(z, np.lib.npyio.NpzFile):
+        z_shape = getattr(z, "shape", None)
+        raise SceneFileError(f"{path}: a single .npy array {z_shape}, not an .npz scene file")
+    data: dict[str, np.ndarray] = {}
+    with z:
+        for k in z.files:
+            try:
+                data[k] = z[k]
+            except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError, KeyError) as e:
+                raise SceneFileError(f"{path}: array {k!r} is truncated or corrupt ({e})") from e
+    return data
+
+
+def _require(path: Path, d: dict[str, np.ndarray], name: str, shape: tuple, kind: str) -> np.ndarray:
+    """Array ``name`` with ``shape`` (None for any length) of numpy kind ``kind``; SceneFileError otherwise."""
+    a = d.get(name)
+    if a is None:
+        raise SceneFileError(f"{path}: array {name!r} is missing; the file is not a complete evgrid scene")
+    if a.ndim != len(shape) or any(want is not None and got != want for got, want in zip(a.shape, shape)) or a.dtype.kind not in kind:
+        want = "(" + ", ".join("n" if w is None else str(w) for w in shape) + ")"
+        raise SceneFileError(f"{path}: array {name!r} has shape {a.shape} dtype {a.dtype}, expected {want} of kind {kind!r}")
+    return a
+
+
+def _check_offsets(path: Path, name: str, off: np.ndarray, n_items: int, total: int) -> None:
+    if len(off) != n_items + 1 or (len(off) and (off[0] != 0 or off[-1] != total)) or (np.diff(off) < 0).any():
+        raise SceneFileError(f"{path}: array {name!r} does not index its {total} points in {n_items} pieces; the file is corrupt")
+
+
+def _check_scene_arrays(path: Path, d: dict[str, np.ndarray]) -> None:
+    """Every array StoredScene reads, with consistent shapes, so that a broken file fails here, named."""
+    n = len(_require(path, d, "timestamps", (None,), "i"))
+    _require(path, d, "ego_poses", (n, 4, 4), "f")
+    _require(path, d, "true_poses", (n, 3), "f")
+    kf = _require(path, d, "is_keyframe", (n,), "b")
+    pts = _require(path, d, "lidar_points", (None, len(LIDAR_COLUMNS)), "f")
+    _check_offsets(path, "lidar_offsets", _require(path, d, "lidar_offsets", (None,), "i"), n, len(pts))
+    _require(path, d, "lidar_sensor_to_ego", (4, 4), "f")
+    occ = _require(path, d, "occupancy", (None, None, None), "u")
+    if len(occ) != int(kf.sum()):
+        raise SceneFileError(f"{path}: array 'occupancy' holds {len(occ)} keyframes, 'is_keyframe' marks {int(kf.sum())}")
+    for ch in RADAR_CHANNELS:
+        m = len(_require(path, d, f"radar_{ch}_timestamps", (None,), "i"))
+        _require(path, d, f"radar_{ch}_ego_poses", (m, 4, 4), "f")
+        rp = _require(path, d, f"radar_{ch}_points", (None, len(RADAR_COLUMNS)), "f")
+        _check_offsets(path, f"radar_{ch}_offsets", _require(path, d, f"radar_{ch}_offsets", (None,), "i"), m, len(rp))
+        _require(path, d, f"radar_{ch}_labels", (len(rp),), "u")
+        fr = _require(path, d, f"radar_{ch}_frame", (m,), "i")
+        if m and (fr.min() < 0 or fr.max() >= n):
+            raise SceneFileError(f"{path}: array 'radar_{ch}_frame' names frames outside [0, {n})")
+        _require(path, d, f"radar_{ch}_sensor_to_ego", (4, 4), "f")
+    _require(path, d, "world_boxes", (None, None), "f")
+    _require(path, d, "world_classes", (None,), "i")
+
+
 def load_sim_scene(path: str | os.PathLike) -> StoredScene:
-    """Read a scene written by :func:`save_sim_scene` (or ``evgrid simulate``) into memory."""
+    """Read a scene written by :func:`save_sim_scene` (or ``evgrid simulate``) into memory.
+
+    Raises :class:`SceneFileError` (a ValueError) naming the file and what is wrong with it.
+    """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no simulated scene file at {str(path)!r} (write one with `evgrid simulate --out DIR`)")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
-    except (zipfile.BadZipFile, ValueError, OSError) as e:
-        raise ValueError(f"{str(path)!r} is not a readable .npz file: {e}") from e
+    data = _read_arrays(path)
     if "meta" not in data:
-        raise ValueError(f"{str(path)!r} is not an evgrid simulated scene (no 'meta' array)")
-    meta = json.loads(str(data["meta"]))
+        raise SceneFileError(f"{path}: not an evgrid simulated scene (no 'meta' array)")
+    try:
+        meta = json.loads(str(data["meta"]))
+    except ValueError as e:
+        raise SceneFileError(f"{path}: array 'meta' is not JSON ({e})") from e
+    if not isinstance(meta, dict):
+        raise SceneFileError(f"{path}: array 'meta' must hold a JSON object")
     if meta.get("format") != SIM_NPZ_FORMAT:
-        raise ValueError(f"{str(path)!r} has format {meta.get('format')!r}, expected {SIM_NPZ_FORMAT!r}")
-    if int(meta.get("version", -1)) != _VERSION:
-        raise ValueError(f"{str(path)!r} is version {meta.get('version')!r} of the format; this evgrid reads version {_VERSION}")
+        raise SceneFileError(f"{path}: format {meta.get('format')!r}, expected {SIM_NPZ_FORMAT!r}")
+    if meta.get("version") != _VERSION:
+        raise SceneFileError(f"{path}: version {meta.get('version')!r} of the format; this evgrid reads version {_VERSION}")
+    if not isinstance(meta.get("name"), str) or isinstance(meta.get("seed"), bool) or not isinstance(meta.get("seed"), int):
+        raise SceneFileError(f"{path}: meta fields 'name' (text) and 'seed' (integer) are missing or invalid")
+    _check_scene_arrays(path, data)
     return StoredScene(path, data, meta)

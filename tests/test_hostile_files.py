@@ -1,0 +1,150 @@
+"""Hostile scene and map files: one error naming the file and what is wrong, never a stray exception.
+
+Before issue 12 a 0-byte scene file raised EOFError (the CLI printed only "Aborted."), a corrupt
+deflate stream raised zlib.error, a missing array KeyError and a broken 'meta' JSONDecodeError,
+none naming the file; a map file with NaN cells loaded, one without 'tile_cells' gave KeyError.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from evgrid.data import SimConfig, simulate_scene
+from evgrid.data.sim.store import SceneFileError, load_sim_scene, save_sim_scene
+from evgrid.fusion import MapSet
+from evgrid.geometry import SE2, GridSpec
+from evgrid.grid import MapFileError, load_map, save_map
+from tests.strategies import random_masses
+
+
+@pytest.fixture(scope="module")
+def scene_file(tmp_path_factory) -> Path:
+    scene = simulate_scene(2, SimConfig(duration_s=0.3))
+    return save_sim_scene(scene, tmp_path_factory.mktemp("scene") / "s.npz")
+
+
+def _arrays(path: Path) -> dict[str, np.ndarray]:
+    with np.load(path, allow_pickle=False) as z:
+        return {k: z[k] for k in z.files}
+
+
+def _garble_member(src: Path, dst: Path, member: str) -> None:
+    """Copy ``src`` to ``dst`` with the first bytes of one zip member's data overwritten."""
+    buf = bytearray(src.read_bytes())
+    with zipfile.ZipFile(src) as zf:
+        off = zf.getinfo(member).header_offset
+    n_name, n_extra = struct.unpack("<HH", buf[off + 26 : off + 30])
+    start = off + 30 + n_name + n_extra
+    buf[start : start + 16] = b"\xff" * 16  # an invalid deflate block type
+    dst.write_bytes(bytes(buf))
+
+
+# --- scene files ------------------------------------------------------------------------------------
+
+def test_an_empty_scene_file_names_the_file(tmp_path):
+    (tmp_path / "empty.npz").write_bytes(b"")
+    with pytest.raises(SceneFileError, match=r"empty\.npz: the scene file is empty"):
+        load_sim_scene(tmp_path / "empty.npz")
+
+
+def test_a_truncated_scene_file_names_the_file(scene_file, tmp_path):
+    data = scene_file.read_bytes()
+    for frac in (0.001, 0.5, 0.999):
+        path = tmp_path / f"cut{frac}.npz"
+        path.write_bytes(data[: int(len(data) * frac)])
+        with pytest.raises(SceneFileError, match=rf"cut{frac}\.npz: .*truncated or corrupt"):
+            load_sim_scene(path)
+
+
+@pytest.mark.parametrize("member", ["meta.npy", "timestamps.npy", "radar_RADAR_FRONT_points.npy", "lidar_points.npy"])
+def test_a_corrupt_array_names_the_file_and_the_array(scene_file, tmp_path, member):
+    path = tmp_path / "garbled.npz"
+    _garble_member(scene_file, path, member)
+    with pytest.raises(SceneFileError, match=rf"garbled\.npz: .*{member[:-4]}|garbled\.npz: .*corrupt"):
+        load_sim_scene(path)
+
+
+@pytest.mark.parametrize(
+    "change, says",
+    [
+        (lambda d: d.pop("lidar_offsets"), "'lidar_offsets' is missing"),
+        (lambda d: d.pop("radar_RADAR_BACK_LEFT_labels"), "'radar_RADAR_BACK_LEFT_labels' is missing"),
+        (lambda d: d.__setitem__("meta", np.array("{not json")), "'meta' is not JSON"),
+        (lambda d: d.__setitem__("meta", np.array("[1, 2]")), "'meta' must hold a JSON object"),
+        (lambda d: d.__setitem__("meta", np.array(json.dumps({**json.loads(str(d["meta"])), "seed": "x"}))), "'seed'"),
+        (lambda d: d["lidar_offsets"].__setitem__(-1, d["lidar_offsets"][-1] + 7), "'lidar_offsets' does not index"),
+        (lambda d: d.__setitem__("ego_poses", d["ego_poses"][:-1]), "'ego_poses' has shape"),
+        (lambda d: d.__setitem__("radar_RADAR_FRONT_frame", d["radar_RADAR_FRONT_frame"] + 10_000), "names frames outside"),
+        (lambda d: d.__setitem__("occupancy", d["occupancy"][:0]), "'occupancy' holds 0 keyframes"),
+    ],
+    ids=["no-lidar-offsets", "no-radar-labels", "meta-not-json", "meta-list", "bad-seed", "offsets", "poses", "frames", "occupancy"],
+)
+def test_an_inconsistent_scene_file_names_the_file_and_the_array(scene_file, tmp_path, change, says):
+    d = _arrays(scene_file)
+    change(d)
+    path = tmp_path / "bad.npz"
+    np.savez(path, **d)
+    with pytest.raises(SceneFileError, match=rf"bad\.npz: .*{says}"):
+        scene = load_sim_scene(path)
+        for _ in scene:  # used to fail here, if at all, with KeyError or IndexError
+            pass
+
+
+def test_a_single_npy_array_is_not_a_scene(tmp_path):
+    path = tmp_path / "array.npz"
+    with open(path, "wb") as f:
+        np.save(f, np.zeros(3))
+    with pytest.raises(SceneFileError, match=r"array\.npz: a single \.npy array"):
+        load_sim_scene(path)
+
+
+def test_scene_file_errors_are_value_errors():
+    assert issubclass(SceneFileError, ValueError)
+
+
+# --- map files --------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def map_file(tmp_path_factory) -> Path:
+    grid = GridSpec(32, 4.0)
+    ms = MapSet(grid, names=("ray_ilm",), tile_cells=16)
+    ms.update(SE2(0.1, 0.2, 0.3), {"ray_ilm": random_masses(np.random.default_rng(0), grid.shape)})
+    return save_map(ms["ray_ilm"], tmp_path_factory.mktemp("map") / "m.npz")
+
+
+def test_a_corrupt_deflate_stream_in_a_map_names_the_file(map_file, tmp_path):
+    path = tmp_path / "garbled.npz"
+    _garble_member(map_file, path, "tiles.npy")
+    with pytest.raises(MapFileError, match=r"garbled\.npz"):
+        load_map(path)
+
+
+@pytest.mark.parametrize(
+    "change, says",
+    [
+        (lambda h, a: h.pop("tile_cells"), "'tile_cells'"),
+        (lambda h, a: h.__setitem__("tile_cells", "16"), "'tile_cells'"),
+        (lambda h, a: h.pop("spec"), "'spec'"),
+        (lambda h, a: a["tiles"].__setitem__((0, 3, 4, 1), np.nan), "1 cell\\(s\\) hold no valid mass"),
+        (lambda h, a: a["tiles"].__setitem__((0, 3, 4), [2.0, 0.0, -1.0]), "1 cell\\(s\\) hold no valid mass"),
+        (lambda h, a: a.__setitem__("covered", a["covered"].astype(np.uint8)), "coverage"),
+        (lambda h, a: a.__setitem__("header", np.frombuffer(b"[1, 2]", np.uint8)), "not an evgrid map"),
+    ],
+    ids=["no-tile-cells", "text-tile-cells", "no-spec", "nan-tile", "negative-tile", "coverage-dtype", "header-list"],
+)
+def test_a_broken_map_file_is_one_map_file_error(map_file, tmp_path, change, says):
+    a = _arrays(map_file)
+    header = json.loads(a["header"].tobytes().decode())
+    change(header, a)
+    if a["header"].tobytes()[:1] == b"{":
+        a["header"] = np.frombuffer(json.dumps(header).encode(), np.uint8)
+    path = tmp_path / "broken.npz"
+    np.savez_compressed(path, **a)
+    with pytest.raises(MapFileError, match=rf"broken\.npz.*{says}"):
+        load_map(path)
