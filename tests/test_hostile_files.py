@@ -148,3 +148,20 @@ def test_a_broken_map_file_is_one_map_file_error(map_file, tmp_path, change, say
     np.savez_compressed(path, **a)
     with pytest.raises(MapFileError, match=rf"broken\.npz.*{says}"):
         load_map(path)
+
+
+@pytest.mark.parametrize("text", ["", "{", "[]", '{"scenes": 3}', '{"scenes": [{"name": "x"}]}', '{"other": []}'])
+def test_a_bad_scene_index_is_one_error_naming_the_file(tmp_path, text):
+    from evgrid.sources import SceneIndexError, SimFilesSource
+
+    (tmp_path / "index.json").write_text(text)
+    with pytest.raises(SceneIndexError, match="index.json"):
+        SimFilesSource(str(tmp_path)).names()
+
+
+def test_a_scene_missing_from_the_index_is_named(tmp_path):
+    from evgrid.sources import SceneIndexError, SimFilesSource
+
+    (tmp_path / "index.json").write_text('{"scenes": [{"name": "sim-000001", "file": "sim-000001.npz"}]}')
+    with pytest.raises(SceneIndexError, match="no scene 'sim-000002'.*sim-000001"):
+        SimFilesSource(str(tmp_path)).load("sim-000002")

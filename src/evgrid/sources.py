@@ -17,7 +17,7 @@ from typing import Protocol, Sequence
 
 from evgrid.data.frame import Scene
 
-__all__ = ["SceneSource", "SimSource", "SimFilesSource", "NuScenesSource", "BagSource", "sim_split", "source_to_dict", "source_from_dict"]
+__all__ = ["SceneSource", "SimSource", "SimFilesSource", "NuScenesSource", "BagSource", "SceneIndexError", "sim_split", "source_to_dict", "source_from_dict"]
 
 
 def sim_split(seed: int) -> str:
@@ -66,6 +66,10 @@ class SimSource:
         return simulate_scene(by_name[name], SimConfig(duration_s=self.duration_s))
 
 
+class SceneIndexError(ValueError):
+    """A folder of simulated scenes whose ``index.json`` is missing a scene or cannot be read."""
+
+
 @dataclass(frozen=True)
 class SimFilesSource:
     """Scenes written by ``evgrid simulate --format npz`` into ``folder`` (optionally one split)."""
@@ -77,7 +81,13 @@ class SimFilesSource:
         path = Path(self.folder) / "index.json"
         if not path.is_file():
             raise FileNotFoundError(f"{path} not found: write scenes with `evgrid simulate --out {self.folder}` first")
-        entries = json.loads(path.read_text())["scenes"]
+        try:
+            entries = json.loads(path.read_text())["scenes"]
+            ok = isinstance(entries, list) and all(isinstance(e, dict) and {"name", "file"} <= set(e) for e in entries)
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError) as e:
+            raise SceneIndexError(f"{path}: not a scene index of `evgrid simulate` ({type(e).__name__}: {e})") from None
+        if not ok:
+            raise SceneIndexError(f"{path}: 'scenes' must be a list of {{name, file, split}} entries")
         return [e for e in entries if self.split is None or e.get("split") == self.split]
 
     def names(self) -> list[str]:
@@ -89,7 +99,7 @@ class SimFilesSource:
         for e in self._index():
             if e["name"] == name:
                 return load_sim_scene(Path(self.folder) / e["file"])
-        raise KeyError(f"no scene {name!r} in {self.folder}")
+        raise SceneIndexError(f"no scene {name!r} in {self.folder}/index.json; it has {self.names()}")
 
 
 @functools.lru_cache(maxsize=2)
