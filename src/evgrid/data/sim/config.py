@@ -46,6 +46,8 @@ class LidarConfig:
     #: Return power (reflectivity * cos(incidence) / range^2, 1/m^2) at which a return is
     #: detected with probability 1 - 1/e; sets how far the grazing ground is seen.
     power_threshold: float = 1.2e-5
+    #: Returns from the ego vehicle's own body (roof, sensor rack, mirrors), as a roof lidar has.
+    self_returns: bool = True
 
     def __post_init__(self) -> None:
         o = "LidarConfig"
