@@ -1,9 +1,9 @@
 """Which radar detections count: the validity fields of the ARS 408 cluster list.
 
 nuScenes radar ``.pcd`` files hold every cluster the sensor reported; the devkit's
-``RadarPointCloud.from_file`` drops by default those whose ``invalid_state`` is not 0, whose
-``dyn_prop`` is 7 (stationary candidate... not in range(7)) or whose ``ambig_state`` is not 3
-(unambiguous Doppler). evgrid's loaders keep everything (docs/conventions.md#sensor-data); a
+``RadarPointCloud.from_file`` drops by default those whose ``invalid_state`` is not 0 (valid),
+whose ``dyn_prop`` is not in 0-6 (7: "stopped") or whose ``ambig_state`` is not 3 (unambiguous
+Doppler). evgrid's loaders keep everything (docs/conventions.md#sensor-data); a
 :class:`RadarFilter` decides, and the same filter must be used to train Ev-Net and to map with
 it (the checkpoint records it; :func:`check_trained_filter` warns on a mismatch).
 """
