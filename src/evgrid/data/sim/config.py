@@ -39,8 +39,9 @@ class LidarConfig:
     #: Firings per revolution (HDL-32E at 20 Hz: about 1080, 0.33 deg apart).
     n_azimuth: int = 1080
     max_range_m: float = 100.0
-    #: Points closer than this are not reported (the sensor's blind zone), metres.
-    min_range_m: float = 1.0
+    #: Points closer than this are not reported (the sensor's blind zone), metres. Nothing but the
+    #: ego vehicle's own body comes this close to a roof lidar.
+    min_range_m: float = 0.8
     range_noise_m: float = 0.02
     #: Probability that any return is lost regardless of its strength.
     dropout: float = 0.02
