@@ -181,8 +181,8 @@ def test_lidar_statistics(which, request):
     scene, frames = request.getfixturevalue(which)
     counts = np.array([len(f.lidar.points) for f in frames])
     # HDL-32E: 32 x ~1080 firings; most beams return (nuScenes: about 34k points a sweep), but
-    # the car's roof hides the steepest beams in the blind zone (about a quarter of them).
-    assert 20_000 <= counts.mean() <= 34_560
+    # the car's roof hides some of the steepest ones.
+    assert 25_000 <= counts.mean() <= 34_560
     pts = np.concatenate([f.lidar.points for f in frames[:5]])
     assert set(np.unique(pts[:, 4])) == set(range(32))
     assert pts[:, 3].min() >= 0 and pts[:, 3].max() <= 255 and np.all(pts[:, 3] == np.rint(pts[:, 3]))

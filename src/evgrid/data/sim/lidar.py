@@ -39,7 +39,8 @@ _EGO_REFLECTIVITY = 0.45
 EGO_BODY_BOXES: np.ndarray = np.array(
     [
         (-0.70, -0.88, 0.20, 3.45, 0.88, 1.00),  # body up to the bonnet and boot lid
-        (0.10, -0.80, 1.00, 2.30, 0.80, 1.55),  # cabin and roof
+        (0.10, -0.80, 1.00, 2.30, 0.80, 1.20),  # cabin up to the window line
+        (0.10, -0.58, 1.20, 2.30, 0.58, 1.48),  # upper cabin and roof (narrower: the windows lean in)
         (1.94, -0.78, 1.64, 2.45, 0.78, 1.74),  # sensor rack, front bar: 0.1 m below the lidar
         (-0.55, -0.78, 1.64, -0.06, 0.78, 1.74),  # sensor rack, rear bar
         (2.00, 0.88, 0.85, 2.20, 1.05, 1.10),  # left mirror
