@@ -187,7 +187,7 @@ def test_lidar_statistics(which, request):
     assert set(np.unique(pts[:, 4])) == set(range(32))
     assert pts[:, 3].min() >= 0 and pts[:, 3].max() <= 255 and np.all(pts[:, 3] == np.rint(pts[:, 3]))
     rng = np.linalg.norm(pts[:, :3], axis=1)
-    assert rng.min() >= 0.75 and rng.max() <= 100.2
+    assert rng.min() >= 0.7 and rng.max() <= 100.2  # 0.8 m blind zone, range noise
     ego = frames[0].lidar.sensor_to_ego.apply(pts[:, :3])
     ground = np.abs(ego[:, 2]) < 0.1
     assert 0.3 < ground.mean() < 0.9  # most downward beams hit the road
