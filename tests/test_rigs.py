@@ -115,7 +115,7 @@ def test_simulated_lidar_sees_its_own_car():
     ego = sweep.sensor_to_ego.apply(sweep.points[body, :3].astype(np.float64))
     assert NUSCENES_BODY.contains(ego).all()
     # the rest of the sweep is what the lidar sees without the body, less what the body hides
-    clean, hit0 = simulate_scene(4, SimConfig(duration_s=0.5, lidar=LidarConfig(self_returns=False))).lidar_sweep(2)
+    clean, _ = simulate_scene(4, SimConfig(duration_s=0.5, lidar=LidarConfig(self_returns=False))).lidar_sweep(2)
     assert len(clean.points) > (~body).sum()
 
 

@@ -110,8 +110,8 @@ class NuScenesScene:
         # Radar sweep tokens per frame, per channel, in the chain's order.
         n = len(self.lidar_tokens)
         #: The scene's radar channels (nuScenes' order, then by name).
-        self.radar_channels: tuple[str, ...] = tuple(sorted(self._radar_heads(first), key=channel_order))
         heads = self._radar_heads(first)
+        self.radar_channels: tuple[str, ...] = tuple(sorted(heads, key=channel_order))
         self._radar: list[dict[str, list[str]]] = [{c: [] for c in self.radar_channels} for _ in range(n)]
         #: What the recording got wrong, summed over sensors (see the module docstring).
         self.stats: dict[str, int] = {"lidar_sweeps": n, "lidar_sweeps_missing": 0, "radar_sweeps": 0,
@@ -147,7 +147,7 @@ class NuScenesScene:
         sample = first
         while True:
             for ch, tok in sample["data"].items():
-                if ch not in heads and self.nusc.get("sample_data", tok).get("sensor_modality", "radar" if ch.startswith("RADAR") else "") == "radar":
+                if ch not in heads and self.nusc.get("sample_data", tok)["sensor_modality"] == "radar":
                     heads[ch] = tok
             if not sample["next"]:
                 return heads

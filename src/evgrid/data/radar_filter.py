@@ -98,8 +98,8 @@ class RadarFilter:
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON (lists for the sets), as stored in checkpoints."""
-        return {"mode": self.mode, **{k: (None if v is None else list(v)) for k, v in
-                                      ((k, getattr(self, k)) for k in _NUSCENES)}}
+        sets = {k: getattr(self, k) for k in _NUSCENES}
+        return {"mode": self.mode, **{k: None if v is None else list(v) for k, v in sets.items()}}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "RadarFilter":
