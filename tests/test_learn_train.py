@@ -55,6 +55,7 @@ def test_train_writes_logs_and_checkpoints_and_resumes(cache, tmp_path):
     assert 0.0 <= res.ray_irm_baseline["free"] <= 1.0
     ck = load_checkpoint(tmp_path / "best.safetensors")
     assert ck.extra["grid"] == CFG.grid.to_dict() and "val_iou" in ck.extra
+    assert ck.extra["radar_filter"] == CFG.radar_filter.to_dict()  # mapping with another one warns
     # resume adds one epoch from where the run stopped
     res2 = train(TrainConfig(**{**CFG.__dict__, "epochs": 3}), root, names[:1], names[1:], tmp_path, resume=True)
     rows = list(csv.DictReader(open(tmp_path / "metrics.csv")))

@@ -81,19 +81,32 @@ def simulate(
     duration: float = typer.Option(20.0, "--duration", help="Scene length in seconds."),
     environment: str = typer.Option("mixed", "--environment", help="urban, suburban, or mixed (drawn per seed)."),
     version: str = typer.Option("v1.0-sim", "--version", help="Version folder for --format nuscenes."),
+    lidar_rate: float = typer.Option(20.0, "--lidar-rate", help="Lidar sweeps per second (frames), Hz: 20 as nuScenes, or 10."),
+    radar_channels: str = typer.Option(None, "--radar-channels", help="Comma-separated radar channels, NAME or "
+                                       "NAME=MOUNT (a nuScenes radar position); default: nuScenes' five."),
+    radar_rate: str = typer.Option(None, "--radar-rate", help="Radar sweeps per second, Hz: one rate, or one per "
+                                   "channel separated by commas (default 13)."),
+    ego_returns: bool = typer.Option(True, "--ego-returns/--no-ego-returns", help="Lidar returns from the ego "
+                                     "vehicle's own body, as a roof lidar has."),
+    sweep_faults: float = typer.Option(0.0, "--sweep-faults", min=0.0, max=1.0, help="Fraction of radar sweeps "
+                                       "dropped, and of those repeated, and of those delivered late (each)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace existing output."),
 ) -> None:
-    """Simulate nuScenes-like scenes (lidar, 5 radars, odometry, true occupancy) and write them to DIR.
+    """Simulate nuScenes-like scenes (lidar, radars, odometry, true occupancy) and write them to DIR.
 
     Seeds with seed % 5 == 4 form the 'val' split, the others 'train' (in splits.json for
     --format nuscenes, and in the index.json of --format npz).
+
+    Example (a 10 Hz lidar, three radars at 4 Hz):
+      evgrid simulate --format nuscenes --out data/rig --lidar-rate 10 --radar-rate 4
+        --radar-channels RADAR_FRONT,RADAR_BACK_LEFT,RADAR_BACK_RIGHT
     """
     import json
 
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
     from evgrid.io import atomic_write_text
-    from evgrid.data.sim import SimConfig, WorldConfig, simulate_scene
+    from evgrid.data.sim import simulate_scene
     from evgrid.data.sim.config import ENVIRONMENTS
     from evgrid.sources import sim_split
 
@@ -102,9 +115,9 @@ def simulate(
     if environment not in ENVIRONMENTS:
         raise typer.BadParameter(f"--environment must be one of {ENVIRONMENTS}, got {environment!r}", param_hint="--environment")
     try:
-        config = SimConfig(duration_s=duration, world=WorldConfig(environment=environment))
+        config = _sim_config(duration, environment, lidar_rate, radar_channels, radar_rate, ego_returns, sweep_faults)
     except ValueError as e:
-        raise typer.BadParameter(str(e), param_hint="--duration") from e
+        raise typer.BadParameter(str(e)) from e
     seeds = [seed + k for k in range(scenes)]
     out.mkdir(parents=True, exist_ok=True)
     total = scenes * config.n_frames
@@ -149,6 +162,29 @@ def simulate(
     typer.echo(f"wrote {scenes} scene(s) to {out}")
 
 
+def _sim_config(duration, environment, lidar_rate, radar_channels, radar_rate, ego_returns, sweep_faults):
+    """The SimConfig of `evgrid simulate`'s options."""
+    from dataclasses import replace
+
+    from evgrid.data.sim import SimConfig, WorldConfig
+    from evgrid.data.sim.config import LidarConfig, RigConfig, SweepFaults
+
+    rig = RigConfig()
+    if radar_channels:
+        pairs = [c.strip().split("=", 1) for c in radar_channels.split(",") if c.strip()]
+        rig = replace(rig, radar_channels=tuple(p[0] for p in pairs),
+                      radar_mounts=tuple(p[-1] for p in pairs) if any(len(p) == 2 for p in pairs) else ())
+    if radar_rate:
+        try:
+            rig = replace(rig, radar_rates_hz=tuple(float(r) for r in radar_rate.split(",")))
+        except ValueError:
+            raise ValueError(f"--radar-rate must be numbers separated by commas, got {radar_rate!r}") from None
+    if sweep_faults:
+        rig = replace(rig, faults=SweepFaults(drop=sweep_faults, duplicate=sweep_faults, reorder=sweep_faults))
+    return SimConfig(duration_s=duration, world=WorldConfig(environment=environment), rig=rig,
+                     lidar=LidarConfig(rate_hz=lidar_rate, self_returns=ego_returns))
+
+
 # --- mapping, evaluation, training, benchmark ------------------------------------------------------
 
 _DATA_OPTIONS = ("nuscenes", "version", "split", "sim_dir", "scenes", "seed", "duration")
@@ -187,15 +223,43 @@ _LIDAR_MIN_RANGE = typer.Option(
     None, "--lidar-min-range", min=0.0,
     help="Ignore lidar returns closer than this to the lidar (m, horizontally); 0 keeps all.",
 )
+_SELF_RETURNS = typer.Option(None, "--self-returns", help="The ego vehicle's own lidar returns: auto (found as "
+                             "returns fixed in the vehicle's frame while it moves; default), box (those in --body-box) or off.")
+_BODY_BOX = typer.Option(None, "--body-box", help="The vehicle's body in the ego frame, 'x0,y0,z0,x1,y1,z1' (m); "
+                         "implies --self-returns box unless another mode is given (default: the nuScenes car).")
+_RADAR_FILTER = typer.Option(None, "--radar-filter", help="Radar detections kept: none (all; default) or nuscenes "
+                             "(the devkit's invalid_state/dyn_prop/ambig_state defaults); use the checkpoint's.")
 _MAX_SPEED = typer.Option(None, "--max-speed", help="Odometry sanity: faster ego motion is a glitch, m/s (default 100).")
 _OVERWRITE = typer.Option(False, "--overwrite", help="Write into --out even if it holds results of another run.")
 
 
-def _mapper_config(base, m_u_min=None, checkpoint=None, update_rate=None, maps=None, lidar_min_range=None, max_speed=None):
+def _self_returns(base, mode=None, body_box=None):
+    """``base`` (SelfReturnParams) with --self-returns and --body-box applied."""
+    from dataclasses import replace
+
+    from evgrid.ism.self_returns import parse_body_box
+
+    cfg = base
+    if body_box is not None:
+        box = parse_body_box(body_box)
+        cfg = replace(cfg, body=box, prior=box, mode=mode or "box")
+    if mode is not None:
+        cfg = replace(cfg, mode=mode)
+    return cfg
+
+
+def _mapper_config(base, m_u_min=None, checkpoint=None, update_rate=None, maps=None, lidar_min_range=None, max_speed=None,
+                   self_returns=None, body_box=None, radar_filter=None):
     """``base`` (a MapperConfig) with the mapper options given on the command line applied."""
     from dataclasses import replace
 
+    from evgrid.data.radar_filter import RadarFilter
+
     cfg = base
+    if self_returns is not None or body_box is not None:
+        cfg = replace(cfg, self_returns=_self_returns(cfg.self_returns, self_returns, body_box))
+    if radar_filter is not None:
+        cfg = replace(cfg, radar_filter=RadarFilter.named(radar_filter))
     if m_u_min is not None:
         cfg = replace(cfg, fusion=replace(cfg.fusion, m_u_min=m_u_min))
     if checkpoint is not None:
@@ -269,6 +333,9 @@ def map_cmd(
     maps: str = _MAPS,
     lidar_min_range: float = _LIDAR_MIN_RANGE,
     max_speed: float = _MAX_SPEED,
+    self_returns: str = _SELF_RETURNS,
+    body_box: str = _BODY_BOX,
+    radar_filter: str = _RADAR_FILTER,
     workers: int = typer.Option(1, "--workers", min=1, help="Scenes mapped in parallel (one process each)."),
     save_maps: bool = typer.Option(None, "--save-maps/--no-save-maps", help="Also write every map as .npz."),
     overwrite: bool = _OVERWRITE,
@@ -284,7 +351,8 @@ def map_cmd(
 
     data = dict(nuscenes=nuscenes, version=version, split=split, sim_dir=sim_dir, scenes=scenes, seed=seed, duration=duration)
     source, names, run = _run_setup(ctx, config, data, scene)
-    mapper = _mapper_config(run.mapper, m_u_min, checkpoint, update_rate, maps, lidar_min_range, max_speed)
+    mapper = _mapper_config(run.mapper, m_u_min, checkpoint, update_rate, maps, lidar_min_range, max_speed,
+                            self_returns, body_box, radar_filter)
     outputs = run.outputs if save_maps is None else replace(run.outputs, save_maps=save_maps)
     _run_maps(source, out, mapper, outputs, names, workers, overwrite)
 
@@ -307,6 +375,9 @@ def evaluate(
     update_rate: float = _UPDATE_RATE,
     lidar_min_range: float = _LIDAR_MIN_RANGE,
     max_speed: float = _MAX_SPEED,
+    self_returns: str = _SELF_RETURNS,
+    body_box: str = _BODY_BOX,
+    radar_filter: str = _RADAR_FILTER,
     workers: int = typer.Option(2, "--workers", min=1, help="Scenes evaluated in parallel (one process each)."),
     overwrite: bool = _OVERWRITE,
 ) -> None:
@@ -322,7 +393,8 @@ def evaluate(
 
     data = dict(nuscenes=nuscenes, version=version, split=split, sim_dir=sim_dir, scenes=scenes, seed=seed, duration=duration)
     source, names, run = _run_setup(ctx, config, data, scene)
-    mapper = _mapper_config(run.mapper, m_u_min, checkpoint, update_rate, None, lidar_min_range, max_speed)
+    mapper = _mapper_config(run.mapper, m_u_min, checkpoint, update_rate, None, lidar_min_range, max_speed,
+                            self_returns, body_box, radar_filter)
     _run_maps(source, out, mapper, replace(run.outputs, figures=False, save_maps=False), names, workers, overwrite)
 
 
@@ -365,6 +437,9 @@ def train(
     frame_stride: int = typer.Option(4, "--frame-stride", min=1, help="Use every Nth lidar frame as a sample."),
     width: int = typer.Option(12, "--width", min=1, help="Ev-Net width of the first stage."),
     depth: int = typer.Option(4, "--depth", min=2, help="Ev-Net stages."),
+    self_returns: str = _SELF_RETURNS,
+    body_box: str = _BODY_BOX,
+    radar_filter: str = _RADAR_FILTER,
     resume: bool = typer.Option(False, "--resume", help="Continue the run in --out."),
 ) -> None:
     """Train Ev-Net (the deep IRM) on simulated scenes or nuScenes, against the ray ILM.
@@ -378,14 +453,18 @@ def train(
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
+    from evgrid.data.radar_filter import RadarFilter
     from evgrid.ism.evnet import EvNetConfig
+    from evgrid.ism.self_returns import SelfReturnParams
     from evgrid.learn.train import TrainConfig, build_cache
     from evgrid.learn.train import train as run_training
 
     console = Console()
     try:
         config = TrainConfig(epochs=epochs, batch_size=batch_size, lr=lr, seed=seed, workers=workers,
-                             frame_stride=frame_stride, model=EvNetConfig(in_channels=6, width=width, depth=depth))
+                             frame_stride=frame_stride, model=EvNetConfig(in_channels=6, width=width, depth=depth),
+                             radar_filter=RadarFilter.named(radar_filter or "none"),
+                             self_returns=_self_returns(SelfReturnParams(), self_returns, body_box))
     except ValueError as e:
         raise typer.BadParameter(str(e)) from e
     if nuscenes is not None:

@@ -16,11 +16,13 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+from evgrid.data.radar_filter import RadarFilter
 from evgrid.fusion import MAP_NAMES, FusionParams
 from evgrid.geometry import GridSpec
 from evgrid.ism.deep import RadarImageParams
 from evgrid.ism.lidar import RayIlmParams
 from evgrid.ism.radar import RayIrmParams
+from evgrid.ism.self_returns import SelfReturnParams
 from evgrid.validation import check_int, check_number
 
 __all__ = ["PoseLimits", "MapperConfig", "OutputConfig", "RunConfig", "ConfigError", "from_dict", "load_run_config"]
@@ -66,6 +68,10 @@ class MapperConfig:
     fusion: FusionParams = field(default_factory=FusionParams)
     maps: tuple[str, ...] = MAP_NAMES
     lidar: RayIlmParams = field(default_factory=RayIlmParams)  # ray ILM
+    # The ego vehicle's own lidar returns, removed before the ray ILM (docs/rigs.md#self-returns).
+    self_returns: SelfReturnParams = field(default_factory=SelfReturnParams)
+    # Radar detections kept by their validity fields, before any radar ISM; the same as in training.
+    radar_filter: RadarFilter = field(default_factory=RadarFilter)
     radar: RayIrmParams = field(default_factory=RayIrmParams)  # ray IRM (n_sweeps: the paper's N)
     image: RadarImageParams = field(default_factory=RadarImageParams)  # the deep IRM's input
     checkpoint: str | None = None  # Ev-Net weights; None = the shipped checkpoint

@@ -18,7 +18,7 @@ import numpy as np
 
 from evgrid.config import MapperConfig, PoseLimits
 from evgrid.data.frame import Frame, RadarSweep
-from evgrid.data.sweeps import RadarBuffer
+from evgrid.data.sweeps import GapCounter, RadarBuffer
 from evgrid.fusion import MapSet
 from evgrid.geometry import SE2, SE3
 from evgrid.grid import MapWindow
@@ -74,6 +74,16 @@ class OccupancyMapper:
             from evgrid.ism.deep import DeepIrm
 
             self.deep = DeepIrm(config.checkpoint, config.grid, config.image, config.threads)
+        if self.deep is not None:
+            from evgrid.data.radar_filter import check_trained_filter
+
+            check_trained_filter(config.radar_filter, getattr(self.deep, "info", None),
+                                 str(getattr(self.deep, "checkpoint", "the checkpoint")))
+        from evgrid.ism.self_returns import SelfReturnFilter
+
+        self.self_returns = SelfReturnFilter(config.self_returns)
+        self.lidar_gaps = GapCounter()
+        self.n_radar_filtered = 0
         self.poses = PoseGate(config.poses)
         self.schedule = UpdateSchedule(config.update_rate_hz)
         self.first_pose: SE3 | None = None
@@ -91,8 +101,11 @@ class OccupancyMapper:
         self.n_frames += 1
         if not self.poses.accept(frame):  # an odometry glitch: nothing of this frame is mapped
             return False
+        self.lidar_gaps.add(frame.timestamp)
         for sweep in frame.radar_sweeps():
             if self.poses.sweep_ok(sweep, frame):
+                sweep, dropped = self.config.radar_filter(sweep)  # as in training
+                self.n_radar_filtered += dropped
                 self.buffer.push(sweep)
         if not self.schedule.due(frame.timestamp, frame.is_keyframe):
             return False
@@ -124,7 +137,8 @@ class OccupancyMapper:
         out: dict[str, np.ndarray] = {}
         t = time.perf_counter()
         if "ray_ilm" in need:
-            out["ray_ilm"] = ray_ilm(frame.lidar, grid=cfg.grid, params=cfg.lidar, threads=cfg.threads)
+            lidar = self.self_returns(frame.lidar)  # the vehicle's own returns stop no ray
+            out["ray_ilm"] = ray_ilm(lidar, grid=cfg.grid, params=cfg.lidar, threads=cfg.threads)
             t = self._time("ray_ilm", t)
         if "ray_irm" in need:
             out["ray_irm"] = ray_irm(self.buffer.sweeps(cfg.radar.n_sweeps), frame.ego_pose, grid=cfg.grid,
@@ -156,6 +170,10 @@ class OccupancyMapper:
             **self.poses.counts(),
             "radar_sweeps_duplicate": self.buffer.n_duplicate,
             "radar_sweeps_out_of_order": self.buffer.n_out_of_order,
+            "radar_sweeps_missing": self.buffer.n_missing,
+            "lidar_frames_missing": self.lidar_gaps.n_missing,
+            "radar_detections_filtered": self.n_radar_filtered,
+            **self.self_returns.counts(),
         }
 
     def _time(self, name: str, t0: float) -> float:

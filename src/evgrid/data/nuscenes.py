@@ -6,8 +6,12 @@ when a dataset is opened. What it yields, per scene:
 * one :class:`~evgrid.data.frame.Frame` per ``LIDAR_TOP`` sample_data of the scene, in
   time order (the chain of ``prev``/``next`` pointers, kept to the sample_data whose sample
   belongs to the scene); ``is_keyframe`` is the sample_data's ``is_key_frame``;
-* each radar sweep (same chain rule, per channel) goes to the first frame whose lidar
-  timestamp is >= its own; sweeps after the scene's last lidar sweep are dropped;
+* every radar channel the scene's samples carry (any names, any number), each radar sweep
+  (same chain rule, per channel) going to the first frame whose lidar timestamp is >= its own,
+  in the chain's order; sweeps after the scene's last lidar sweep are dropped. Nothing is
+  re-sorted or removed: ``NuScenesScene.stats`` counts what a recording got wrong (sweeps
+  missing, repeated, out of order, after the end) and the mapper skips and counts the
+  repeated and late ones;
 * radar points are read *unfiltered*: all 18 fields are parsed, the 12 of
   ``RADAR_COLUMNS`` kept, and no ``invalid_state``/``dyn_prop``/``ambig_state`` filter is
   applied (the devkit's ``RadarPointCloud.from_file`` filters by default): the validity
@@ -30,7 +34,8 @@ from typing import Any, Iterator, Sequence
 
 import numpy as np
 
-from evgrid.data.frame import LIDAR_CHANNEL, RADAR_CHANNELS, Frame, LidarSweep, RadarSweep
+from evgrid.data.frame import LIDAR_CHANNEL, Frame, LidarSweep, RadarSweep
+from evgrid.data.sweeps import GapCounter, channel_order
 from evgrid.data.nuscenes_format import radar_pcd_to_columns, read_lidar_bin, read_radar_pcd
 from evgrid.geometry import SE3
 
@@ -102,17 +107,51 @@ class NuScenesScene:
         first = nusc.get("sample", scene_record["first_sample_token"])
         self.lidar_tokens = self._chain(first["data"][LIDAR_CHANNEL])
         self.lidar_timestamps = np.array([nusc.get("sample_data", t)["timestamp"] for t in self.lidar_tokens], dtype=np.int64)
-        # Radar sweep tokens per frame, per channel, oldest first.
+        # Radar sweep tokens per frame, per channel, in the chain's order.
         n = len(self.lidar_tokens)
-        self._radar: list[dict[str, list[str]]] = [{c: [] for c in RADAR_CHANNELS} for _ in range(n)]
-        for ch in RADAR_CHANNELS:
-            if ch not in first["data"]:
-                continue
-            for tok in self._chain(first["data"][ch]):
-                ts = nusc.get("sample_data", tok)["timestamp"]
+        #: The scene's radar channels (nuScenes' order, then by name).
+        heads = self._radar_heads(first)
+        self.radar_channels: tuple[str, ...] = tuple(sorted(heads, key=channel_order))
+        self._radar: list[dict[str, list[str]]] = [{c: [] for c in self.radar_channels} for _ in range(n)]
+        #: What the recording got wrong, summed over sensors (see the module docstring).
+        self.stats: dict[str, int] = {"lidar_sweeps": n, "lidar_sweeps_missing": 0, "radar_sweeps": 0,
+                                      "radar_sweeps_missing": 0, "radar_sweeps_duplicate": 0,
+                                      "radar_sweeps_out_of_order": 0, "radar_sweeps_after_end": 0}
+        lidar_gaps = GapCounter()
+        for t in self.lidar_timestamps:
+            lidar_gaps.add(int(t))
+        self.stats["lidar_sweeps_missing"] = lidar_gaps.n_missing
+        for ch in self.radar_channels:
+            gaps, newest, seen = GapCounter(), None, set()
+            for tok in self._chain(heads[ch]):
+                ts = int(nusc.get("sample_data", tok)["timestamp"])
+                self.stats["radar_sweeps"] += 1
+                if ts in seen:
+                    self.stats["radar_sweeps_duplicate"] += 1
+                elif newest is not None and ts < newest:
+                    self.stats["radar_sweeps_out_of_order"] += 1
+                else:
+                    gaps.add(ts)
+                seen.add(ts)
+                newest = ts if newest is None else max(newest, ts)
                 i = int(np.searchsorted(self.lidar_timestamps, ts, side="left"))
                 if i < n:
                     self._radar[i][ch].append(tok)
+                else:
+                    self.stats["radar_sweeps_after_end"] += 1
+            self.stats["radar_sweeps_missing"] += gaps.n_missing
+
+    def _radar_heads(self, first: dict) -> dict[str, str]:
+        """A sample_data token of each radar channel that any sample of the scene carries."""
+        heads: dict[str, str] = {}
+        sample = first
+        while True:
+            for ch, tok in sample["data"].items():
+                if ch not in heads and self.nusc.get("sample_data", tok)["sensor_modality"] == "radar":
+                    heads[ch] = tok
+            if not sample["next"]:
+                return heads
+            sample = self.nusc.get("sample", sample["next"])
 
     def _in_scene(self, sd_token: str) -> bool:
         sd = self.nusc.get("sample_data", sd_token)
@@ -167,7 +206,7 @@ class NuScenesScene:
         pts = read_lidar_bin(os.path.join(nusc.dataroot, sd["filename"]))
         lidar = LidarSweep(pts, s2e, pose, int(sd["timestamp"]), LIDAR_CHANNEL)
         radar: dict[str, tuple[RadarSweep, ...]] = {}
-        for ch in RADAR_CHANNELS:
+        for ch in self.radar_channels:
             sweeps = []
             for tok in self._radar[i][ch]:
                 rsd = nusc.get("sample_data", tok)

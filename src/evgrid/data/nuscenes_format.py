@@ -11,6 +11,9 @@
   map mask, loadable with ``NuScenes(version=..., dataroot=...)``. Keyframes become samples;
   each sample's key radar sweep is the one closest in time; non-key sample_data point to the
   next sample in time (the last sample after the last keyframe). Annotation tables are empty.
+  Any set of radar channels is written (the ``sensor`` table lists those the scenes carry), and
+  sweeps are chained in the order the scene delivered them, so a recording's repeated or late
+  sweeps stay in the data for the loader to report.
 """
 
 from __future__ import annotations
@@ -23,7 +26,8 @@ from typing import Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
-from evgrid.data.frame import LIDAR_CHANNEL, RADAR_CHANNELS, RADAR_COLUMNS, Frame, Scene
+from evgrid.data.frame import LIDAR_CHANNEL, RADAR_COLUMNS, Frame, Scene
+from evgrid.data.sweeps import channel_order
 from evgrid.io import atomic_open, atomic_write_bytes, atomic_write_text
 
 __all__ = [
@@ -267,9 +271,7 @@ def write_nuscenes(
         tables["attribute"].append({"token": _token("attribute", name), "name": name, "description": name})
     for k, (level, desc) in enumerate(_VISIBILITY):
         tables["visibility"].append({"token": str(k + 1), "level": level, "description": desc})
-    modality = {LIDAR_CHANNEL: "lidar", **{c: "radar" for c in RADAR_CHANNELS}}
-    for ch, mod in modality.items():
-        tables["sensor"].append({"token": _token("sensor", ch), "channel": ch, "modality": mod})
+    radar_channels: set[str] = set()
     map_token = _token("map", version)
     map_file = f"maps/{map_token}.png"
     atomic_write_bytes(root / map_file, _placeholder_map_png())
@@ -286,8 +288,8 @@ def write_nuscenes(
         cs_token: dict[str, str] = {}
         lidar_sd: list[dict] = []
         samples: list[dict] = []
-        radar_sd: dict[str, list[dict]] = {c: [] for c in RADAR_CHANNELS}
-        radar_pts: dict[str, list[np.ndarray]] = {c: [] for c in RADAR_CHANNELS}
+        radar_sd: dict[str, list[dict]] = {}
+        radar_pts: dict[str, list[np.ndarray]] = {}
 
         def calib(ch: str, s2e) -> str:
             if ch not in cs_token:
@@ -330,7 +332,9 @@ def write_nuscenes(
                 samples.append({"token": _token(name, "sample", len(samples)), "timestamp": ts, "scene_token": _token(name, "scene")})
             for sweep in frame.radar_sweeps():
                 ch = sweep.channel
-                j = len(radar_sd[ch])
+                radar_channels.add(ch)
+                j = len(radar_sd.setdefault(ch, []))
+                radar_pts.setdefault(ch, [])
                 rtok = _token(name, "sample_data", ch, j)
                 tables["ego_pose"].append(_pose_record(rtok, sweep.timestamp, sweep.ego_pose))
                 radar_sd[ch].append(
@@ -362,7 +366,7 @@ def write_nuscenes(
             rec["sample_token"] = following_sample(rec["timestamp"])
             if rec["is_key_frame"]:
                 rec["sample_token"] = samples[int(np.searchsorted(sample_ts, rec["timestamp"]))]["token"]
-        for ch in RADAR_CHANNELS:
+        for ch in sorted(radar_sd, key=channel_order):
             recs = radar_sd[ch]
             if recs:
                 rts = np.array([r["timestamp"] for r in recs], dtype=np.int64)
@@ -396,6 +400,8 @@ def write_nuscenes(
                 "description": desc,
             }
         )
+    for ch, mod in [(LIDAR_CHANNEL, "lidar")] + [(c, "radar") for c in sorted(radar_channels, key=channel_order)]:
+        tables["sensor"].append({"token": _token("sensor", ch), "channel": ch, "modality": mod})
     tables["map"].append(
         {"token": map_token, "log_tokens": [r["token"] for r in tables["log"]], "category": "semantic_prior", "filename": map_file}
     )

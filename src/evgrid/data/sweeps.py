@@ -14,7 +14,7 @@ from typing import Iterable, Iterator
 
 from evgrid.data.frame import RADAR_CHANNELS, Frame, RadarSweep
 
-__all__ = ["RadarBuffer", "last_sweeps", "channel_order"]
+__all__ = ["RadarBuffer", "GapCounter", "last_sweeps", "channel_order"]
 
 
 def channel_order(channel: str) -> tuple[int, str]:
@@ -43,13 +43,43 @@ def last_sweeps(sweeps: Iterable[RadarSweep], n_sweeps: int) -> list[RadarSweep]
     return out
 
 
+class GapCounter:
+    """Counts missing sweeps of one sensor from the gaps between the timestamps it delivered.
+
+    The sensor's period is the median of its last ``window`` intervals (no rate is assumed); a
+    gap longer than 1.5 periods means ``round(gap / period) - 1`` sweeps are missing.
+    """
+
+    def __init__(self, window: int = 9) -> None:
+        self._last: int | None = None
+        self._intervals: deque[int] = deque(maxlen=window)
+        self.n_missing = 0
+
+    def add(self, t_us: int) -> int:
+        """Note a delivered timestamp (after the last one); returns how many sweeps were missing before it."""
+        last, self._last = self._last, int(t_us)
+        if last is None or t_us <= last:
+            return 0
+        gap = int(t_us) - last
+        missing = 0
+        if len(self._intervals) >= 3:
+            period = sorted(self._intervals)[len(self._intervals) // 2]
+            if gap > 1.5 * period:
+                missing = max(int(round(gap / period)) - 1, 0)
+                self.n_missing += missing
+                return missing  # a gap is not an interval: the period estimate stays
+        self._intervals.append(gap)
+        return missing
+
+
 class RadarBuffer:
     """The last ``n_sweeps`` radar sweeps of each channel, fed frame by frame.
 
     ``update(frame)`` appends the frame's radar sweeps. Per channel, a sweep is kept only if it
     is newer than every sweep that channel delivered before: duplicates and late sweeps are
-    skipped and counted in ``n_duplicate`` and ``n_out_of_order``. Iterating yields the held
-    sweeps, channel by channel, oldest first.
+    skipped and counted in ``n_duplicate`` and ``n_out_of_order``; gaps in a channel's sweeps
+    are counted in ``n_missing`` (see :class:`GapCounter`). Iterating yields the held sweeps,
+    channel by channel, oldest first.
     """
 
     def __init__(self, n_sweeps: int = 10) -> None:
@@ -58,6 +88,12 @@ class RadarBuffer:
         self._newest: dict[str, int] = {}  # survives clear(): a late sweep after a reset is still late
         self.n_duplicate = 0
         self.n_out_of_order = 0
+        self._gaps: dict[str, GapCounter] = {}
+
+    @property
+    def n_missing(self) -> int:
+        """Sweeps missing between those delivered, all channels."""
+        return sum(g.n_missing for g in self._gaps.values())
 
     def push(self, sweep: RadarSweep) -> bool:
         """Add one sweep to its channel (dropping that channel's oldest beyond ``n_sweeps``); False if skipped."""
@@ -71,6 +107,7 @@ class RadarBuffer:
                 self.n_out_of_order += 1
             return False
         self._newest[sweep.channel] = sweep.timestamp
+        self._gaps.setdefault(sweep.channel, GapCounter()).add(sweep.timestamp)
         q = self._buf.get(sweep.channel)
         if q is None:
             q = self._buf[sweep.channel] = deque(maxlen=self.n_sweeps)

@@ -6,6 +6,11 @@ current ego frame, the target the ray ILM of the same frame (m_o > 0 occupied, m
 else unknown). Inputs are cached sparse (detection tables, a few kB a sample) and rasterised
 in the DataLoader workers; targets as uint8 rasters, memory-mapped.
 
+The radar detections pass ``TrainConfig.radar_filter`` and the lidar sweeps
+``TrainConfig.self_returns`` exactly as in mapping (:class:`~evgrid.mapper.OccupancyMapper`);
+the checkpoint records the radar filter (metadata ``extra["radar_filter"]``) so that mapping
+with another one warns.
+
 Runs unchanged under ``torchrun --nproc_per_node=K`` (DistributedDataParallel, NCCL on GPUs,
 gloo on CPUs); rank 0 validates, logs and writes checkpoints.
 """
@@ -29,12 +34,14 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 
 from evgrid.data.frame import Frame
+from evgrid.data.radar_filter import RadarFilter
 from evgrid.evaluate import CLASSES, iou_per_class
 from evgrid.geometry import GridSpec
 from evgrid.io import atomic_write
 from evgrid.ism.deep import CHANNELS, DETECTION_COLUMNS, RadarImageParams, detections_to_image, radar_detections
 from evgrid.classes import FREE, OCCUPIED, UNKNOWN
 from evgrid.ism.evnet import EvNet, EvNetConfig, load_checkpoint, save_checkpoint
+from evgrid.ism.self_returns import SelfReturnParams
 from evgrid.learn.loss import evidential_loss
 
 __all__ = [
@@ -66,6 +73,8 @@ class TrainConfig:
     grid: GridSpec = field(default_factory=GridSpec)
     model: EvNetConfig = field(default_factory=lambda: EvNetConfig(in_channels=len(CHANNELS)))
     image: RadarImageParams = field(default_factory=RadarImageParams)
+    radar_filter: RadarFilter = field(default_factory=RadarFilter)  # as in mapping
+    self_returns: SelfReturnParams = field(default_factory=SelfReturnParams)  # the targets' ray ILM, as in mapping
 
     def __post_init__(self) -> None:
         for name in ("epochs", "batch_size", "frame_stride"):
@@ -88,7 +97,8 @@ class TrainConfig:
     def data_key(self) -> str:
         """Hash of the settings that decide the cached samples."""
         key = json.dumps(
-            {"grid": self.grid.to_dict(), "image": asdict(self.image), "stride": self.frame_stride, "v": 1}, sort_keys=True
+            {"grid": self.grid.to_dict(), "image": asdict(self.image), "stride": self.frame_stride, "v": 2,
+             "radar_filter": self.radar_filter.to_dict(), "self_returns": asdict(self.self_returns)}, sort_keys=True
         )
         return hashlib.sha1(key.encode()).hexdigest()[:12]
 
@@ -112,15 +122,18 @@ def scene_samples(
     """Yield ``(detections, target classes, ray-IRM classes or None)`` for every ``frame_stride``-th frame."""
     from evgrid.data.sweeps import RadarBuffer
     from evgrid.ism import ray_ilm, ray_irm
+    from evgrid.ism.self_returns import SelfReturnFilter
 
     buffer = RadarBuffer(config.image.n_sweeps)
+    self_returns = SelfReturnFilter(config.self_returns)
     for k, frame in enumerate(frames):
-        buffer.update(frame)
+        for sweep in frame.radar_sweeps():
+            buffer.push(config.radar_filter(sweep)[0])  # the mapper's filter, before its buffer
         if k % config.frame_stride:
             continue
         sweeps = buffer.sweeps()
         det = radar_detections(sweeps, frame.ego_pose, frame.timestamp, config.image)
-        target = ilm_classes(ray_ilm(frame.lidar, grid=config.grid))
+        target = ilm_classes(ray_ilm(self_returns(frame.lidar), grid=config.grid))
         irm = ilm_classes(ray_irm(sweeps, frame.ego_pose, grid=config.grid)) if with_irm else None
         yield det, target, irm
 
@@ -401,7 +414,8 @@ def train(
                 if k != "epoch":
                     writer.add_scalar(k, v, epoch)
         score = float(np.nanmean([val[c] for c in CLASSES]))
-        extra = {"epoch": epoch, "val_iou": val, "ray_irm_iou": irm, "grid": config.grid.to_dict(), "config": config.to_dict()}
+        extra = {"epoch": epoch, "val_iou": val, "ray_irm_iou": irm, "grid": config.grid.to_dict(), "config": config.to_dict(),
+                 "radar_filter": config.radar_filter.to_dict()}
         save_checkpoint(model, out / "last.safetensors", extra)
         if score > best_score:
             best_score, best_epoch, best = score, epoch, val

@@ -6,9 +6,10 @@ import math
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
+from evgrid.data.frame import RADAR_CHANNELS
 from evgrid.geometry import GridSpec
 
-__all__ = ["LidarConfig", "RadarConfig", "EgoConfig", "WorldConfig", "SimConfig", "ENVIRONMENTS"]
+__all__ = ["LidarConfig", "RadarConfig", "EgoConfig", "WorldConfig", "SweepFaults", "RigConfig", "SimConfig", "ENVIRONMENTS"]
 
 #: Procedural environments; ``"mixed"`` picks urban or suburban from the seed.
 ENVIRONMENTS: tuple[str, ...] = ("urban", "suburban", "mixed")
@@ -38,14 +39,17 @@ class LidarConfig:
     #: Firings per revolution (HDL-32E at 20 Hz: about 1080, 0.33 deg apart).
     n_azimuth: int = 1080
     max_range_m: float = 100.0
-    #: Points closer than this are not reported (the sensor's blind zone), metres.
-    min_range_m: float = 1.0
+    #: Points closer than this are not reported (the sensor's blind zone), metres. Nothing but the
+    #: ego vehicle's own body comes this close to a roof lidar.
+    min_range_m: float = 0.8
     range_noise_m: float = 0.02
     #: Probability that any return is lost regardless of its strength.
     dropout: float = 0.02
     #: Return power (reflectivity * cos(incidence) / range^2, 1/m^2) at which a return is
     #: detected with probability 1 - 1/e; sets how far the grazing ground is seen.
     power_threshold: float = 1.2e-5
+    #: Returns from the ego vehicle's own body (roof, sensor rack, mirrors), as a roof lidar has.
+    self_returns: bool = True
 
     def __post_init__(self) -> None:
         o = "LidarConfig"
@@ -197,13 +201,82 @@ class WorldConfig:
 
 
 @dataclass(frozen=True)
+class SweepFaults:
+    """What a real recording does to its sweeps, drawn per sweep from ``seed`` (fractions 0-1).
+
+    Radar sweeps can be missing (``drop``), delivered twice (``duplicate``), or delivered after
+    the next sweep of the same radar (``reorder``); lidar sweeps can be missing (``lidar_drop``;
+    never a keyframe, so every scene keeps its samples).
+    """
+
+    drop: float = 0.0
+    duplicate: float = 0.0
+    reorder: float = 0.0
+    lidar_drop: float = 0.0
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("drop", "duplicate", "reorder", "lidar_drop"):
+            _fraction("SweepFaults", name, getattr(self, name))
+        if not isinstance(self.seed, int) or self.seed < 0:
+            raise ValueError(f"SweepFaults.seed must be a non-negative integer, got {self.seed!r}")
+
+    @property
+    def any(self) -> bool:
+        return any((self.drop, self.duplicate, self.reorder, self.lidar_drop))
+
+
+@dataclass(frozen=True)
+class RigConfig:
+    """Which radars the simulated vehicle carries, where, and how fast they sweep.
+
+    ``radar_channels``: any names. ``radar_mounts``: for each channel, the nuScenes mount it sits
+    at (``evgrid.data.mounts.RADAR_MOUNTS``); empty: each channel's own name is its mount.
+    ``radar_rates_hz``: one rate per channel or one for all; empty: ``RadarConfig.rate_hz``.
+    """
+
+    radar_channels: tuple[str, ...] = RADAR_CHANNELS
+    radar_mounts: tuple[str, ...] = ()
+    radar_rates_hz: tuple[float, ...] = ()
+    faults: SweepFaults = field(default_factory=SweepFaults)
+
+    def __post_init__(self) -> None:
+        from evgrid.data.mounts import RADAR_MOUNTS
+
+        o = "RigConfig"
+        chans = self.radar_channels
+        if not all(isinstance(c, str) and c for c in chans) or len(set(chans)) != len(chans):
+            raise ValueError(f"{o}.radar_channels must be distinct non-empty names, got {chans!r}")
+        if self.radar_mounts and len(self.radar_mounts) != len(chans):
+            raise ValueError(f"{o}.radar_mounts must name one mount per channel ({len(chans)}), got {self.radar_mounts!r}")
+        for m in self.mounts():
+            if m not in RADAR_MOUNTS:
+                raise ValueError(f"{o}: no radar mount {m!r}; mounts are {tuple(RADAR_MOUNTS)} (set radar_mounts)")
+        if len(self.radar_rates_hz) not in (0, 1, len(chans)):
+            raise ValueError(f"{o}.radar_rates_hz must give one rate or one per channel, got {self.radar_rates_hz!r}")
+        for r in self.radar_rates_hz:
+            _positive(o, "radar_rates_hz", r)
+        if not isinstance(self.faults, SweepFaults):
+            raise ValueError(f"{o}.faults must be a SweepFaults, got {type(self.faults).__name__}")
+
+    def mounts(self) -> tuple[str, ...]:
+        """The nuScenes mount of each channel."""
+        return self.radar_mounts or self.radar_channels
+
+    def rates(self, default_hz: float) -> tuple[float, ...]:
+        """The rate of each channel, Hz."""
+        r = self.radar_rates_hz or (default_hz,)
+        return r * len(self.radar_channels) if len(r) == 1 else r
+
+
+@dataclass(frozen=True)
 class SimConfig:
     """Everything :func:`~evgrid.data.sim.simulate_scene` needs besides the seed."""
 
     #: Scene length in seconds (nuScenes scenes last about 20 s).
     duration_s: float = 20.0
-    #: One keyframe (a nuScenes sample, 2 Hz) every this many lidar sweeps.
-    keyframe_every: int = 10
+    #: One keyframe (a nuScenes sample) every this many lidar sweeps; None: 2 Hz at the lidar's rate.
+    keyframe_every: int | None = None
     #: Unix time of the first lidar sweep, microseconds (the seed adds whole days).
     start_time_us: int = 1_533_000_000_000_000
     #: The local grid of the true occupancy raster (docs/conventions.md#local-grid).
@@ -215,12 +288,13 @@ class SimConfig:
     radar: RadarConfig = field(default_factory=RadarConfig)
     ego: EgoConfig = field(default_factory=EgoConfig)
     world: WorldConfig = field(default_factory=WorldConfig)
+    rig: RigConfig = field(default_factory=RigConfig)
 
     def __post_init__(self) -> None:
         o = "SimConfig"
         if not (math.isfinite(self.duration_s) and 0.0 < self.duration_s <= 600.0):
             raise ValueError(f"{o}.duration_s must be in (0, 600] seconds, got {self.duration_s!r}")
-        if not isinstance(self.keyframe_every, int) or self.keyframe_every < 1:
+        if self.keyframe_every is not None and (not isinstance(self.keyframe_every, int) or self.keyframe_every < 1):
             raise ValueError(f"{o}.keyframe_every must be a positive integer, got {self.keyframe_every!r}")
         if not isinstance(self.start_time_us, int) or self.start_time_us < 0:
             raise ValueError(f"{o}.start_time_us must be a non-negative integer, got {self.start_time_us!r}")
@@ -230,9 +304,17 @@ class SimConfig:
             raise ValueError(
                 f"{o} needs 0 <= occupancy_z_min_m < occupancy_z_max_m, got {self.occupancy_z_min_m!r}, {self.occupancy_z_max_m!r}"
             )
-        for name, typ in (("lidar", LidarConfig), ("radar", RadarConfig), ("ego", EgoConfig), ("world", WorldConfig)):
+        for name, typ in (("lidar", LidarConfig), ("radar", RadarConfig), ("ego", EgoConfig), ("world", WorldConfig),
+                          ("rig", RigConfig)):
             if not isinstance(getattr(self, name), typ):
                 raise ValueError(f"{o}.{name} must be a {typ.__name__}, got {type(getattr(self, name)).__name__}")
+
+    @property
+    def keyframe_step(self) -> int:
+        """Lidar sweeps from one keyframe to the next (``keyframe_every``, or 2 Hz at the lidar's rate)."""
+        if self.keyframe_every is not None:
+            return self.keyframe_every
+        return max(1, int(round(self.lidar.rate_hz / 2.0)))
 
     @property
     def n_frames(self) -> int:
@@ -256,6 +338,13 @@ class SimConfig:
                 raise ValueError(f"unknown SimConfig field {key!r}")
             if key == "grid":
                 kwargs[key] = GridSpec.from_dict(value)
+            elif key == "rig":
+                v = dict(value)
+                bad = set(v) - {f.name for f in fields(RigConfig)}
+                if bad:
+                    raise ValueError(f"unknown RigConfig field(s) {sorted(bad)!r}")
+                faults = SweepFaults(**v.pop("faults", {}))
+                kwargs[key] = RigConfig(faults=faults, **{k: tuple(x) for k, x in v.items()})
             elif key in subs:
                 sub = subs[key]
                 sub_known = {f.name for f in fields(sub)}

@@ -5,7 +5,14 @@ of a firing share its azimuth. A return is detected with a probability that grow
 return power ``reflectivity * cos(incidence) / range^2`` (so grazing asphalt fades out at a
 few tens of metres while walls are seen to the maximum range), times ``1 - dropout``; its
 range gets Gaussian noise. The whole sweep is taken at the sweep's timestamp (no rolling
-shutter), and the ego vehicle's own body is not modelled (no returns from it).
+shutter).
+
+The ego vehicle's own body is in the way of the lower beams, as on a roof-mounted HDL-32E
+(``LidarConfig.self_returns``, on by default): :data:`EGO_BODY_BOXES` (ego frame: the body,
+the cabin, a sensor rack whose bars are 0.1 m below the sensor, mirrors) stop
+the beams that meet them before anything else, and their hits are returned like any other
+(about 6,000 points a sweep within 3 m of the sensor, 1,500 of them 0.1 m below it). The random numbers drawn do
+not depend on them, so every return that does not meet the body is the same with or without.
 """
 
 from __future__ import annotations
@@ -20,7 +27,50 @@ from evgrid.data.sim.raycast import HIT_NONE, lidar_cast
 from evgrid.data.mounts import LIDAR_MOUNT, SensorMount
 from evgrid.data.sim.world import World
 
-__all__ = ["LidarModel"]
+__all__ = ["LidarModel", "EGO_BODY_BOXES", "EGO_HIT"]
+
+#: What a point hit when it is a return from the ego vehicle's own body.
+EGO_HIT = -3
+#: Reflectivity of the ego vehicle's paint and plastics (0-1).
+_EGO_REFLECTIVITY = 0.45
+
+#: The ego vehicle (a Renault Zoe with a sensor rack, as in nuScenes) as axis-aligned boxes in
+#: the ego frame: (x0, y0, z0, x1, y1, z1), metres, origin on the ground at the rear axle.
+EGO_BODY_BOXES: np.ndarray = np.array(
+    [
+        (-0.70, -0.88, 0.20, 3.45, 0.88, 1.00),  # body up to the bonnet and boot lid
+        (0.10, -0.80, 1.00, 2.30, 0.80, 1.20),  # cabin up to the window line
+        (0.10, -0.58, 1.20, 2.30, 0.58, 1.48),  # upper cabin and roof (narrower: the windows lean in)
+        (1.94, -0.78, 1.64, 2.45, 0.78, 1.74),  # sensor rack, front bar: 0.1 m below the lidar
+        (-0.55, -0.78, 1.64, -0.06, 0.78, 1.74),  # sensor rack, rear bar
+        (2.00, 0.88, 0.85, 2.20, 1.05, 1.10),  # left mirror
+        (2.00, -1.05, 0.85, 2.20, -0.88, 1.10),  # right mirror
+    ],
+    dtype=np.float64,
+)
+
+
+def body_hits(origin: np.ndarray, dirs: np.ndarray, boxes: np.ndarray = EGO_BODY_BOXES) -> tuple[np.ndarray, np.ndarray]:
+    """First hit of rays on axis-aligned boxes (slab test): (distance along the unit ``dirs``,
+    inf where none; |cosine| between the ray and the face it enters)."""
+    best = np.full(dirs.shape[:-1], np.inf)
+    cos = np.zeros(dirs.shape[:-1])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / dirs
+        for b in boxes:
+            t0 = (b[:3] - origin) * inv
+            t1 = (b[3:] - origin) * inv
+            lo = np.minimum(t0, t1)
+            hi = np.maximum(t0, t1)
+            lo = np.where(np.isnan(lo), -np.inf, lo)
+            hi = np.where(np.isnan(hi), np.inf, hi)
+            t_in = lo.max(axis=-1)
+            t_out = hi.min(axis=-1)
+            hit = (t_in <= t_out) & (t_in > 0.0) & (t_in < best)
+            axis = lo.argmax(axis=-1)
+            best = np.where(hit, t_in, best)
+            cos = np.where(hit, np.abs(np.take_along_axis(dirs, axis[..., None], axis=-1)[..., 0]), cos)
+    return best, cos
 
 
 class LidarModel:
@@ -46,7 +96,7 @@ class LidarModel:
         rng: np.random.Generator,
     ) -> tuple[np.ndarray, np.ndarray]:
         """One sweep at the ego pose ``(x, y, yaw)`` (m, rad) -> (points ``(n, 5)`` float32 in the
-        sensor frame [x, y, z, intensity, ring], what each point hit: static box index,
+        sensor frame [x, y, z, intensity, ring], what each point hit: static box index, -3 (EGO_HIT) the ego body,
         ``n_static + k`` for moving object k, -1 ground)."""
         cfg = self.cfg
         ex, ey, eyaw = ego_xy_yaw
@@ -70,13 +120,15 @@ class LidarModel:
             dyn_boxes, dyn_classes.astype(np.int32), M.LIDAR_DENSITY, M.LIDAR_PASS, seed,
             out_t, out_id, out_cos,
         )
+        if cfg.self_returns:
+            self._add_body(az_s, out_t, out_id, out_cos)
         rng_u = rng.random((n_az, nb))
         noise = rng.standard_normal((n_az, nb))
         hit = out_id != HIT_NONE
         rng3 = out_t / self.cos_e[None, :]
         # One reflectivity table: static boxes, then moving objects, then the ground.
-        refl_all = np.concatenate([world.reflectivity, dyn_reflectivity, [M.LIDAR_REFLECTIVITY[M.GROUND]]])
-        refl = refl_all[np.where(out_id >= 0, out_id, len(refl_all) - 1)]
+        refl_all = np.concatenate([world.reflectivity, dyn_reflectivity, [M.LIDAR_REFLECTIVITY[M.GROUND]], [_EGO_REFLECTIVITY]])
+        refl = refl_all[np.where(out_id >= 0, out_id, np.where(out_id == EGO_HIT, len(refl_all) - 1, len(refl_all) - 2))]
         cosv = np.maximum(out_cos, 0.02)
         power = refl * cosv / np.maximum(rng3, 0.1) ** 2
         p_det = (1.0 - cfg.dropout) * (1.0 - np.exp(-power / cfg.power_threshold))
@@ -93,3 +145,15 @@ class LidarModel:
         pts[:, 3] = np.clip(np.rint(inten), 0, 255)
         pts[:, 4] = beams
         return pts, out_id[keep]
+
+    def _add_body(self, az_s: np.ndarray, out_t: np.ndarray, out_id: np.ndarray, out_cos: np.ndarray) -> None:
+        """Let the ego body stop the beams that meet it before the world (in place)."""
+        m = self.mount
+        az = az_s[:, None] + m.yaw  # beam azimuths in the ego frame
+        dirs = np.stack(np.broadcast_arrays(np.cos(az) * self.cos_e, np.sin(az) * self.cos_e, self.sin_e[None, :]), axis=-1)
+        t3, cos = body_hits(np.array([m.x, m.y, m.z]), dirs)
+        t = t3 * self.cos_e[None, :]  # horizontal distance, as out_t
+        closer = np.isfinite(t) & ((out_id == HIT_NONE) | (t < out_t))
+        out_t[closer] = t[closer]
+        out_id[closer] = EGO_HIT
+        out_cos[closer] = cos[closer]

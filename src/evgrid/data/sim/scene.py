@@ -67,27 +67,51 @@ class SimScene:
         self.trajectory: Trajectory = traj
         rng = np.random.default_rng([self.seed, 0x7173])
         self.t0_us = int(config.start_time_us + (self.seed % 10_000) * _US_PER_DAY)
+        rig = config.rig
+        faults = rig.faults
+        # Faults draw from their own generator: a rig without faults gives the same bytes as before.
+        frng = np.random.default_rng([self.seed, 0xFA17, faults.seed]) if faults.any else None
         n = config.n_frames
         lidar_period = 1e6 / config.lidar.rate_hz
+        all_ts = self.t0_us + np.rint(np.arange(n) * lidar_period).astype(np.int64)
+        ids = np.arange(n)
+        if frng is not None and faults.lidar_drop > 0:
+            lost = (frng.random(n) < faults.lidar_drop) & (ids % config.keyframe_step != 0)
+            ids = ids[~lost]
+        #: Index of each frame's lidar sweep among all the sweeps the lidar took (missing ones skipped).
+        self.lidar_sweep_ids = ids
         #: Timestamps (us) of the lidar sweeps, one frame each.
-        self.lidar_timestamps = self.t0_us + np.rint(np.arange(n) * lidar_period).astype(np.int64)
-        radar_period = 1e6 / config.radar.rate_hz
-        t_last = int(self.lidar_timestamps[-1])
+        self.lidar_timestamps = all_ts[ids]
+        t_last = int(all_ts[-1])
+        #: Radar channels of the rig, in the rig's order.
+        self.radar_channels: tuple[str, ...] = tuple(rig.radar_channels)
         #: Timestamps (us) of each radar's sweeps; the first lies within one period before t0.
         self.radar_timestamps: dict[str, np.ndarray] = {}
-        for ch in RADAR_CHANNELS:
+        for ch, rate in zip(self.radar_channels, rig.rates(config.radar.rate_hz)):
+            radar_period = 1e6 / rate
             phase = float(rng.uniform(0.0, radar_period))
             first = self.t0_us - radar_period + phase
             m = int(math.floor((t_last - first) / radar_period)) + 1
             ts = np.rint(first + np.arange(m) * radar_period).astype(np.int64)
             self.radar_timestamps[ch] = ts[ts <= t_last]
-        # Radar sweep j of a channel goes to the first frame whose lidar timestamp is >= its own.
-        self._radar_frame = {
-            ch: np.searchsorted(self.lidar_timestamps, ts, side="left") for ch, ts in self.radar_timestamps.items()
-        }
+        # Radar sweep j of a channel goes to the first frame whose lidar timestamp is >= its own;
+        # faults drop, repeat or delay some (delivered in this order, frames never going back).
+        self._delivery: dict[str, list[tuple[int, int]]] = {}
+        for ch, ts in self.radar_timestamps.items():
+            frames = np.searchsorted(self.lidar_timestamps, ts, side="left")
+            order = list(range(len(ts)))
+            if frng is not None:
+                order = _faulty_order(order, faults, frng)
+            out: list[tuple[int, int]] = []
+            for j in order:
+                f = int(frames[j]) if not out else max(int(frames[j]), out[-1][0])
+                if f < len(self.lidar_timestamps):
+                    out.append((f, j))
+            self._delivery[ch] = out
         self._odo = self._make_odometry(rng)
         self._lidar = LidarModel(config.lidar, LIDAR_MOUNT)
-        self._radars = {ch: RadarModel(config.radar, RADAR_MOUNTS[ch]) for ch in RADAR_CHANNELS}
+        self._mounts = {ch: RADAR_MOUNTS[m] for ch, m in zip(self.radar_channels, rig.mounts())}
+        self._radars = {ch: RadarModel(config.radar, self._mounts[ch]) for ch in self.radar_channels}
         self._labels: dict[tuple[str, int], np.ndarray] = {}
 
     # --- Scene protocol ---------------------------------------------------------------------
@@ -114,11 +138,11 @@ class SimScene:
     @property
     def keyframe_indices(self) -> np.ndarray:
         """Frame indices of the keyframes (2 Hz samples)."""
-        return np.arange(0, len(self), self.config.keyframe_every)
+        return np.nonzero(self.lidar_sweep_ids % self.config.keyframe_step == 0)[0]
 
     def is_keyframe(self, i: int) -> bool:
         """Whether frame ``i`` is a keyframe."""
-        return i % self.config.keyframe_every == 0
+        return int(self.lidar_sweep_ids[i]) % self.config.keyframe_step == 0
 
     def _make_odometry(self, rng: np.random.Generator) -> _Odometry | None:
         eg = self.config.ego
@@ -164,7 +188,7 @@ class SimScene:
         t = self.seconds(ts)
         boxes, _, _ = self.world.movers.state_at(t, self.trajectory)
         x, y, yaw = self.trajectory.pose_at(t)
-        rng = np.random.default_rng([self.seed, 1, i])
+        rng = np.random.default_rng([self.seed, 1, int(self.lidar_sweep_ids[i])])
         pts, hit = self._lidar.sweep(
             self.world, boxes, self.world.movers.classes, self.world.mover_reflectivity, (float(x), float(y), float(yaw)), rng
         )
@@ -174,7 +198,7 @@ class SimScene:
     def radar_sweep(self, channel: str, j: int) -> tuple[RadarSweep, np.ndarray]:
         """Sweep ``j`` of a radar channel and its ground-truth labels (0 real, 1 clutter, 2 ghost)."""
         if channel not in self._radars:
-            raise ValueError(f"unknown radar channel {channel!r}; channels are {RADAR_CHANNELS}")
+            raise ValueError(f"unknown radar channel {channel!r}; channels are {self.radar_channels}")
         ts = int(self.radar_timestamps[channel][j])
         t = self.seconds(ts)
         w = self.world
@@ -186,22 +210,24 @@ class SimScene:
             odo = (v, float(yr))
         else:
             odo = (v * (1.0 + self._odo.scale), float(yr) + self._odo.bias)
-        ci = RADAR_CHANNELS.index(channel)
+        k = self.radar_channels.index(channel)
+        ci = RADAR_CHANNELS.index(channel) if channel in RADAR_CHANNELS else len(RADAR_CHANNELS) + k
         rng = np.random.default_rng([self.seed, 2, ci, j])
         pts, labels = self._radars[channel].sweep(
             w, boxes, w.movers.classes, vel, w.mover_rcs_offset_db, (float(x), float(y), float(yaw)), (v, float(yr)), odo, rng
         )
         self._labels[(channel, j)] = labels
-        return RadarSweep(pts, RADAR_MOUNTS[channel].sensor_to_ego(), self._ego_se3(ts), ts, channel), labels
+        return RadarSweep(pts, self._mounts[channel].sensor_to_ego(), self._ego_se3(ts), ts, channel), labels
 
     def radar_sweep_indices(self, i: int) -> dict[str, np.ndarray]:
-        """For frame ``i``, the indices of each channel's sweeps assigned to it (oldest first)."""
-        return {ch: np.nonzero(f == i)[0] for ch, f in self._radar_frame.items()}
+        """For frame ``i``, the indices of each channel's sweeps delivered with it (oldest first, unless
+        the rig's faults repeat or delay some)."""
+        return {ch: np.array([j for f, j in d if f == i], dtype=np.int64) for ch, d in self._delivery.items()}
 
     def radar_labels(self, channel: str, timestamp_us: int) -> np.ndarray:
         """Ground-truth labels (0 real, 1 clutter, 2 ghost) of the radar sweep at a timestamp."""
         if channel not in self.radar_timestamps:
-            raise ValueError(f"unknown radar channel {channel!r}; channels are {RADAR_CHANNELS}")
+            raise ValueError(f"unknown radar channel {channel!r}; channels are {self.radar_channels}")
         hits = np.nonzero(self.radar_timestamps[channel] == int(timestamp_us))[0]
         if len(hits) == 0:
             raise KeyError(f"no {channel} sweep at timestamp {timestamp_us}")
@@ -267,6 +293,20 @@ class SimScene:
         t = (self.lidar_timestamps - self.t0_us) * 1e-6
         x, y, yaw = self.trajectory.pose_at(t)
         return np.stack([x, y, np.remainder(yaw + np.pi, 2 * np.pi) - np.pi], axis=1)
+
+
+def _faulty_order(order: list[int], faults, rng: np.random.Generator) -> list[int]:
+    """Sweep indices in delivery order: some dropped, some twice, some after their successor."""
+    u = rng.random((len(order), 3))
+    out = [j for j in order if u[j, 0] >= faults.drop]
+    k = 0
+    while k + 1 < len(out):
+        if u[out[k], 2] < faults.reorder:
+            out[k], out[k + 1] = out[k + 1], out[k]
+            k += 2
+        else:
+            k += 1
+    return [j for j in out for _ in range(2 if u[j, 1] < faults.duplicate else 1)]
 
 
 def simulate_scene(seed: int, config: SimConfig = SimConfig()) -> SimScene:

@@ -63,7 +63,8 @@ def save_sim_scene(scene: SimScene, path: str | os.PathLike, on_frame: Callable[
     poses = np.empty((n, 4, 4))
     kf = np.zeros(n, dtype=bool)
     occ: list[np.ndarray] = []
-    radar: dict[str, dict[str, list]] = {c: {"ts": [], "poses": [], "pts": [], "labels": [], "frame": []} for c in RADAR_CHANNELS}
+    channels = tuple(scene.radar_channels)
+    radar: dict[str, dict[str, list]] = {c: {"ts": [], "poses": [], "pts": [], "labels": [], "frame": []} for c in channels}
     lidar_s2e = None
     radar_s2e: dict[str, np.ndarray] = {}
     for i, f in enumerate(scene):
@@ -96,7 +97,7 @@ def save_sim_scene(scene: SimScene, path: str | os.PathLike, on_frame: Callable[
         "environment": scene.world.environment,
         "config": scene.config.to_dict(),
         "lidar_channel": LIDAR_CHANNEL,
-        "radar_channels": list(RADAR_CHANNELS),
+        "radar_channels": list(channels),
         "lidar_columns": list(LIDAR_COLUMNS),
         "radar_columns": list(RADAR_COLUMNS),
         "class_names": list(CLASS_NAMES),
@@ -152,7 +153,9 @@ class StoredScene:
         self._kf_index = {int(i): k for k, i in enumerate(np.nonzero(data["is_keyframe"])[0])}
         self._radar_by_frame: dict[str, list[list[int]]] = {}
         n = len(self)
-        for ch in RADAR_CHANNELS:
+        #: The rig's radar channels.
+        self.radar_channels: tuple[str, ...] = tuple(meta.get("radar_channels", RADAR_CHANNELS))
+        for ch in self.radar_channels:
             per: list[list[int]] = [[] for _ in range(n)]
             for j, fi in enumerate(data[f"radar_{ch}_frame"]):
                 per[int(fi)].append(j)
@@ -196,8 +199,8 @@ class StoredScene:
 
     def radar_labels(self, channel: str, timestamp_us: int) -> np.ndarray:
         """Ground-truth labels (0 real, 1 clutter, 2 ghost) of the radar sweep at a timestamp."""
-        if channel not in RADAR_CHANNELS:
-            raise ValueError(f"unknown radar channel {channel!r}; channels are {RADAR_CHANNELS}")
+        if channel not in self.radar_channels:
+            raise ValueError(f"unknown radar channel {channel!r}; channels are {self.radar_channels}")
         d = self._d
         hits = np.nonzero(d[f"radar_{channel}_timestamps"] == int(timestamp_us))[0]
         if len(hits) == 0:
@@ -217,7 +220,7 @@ class StoredScene:
         lidar = LidarSweep(
             d["lidar_points"][off[i] : off[i + 1]], SE3.from_matrix(d["lidar_sensor_to_ego"]), pose, int(d["timestamps"][i]), LIDAR_CHANNEL
         )
-        radar = {ch: tuple(self._radar(ch, j) for j in self._radar_by_frame[ch][i]) for ch in RADAR_CHANNELS}
+        radar = {ch: tuple(self._radar(ch, j) for j in self._radar_by_frame[ch][i]) for ch in self.radar_channels}
         kf = bool(d["is_keyframe"][i])
         return Frame(
             scene=self.name,
