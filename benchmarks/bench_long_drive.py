@@ -59,7 +59,7 @@ def child(seed: int, duration: float, glitch_m: float) -> dict:
         "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
         "map_area_km2": m["map_area_km2"],
         "fused_vs_truth": fused,
-        "skipped": m["skipped"],
+        "counts": m["counts"],
     }
 
 
@@ -100,7 +100,7 @@ def main() -> None:
             print(f"{g:>8g} failed: {r['error']}")
             continue
         f = r["fused_vs_truth"]
-        skipped = {k: v for k, v in r["skipped"].items() if v and k not in ("frames", "updates")}
+        skipped = {k: v for k, v in r["counts"].items() if v and k not in ("frames", "updates")}
         print(f"{g:>8g} {r['wall_s']:>7.1f} {r['peak_rss_gb']:>11.2f} {f.get('free', float('nan')):>14.3f} "
               f"{f.get('occupied', float('nan')):>7.3f}  {skipped}")
 

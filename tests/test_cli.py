@@ -171,3 +171,47 @@ def test_too_short_a_scene_still_gives_a_table(tmp_path, tiny_checkpoint):
                             "--checkpoint", str(tiny_checkpoint), "--out", str(tmp_path)])
     assert r.exit_code == 0, r.output
     assert "| `fused` |" in (tmp_path / "table.md").read_text()
+
+
+def test_a_simulated_recording_maps_through_bag_and_rig_and_exports(tmp_path, tiny_checkpoint):
+    pytest.importorskip("rosbags")
+    r = runner.invoke(app, ["simulate", "--format", "ros2", "--out", str(tmp_path / "bags"), "--seed", "4",
+                            "--duration", "1", "--lidar-rate", "10", "--radar-rate", "4"])
+    assert r.exit_code == 0, r.output
+    bag, rig = tmp_path / "bags" / "sim-000004", tmp_path / "bags" / "sim-000004.rig.yaml"
+    assert bag.is_dir() and rig.is_file()
+    r = runner.invoke(app, ["map", "--bag", str(bag), "--rig", str(rig), "--maps", "ray_ilm,ray_irm,fused",
+                            "--checkpoint", str(tiny_checkpoint), "--export", "nav2,mcap", "--save-maps",
+                            "--out", str(tmp_path / "out")])
+    assert r.exit_code == 0, r.output
+    scene = tmp_path / "out" / "sim-000004"
+    assert (scene / "nav2" / "fused.pgm").is_file() and (scene / "sim-000004.mcap").is_file()
+    metrics = json.loads((scene / "metrics.json").read_text())
+    assert metrics["counts"]["updates"] > 0 and "vs_ray_ilm" in metrics
+    run = json.loads((tmp_path / "out" / "config.json").read_text())
+    assert run["source"]["kind"] == "bag" and run["outputs"]["exports"] == ["nav2", "mcap"]
+    # a saved map exports on its own too
+    r = runner.invoke(app, ["export", str(scene / "maps" / "fused.npz"), "--format", "nav2", "--out", str(tmp_path / "f")])
+    assert r.exit_code == 0, r.output
+    assert (tmp_path / "f.yaml").is_file() and "mode: trinary" in (tmp_path / "f.yaml").read_text()
+
+
+def test_bag_options_fail_in_one_line(tmp_path):
+    r = runner.invoke(app, ["map", "--bag", str(tmp_path / "x.mcap"), "--out", str(tmp_path / "o")])
+    assert r.exit_code != 0 and "--rig" in r.output
+    r = runner.invoke(app, ["map", "--bag", str(tmp_path / "x.mcap"), "--sim-dir", str(tmp_path), "--out", str(tmp_path / "o")])
+    assert r.exit_code != 0 and "one data source" in r.output
+    r = runner.invoke(app, ["export", str(tmp_path / "missing.npz"), "--format", "nav2"])
+    assert r.exit_code == 1 and "missing.npz" in r.output and "Traceback" not in r.output
+
+
+def test_upgrade_checkpoint_rewrites_an_old_format(tmp_path, tiny_checkpoint):
+    from evgrid.ism.evnet import load_checkpoint
+
+    dst = tmp_path / "new.safetensors"
+    r = runner.invoke(app, ["upgrade-checkpoint", str(tiny_checkpoint), str(dst)])
+    assert r.exit_code == 0, r.output
+    old, new = load_checkpoint(tiny_checkpoint), load_checkpoint(dst)
+    assert new.version == 2
+    for (k, a), (_, b) in zip(old.model.state_dict().items(), new.model.state_dict().items()):
+        assert torch.equal(a, b), k

@@ -72,12 +72,18 @@ def _command(*args: Any, **kwargs: Any) -> Callable:
     return register
 
 
+#: Counts of metrics.json that are not data dropped or skipped.
+_NOT_DROPS = ("frames", "updates", "lidar_self_returns_removed", "lidar_self_return_voxels")
+
+
 @_command()
 def simulate(
     out: Path = typer.Option(..., "--out", help="Output folder (created if missing)."),
     scenes: int = typer.Option(1, "--scenes", min=1, help="Number of scenes; scene k uses seed S + k."),
     seed: int = typer.Option(0, "--seed", min=0, help="Seed S of the first scene."),
-    fmt: str = typer.Option("npz", "--format", help="'npz': one DIR/sim-<seed>.npz per scene; 'nuscenes': the nuScenes layout."),
+    fmt: str = typer.Option("npz", "--format", help="'npz': one DIR/sim-<seed>.npz per scene; 'nuscenes': the nuScenes "
+                            "layout; 'ros2' (MCAP storage), 'ros1' or 'mcap': one recording and rig file per scene "
+                            "(needs evgrid[ros])."),
     duration: float = typer.Option(20.0, "--duration", help="Scene length in seconds."),
     environment: str = typer.Option("mixed", "--environment", help="urban, suburban, or mixed (drawn per seed)."),
     version: str = typer.Option("v1.0-sim", "--version", help="Version folder for --format nuscenes."),
@@ -110,8 +116,8 @@ def simulate(
     from evgrid.data.sim.config import ENVIRONMENTS
     from evgrid.sources import sim_split
 
-    if fmt not in ("npz", "nuscenes"):
-        raise typer.BadParameter(f"--format must be 'npz' or 'nuscenes', got {fmt!r}", param_hint="--format")
+    if fmt not in ("npz", "nuscenes", *_BAG_FORMATS):
+        raise typer.BadParameter(f"--format must be npz, nuscenes, ros2, ros1 or mcap, got {fmt!r}", param_hint="--format")
     if environment not in ENVIRONMENTS:
         raise typer.BadParameter(f"--environment must be one of {ENVIRONMENTS}, got {environment!r}", param_hint="--environment")
     try:
@@ -124,7 +130,9 @@ def simulate(
     columns = (TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), TimeRemainingColumn())
     with Progress(*columns, transient=False) as progress:
         task = progress.add_task("simulating", total=total)
-        if fmt == "npz":
+        if fmt in _BAG_FORMATS:
+            _write_recordings(seeds, config, out, fmt, overwrite, progress, task)
+        elif fmt == "npz":
             from evgrid.data.sim.store import save_sim_scene
 
             index_path = out / "index.json"
@@ -162,6 +170,37 @@ def simulate(
     typer.echo(f"wrote {scenes} scene(s) to {out}")
 
 
+#: `evgrid simulate --format` -> (rosbags storage, file suffix): a ROS 2 bag folder, a ROS 1 .bag, a plain .mcap.
+_BAG_FORMATS = {"ros2": ("mcap", ""), "ros1": ("ros1", ".bag"), "mcap": ("plain-mcap", ".mcap")}
+
+
+def _write_recordings(seeds, config, out: Path, fmt: str, overwrite: bool, progress, task) -> None:
+    """Simulated scenes as recordings with their rig files (what `evgrid map --bag --rig` reads)."""
+    import shutil
+
+    from evgrid.data.bag_writer import write_bag
+    from evgrid.data.sim import simulate_scene
+
+    storage, suffix = _BAG_FORMATS[fmt]
+    for s in seeds:
+        scene = simulate_scene(s, config)
+        path = out / f"{scene.name}{suffix}"
+        rig = path.with_name(path.name + ".rig.yaml")
+        if path.exists() or rig.exists():
+            if not overwrite:
+                raise typer.BadParameter(f"{path} exists; pass --overwrite to replace it", param_hint="--out")
+            shutil.rmtree(path) if path.is_dir() else path.unlink(missing_ok=True)
+            rig.unlink(missing_ok=True)
+        progress.update(task, description=scene.name)
+
+        def frames():
+            for f in scene:
+                progress.advance(task)
+                yield f
+
+        write_bag(frames(), path, storage=storage, rig_path=rig, scene_name=scene.name)
+
+
 def _sim_config(duration, environment, lidar_rate, radar_channels, radar_rate, ego_returns, sweep_faults):
     """The SimConfig of `evgrid simulate`'s options."""
     from dataclasses import replace
@@ -187,15 +226,24 @@ def _sim_config(duration, environment, lidar_rate, radar_channels, radar_rate, e
 
 # --- mapping, evaluation, training, benchmark ------------------------------------------------------
 
-_DATA_OPTIONS = ("nuscenes", "version", "split", "sim_dir", "scenes", "seed", "duration")
+_DATA_OPTIONS = ("nuscenes", "version", "split", "sim_dir", "scenes", "seed", "duration", "bag", "rig")
 
 
-def _source(nuscenes: Path | None, version: str, split: str, sim_dir: Path | None, scenes: int, seed: int, duration: float):
+def _source(nuscenes: Path | None, version: str, split: str, sim_dir: Path | None, scenes: int, seed: int, duration: float,
+            bag: list[Path] | None = None, rig: Path | None = None):
     """The scene source named by the common data options (the simulator when none is given)."""
-    from evgrid.sources import NuScenesSource, SimFilesSource, SimSource
+    from evgrid.sources import BagSource, NuScenesSource, SimFilesSource, SimSource
 
-    if nuscenes is not None and sim_dir is not None:
-        raise typer.BadParameter("give either --nuscenes or --sim-dir, not both", param_hint="--nuscenes")
+    given = [name for name, v in (("--nuscenes", nuscenes), ("--sim-dir", sim_dir), ("--bag", bag or None)) if v is not None]
+    if len(given) > 1:
+        raise typer.BadParameter(f"give one data source, not {' and '.join(given)}", param_hint=given[0])
+    if bag:
+        if rig is None:
+            raise typer.BadParameter("--bag needs --rig RIG.yaml (topics, frames and fields; see docs/ros.md)",
+                                     param_hint="--rig")
+        return BagSource(tuple(str(b) for b in bag), str(rig))
+    if rig is not None:
+        raise typer.BadParameter("--rig goes with --bag", param_hint="--rig")
     if nuscenes is not None:
         return NuScenesSource(str(nuscenes), version, None if split == "all" else split)
     if sim_dir is not None:
@@ -208,6 +256,11 @@ def _source(nuscenes: Path | None, version: str, split: str, sim_dir: Path | Non
 _NUSCENES = typer.Option(None, "--nuscenes", help="nuScenes dataroot (needs evgrid[nuscenes]); default: the simulator.")
 _VERSION = typer.Option("v1.0-trainval", "--version", help="nuScenes version folder, e.g. v1.0-mini or v1.0-sim.")
 _SIM_DIR = typer.Option(None, "--sim-dir", help="A folder written by `evgrid simulate` (npz format).")
+_BAG = typer.Option(None, "--bag", help="A ROS 1 bag, ROS 2 bag (sqlite3 or MCAP) or MCAP file; repeatable, one scene "
+                    "each (needs evgrid[ros] and --rig).")
+_RIG = typer.Option(None, "--rig", help="The rig file of --bag: topics, frames, fields (docs/ros.md, docs/rig_example.yaml).")
+_EXPORT = typer.Option(None, "--export", help="Also write, per scene: nav2 (PGM + YAML of the final maps), mcap (maps "
+                       "and poses for Foxglove), rerun (.rrd); comma-separated.")
 _SCENES = typer.Option(3, "--scenes", min=1, help="Simulator: number of scenes of the split.")
 _SEED = typer.Option(0, "--seed", min=0, help="Simulator: first seed to draw scenes from.")
 _DURATION = typer.Option(20.0, "--duration", help="Simulator: scene length in seconds.")
@@ -304,8 +357,11 @@ def _run_maps(source, out: Path, config, outputs, names, workers: int, overwrite
 
         def done(m: dict) -> None:
             p.advance(task)
-            skipped = {k: v for k, v in m.get("skipped", {}).items() if v and k not in ("frames", "updates")}
-            extra = f"; skipped {skipped}" if skipped else ""
+            counts = m.get("counts", {})
+            dropped = {k: v for k, v in counts.items() if v and k not in _NOT_DROPS}
+            extra = f"; dropped or skipped: {dropped}" if dropped else ""
+            if counts.get("lidar_self_returns_removed"):
+                extra += f"; {counts['lidar_self_returns_removed']} lidar self-returns removed"
             p.console.print(f"  {m['scene']}: {m['frames']} frames, {m['frames_per_second']:.1f} frames/s{extra}")
 
         summary = map_scenes(source, out, config, outputs, todo, workers, on_scene=done, overwrite=overwrite)
@@ -324,6 +380,8 @@ def map_cmd(
     split: str = _SPLIT,
     scene: list[str] = typer.Option(None, "--scene", help="Only these scene names (repeatable)."),
     sim_dir: Path = _SIM_DIR,
+    bag: list[Path] = _BAG,
+    rig: Path = _RIG,
     scenes: int = _SCENES,
     seed: int = _SEED,
     duration: float = _DURATION,
@@ -338,6 +396,9 @@ def map_cmd(
     radar_filter: str = _RADAR_FILTER,
     workers: int = typer.Option(1, "--workers", min=1, help="Scenes mapped in parallel (one process each)."),
     save_maps: bool = typer.Option(None, "--save-maps/--no-save-maps", help="Also write every map as .npz."),
+    export: str = _EXPORT,
+    viewer: bool = typer.Option(None, "--viewer/--no-viewer", help="Watch the maps grow in a live rerun viewer "
+                                "(needs evgrid[rerun] and a display; one worker)."),
     overwrite: bool = _OVERWRITE,
 ) -> None:
     """Map scenes: the six maps of the paper's Table I, figures, GIFs, metrics.
@@ -346,14 +407,22 @@ def map_cmd(
       evgrid map --scenes 5 --out out/sim-val
       evgrid map --config out/sim-val/config.json --out out/sim-val-again
       evgrid map --nuscenes /data/nuscenes --version v1.0-mini --split mini_val --out out/mini
+      evgrid map --bag drive.mcap --rig rig.yaml --export nav2,mcap --out out/drive
     """
     from dataclasses import replace
 
-    data = dict(nuscenes=nuscenes, version=version, split=split, sim_dir=sim_dir, scenes=scenes, seed=seed, duration=duration)
+    data = dict(nuscenes=nuscenes, version=version, split=split, sim_dir=sim_dir, scenes=scenes, seed=seed,
+                duration=duration, bag=bag, rig=rig)
     source, names, run = _run_setup(ctx, config, data, scene)
     mapper = _mapper_config(run.mapper, m_u_min, checkpoint, update_rate, maps, lidar_min_range, max_speed,
                             self_returns, body_box, radar_filter)
     outputs = run.outputs if save_maps is None else replace(run.outputs, save_maps=save_maps)
+    if export is not None:
+        outputs = replace(outputs, exports=tuple(e.strip() for e in export.split(",") if e.strip()))
+    if viewer is not None:
+        outputs = replace(outputs, viewer=viewer)
+    if outputs.viewer and workers > 1:
+        raise typer.BadParameter("--viewer shows one scene at a time: use --workers 1", param_hint="--viewer")
     _run_maps(source, out, mapper, outputs, names, workers, overwrite)
 
 
@@ -367,6 +436,8 @@ def evaluate(
     split: str = _SPLIT,
     scene: list[str] = typer.Option(None, "--scene", help="Only these scene names (repeatable)."),
     sim_dir: Path = _SIM_DIR,
+    bag: list[Path] = _BAG,
+    rig: Path = _RIG,
     scenes: int = typer.Option(10, "--scenes", min=1, help="Simulator: number of validation scenes."),
     seed: int = _SEED,
     duration: float = _DURATION,
@@ -391,11 +462,13 @@ def evaluate(
     """
     from dataclasses import replace
 
-    data = dict(nuscenes=nuscenes, version=version, split=split, sim_dir=sim_dir, scenes=scenes, seed=seed, duration=duration)
+    data = dict(nuscenes=nuscenes, version=version, split=split, sim_dir=sim_dir, scenes=scenes, seed=seed,
+                duration=duration, bag=bag, rig=rig)
     source, names, run = _run_setup(ctx, config, data, scene)
     mapper = _mapper_config(run.mapper, m_u_min, checkpoint, update_rate, None, lidar_min_range, max_speed,
                             self_returns, body_box, radar_filter)
-    _run_maps(source, out, mapper, replace(run.outputs, figures=False, save_maps=False), names, workers, overwrite)
+    outputs = replace(run.outputs, figures=False, save_maps=False, exports=(), viewer=False)
+    _run_maps(source, out, mapper, outputs, names, workers, overwrite)
 
 
 @_command()
@@ -424,6 +497,9 @@ def train(
     out: Path = typer.Option(Path("out/train"), "--out", help="Run folder: config, metrics.csv, checkpoints, cache."),
     nuscenes: Path = _NUSCENES,
     version: str = _VERSION,
+    bag: list[Path] = typer.Option(None, "--bag", help="Train on these recordings (repeatable; needs --rig and --val-bag)."),
+    val_bag: list[Path] = typer.Option(None, "--val-bag", help="Validate on these recordings (repeatable)."),
+    rig: Path = _RIG,
     train_split: str = typer.Option("train", "--train-split", help="Split to train on."),
     val_split: str = typer.Option("val", "--val-split", help="Split to validate on."),
     scenes: int = typer.Option(40, "--scenes", min=1, help="Simulator: training scenes."),
@@ -467,7 +543,14 @@ def train(
                              self_returns=_self_returns(SelfReturnParams(), self_returns, body_box))
     except ValueError as e:
         raise typer.BadParameter(str(e)) from e
-    if nuscenes is not None:
+    if bag or val_bag:
+        if not (bag and val_bag and rig) or nuscenes is not None:
+            raise typer.BadParameter("training on recordings needs --bag, --val-bag and --rig (and no --nuscenes)",
+                                     param_hint="--bag")
+        from evgrid.sources import BagSource
+
+        tr, va = BagSource(tuple(map(str, bag)), str(rig)), BagSource(tuple(map(str, val_bag)), str(rig))
+    elif nuscenes is not None:
         from evgrid.sources import NuScenesSource
 
         tr, va = NuScenesSource(str(nuscenes), version, train_split), NuScenesSource(str(nuscenes), version, val_split)
@@ -517,6 +600,8 @@ def sweep_m_u_min_cmd(
     version: str = _VERSION,
     split: str = typer.Option("val", "--split"),
     sim_dir: Path = _SIM_DIR,
+    bag: list[Path] = _BAG,
+    rig: Path = _RIG,
     scenes: int = typer.Option(4, "--scenes", min=1, help="Simulator: validation scenes."),
     seed: int = _SEED,
     duration: float = _DURATION,
@@ -536,12 +621,49 @@ def sweep_m_u_min_cmd(
         vals = [float(v) for v in values.split(",")]
     except ValueError as e:
         raise typer.BadParameter(f"--values must be numbers separated by commas, got {values!r}") from e
-    source = _source(nuscenes, version, split, sim_dir, scenes, seed, duration)
+    source = _source(nuscenes, version, split, sim_dir, scenes, seed, duration, bag, rig)
     res = sweep_m_u_min(source, vals, out, _mapper_config(MapperConfig(), checkpoint=checkpoint), workers=workers,
                         overwrite=overwrite)
     for row in res["rows"]:
         typer.echo(f"m_u_min {row['m_u_min']:.2f}: " + ", ".join(f"{k} {v:.3f}" for k, v in row["mean_of_classes"].items()))
     typer.echo(f"chosen m_u_min = {res['chosen']}: {res['rule']}; plot: {out}/m_u_min_sweep.png")
+
+
+@_command("export")
+def export_cmd(
+    map_file: Path = typer.Argument(..., help="A map saved by evgrid (.npz: `evgrid map --save-maps`, save_map)."),
+    fmt: str = typer.Option(..., "--format", help="nav2 (PGM + YAML for map_server), mcap (Foxglove), rerun (.rrd)."),
+    out: Path = typer.Option(None, "--out", help="Output stem (nav2) or file; default: beside the map."),
+) -> None:
+    """Export a saved map for the tools that use it: nav2's map_server, Foxglove, rerun.
+
+    nav2 thresholds (docs/ros.md): unknown where never observed or m_u > 0.5; else occupied where
+    P(occ) = m_o + m_u/2 > 0.65, free where P(occ) < 0.196.
+
+    Examples:
+      evgrid export out/map/sim-000004/maps/fused.npz --format nav2
+      evgrid export fused.npz --format mcap --out fused.mcap
+    """
+    from evgrid.export import FORMATS, export_map
+    from evgrid.grid import load_map
+
+    if fmt not in FORMATS:
+        raise typer.BadParameter(f"--format must be one of {', '.join(FORMATS)}, got {fmt!r}", param_hint="--format")
+    written = export_map(load_map(map_file), out or map_file.with_suffix(""), fmt, name=map_file.stem)
+    for path in written:
+        typer.echo(f"wrote {path}")
+
+
+@_command("upgrade-checkpoint")
+def upgrade_checkpoint_cmd(
+    src: Path = typer.Argument(..., help="An Ev-Net checkpoint of an older format."),
+    dst: Path = typer.Argument(None, help="Where to write it (default: replace SRC, atomically)."),
+) -> None:
+    """Rewrite an Ev-Net checkpoint in the current format (with the checksum of its tensors); the weights stay the same."""
+    from evgrid.ism.evnet import upgrade_checkpoint
+
+    path = upgrade_checkpoint(src, dst or src)
+    typer.echo(f"wrote {path}")
 
 
 @_command()

@@ -163,7 +163,7 @@ class OccupancyMapper:
         return {k: float(np.median(v)) for k, v in self.timings.items() if v}
 
     def counts(self) -> dict[str, int]:
-        """What the mapper skipped, and why (for metrics.json)."""
+        """What the mapper mapped, skipped, filtered and rejected, and why (``counts`` in metrics.json)."""
         return {
             "frames": self.n_frames,
             "updates": self.n_updates,
@@ -174,6 +174,9 @@ class OccupancyMapper:
             "lidar_frames_missing": self.lidar_gaps.n_missing,
             "radar_detections_filtered": self.n_radar_filtered,
             **self.self_returns.counts(),
+            # invalid ISM cells taken as vacuous before the warp, and window cells a rule refused
+            **{f"ism_cells_rejected_{k}": v for k, v in self.maps.n_rejected.items()},
+            "map_cells_rejected": sum(self.maps.n_rejected_cells.values()),
         }
 
     def _time(self, name: str, t0: float) -> float:

@@ -201,7 +201,7 @@ def _scene_metrics(name: str, mapper: OccupancyMapper, scores: SceneScores, seco
         "timings_ms": mapper.timing_summary(),
         "frame_ms": frame_time_summary(list(frame_ms)),
         "map_area_km2": _map_area_km2(mapper.maps),
-        "skipped": mapper.counts(),
+        "counts": mapper.counts(),
         "pose_jumps": mapper.poses.jumps,
         "convergence": [{"iou": {}, **rec} for rec in scores.keyframes],
         "convergence_truth": convergence_at(scores.keyframes),
@@ -246,8 +246,8 @@ def summarize(per_scene: list[dict[str, Any]]) -> dict[str, Any]:
     out["frames_per_second"] = frames / seconds if seconds else math.nan
     keys = sorted({k for m in per_scene for k in m.get("timings_ms", {})})
     out["timings_ms"] = {k: float(np.median([m["timings_ms"][k] for m in per_scene if k in m["timings_ms"]])) for k in keys}
-    skipped = sorted({k for m in per_scene for k in m.get("skipped", {})})
-    out["skipped"] = {k: sum(m.get("skipped", {}).get(k, 0) for m in per_scene) for k in skipped}
+    keys = sorted({k for m in per_scene for k in m.get("counts", {})})
+    out["counts"] = {k: sum(m.get("counts", {}).get(k, 0) for m in per_scene) for k in keys}
     return jsonable(out)
 
 

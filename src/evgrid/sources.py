@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import json
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol, Sequence
@@ -131,22 +132,40 @@ class NuScenesSource:
 
 @dataclass(frozen=True)
 class BagSource:
-    """One recording (``.bag``, ``.mcap`` or a ROS 2 bag folder) and its rig file; one scene, see :func:`evgrid.data.bag.load_bag`."""
+    """Recordings (``.bag``, ``.mcap`` or ROS 2 bag folders) sharing one rig file; one scene each, see
+    :func:`evgrid.data.bag.load_bag`. ``paths`` may be one path. A single recording is named by the
+    rig file's ``scene`` (else its file name), several by their file names."""
 
-    path: str
+    paths: tuple[str, ...]
     rig: str
 
-    def names(self) -> list[str]:
+    def __post_init__(self) -> None:
+        paths = (self.paths,) if isinstance(self.paths, (str, os.PathLike)) else tuple(self.paths)
+        if not paths:
+            raise ValueError("BagSource needs at least one recording")
+        object.__setattr__(self, "paths", tuple(str(p) for p in paths))
+
+    def _by_name(self) -> dict[str, str]:
         from evgrid.data.bag import load_rig
 
-        return [load_rig(self.rig).scene or Path(self.path).stem]
+        if len(self.paths) == 1:
+            return {load_rig(self.rig).scene or Path(self.paths[0]).stem: self.paths[0]}
+        out: dict[str, str] = {}
+        for p in self.paths:
+            name = Path(p).stem
+            out[name if name not in out else f"{name}-{len(out)}"] = p
+        return out
+
+    def names(self) -> list[str]:
+        return list(self._by_name())
 
     def load(self, name: str) -> Scene:
         from evgrid.data.bag import load_bag
 
-        if name not in self.names():
-            raise KeyError(f"no scene {name!r} in {self.path}; it holds {self.names()}")
-        return load_bag(self.path, self.rig)
+        by_name = self._by_name()
+        if name not in by_name:
+            raise KeyError(f"no scene {name!r} among the recordings; they are {list(by_name)}")
+        return load_bag(by_name[name], self.rig)
 
 
 def scenes_of(source: SceneSource, names: Sequence[str] | None = None) -> list[str]:
