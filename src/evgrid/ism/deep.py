@@ -330,14 +330,19 @@ def _k_upsample_masses(ef, eo, out):
     half = np.float32(0.5)
     sh = np.float32(h) / np.float32(oh)
     sw = np.float32(w) / np.float32(ow)
-    c0 = np.empty(ow, np.int64)
-    c1 = np.empty(ow, np.int64)
-    lc = np.empty(ow, np.float32)
+    # torch mixes along columns first, then rows: w(i) = l0 (k x[r0, a] + l x[r0, b]) + l1 (...);
+    # the column mixes of every source row are computed once and the row mix runs contiguous.
+    cf = np.empty((h, ow), np.float32)
+    co = np.empty((h, ow), np.float32)
     for j in range(ow):
         src = max(sw * (np.float32(j) + half) - half, np.float32(0.0))
-        c0[j] = int(src)
-        c1[j] = c0[j] + 1 if c0[j] < w - 1 else c0[j]
-        lc[j] = src - np.float32(c0[j])
+        a = int(src)
+        b = a + 1 if a < w - 1 else a
+        l = src - np.float32(a)
+        k = one - l
+        for r in range(h):
+            cf[r, j] = k * ef[r, a] + l * ef[r, b]
+            co[r, j] = k * eo[r, a] + l * eo[r, b]
     bad = 0
     for i in range(oh):
         src = max(sh * (np.float32(i) + half) - half, np.float32(0.0))
@@ -345,13 +350,11 @@ def _k_upsample_masses(ef, eo, out):
         r1 = r0 + 1 if r0 < h - 1 else r0
         l1 = src - np.float32(r0)
         l0 = one - l1
+        f0, f1, o0, o1 = cf[r0], cf[r1], co[r0], co[r1]
         for j in range(ow):
-            a, b, l = c0[j], c1[j], lc[j]
-            k = one - l
-            f = l0 * (k * ef[r0, a] + l * ef[r0, b]) + l1 * (k * ef[r1, a] + l * ef[r1, b])
-            o = l0 * (k * eo[r0, a] + l * eo[r0, b]) + l1 * (k * eo[r1, a] + l * eo[r1, b])
-            if not (f >= 0.0 and o >= 0.0 and f < np.inf and o < np.inf):
-                bad += 1
+            f = l0 * f0[j] + l1 * f1[j]
+            o = l0 * o0[j] + l1 * o1[j]
+            bad += not (f >= 0.0 and o >= 0.0 and f < np.inf and o < np.inf)
             f64 = np.float64(f)
             o64 = np.float64(o)
             s = 2.0 + f64 + o64
