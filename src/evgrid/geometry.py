@@ -200,6 +200,10 @@ class SE2:
         return out
 
 
+_HOMOGENEOUS = np.eye(4)
+_HOMOGENEOUS.flags.writeable = False
+
+
 @dataclass(frozen=True, slots=True, eq=False)
 class SE3:
     """A rigid transform ``p' = R p + t`` (metres); as ``sensor_to_ego`` or ``ego_pose`` (ego -> global).
@@ -260,7 +264,7 @@ class SE3:
 
     def matrix(self) -> np.ndarray:
         """4x4 homogeneous matrix."""
-        m = np.eye(4)
+        m = _HOMOGENEOUS.copy()  # cheaper than np.eye, called per sweep on the hot path
         m[:3, :3] = self.rotation
         m[:3, 3] = self.translation
         return m
