@@ -77,6 +77,8 @@ def test_deep_irm_predicts_masses_on_the_simplex(tmp_path):
 def test_deep_irm_refuses_a_checkpoint_for_another_grid(tmp_path):
     with pytest.raises(CheckpointError, match="trained on grid"):
         DeepIrm(_checkpoint(tmp_path, GridSpec(256, 40.0)), SPEC)
+    with pytest.raises(ValueError, match="runtime must be one of"):
+        DeepIrm(_checkpoint(tmp_path), SPEC, runtime="tensorrt")
 
 
 def test_shipped_checkpoint_loads_and_predicts_masses():
