@@ -200,13 +200,16 @@ def run_bench(
     checkpoint: str | None = None,
     old_path: bool = False,
     repeats: int = 3,
-    rig_s: float = 6.0,
-    end_to_end_s: float = 20.0,
+    rig_s: float | None = None,
+    end_to_end_s: float | None = None,
+    timing_repeat: int = 20,
 ) -> dict[str, Any]:
     """Time the mapper on simulated scenes and the kernels on 512 x 512 grids, one core (see the module doc).
 
     ``old_path`` also maps with the deep IRM's plain path, interleaved, for before/after;
-    ``rig_s`` and ``end_to_end_s`` are the lengths of the rig and end-to-end scenes (0 skips).
+    ``rig_s`` and ``end_to_end_s`` are the lengths of the rig and end-to-end scenes (default
+    ``duration_s``; 0 skips; a whole nuScenes-like scene is ``end_to_end_s=20``);
+    ``timing_repeat`` calls time each kernel and each deep IRM step.
     """
     import numba
     import torch
@@ -227,7 +230,7 @@ def run_bench(
     runs = _per_frame(frames, deep, old_path, repeats)
     mapper, _ = _map_frames(frames, ("fused",), deep)
     sweeps = mapper.buffer.sweeps(deep.params.n_sweeps)
-    parts = _deep_parts(deep, sweeps, frames[-1].ego_pose, frames[-1].timestamp, repeat=20)
+    parts = _deep_parts(deep, sweeps, frames[-1].ego_pose, frames[-1].timestamp, timing_repeat)
 
     rng = np.random.default_rng(0)
     a = rng.dirichlet([1, 1, 1], grid.shape).astype(np.float32)
@@ -237,12 +240,13 @@ def run_bench(
     warper = Warper(grid)
     one_map = fusion.MapSet(grid, params, names=("deep_disc",))
     pose = SE2(3.3, -1.7, math.radians(45))  # 45 degrees: the largest window
+    rep = timing_repeat
     kernels = {
-        "dempster_512": median_ms(lambda: mass.dempster(a, b, out)),
-        "deep_disc_update_512": median_ms(lambda: fusion.update_deep_disc(cur, b, params)),
-        "fused_update_512": median_ms(lambda: fusion.update_fused(cur, b, a, params)),
-        "warp_512_yaw45": median_ms(lambda: warper.warp(a, pose)),
-        "warp_and_deep_disc_fuse_512_yaw45": median_ms(lambda: one_map.update(pose, {"deep_irm": a})),
+        "dempster_512": median_ms(lambda: mass.dempster(a, b, out), repeat=rep),
+        "deep_disc_update_512": median_ms(lambda: fusion.update_deep_disc(cur, b, params), repeat=rep),
+        "fused_update_512": median_ms(lambda: fusion.update_fused(cur, b, a, params), repeat=rep),
+        "warp_512_yaw45": median_ms(lambda: warper.warp(a, pose), repeat=rep),
+        "warp_and_deep_disc_fuse_512_yaw45": median_ms(lambda: one_map.update(pose, {"deep_irm": a}), repeat=rep),
     }
     result: dict[str, Any] = {
         "machine": {"processor": platform.processor() or platform.machine(), "cpus": os.cpu_count(), "threads": 1,
@@ -256,6 +260,8 @@ def run_bench(
         "note": "components_ms are medians per map update (the median over runs of each run's median); "
                 "step_total is one whole update of all listed maps",
     }
+    rig_s = duration_s if rig_s is None else rig_s
+    end_to_end_s = duration_s if end_to_end_s is None else end_to_end_s
     if rig_s > 0:
         result["rig"] = _rig(deep, 4, rig_s)
     if end_to_end_s > 0:
