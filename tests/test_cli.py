@@ -69,7 +69,7 @@ def test_bench_prints_json(tmp_path, tiny_checkpoint):
     assert r.exit_code == 0, r.output
     res = json.loads(out.read_text())
     fused = res["per_frame"]["fused_only"]["components_ms"]
-    assert {"ray_irm", "deep_irm_input", "deep_irm_net", "warp", "fuse", "step_total"} <= set(fused)
+    assert {"ray_irm", "deep_irm", "warp", "fuse", "step_total"} <= set(fused)
     assert "ray_ilm" not in fused  # the fused map needs no lidar
     assert res["kernels_ms"]["dempster_512"] > 0
 

@@ -102,3 +102,22 @@ def test_se3_rejects_bad_input():
         SE3(np.eye(2), np.zeros(3))
     with pytest.raises(ValueError, match="quaternion"):
         SE3.from_quaternion([0, 0, 0, 0], [0, 0, 0])
+
+
+def test_composition_skips_validation_but_equals_the_checked_pose(monkeypatch):
+    # Poses composed from valid poses are built unchecked (a mapping update composes tens of
+    # them); the public constructor still validates user data.
+    a = SE3.from_quaternion([math.cos(0.2), 0.0, 0.0, math.sin(0.2)], [1.0, -2.0, 0.3])
+    b = SE3.from_quaternion([math.cos(-0.6), 0.0, math.sin(-0.6), 0.0], [0.5, 4.0, -1.0])
+    calls = []
+    checked = SE3.__post_init__
+    monkeypatch.setattr(SE3, "__post_init__", lambda self: (calls.append(1), checked(self))[1])
+    c = a @ b.inverse()
+    d = SE3.identity() @ SE3.from_se2(c.to_se2())
+    assert calls == []
+    assert c == SE3(c.rotation, c.translation) and len(calls) == 1
+    assert d.rotation.shape == (3, 3) and d.translation.shape == (3,) and d.rotation.dtype == np.float64
+    with pytest.raises(ValueError, match="finite"):
+        SE3.from_se2(SE2(0.0, 0.0, 0.0), float("inf"))
+    with pytest.raises(ValueError, match="finite"):
+        SE3(np.eye(3), np.array([0.0, np.nan, 0.0]))

@@ -77,6 +77,8 @@ def test_deep_irm_predicts_masses_on_the_simplex(tmp_path):
 def test_deep_irm_refuses_a_checkpoint_for_another_grid(tmp_path):
     with pytest.raises(CheckpointError, match="trained on grid"):
         DeepIrm(_checkpoint(tmp_path, GridSpec(256, 40.0)), SPEC)
+    with pytest.raises(ValueError, match="runtime must be one of"):
+        DeepIrm(_checkpoint(tmp_path), SPEC, runtime="tensorrt")
 
 
 def test_shipped_checkpoint_loads_and_predicts_masses():
@@ -93,3 +95,105 @@ def test_shipped_checkpoint_loads_and_predicts_masses():
     # it has learned something: free space around the vehicle, unknown far out
     near = m[240:272, 240:272]
     assert (near[..., 0] > near[..., 2]).mean() > 0.5
+
+
+# --- the fast path (DeepIrm.predict) against the plain one (radar_image + predict_image) ---------
+
+
+def random_scene(rng, n_radars=5, n_sweeps=3):
+    """Sweeps of moving radars with random detections, some clustered so that whole 4 x 4 pooling
+    blocks are occupied (where a block's max may be negative), some outside the grid or corrupt."""
+    sweeps = []
+    cols = {c: RADAR_COLUMNS.index(c) for c in ("x", "y", "z", "rcs", "vx_comp", "vy_comp")}
+    for r in range(n_radars):
+        sensor = SE3.from_se2(SE2(rng.uniform(-1, 3), rng.uniform(-1, 1), rng.uniform(-math.pi, math.pi)), 0.5)
+        for k in range(n_sweeps):
+            n = int(rng.integers(300, 500))
+            p = np.zeros((n, len(RADAR_COLUMNS)), np.float32)
+            p[:, cols["x"]] = rng.uniform(-5, 30, n)
+            p[:, cols["y"]] = rng.uniform(-20, 20, n)
+            p[:, cols["z"]] = rng.normal(0, 0.3, n)
+            p[:, cols["rcs"]] = rng.uniform(-30, 40, n)
+            p[:, cols["vx_comp"]] = rng.normal(0, 5, n)
+            p[:, cols["vy_comp"]] = rng.normal(0, 5, n)
+            # a dense cluster: a 5 cm lattice fills every cell of some pooled blocks, negative values
+            m = 256
+            gx, gy = np.meshgrid(np.arange(16) * 0.05, np.arange(16) * 0.05)
+            p[:m, cols["x"]] = 4.0 + gx.ravel()
+            p[:m, cols["y"]] = 1.0 + gy.ravel()
+            p[:m, cols["rcs"]] = rng.uniform(-40, -10, m)
+            p[:m, cols["vx_comp"]] = rng.uniform(-9, -1, m)
+            p[m, cols["rcs"]] = np.nan
+            p[m + 1, cols["vx_comp"]] = 300.0
+            ego = SE3.from_se2(SE2(-0.8 * (n_sweeps - k), 0.1 * k, 0.02 * k))
+            sweeps.append(RadarSweep(p, sensor, ego, 100_000 * k + r, f"RADAR_{r}"))
+    return sweeps, SE3.from_se2(SE2(0.0, 0.0, 0.01))
+
+
+def test_pooled_input_is_the_max_pooled_image(tmp_path):
+    deep = DeepIrm(_checkpoint(tmp_path), SPEC, runtime="torch")
+    rng = np.random.default_rng(3)
+    for _ in range(3):
+        sweeps, ego = random_scene(rng)
+        img = radar_image(sweeps, ego, SPEC, 250_000, deep.params)
+        expected = torch.nn.functional.max_pool2d(torch.from_numpy(img)[None], 4).numpy()
+        pooled = deep.pooled_input(sweeps, ego, 250_000)
+        assert (expected[0, 1] < 0).any()  # some fully occupied blocks have a negative max
+        np.testing.assert_array_equal(pooled, expected)
+    empty = deep.pooled_input([], ego)
+    assert not empty[0, :5].any() and empty[0, 5].max() > 1.0
+
+
+@pytest.mark.parametrize("runtime, atol", [("torch", 2e-6), ("onnxruntime", 2e-5)])
+def test_fast_path_gives_the_plain_path_masses(runtime, atol):
+    from evgrid.ism.runtime import ort_available
+
+    if runtime == "onnxruntime" and not ort_available():
+        pytest.skip("onnxruntime is not installed (pip install 'evgrid[fast]')")
+    deep = DeepIrm(runtime=runtime)  # the shipped Ev-Net
+    assert deep.runtime.name == runtime
+    rng = np.random.default_rng(7)
+    for _ in range(3):
+        sweeps, ego = random_scene(rng)
+        plain = deep.predict_image(radar_image(sweeps, ego, SPEC, 300_000, deep.params))
+        fast = deep.predict(sweeps, ego, 300_000)
+        assert fast.shape == plain.shape and fast.dtype == np.float32
+        assert np.abs(fast - plain).max() <= atol
+        assert (fast.argmax(-1) != plain.argmax(-1)).sum() <= 2  # only exact ties could flip
+        mass.validate(fast)
+
+
+def test_evidence_to_masses_is_upsample_then_from_evidence():
+    from evgrid.ism.deep import evidence_to_masses
+
+    rng = np.random.default_rng(0)
+    e = rng.gamma(0.5, 4.0, (2, 128, 128)).astype(np.float32)
+    e[:, :3, :3] = 0.0  # vacuous cells
+    up = torch.nn.functional.interpolate(torch.from_numpy(e)[None], size=(512, 512), mode="bilinear",
+                                         align_corners=False)[0]
+    expected = mass.from_evidence(up.permute(1, 2, 0).numpy())
+    np.testing.assert_allclose(evidence_to_masses(e, SPEC), expected, rtol=0, atol=2e-7)
+    for bad in (-1.0, np.nan, np.inf):
+        e2 = e.copy()
+        e2[1, 5, 5] = bad
+        with pytest.raises(ValueError, match="finite and non-negative"):
+            evidence_to_masses(e2, SPEC)
+
+
+def test_values_outside_the_sensor_range_are_dropped_counted_and_logged_once_per_sweep(tmp_path, caplog):
+    deep = DeepIrm(_checkpoint(tmp_path), SPEC, runtime="torch")
+    good = {"x": 6.0, "y": 1.0, "rcs": 5.0}
+    bad = [{"x": 6.0, "y": -1.0, "rcs": 70.0}, {"x": 6.0, "y": -2.0, "rcs": -65.0},
+           {"x": 7.0, "y": 2.0, "vx_comp": 130.0}, {"x": 7.0, "y": 3.0, "vy_comp": -129.0},
+           {"x": 8.0, "y": 4.0, "rcs": float("inf")}]
+    s = sweep([good, *bad], t_us=123, channel="RADAR_FRONT_LEFT")
+    with caplog.at_level("WARNING", logger="evgrid.ism.deep"):
+        for _ in range(3):  # the sweep stays in the buffer for several updates
+            pooled = deep.pooled_input([s], SE3.identity())
+            img = radar_image([s], SE3.identity(), SPEC)
+    assert np.count_nonzero(img[0]) == 1 and int(np.count_nonzero(pooled[0, 0])) == 1
+    assert deep.n_dropped == 5
+    msgs = [r.getMessage() for r in caplog.records]
+    fast_msgs = [m for m in msgs if "RADAR_FRONT_LEFT" in m]
+    assert len(fast_msgs) == 2  # once by the fast path, once by the plain one: not once per update
+    assert "dropped 5 of 6 detections (1 NaN/inf, 4 outside" in fast_msgs[0]

@@ -60,7 +60,7 @@ def test_online_mapper_frame_by_frame(scene, deep):
         dense, cov, _, _ = m.to_dense()
         mass.validate(dense)
         assert cov.sum() > 512 * 512 * 0.9
-    assert set(mapper.timing_summary()) >= {"ray_ilm", "ray_irm", "deep_irm_net", "warp", "fuse", "step_total"}
+    assert set(mapper.timing_summary()) >= {"ray_ilm", "ray_irm", "deep_irm", "warp", "fuse", "step_total"}
     with pytest.raises(TypeError):
         mapper.process("frame")
 

@@ -163,6 +163,15 @@ class SE2:
         if not all(math.isfinite(v) for v in (self.x, self.y, self.yaw)):
             raise ValueError(f"SE2 needs finite x, y, yaw, got ({self.x!r}, {self.y!r}, {self.yaw!r})")
 
+    @classmethod
+    def _unchecked(cls, x: float, y: float, yaw: float) -> "SE2":
+        # Poses computed from valid poses are valid: the hot path skips __post_init__.
+        p = object.__new__(cls)
+        object.__setattr__(p, "x", x)
+        object.__setattr__(p, "y", y)
+        object.__setattr__(p, "yaw", yaw)
+        return p
+
     def matrix(self) -> np.ndarray:
         """3x3 homogeneous matrix."""
         c, s = math.cos(self.yaw), math.sin(self.yaw)
@@ -170,7 +179,7 @@ class SE2:
 
     def __matmul__(self, other: "SE2") -> "SE2":
         c, s = math.cos(self.yaw), math.sin(self.yaw)
-        return SE2(
+        return SE2._unchecked(
             self.x + c * other.x - s * other.y,
             self.y + s * other.x + c * other.y,
             math.remainder(self.yaw + other.yaw, 2 * math.pi),
@@ -179,7 +188,7 @@ class SE2:
     def inverse(self) -> "SE2":
         """The transform that undoes this one."""
         c, s = math.cos(self.yaw), math.sin(self.yaw)
-        return SE2(-(c * self.x + s * self.y), -(-s * self.x + c * self.y), -self.yaw)
+        return SE2._unchecked(-(c * self.x + s * self.y), -(-s * self.x + c * self.y), -self.yaw)
 
     def apply(self, xy: np.ndarray) -> np.ndarray:
         """Transform ``(n, 2)`` points in metres."""
@@ -191,9 +200,18 @@ class SE2:
         return out
 
 
+_HOMOGENEOUS = np.eye(4)
+_HOMOGENEOUS.flags.writeable = False
+
+
 @dataclass(frozen=True, slots=True, eq=False)
 class SE3:
-    """A rigid transform ``p' = R p + t`` (metres); as ``sensor_to_ego`` or ``ego_pose`` (ego -> global)."""
+    """A rigid transform ``p' = R p + t`` (metres); as ``sensor_to_ego`` or ``ego_pose`` (ego -> global).
+
+    The constructor validates (user data comes in here); poses composed from valid poses
+    (``@``, :meth:`inverse`, :meth:`identity`, :meth:`from_se2`) are built unchecked, as a
+    mapping update composes tens of them.
+    """
 
     rotation: np.ndarray
     translation: np.ndarray
@@ -211,9 +229,17 @@ class SE3:
         object.__setattr__(self, "translation", t)
 
     @classmethod
+    def _unchecked(cls, rotation: np.ndarray, translation: np.ndarray) -> "SE3":
+        # float64 arrays of shapes (3, 3) and (3,) computed from valid poses
+        p = object.__new__(cls)
+        object.__setattr__(p, "rotation", rotation)
+        object.__setattr__(p, "translation", translation)
+        return p
+
+    @classmethod
     def identity(cls) -> "SE3":
         """The identity transform."""
-        return cls(np.eye(3), np.zeros(3))
+        return cls._unchecked(np.eye(3), np.zeros(3))
 
     @classmethod
     def from_quaternion(cls, q_wxyz: Sequence[float], t: Sequence[float]) -> "SE3":
@@ -223,8 +249,10 @@ class SE3:
     @classmethod
     def from_se2(cls, p: SE2, z: float = 0.0) -> "SE3":
         """Lift a planar pose to 3-D at height ``z`` metres."""
+        if not math.isfinite(z):
+            raise ValueError(f"SE3.from_se2 needs a finite height z, got {z!r}")
         c, s = math.cos(p.yaw), math.sin(p.yaw)
-        return cls(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]), np.array([p.x, p.y, z]))
+        return cls._unchecked(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]), np.array([p.x, p.y, float(z)]))
 
     @classmethod
     def from_matrix(cls, m: np.ndarray) -> "SE3":
@@ -236,7 +264,7 @@ class SE3:
 
     def matrix(self) -> np.ndarray:
         """4x4 homogeneous matrix."""
-        m = np.eye(4)
+        m = _HOMOGENEOUS.copy()  # cheaper than np.eye, called per sweep on the hot path
         m[:3, :3] = self.rotation
         m[:3, 3] = self.translation
         return m
@@ -246,12 +274,14 @@ class SE3:
         return matrix_to_quaternion(self.rotation)
 
     def __matmul__(self, other: "SE3") -> "SE3":
-        return SE3(self.rotation @ other.rotation, self.rotation @ other.translation + self.translation)
+        if not isinstance(other, SE3):
+            return NotImplemented
+        return SE3._unchecked(self.rotation @ other.rotation, self.rotation @ other.translation + self.translation)
 
     def inverse(self) -> "SE3":
         """The transform that undoes this one."""
         rt = self.rotation.T
-        return SE3(rt, -rt @ self.translation)
+        return SE3._unchecked(rt, -(rt @ self.translation))
 
     def apply(self, points: np.ndarray) -> np.ndarray:
         """Transform ``(n, 3)`` points (float64 out)."""
@@ -265,7 +295,7 @@ class SE3:
 
     def to_se2(self) -> SE2:
         """The planar part (x, y, yaw) that drives the 2-D map warp."""
-        return SE2(float(self.translation[0]), float(self.translation[1]), self.yaw)
+        return SE2._unchecked(float(self.translation[0]), float(self.translation[1]), self.yaw)
 
     def __eq__(self, other: object) -> bool:
         return (

@@ -130,7 +130,6 @@ class OccupancyMapper:
     def local_isms(self, frame: Frame) -> dict[str, np.ndarray]:
         """Each ISM the maps need, once, on the local grid of ``frame`` (radar buffer already updated)."""
         from evgrid.ism import ray_ilm, ray_irm
-        from evgrid.ism.deep import radar_image
 
         cfg = self.config
         need = self.maps.required_isms
@@ -145,11 +144,9 @@ class OccupancyMapper:
                                      params=cfg.radar, threads=cfg.threads)
             t = self._time("ray_irm", t)
         if "deep_irm" in need:
-            sweeps = self.buffer.sweeps(cfg.image.n_sweeps)
-            image = radar_image(sweeps, frame.ego_pose, cfg.grid, frame.timestamp, cfg.image)
-            t = self._time("deep_irm_input", t)
-            out["deep_irm"] = self.deep.predict_image(image)
-            t = self._time("deep_irm_net", t)
+            # the fast path: pooled input from the detections, Ev-Net, upsampled masses in one pass
+            out["deep_irm"] = self.deep.predict(self.buffer.sweeps(cfg.image.n_sweeps), frame.ego_pose, frame.timestamp)
+            t = self._time("deep_irm", t)
         return out
 
     def pose_in_map(self, ego_pose: SE3) -> SE2:
