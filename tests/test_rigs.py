@@ -139,7 +139,7 @@ def rig_maps(tmp_path_factory):
 
 
 def test_rig_with_self_returns_maps_free_space_as_without(rig_maps):
-    (clean_scene, clean), (scene, dirty) = rig_maps[False], rig_maps[True]
+    (_, clean), (scene, dirty) = rig_maps[False], rig_maps[True]
     assert scene.radar_channels == RIG.radar_channels
     assert len(scene) == 50 and scene.stats["radar_sweeps"] == pytest.approx(3 * 4 * 5, abs=3)
     want = free_near_path(clean)

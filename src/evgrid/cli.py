@@ -39,7 +39,7 @@ def main(
     debug: bool = typer.Option(False, "--debug", help="Show the full traceback when a command fails."),
 ) -> None:
     """evgrid: evidential occupancy mapping (Bauer et al., deep ISMs as priors)."""
-    _STATE["debug"] = _STATE["debug"] or debug
+    _STATE["debug"] = debug or os.environ.get("EVGRID_DEBUG", "") not in ("", "0")
 
 
 def _message(e: BaseException) -> str:
@@ -670,19 +670,26 @@ def upgrade_checkpoint_cmd(
 def bench(
     seconds: float = typer.Option(6.0, "--duration", help="Length of the simulated scene used (s)."),
     checkpoint: Path = typer.Option(None, "--checkpoint", help="Ev-Net checkpoint; default: the shipped one."),
+    old_path: bool = typer.Option(False, "--old-path", help="Also time the deep IRM's plain path (full image, "
+                                  "torch), interleaved with the fast one: before and after in one run."),
+    end_to_end: float = typer.Option(None, "--end-to-end", help="Length (s) of the scene mapped end to end with "
+                                     "figures and GIF (default: --duration)."),
+    repeats: int = typer.Option(3, "--repeats", min=1, help="Passes over the scene; medians over them."),
     out: Path = typer.Option(None, "--out", help="Also write the JSON here."),
 ) -> None:
     """Time every component and the per-frame updates on one core; print JSON.
 
     Example:
       evgrid bench --out out/bench.json
+      evgrid bench --old-path --end-to-end 20   # before/after of the deep IRM, and a whole 20 s run
     """
     import json
 
     from evgrid.bench import run_bench
     from evgrid.io import write_json
 
-    res = run_bench(seconds, str(checkpoint) if checkpoint else None)
+    res = run_bench(seconds, str(checkpoint) if checkpoint else None, old_path=old_path, repeats=repeats,
+                    end_to_end_s=end_to_end)
     typer.echo(json.dumps(res, indent=2))
     if out is not None:
         write_json(out, res)

@@ -23,7 +23,8 @@ from evgrid.ism.deep import RadarImageParams
 from evgrid.ism.lidar import RayIlmParams
 from evgrid.ism.radar import RayIrmParams
 from evgrid.ism.self_returns import SelfReturnParams
-from evgrid.validation import check_int, check_number
+from evgrid.ism.runtime import RUNTIMES
+from evgrid.validation import check_choice, check_int, check_number
 
 __all__ = ["PoseLimits", "MapperConfig", "OutputConfig", "RunConfig", "ConfigError", "from_dict", "load_run_config"]
 
@@ -82,8 +83,10 @@ class MapperConfig:
     poses: PoseLimits = field(default_factory=PoseLimits)
     threads: int = 1
     tile_cells: int = 256
+    runtime: str = "auto"  # Ev-Net's inference: auto (ONNX Runtime when installed), onnxruntime, torch
 
     def __post_init__(self) -> None:
+        check_choice(self, "runtime", choices=RUNTIMES)
         unknown = [m for m in self.maps if m not in MAP_NAMES]
         if unknown or not self.maps:
             raise ValueError(f"MapperConfig.maps: unknown map name(s) {unknown}; choose from {MAP_NAMES}")

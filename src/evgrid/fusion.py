@@ -22,7 +22,6 @@ docs/equations.md#the-six-maps-of-table-i.
 from __future__ import annotations
 
 import logging
-import math
 from dataclasses import dataclass
 from typing import Callable, Mapping
 
@@ -39,6 +38,7 @@ from evgrid.kernels import (
     _k_vacate_invalid,
     rows,
 )
+from evgrid.validation import check_number
 
 __all__ = [
     "MAP_NAMES",
@@ -81,10 +81,8 @@ class FusionParams:
     alpha: float = ALPHA_DEFAULT
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.m_u_min) and 0.0 <= self.m_u_min < 1.0):
-            raise ValueError(f"m_u_min must lie in [0, 1), got {self.m_u_min!r}")
-        if not (math.isfinite(self.alpha) and self.alpha >= 0.0):
-            raise ValueError(f"alpha must be finite and >= 0, got {self.alpha!r}")
+        check_number(self, "m_u_min", min=0.0, max=1.0, max_open=True)
+        check_number(self, "alpha", min=0.0)
 
 
 # --- public rules ----------------------------------------------------------------------------

@@ -31,6 +31,7 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
+from evgrid.validation import check_int, check_number
 
 __all__ = ["GridSpec", "SE2", "SE3", "quaternion_to_matrix", "matrix_to_quaternion"]
 
@@ -43,10 +44,9 @@ class GridSpec:
     length_m: float = 40.0
 
     def __post_init__(self) -> None:
-        if not isinstance(self.n_cells, (int, np.integer)) or self.n_cells <= 0 or self.n_cells % 2:
-            raise ValueError(f"GridSpec.n_cells must be a positive even integer, got {self.n_cells!r}")
-        if not (math.isfinite(self.length_m) and self.length_m > 0):
-            raise ValueError(f"GridSpec.length_m must be a positive finite length in metres, got {self.length_m!r}")
+        if check_int(self, "n_cells", min=2) % 2:
+            raise ValueError(f"GridSpec.n_cells must be even (the ego vehicle sits on a cell corner), got {self.n_cells!r}")
+        check_number(self, "length_m", min=0.0, min_open=True)
 
     @property
     def resolution(self) -> float:

@@ -18,7 +18,6 @@ checks away; the other flags (and so vectorisation and the results for valid cel
 
 from __future__ import annotations
 
-import math
 
 import numba
 import numpy as np

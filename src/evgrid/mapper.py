@@ -73,7 +73,7 @@ class OccupancyMapper:
         if deep is None and "deep_irm" in self.maps.required_isms:
             from evgrid.ism.deep import DeepIrm
 
-            self.deep = DeepIrm(config.checkpoint, config.grid, config.image, config.threads)
+            self.deep = DeepIrm(config.checkpoint, config.grid, config.image, config.threads, config.runtime)
         if self.deep is not None:
             from evgrid.data.radar_filter import check_trained_filter
 
@@ -174,6 +174,7 @@ class OccupancyMapper:
             # invalid ISM cells taken as vacuous before the warp, and window cells a rule refused
             **{f"ism_cells_rejected_{k}": v for k, v in self.maps.n_rejected.items()},
             "map_cells_rejected": sum(self.maps.n_rejected_cells.values()),
+            "radar_detections_out_of_range": getattr(self.deep, "n_dropped", 0),
         }
 
     def _time(self, name: str, t0: float) -> float:

@@ -63,7 +63,7 @@ def check_mass(owner: Any, name: str, value: Any = _MISSING) -> float:
     return check_number(owner, name, value, min=0.0, max=1.0)
 
 
-def check_choice(owner: Any, name: str, value: Any, choices: tuple) -> Any:
+def check_choice(owner: Any, name: str, value: Any = _MISSING, *, choices: tuple) -> Any:
     """One of ``choices``."""
     v = _value(owner, name, value)
     if v not in choices:

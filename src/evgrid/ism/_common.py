@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import math
 import threading
 from dataclasses import dataclass
 from typing import Iterator
@@ -37,21 +36,6 @@ class IsmResult:
     n_points: int
     n_dropped: int
     n_used: int
-
-
-def check_finite_fields(params: object, names: tuple[str, ...]) -> None:
-    """Raise ValueError naming the first of ``names`` of a parameter dataclass that is not a finite number."""
-    for name in names:
-        v = getattr(params, name)
-        if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)) or not math.isfinite(v):
-            raise ValueError(f"{type(params).__name__}.{name} must be a finite number, got {v!r}")
-
-
-def check_mass_fields(params: object, names: tuple[str, ...]) -> None:
-    """Raise ValueError naming the first of ``names`` of a parameter dataclass that is not a mass in [0, 1]."""
-    for name in names:
-        if not 0 <= getattr(params, name) <= 1:
-            raise ValueError(f"{type(params).__name__}.{name} must be a mass in [0, 1], got {getattr(params, name)}")
 
 
 def check_threads(threads: int) -> int:

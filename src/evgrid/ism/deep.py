@@ -41,6 +41,7 @@ import numpy as np
 
 from evgrid.data.frame import RadarSweep, radar_column
 from evgrid.geometry import SE3, GridSpec
+from evgrid.validation import check_int, check_number
 
 logger = logging.getLogger(__name__)
 
@@ -113,10 +114,8 @@ class RadarImageParams:
     horizon_s: float = 1.0
 
     def __post_init__(self) -> None:
-        if not isinstance(self.n_sweeps, int) or self.n_sweeps < 1:
-            raise ValueError(f"n_sweeps must be a positive integer, got {self.n_sweeps!r}")
-        if not (math.isfinite(self.horizon_s) and self.horizon_s > 0):
-            raise ValueError(f"horizon_s must be a positive number of seconds, got {self.horizon_s!r}")
+        check_int(self, "n_sweeps", min=1)
+        check_number(self, "horizon_s", min=0.0, min_open=True)
 
 
 #: Columns of a detection table (see :func:`radar_detections`).

@@ -28,6 +28,7 @@ from typing import Any
 import torch
 from torch import nn
 from torch.nn import functional as F
+from evgrid.validation import check_int
 
 # Targets: classes of the ray ILM's cells (docs/decisions.md#ev-net-targets-and-loss).
 
@@ -47,9 +48,7 @@ class EvNetConfig:
 
     def __post_init__(self) -> None:
         for name in ("in_channels", "width", "pool", "depth"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise ValueError(f"EvNetConfig.{name} must be a positive integer, got {v!r}")
+            check_int(self, name, min=1)
 
 
 def _block(c_in: int, c_out: int, dilation: int = 1) -> nn.Sequential:

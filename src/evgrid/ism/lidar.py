@@ -47,8 +47,6 @@ from evgrid.ism._common import (
     IsmResult,
     as_points,
     check_out,
-    check_finite_fields,
-    check_mass_fields,
     check_threads,
     label_scratch,
     labels_to_masses,
@@ -56,6 +54,7 @@ from evgrid.ism._common import (
     mass_lut,
     numba_threads,
 )
+from evgrid.validation import check_mass, check_number
 
 __all__ = ["RayIlmParams", "ray_ilm", "ray_ilm_with_stats"]
 
@@ -78,18 +77,13 @@ class RayIlmParams:
     min_range_m: float = 0.0
 
     def __post_init__(self) -> None:
-        check_finite_fields(
-            self, ("z_min_m", "z_max_m", "max_range_m", "angular_resolution_deg", "m_free", "m_occupied", "min_range_m")
-        )
-        if not self.z_min_m < self.z_max_m:
-            raise ValueError(f"RayIlmParams needs z_min_m < z_max_m, got {self.z_min_m} and {self.z_max_m}")
-        if self.max_range_m <= 0:
-            raise ValueError(f"RayIlmParams.max_range_m must be > 0, got {self.max_range_m}")
-        if self.min_range_m < 0:
-            raise ValueError(f"RayIlmParams.min_range_m must be >= 0, got {self.min_range_m}")
-        if not 0 < self.angular_resolution_deg <= 360:
-            raise ValueError(f"RayIlmParams.angular_resolution_deg must be in (0, 360], got {self.angular_resolution_deg}")
-        check_mass_fields(self, ("m_free", "m_occupied"))
+        check_number(self, "z_min_m")
+        check_number(self, "z_max_m", min=self.z_min_m, min_open=True)
+        check_number(self, "max_range_m", min=0.0, min_open=True)
+        check_number(self, "angular_resolution_deg", min=0.0, max=360.0, min_open=True)
+        check_mass(self, "m_free")
+        check_mass(self, "m_occupied")
+        check_number(self, "min_range_m", min=0.0)
 
     @property
     def n_rays(self) -> int:

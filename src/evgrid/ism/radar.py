@@ -54,8 +54,6 @@ from evgrid.ism._common import (
     OCCUPIED,
     IsmResult,
     as_points,
-    check_finite_fields,
-    check_mass_fields,
     check_out,
     check_threads,
     bit_scratch,
@@ -65,6 +63,7 @@ from evgrid.ism._common import (
     mass_lut,
     numba_threads,
 )
+from evgrid.validation import check_int, check_mass, check_number
 
 __all__ = ["RayIrmParams", "ray_irm", "ray_irm_with_stats", "ray_irm_xy"]
 
@@ -81,12 +80,10 @@ class RayIrmParams:
     m_occupied: float = 0.5
 
     def __post_init__(self) -> None:
-        if isinstance(self.n_sweeps, bool) or not isinstance(self.n_sweeps, (int, np.integer)) or self.n_sweeps < 1:
-            raise ValueError(f"RayIrmParams.n_sweeps must be an integer >= 1, got {self.n_sweeps!r}")
-        check_finite_fields(self, ("opening_angle_deg", "m_free", "m_occupied"))
-        if not 0 < self.opening_angle_deg < 180:
-            raise ValueError(f"RayIrmParams.opening_angle_deg must be in (0, 180), got {self.opening_angle_deg}")
-        check_mass_fields(self, ("m_free", "m_occupied"))
+        check_int(self, "n_sweeps", min=1)
+        check_number(self, "opening_angle_deg", min=0.0, max=180.0, min_open=True, max_open=True)
+        check_mass(self, "m_free")
+        check_mass(self, "m_occupied")
 
 
 _DEFAULT_GRID = GridSpec()

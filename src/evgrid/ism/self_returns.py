@@ -101,7 +101,7 @@ class SelfReturnParams:
     margin_m: float = 0.1
 
     def __post_init__(self) -> None:
-        check_choice(self, "mode", self.mode, SELF_RETURN_MODES)
+        check_choice(self, "mode", choices=SELF_RETURN_MODES)
         for name in ("voxel_m", "max_radius_m", "min_travel_m", "step_m"):
             check_number(self, name, min=0.0, min_open=True)
         check_number(self, "min_height_m")

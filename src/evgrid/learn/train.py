@@ -20,7 +20,6 @@ from __future__ import annotations
 import csv
 import hashlib
 import json
-import logging
 import math
 import os
 import random
@@ -33,16 +32,17 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, Dataset
 
+from evgrid.classes import FREE, OCCUPIED, UNKNOWN
 from evgrid.data.frame import Frame
 from evgrid.data.radar_filter import RadarFilter
-from evgrid.evaluate import CLASSES, iou_per_class
+from evgrid.evaluate import CLASSES
 from evgrid.geometry import GridSpec
 from evgrid.io import atomic_write
-from evgrid.ism.deep import CHANNELS, DETECTION_COLUMNS, RadarImageParams, detections_to_image, radar_detections
-from evgrid.classes import FREE, OCCUPIED, UNKNOWN
-from evgrid.ism.evnet import EvNet, EvNetConfig, load_checkpoint, save_checkpoint
+from evgrid.ism.deep import CHANNELS, RadarImageParams, detections_to_image, radar_detections
+from evgrid.ism.evnet import EvNet, EvNetConfig, save_checkpoint
 from evgrid.ism.self_returns import SelfReturnParams
 from evgrid.learn.loss import evidential_loss
+from evgrid.validation import check_int, check_number
 
 __all__ = [
     "TrainConfig",
@@ -54,7 +54,6 @@ __all__ = [
     "TrainResult",
 ]
 
-logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -78,13 +77,9 @@ class TrainConfig:
 
     def __post_init__(self) -> None:
         for name in ("epochs", "batch_size", "frame_stride"):
-            v = getattr(self, name)
-            if not isinstance(v, int) or v < 1:
-                raise ValueError(f"TrainConfig.{name} must be a positive integer, got {v!r}")
-        if not isinstance(self.workers, int) or self.workers < 0:
-            raise ValueError(f"TrainConfig.workers must be >= 0, got {self.workers!r}")
-        if not (self.lr > 0 and math.isfinite(self.lr)):
-            raise ValueError(f"TrainConfig.lr must be positive, got {self.lr!r}")
+            check_int(self, name, min=1)
+        check_int(self, "workers", min=0)
+        check_number(self, "lr", min=0.0, min_open=True)
         if self.model.in_channels != len(CHANNELS):
             raise ValueError(f"the model must take {len(CHANNELS)} input channels ({CHANNELS}), got {self.model.in_channels}")
 
