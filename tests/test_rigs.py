@@ -283,3 +283,21 @@ def test_cli_options_reach_the_mapper_config():
     sim = _sim_config(4.0, "urban", 10.0, "RADAR_FRONT,SIDE=RADAR_FRONT_LEFT", "4,8", False, 0.1)
     assert sim.rig.radar_channels == ("RADAR_FRONT", "SIDE") and sim.rig.mounts() == ("RADAR_FRONT", "RADAR_FRONT_LEFT")
     assert sim.rig.rates(13.0) == (4.0, 8.0) and not sim.lidar.self_returns and sim.rig.faults.reorder == 0.1
+
+
+def test_body_hits_hand_computed():
+    from evgrid.data.sim.lidar import body_hits
+
+    box = np.array([[0.0, -1.0, 0.0, 2.0, 1.0, 1.0]])
+    dirs = np.array([
+        [0.0, 0.0, -1.0],                  # straight down onto the top face from 3 m up: 2 m, cos 1
+        [1.0, 0.0, 0.0],                   # level, above the box: a miss
+        [0.6, 0.0, -0.8],                  # slanting down onto the top face: 2 / 0.8 = 2.5 m, cos 0.8
+        [-1.0, 0.0, 0.0],                  # away from the box: a miss
+    ])
+    t, cos = body_hits(np.array([0.2, 0.0, 3.0]), dirs, box)
+    np.testing.assert_allclose(t, [2.0, np.inf, 2.5, np.inf])
+    np.testing.assert_allclose(cos, [1.0, 0.0, 0.8, 0.0])
+    # from inside a slab, level rays leave through the side faces: the nearer box wins
+    t, _ = body_hits(np.array([-1.0, 0.0, 0.5]), np.array([[1.0, 0.0, 0.0]]), np.vstack([box, box + [3, 0, 0, 3, 0, 0]]))
+    assert t[0] == 1.0

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 
 from evgrid.data.sim import materials as M
@@ -50,27 +51,37 @@ EGO_BODY_BOXES: np.ndarray = np.array(
 )
 
 
+@numba.njit(cache=True)
+def _k_body_hits(origin, dirs, boxes, best, cos):  # pragma: no cover - compiled
+    for i in range(dirs.shape[0]):
+        for b in range(boxes.shape[0]):
+            t_in, t_out, axis = -np.inf, np.inf, 0
+            for a in range(3):
+                d = dirs[i, a]
+                lo_b, hi_b = boxes[b, a] - origin[a], boxes[b, a + 3] - origin[a]
+                if d == 0.0:  # parallel to this slab: inside it or a miss
+                    if lo_b > 0.0 or hi_b < 0.0:
+                        t_in = np.inf
+                    continue
+                inv = 1.0 / d
+                t0, t1 = lo_b * inv, hi_b * inv
+                lo, hi = min(t0, t1), max(t0, t1)
+                if lo > t_in:
+                    t_in, axis = lo, a
+                t_out = min(t_out, hi)
+            if t_in <= t_out and 0.0 < t_in < best[i]:
+                best[i] = t_in
+                cos[i] = abs(dirs[i, axis])
+
+
 def body_hits(origin: np.ndarray, dirs: np.ndarray, boxes: np.ndarray = EGO_BODY_BOXES) -> tuple[np.ndarray, np.ndarray]:
     """First hit of rays on axis-aligned boxes (slab test): (distance along the unit ``dirs``,
     inf where none; |cosine| between the ray and the face it enters)."""
-    best = np.full(dirs.shape[:-1], np.inf)
-    cos = np.zeros(dirs.shape[:-1])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = 1.0 / dirs
-        for b in boxes:
-            t0 = (b[:3] - origin) * inv
-            t1 = (b[3:] - origin) * inv
-            lo = np.minimum(t0, t1)
-            hi = np.maximum(t0, t1)
-            lo = np.where(np.isnan(lo), -np.inf, lo)
-            hi = np.where(np.isnan(hi), np.inf, hi)
-            t_in = lo.max(axis=-1)
-            t_out = hi.min(axis=-1)
-            hit = (t_in <= t_out) & (t_in > 0.0) & (t_in < best)
-            axis = lo.argmax(axis=-1)
-            best = np.where(hit, t_in, best)
-            cos = np.where(hit, np.abs(np.take_along_axis(dirs, axis[..., None], axis=-1)[..., 0]), cos)
-    return best, cos
+    flat = np.ascontiguousarray(dirs, dtype=np.float64).reshape(-1, 3)
+    best = np.full(flat.shape[0], np.inf)
+    cos = np.zeros(flat.shape[0])
+    _k_body_hits(np.asarray(origin, dtype=np.float64), flat, np.ascontiguousarray(boxes, dtype=np.float64), best, cos)
+    return best.reshape(dirs.shape[:-1]), cos.reshape(dirs.shape[:-1])
 
 
 class LidarModel:
