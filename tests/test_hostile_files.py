@@ -165,3 +165,41 @@ def test_a_scene_missing_from_the_index_is_named(tmp_path):
     (tmp_path / "index.json").write_text('{"scenes": [{"name": "sim-000001", "file": "sim-000001.npz"}]}')
     with pytest.raises(SceneIndexError, match="no scene 'sim-000002'.*sim-000001"):
         SimFilesSource(str(tmp_path)).load("sim-000002")
+
+
+@pytest.mark.parametrize("cut", [1, 3, 4, 16])
+def test_a_cut_lidar_file_is_an_error_not_fewer_points(tmp_path, cut):
+    from evgrid.data.nuscenes_format import read_lidar_bin, write_lidar_bin
+
+    path = tmp_path / "sweep.pcd.bin"
+    write_lidar_bin(path, np.ones((51, 5), np.float32))
+    path.write_bytes(path.read_bytes()[:-cut])  # 1,019 .. 1,004 bytes: 4 of them still a multiple of 4
+    with pytest.raises(ValueError, match=r"sweep\.pcd\.bin.*not a multiple of 20"):
+        read_lidar_bin(path)
+
+
+def test_one_nan_radar_record_drops_that_record_only(tmp_path, caplog):
+    from evgrid.data.frame import RADAR_COLUMNS
+    from evgrid.data.nuscenes_format import read_radar_pcd, read_radar_pcd_with_stats, write_radar_pcd
+
+    pts = np.zeros((40, len(RADAR_COLUMNS)), np.float32)
+    pts[:, 0] = np.arange(40) + 1.0
+    pts[0, 0] = np.nan
+    path = tmp_path / "radar.pcd"
+    write_radar_pcd(path, pts)
+    rec, n_bad = read_radar_pcd_with_stats(path)
+    assert n_bad == 1 and len(rec) == 39 and rec["x"][0] == 2.0
+    assert "1 of 40 radar records" in caplog.text
+    write_radar_pcd(path, pts[:0])  # the devkit's empty cloud: one all-NaN record
+    assert len(read_radar_pcd(path)) == 0
+
+
+def test_a_radar_file_with_bytes_beyond_its_header_is_an_error(tmp_path):
+    from evgrid.data.frame import RADAR_COLUMNS
+    from evgrid.data.nuscenes_format import read_radar_pcd, write_radar_pcd
+
+    path = tmp_path / "radar.pcd"
+    write_radar_pcd(path, np.ones((3, len(RADAR_COLUMNS)), np.float32))
+    path.write_bytes(path.read_bytes() + b"\0" * 7)
+    with pytest.raises(ValueError, match=r"radar\.pcd.*declares 3 points"):
+        read_radar_pcd(path)

@@ -36,7 +36,7 @@ import numpy as np
 
 from evgrid.data.frame import LIDAR_CHANNEL, Frame, LidarSweep, RadarSweep
 from evgrid.data.sweeps import GapCounter, channel_order
-from evgrid.data.nuscenes_format import radar_pcd_to_columns, read_lidar_bin, read_radar_pcd
+from evgrid.data.nuscenes_format import radar_pcd_to_columns, read_lidar_bin, read_radar_pcd_with_stats
 from evgrid.geometry import SE3
 
 __all__ = ["load_nuscenes", "nuscenes_splits", "NuScenesScene", "NuScenesError", "NUSCENES_DOWNLOAD_URL"]
@@ -211,7 +211,8 @@ class NuScenesScene:
             for tok in self._radar[i][ch]:
                 rsd = nusc.get("sample_data", tok)
                 rs2e, rpose = self._poses(rsd)
-                rec = read_radar_pcd(os.path.join(nusc.dataroot, rsd["filename"]))
+                rec, n_bad = read_radar_pcd_with_stats(os.path.join(nusc.dataroot, rsd["filename"]))
+                self.stats["radar_records_dropped"] = self.stats.get("radar_records_dropped", 0) + n_bad
                 sweeps.append(RadarSweep(radar_pcd_to_columns(rec), rs2e, rpose, int(rsd["timestamp"]), ch))
             radar[ch] = tuple(sweeps)
         return Frame(

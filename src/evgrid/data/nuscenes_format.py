@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import os
 from pathlib import Path
 from typing import Callable, Iterable, Mapping, Sequence
@@ -30,6 +31,8 @@ from evgrid.data.frame import LIDAR_CHANNEL, RADAR_COLUMNS, Frame, Scene
 from evgrid.data.sweeps import channel_order
 from evgrid.io import atomic_open, atomic_write_bytes, atomic_write_text
 
+logger = logging.getLogger(__name__)
+
 __all__ = [
     "RADAR_PCD_FIELDS",
     "RADAR_PCD_DTYPE",
@@ -37,6 +40,7 @@ __all__ = [
     "read_lidar_bin",
     "write_radar_pcd",
     "read_radar_pcd",
+    "read_radar_pcd_with_stats",
     "radar_pcd_to_columns",
     "write_nuscenes",
     "NUSCENES_TABLES",
@@ -102,9 +106,11 @@ def write_lidar_bin(path: str | os.PathLike, points: np.ndarray) -> None:
 
 def read_lidar_bin(path: str | os.PathLike) -> np.ndarray:
     """Read a nuScenes lidar ``.pcd.bin`` -> ``(n, 5)`` float32 (x, y, z, intensity, ring)."""
+    size = os.path.getsize(path)
+    if size % 20:  # 5 little-endian float32 a point: a cut file must not pass as fewer points
+        raise ValueError(f"{str(path)!r} holds {size} bytes, not a multiple of 20 (5 float32 a point: x, y, z, "
+                         "intensity, ring); the file is cut or not a nuScenes lidar sweep")
     raw = np.fromfile(path, dtype="<f4")
-    if raw.size % 5:
-        raise ValueError(f"{str(path)!r} holds {raw.size} floats, not a multiple of 5 (x, y, z, intensity, ring)")
     return raw.reshape(-1, 5).astype(np.float32, copy=False)
 
 
@@ -156,7 +162,13 @@ def write_radar_pcd(path: str | os.PathLike, points: np.ndarray) -> None:
 
 def read_radar_pcd(path: str | os.PathLike) -> np.ndarray:
     """Read a nuScenes radar ``.pcd`` (binary, any field layout its header declares) into a
-    structured array with one named field per PCD field. Unfiltered; empty clouds give 0 rows."""
+    structured array with one named field per PCD field. Unfiltered, except that records with a
+    non-finite position are dropped (logged with their count); empty clouds give 0 rows."""
+    return read_radar_pcd_with_stats(path)[0]
+
+
+def _read_pcd_records(path: str | os.PathLike) -> np.ndarray:
+    """Every record of a binary ``.pcd``, its size checked exactly against the header."""
     with open(path, "rb") as f:
         blob = f.read()
     header: dict[str, list[str]] = {}
@@ -190,9 +202,29 @@ def read_radar_pcd(path: str | os.PathLike) -> np.ndarray:
     if len(blob) - pos < need:
         raise ValueError(f"{str(path)!r}: header declares {n} points ({need} bytes) but {len(blob) - pos} bytes follow")
     rec = np.frombuffer(blob, dtype=dtype, count=n, offset=pos)
-    if n and "x" in dtype.names and np.isnan(rec["x"][0]):
-        return rec[:0]  # the devkit's empty-cloud convention
+    if blob[pos + need:].strip(b" \r\n"):  # a trailing newline is harmless; more data is not
+        raise ValueError(f"{str(path)!r}: header declares {n} points ({need} bytes) but {len(blob) - pos} bytes follow")
     return rec
+
+
+def read_radar_pcd_with_stats(path: str | os.PathLike) -> tuple[np.ndarray, int]:
+    """:func:`read_radar_pcd` and how many records it dropped for a non-finite position."""
+    return _drop_nonfinite(_read_pcd_records(path), path)
+
+
+def _drop_nonfinite(rec: np.ndarray, path: str | os.PathLike) -> tuple[np.ndarray, int]:
+    """Records whose position is not finite are dropped, each alone, and counted in a warning
+    (the devkit writes an empty cloud as one all-NaN record; that one is dropped silently)."""
+    if not len(rec) or not {"x", "y", "z"} <= set(rec.dtype.names):
+        return rec, 0
+    ok = np.isfinite(rec["x"]) & np.isfinite(rec["y"]) & np.isfinite(rec["z"])
+    n_bad = int(len(rec) - ok.sum())
+    if n_bad and len(rec) == 1:
+        return rec[:0], 0  # the devkit's empty cloud
+    if n_bad:
+        logger.warning("%s: %d of %d radar records have a non-finite position; those records are dropped",
+                       path, n_bad, len(rec))
+    return (rec[ok] if n_bad else rec), n_bad
 
 
 def radar_pcd_to_columns(rec: np.ndarray) -> np.ndarray:
