@@ -8,6 +8,7 @@ from typing import Any
 
 from evgrid.data.frame import RADAR_CHANNELS
 from evgrid.geometry import GridSpec
+from evgrid.validation import check_int, check_number
 
 __all__ = ["LidarConfig", "RadarConfig", "EgoConfig", "WorldConfig", "SweepFaults", "RigConfig", "SimConfig", "ENVIRONMENTS"]
 
@@ -16,15 +17,11 @@ ENVIRONMENTS: tuple[str, ...] = ("urban", "suburban", "mixed")
 
 
 def _positive(owner: str, name: str, value: float, allow_zero: bool = False) -> None:
-    ok = math.isfinite(value) and (value >= 0 if allow_zero else value > 0)
-    if not ok:
-        kind = "non-negative" if allow_zero else "positive"
-        raise ValueError(f"{owner}.{name} must be a finite {kind} number, got {value!r}")
+    check_number(owner, name, value, min=0.0, min_open=not allow_zero)
 
 
 def _fraction(owner: str, name: str, value: float) -> None:
-    if not (math.isfinite(value) and 0.0 <= value <= 1.0):
-        raise ValueError(f"{owner}.{name} must be in [0, 1], got {value!r}")
+    check_number(owner, name, value, min=0.0, max=1.0)
 
 
 @dataclass(frozen=True)
@@ -54,10 +51,8 @@ class LidarConfig:
     def __post_init__(self) -> None:
         o = "LidarConfig"
         _positive(o, "rate_hz", self.rate_hz)
-        if not isinstance(self.n_beams, int) or not 1 <= self.n_beams <= 128:
-            raise ValueError(f"{o}.n_beams must be an integer in [1, 128], got {self.n_beams!r}")
-        if not isinstance(self.n_azimuth, int) or not 8 <= self.n_azimuth <= 8192:
-            raise ValueError(f"{o}.n_azimuth must be an integer in [8, 8192], got {self.n_azimuth!r}")
+        check_int(o, "n_beams", self.n_beams, min=1, max=128)
+        check_int(o, "n_azimuth", self.n_azimuth, min=8, max=8192)
         if not (-89.0 < self.elev_min_deg <= self.elev_max_deg < 89.0):
             raise ValueError(
                 f"{o} needs -89 < elev_min_deg <= elev_max_deg < 89, got {self.elev_min_deg!r}, {self.elev_max_deg!r}"
@@ -142,8 +137,7 @@ class RadarConfig:
             raise ValueError(f"{o} needs far_fov_deg <= fov_deg <= 90, got {self.far_fov_deg!r}, {self.fov_deg!r}")
         if self.edge_range_m > self.max_range_m:
             raise ValueError(f"{o}.edge_range_m ({self.edge_range_m!r}) must not exceed max_range_m ({self.max_range_m!r})")
-        if not isinstance(self.max_detections, int) or self.max_detections < 1:
-            raise ValueError(f"{o}.max_detections must be a positive integer, got {self.max_detections!r}")
+        check_int(o, "max_detections", self.max_detections, min=1)
 
 
 @dataclass(frozen=True)
