@@ -111,7 +111,7 @@ def simulate(
 
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-    from evgrid.io import atomic_write_text
+    from evgrid.io import write_json
     from evgrid.data.sim import simulate_scene
     from evgrid.data.sim.config import ENVIRONMENTS
     from evgrid.sources import sim_split
@@ -149,7 +149,7 @@ def simulate(
                               "environment": scene.world.environment, "frames": len(scene)})
                 # Rewritten after each scene: an interrupted run still indexes what it wrote.
                 index.sort(key=lambda e: e["name"])
-                atomic_write_text(index_path, json.dumps({"format": "evgrid-sim-npz", "scenes": index}, indent=1))
+                write_json(index_path, {"format": "evgrid-sim-npz", "scenes": index})
         else:
             from evgrid.data.nuscenes_format import write_nuscenes
 

@@ -29,7 +29,7 @@ import numpy as np
 
 from evgrid.data.frame import LIDAR_CHANNEL, RADAR_COLUMNS, Frame, Scene
 from evgrid.data.sweeps import channel_order
-from evgrid.io import atomic_open, atomic_write_bytes, atomic_write_text
+from evgrid.io import atomic_open, atomic_write_bytes, write_json
 
 logger = logging.getLogger(__name__)
 
@@ -446,7 +446,7 @@ def write_nuscenes(
         bad = {s: v for s, v in bad.items() if v}
         if bad:
             raise ValueError(f"splits name scenes that were not written: {bad}")
-        atomic_write_text(table_root / "splits.json", json.dumps({k: list(v) for k, v in splits.items()}, indent=1))
+        write_json(table_root / "splits.json", {k: list(v) for k, v in splits.items()})
     elif (table_root / "splits.json").exists() and overwrite:
         os.unlink(table_root / "splits.json")
     return table_root

@@ -37,7 +37,7 @@ from evgrid.data.frame import Frame
 from evgrid.data.radar_filter import RadarFilter
 from evgrid.evaluate import CLASSES
 from evgrid.geometry import GridSpec
-from evgrid.io import atomic_write
+from evgrid.io import atomic_write, write_json
 from evgrid.ism.deep import CHANNELS, RadarImageParams, detections_to_image, radar_detections
 from evgrid.ism.evnet import EvNet, EvNetConfig, save_checkpoint
 from evgrid.ism.self_returns import SelfReturnParams
@@ -171,7 +171,7 @@ def build_cache(
             arrays["irm"] = np.stack(irms)
         for key, arr in arrays.items():
             atomic_write(files[key], lambda f, a=arr: np.save(f, a))
-        atomic_write(files["done"], lambda f: f.write(json.dumps({"samples": len(dets)}).encode()))
+        write_json(files["done"], {"samples": len(dets)})
         if progress:
             progress(name)
     return names
