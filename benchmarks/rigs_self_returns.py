@@ -16,13 +16,12 @@ import tempfile
 import time
 
 import numpy as np
-from scipy.ndimage import distance_transform_edt
 
 from evgrid.config import MapperConfig
 from evgrid.data.sim import SimConfig, simulate_scene
 from evgrid.data.sim.config import LidarConfig, RigConfig
 from evgrid.data.sim.lidar import EGO_HIT
-from evgrid.evaluate import FREE, classify
+from evgrid.evaluate import free_fraction_near_path
 from evgrid.ism.self_returns import SelfReturnFilter, SelfReturnParams
 from evgrid.mapper import OccupancyMapper
 
@@ -34,13 +33,8 @@ RIGS = {
 
 
 def free_near_path(mapper: OccupancyMapper, radius_m: float = 10.0) -> float:
-    masses, _, r0, c0 = mapper.maps["ray_ilm"].to_dense()
-    res = mapper.config.grid.resolution
-    path = np.zeros(masses.shape[:2], bool)
-    for x, y, _ in mapper.trajectory:
-        path[int(np.floor(-x / res)) - r0, int(np.floor(-y / res)) - c0] = True
-    near = distance_transform_edt(~path) * res <= radius_m
-    return float((classify(masses)[near] == FREE).mean())
+    """Fraction of the ray_ilm map's cells within ``radius_m`` of the driven path that are free."""
+    return free_fraction_near_path(mapper.maps["ray_ilm"], mapper.trajectory, radius_m)
 
 
 def scene_frames(seed: int, cfg: SimConfig, via_nuscenes: bool):

@@ -59,3 +59,19 @@ def test_mean_iou_skips_undefined_and_table_lists_paper():
     assert m["fused"] == {"free": pytest.approx(0.6), "occupied": pytest.approx(0.1), "unknown": pytest.approx(0.3)}
     table = markdown_table(m)
     assert "| `fused` | 60.00 | 10.00 | 30.00 | 76.88 | 5.44 | 45.69 |" in table
+
+
+def test_free_fraction_near_path_hand_computed():
+    from evgrid.evaluate import free_fraction_near_path
+    from evgrid.grid import EvidentialMap, MapWindow
+
+    grid = GridSpec(16, 1.6)  # 0.1 m cells
+    m = EvidentialMap(grid, 8)
+    masses = mass.vacuous(grid.shape)
+    masses[:, :8] = [0.9, 0.0, 0.1]  # the left half free, the right half unknown
+    m.apply(MapWindow(0, 0, masses, np.ones(grid.shape, bool)), lambda c, w: np.copyto(c, w))
+    # a path along the boundary between the halves: x in the map frame is -row, y is -col
+    path = [(-(r + 0.5) * 0.1, -8.05 * 0.1, 0.0) for r in range(16)]
+    assert free_fraction_near_path(m, path, radius_m=0.05) == 0.0  # only the path's own cells (column 8)
+    # within 0.35 m: columns 5..11 of every row, 3 of them free on the left of column 8
+    assert abs(free_fraction_near_path(m, path, radius_m=0.35) - 3 / 7) < 1e-9

@@ -8,7 +8,6 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from scipy.ndimage import distance_transform_edt
 
 from evgrid.config import MapperConfig, RunConfig, from_dict
 from evgrid.data import RadarSweep, radar_column
@@ -19,7 +18,7 @@ from evgrid.data.sim import SimConfig, simulate_scene
 from evgrid.data.sim.config import LidarConfig, RigConfig, SweepFaults
 from evgrid.data.sim.lidar import EGO_HIT
 from evgrid.data.sweeps import GapCounter, RadarBuffer
-from evgrid.evaluate import FREE, classify
+from evgrid.evaluate import free_fraction_near_path
 from evgrid.geometry import SE3
 from evgrid.ism import ray_ilm
 from evgrid.ism.self_returns import NUSCENES_BODY, BodyBox, SelfReturnFilter, SelfReturnParams, parse_body_box
@@ -30,13 +29,7 @@ RIG = RigConfig(radar_channels=("RADAR_FRONT", "RADAR_BACK_LEFT", "RADAR_BACK_RI
 
 def free_near_path(mapper: OccupancyMapper, radius_m: float = 10.0) -> float:
     """Fraction of the ray_ilm map's cells within ``radius_m`` of the driven path that are free."""
-    masses, _, r0, c0 = mapper.maps["ray_ilm"].to_dense()
-    res = mapper.config.grid.resolution
-    path = np.zeros(masses.shape[:2], bool)
-    for x, y, _ in mapper.trajectory:
-        path[int(np.floor(-x / res)) - r0, int(np.floor(-y / res)) - c0] = True
-    near = distance_transform_edt(~path) * res <= radius_m
-    return float((classify(masses)[near] == FREE).mean())
+    return free_fraction_near_path(mapper.maps["ray_ilm"], mapper.trajectory, radius_m)
 
 
 # --- self-returns ---------------------------------------------------------------------------------

@@ -85,10 +85,9 @@ class EvNet(nn.Module):
             c = widths[k]
         self.head = nn.Conv2d(c, 2, 1)
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """Evidence ``[e_f, e_o]`` at the input's resolution."""
-        size = x.shape[-2:]
-        h = self.pool_in(x)
+    def trunk(self, h: torch.Tensor) -> torch.Tensor:
+        """Evidence ``[e_f, e_o]`` at the max-pooled input's resolution: the U-Net between the
+        input pooling and the output upsampling (what the deep IRM's fast path runs)."""
         skips = []
         for k, blk in enumerate(self.enc):
             if k:
@@ -99,7 +98,12 @@ class EvNet(nn.Module):
         for blk, skip in zip(self.dec, reversed(skips[:-1])):
             h = F.interpolate(h, size=skip.shape[-2:], mode="bilinear", align_corners=False)
             h = blk(torch.cat([h, skip], dim=1))
-        e = F.softplus(self.head(h))
+        return F.softplus(self.head(h))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Evidence ``[e_f, e_o]`` at the input's resolution."""
+        size = x.shape[-2:]
+        e = self.trunk(self.pool_in(x))
         if e.shape[-2:] != size:
             # upsample evidence, which stays non-negative under a convex (bilinear) mix
             e = F.interpolate(e, size=size, mode="bilinear", align_corners=False)

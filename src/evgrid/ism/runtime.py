@@ -46,7 +46,6 @@ def evnet_trunk(model):
     """
     import torch
     from torch import nn
-    from torch.nn import functional as F
 
     class _Trunk(nn.Module):
         def __init__(self, net):
@@ -54,18 +53,7 @@ def evnet_trunk(model):
             self.net = net
 
         def forward(self, h: torch.Tensor) -> torch.Tensor:
-            net = self.net
-            skips = []
-            for k, blk in enumerate(net.enc):
-                if k:
-                    h = F.max_pool2d(h, 2)
-                h = blk(h)
-                skips.append(h)
-            h = net.bottleneck(h)
-            for blk, skip in zip(net.dec, reversed(skips[:-1])):
-                h = F.interpolate(h, size=skip.shape[-2:], mode="bilinear", align_corners=False)
-                h = blk(torch.cat([h, skip], dim=1))
-            return F.softplus(net.head(h))
+            return self.net.trunk(h)
 
     return _Trunk(model).eval()
 
