@@ -135,7 +135,7 @@ def write_radar_pcd(path: str | os.PathLike, points: np.ndarray) -> None:
                 rec[name] = p[:, k]
         rec["id"] = np.arange(n, dtype=np.int16)
         rec["is_quality_valid"] = 1
-        rng_m = np.hypot(p[:, 0], p[:, 1])
+        rng_m = np.nan_to_num(np.hypot(p[:, 0], p[:, 1]), nan=0.0, posinf=620.0)  # rms codes only; a NaN point stays NaN
         code = np.clip(3 + (rng_m // 20).astype(np.int64), 0, 31).astype(np.int8)
         rec["x_rms"] = code
         rec["y_rms"] = code
