@@ -27,7 +27,7 @@ bench: $(STAMP)
 
 # The README's first command: set up, then map simulated scenes with the shipped Ev-Net.
 demo: $(STAMP)
-	$(VENV)/bin/evgrid demo --out out/demo
+	$(VENV)/bin/evgrid demo --out out/demo --overwrite
 
 clean:
 	rm -rf $(VENV) build dist .pytest_cache
