@@ -8,6 +8,8 @@ import math
 import cv2
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from evgrid.ism.self_returns import NUSCENES_BODY
 from evgrid.data import RADAR_CHANNELS, RADAR_COLUMNS, Frame, radar_column
@@ -419,3 +421,20 @@ def test_npz_scene_file_round_trip(tmp_path):
     (tmp_path / "bad.npz").write_bytes(b"not a zip")
     with pytest.raises(ValueError, match="bad.npz"):
         load_sim_scene(tmp_path / "bad.npz")
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    st.lists(st.floats(-6.0, 6.0), min_size=2, max_size=2), st.floats(-math.pi, math.pi), st.floats(-math.pi, math.pi),
+    st.lists(st.floats(0.2, 3.0), min_size=4, max_size=4),
+)
+def test_bounds_prefilter_never_hides_an_overlap(offset, yaw_a, yaw_b, half):
+    """The world builder skips the exact footprint test for boxes whose axis-aligned bounds do not
+    touch; that must never skip a pair that overlaps."""
+    from evgrid.data.sim.world import _aabbs, _overlap, _touch
+
+    a = pack_boxes(np.zeros(1), np.zeros(1), np.array([yaw_a]), np.array([half[0]]), np.array([half[1]]), np.zeros(1), np.ones(1))
+    b = pack_boxes(np.array([offset[0]]), np.array([offset[1]]), np.array([yaw_b]), np.array([half[2]]), np.array([half[3]]),
+                   np.zeros(1), np.ones(1))
+    if _overlap(a, b)[0]:
+        assert _touch(_aabbs(a), _aabbs(b))[0]

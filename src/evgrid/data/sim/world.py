@@ -369,24 +369,39 @@ def _ego_boxes(traj: Trajectory, ts: np.ndarray, margin: float) -> np.ndarray:
     )
 
 
+def _aabbs(p: np.ndarray) -> np.ndarray:
+    """Axis-aligned footprint bounds ``(x_lo, y_lo, x_hi, y_hi)`` of packed boxes."""
+    ex = np.abs(p[:, 2]) * p[:, 4] + np.abs(p[:, 3]) * p[:, 5]
+    ey = np.abs(p[:, 3]) * p[:, 4] + np.abs(p[:, 2]) * p[:, 5]
+    return np.stack([p[:, 0] - ex, p[:, 1] - ey, p[:, 0] + ex, p[:, 1] + ey], -1)
+
+
+def _touch(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Do bounds ``a`` and ``b`` (broadcast, last axis x_lo, y_lo, x_hi, y_hi) intersect? Boxes
+    whose bounds do not intersect cannot overlap, so only the others need the exact test."""
+    return (a[..., 0] <= b[..., 2]) & (b[..., 0] <= a[..., 2]) & (a[..., 1] <= b[..., 3]) & (b[..., 1] <= a[..., 3])
+
+
 class _MoverSet:
-    """Accepts candidate movers that collide with nothing over the scene (sampled every 0.2 s)."""
+    """Accepts candidate movers that collide with nothing over the scene (sampled every 0.2 s).
+
+    Each test first compares axis-aligned bounds (whole tracks, then per sample time) and runs
+    the exact separating-axis test only on the pairs left, so building a long drive's world
+    grows with its traffic, not with traffic x duration x traffic."""
 
     def __init__(self, traj: Trajectory, duration: float, static: np.ndarray) -> None:
         self.traj = traj
         self.ts = np.arange(-0.3, duration + 0.31, 0.2)
         self.ego = _ego_boxes(traj, self.ts, margin=0.6)
+        self.ego_aabb = _aabbs(self.ego)
         self.static = static
         self.static_lo = static[:, 6] if len(static) else np.zeros(0)
         self.static_hi = static[:, 7] if len(static) else np.zeros(0)
-        ext = np.abs(static[:, 2]) * static[:, 4] + np.abs(static[:, 3]) * static[:, 5] if len(static) else np.zeros(0)
-        exty = np.abs(static[:, 3]) * static[:, 4] + np.abs(static[:, 2]) * static[:, 5] if len(static) else np.zeros(0)
-        self.static_aabb = (
-            np.stack([static[:, 0] - ext, static[:, 1] - exty, static[:, 0] + ext, static[:, 1] + exty], 1) if len(static) else np.zeros((0, 4))
-        )
+        self.static_aabb = _aabbs(static) if len(static) else np.zeros((0, 4))
         self.accepted: list[dict] = []
         self.tracks: list[np.ndarray] = []
-        self._stacked: np.ndarray | None = None
+        self.track_aabbs: list[np.ndarray] = []
+        self.track_bounds = np.zeros((0, 4))
 
     def _track(self, m: dict) -> np.ndarray:
         """Packed boxes of one candidate at every sample time."""
@@ -404,32 +419,25 @@ class _MoverSet:
     def offer(self, m: dict) -> bool:
         """Accept ``m`` if it overlaps neither the ego, nor accepted movers, nor static boxes."""
         tr = self._track(m)
-        if _overlap(tr, self.ego).any():
+        box = _aabbs(tr)
+        bounds = np.concatenate([box[:, :2].min(0), box[:, 2:].max(0)])
+        near = _touch(box, self.ego_aabb)
+        if near.any() and _overlap(tr[near], self.ego[near]).any():
             return False
-        if self.tracks:
-            if self._stacked is None:
-                self._stacked = np.concatenate(self.tracks, axis=0)
-            if _overlap(np.tile(tr, (len(self.tracks), 1)), self._stacked).any():
+        for k in np.nonzero(_touch(self.track_bounds, bounds))[0]:
+            near = _touch(box, self.track_aabbs[k])
+            if near.any() and _overlap(tr[near], self.tracks[k][near]).any():
                 return False
         if len(self.static):
-            ext = np.abs(tr[:, 2]) * tr[:, 4] + np.abs(tr[:, 3]) * tr[:, 5]
-            exty = np.abs(tr[:, 3]) * tr[:, 4] + np.abs(tr[:, 2]) * tr[:, 5]
-            lo = np.array([(tr[:, 0] - ext).min(), (tr[:, 1] - exty).min()])
-            hi = np.array([(tr[:, 0] + ext).max(), (tr[:, 1] + exty).max()])
-            a = self.static_aabb
-            cand = np.nonzero(
-                (a[:, 0] <= hi[0]) & (a[:, 2] >= lo[0]) & (a[:, 1] <= hi[1]) & (a[:, 3] >= lo[1])
-                & (self.static_lo < m["z1"]) & (self.static_hi > m["z0"])
-            )[0]
+            cand = np.nonzero(_touch(self.static_aabb, bounds) & (self.static_lo < m["z1"]) & (self.static_hi > m["z0"]))[0]
             if len(cand):
-                k = len(cand)
-                aa = np.tile(tr, (k, 1))
-                bb = np.repeat(self.static[cand], len(tr), axis=0)
-                if _overlap(aa, bb).any():
+                t_idx, s_idx = np.nonzero(_touch(box[:, None, :], self.static_aabb[cand][None, :, :]))
+                if len(t_idx) and _overlap(tr[t_idx], self.static[cand[s_idx]]).any():
                     return False
         self.accepted.append(m)
         self.tracks.append(tr)
-        self._stacked = None
+        self.track_aabbs.append(box)
+        self.track_bounds = np.vstack([self.track_bounds, bounds])
         return True
 
     def movers(self) -> Movers:
