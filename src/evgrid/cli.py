@@ -516,6 +516,9 @@ def train(
     self_returns: str = _SELF_RETURNS,
     body_box: str = _BODY_BOX,
     radar_filter: str = _RADAR_FILTER,
+    random_radar: bool = typer.Option(True, "--random-radar/--calibrated-radar", help="Simulator: draw each scene's "
+                                      "radar (sensitivity, noise, clutter, ghosts, which radars, rate) from the "
+                                      "training ranges (docs/simulator.md), or use the calibrated radar for all."),
     resume: bool = typer.Option(False, "--resume", help="Continue the run in --out."),
 ) -> None:
     """Train Ev-Net (the deep IRM) on simulated scenes or nuScenes, against the ray ILM.
@@ -530,6 +533,7 @@ def train(
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     from evgrid.data.radar_filter import RadarFilter
+    from evgrid.data.radar_variants import TRAINING_RANGES
     from evgrid.ism.evnet import EvNetConfig
     from evgrid.ism.self_returns import SelfReturnParams
     from evgrid.learn.train import TrainConfig, build_cache
@@ -540,7 +544,8 @@ def train(
         config = TrainConfig(epochs=epochs, batch_size=batch_size, lr=lr, seed=seed, workers=workers,
                              frame_stride=frame_stride, model=EvNetConfig(in_channels=6, width=width, depth=depth),
                              radar_filter=RadarFilter.named(radar_filter or "none"),
-                             self_returns=_self_returns(SelfReturnParams(), self_returns, body_box))
+                             self_returns=_self_returns(SelfReturnParams(), self_returns, body_box),
+                             radar_ranges=TRAINING_RANGES if random_radar and not (bag or val_bag or nuscenes) else None)
     except ValueError as e:
         raise typer.BadParameter(str(e)) from e
     if bag or val_bag:
@@ -557,7 +562,9 @@ def train(
     else:
         from evgrid.sources import SimSource
 
-        tr, va = SimSource.split("train", scenes, seed, duration), SimSource.split("val", val_scenes, seed, duration)
+        ranges = config.radar_ranges
+        tr = SimSource.split("train", scenes, seed, duration, radar_ranges=ranges)
+        va = SimSource.split("val", val_scenes, seed, duration, radar_ranges=ranges)
     cache = out / "cache" / config.data_key()
     rank = int(__import__("os").environ.get("RANK", "0"))
     names = {}
@@ -652,6 +659,44 @@ def export_cmd(
     written = export_map(load_map(map_file), out or map_file.with_suffix(""), fmt, name=map_file.stem)
     for path in written:
         typer.echo(f"wrote {path}")
+
+
+@_command()
+def transfer(
+    out: Path = typer.Option(Path("out/transfer"), "--out", help="Results folder: transfer.json, transfer.md, sample cache."),
+    checkpoint: Path = _CHECKPOINT,
+    scenes: int = typer.Option(4, "--scenes", min=1, help="Held-out (val) simulated scenes per radar."),
+    seed: int = typer.Option(1000, "--seed", min=0, help="First simulator seed."),
+    duration: float = typer.Option(10.0, "--duration", help="Scene length in seconds."),
+) -> None:
+    """Score Ev-Net's single frames on radars inside and outside its training ranges.
+
+    The same held-out scenes are seen through radars drawn from the training ranges, the
+    calibrated radar, and radars outside the ranges (weaker, stronger, noisier, more clutter and
+    ghosts, other placements, slower); each gets the deep IRM's and the ray IRM's IoU per class
+    against the ray ILM.
+
+    Example:
+      evgrid transfer --scenes 4 --out out/transfer
+    """
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from evgrid.io import atomic_write_text, write_json
+    from evgrid.ism.deep import default_checkpoint
+    from evgrid.learn.transfer import measure_transfer, transfer_markdown, transfer_sources
+
+    sources = transfer_sources(scenes, seed, duration)
+    ckpt = checkpoint or default_checkpoint()
+    out.mkdir(parents=True, exist_ok=True)
+    with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn()) as p:
+        task = p.add_task("radars", total=len(sources))
+        res = measure_transfer(ckpt, sources, out / "cache", progress=lambda name: p.update(task, advance=1, description=name))
+    text = transfer_markdown(res)
+    write_json(out / "transfer.json", {"checkpoint": str(ckpt), "scenes": scenes, "seed": seed, "duration_s": duration,
+                                       "radars": res})
+    atomic_write_text(out / "transfer.md", text)
+    typer.echo(text)
+    typer.echo(f"wrote {out / 'transfer.json'} and {out / 'transfer.md'}")
 
 
 @_command("upgrade-checkpoint")

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Protocol, Sequence
 
 from evgrid.data.frame import Scene
+from evgrid.data.radar_variants import RadarRanges, RadarVariant
 
 __all__ = ["SceneSource", "SimSource", "SimFilesSource", "NuScenesSource", "BagSource", "SceneIndexError", "sim_split", "source_to_dict", "source_from_dict"]
 
@@ -36,13 +37,24 @@ class SceneSource(Protocol):
 
 @dataclass(frozen=True)
 class SimSource:
-    """Simulated scenes of the given seeds (``duration_s`` seconds each)."""
+    """Simulated scenes of the given seeds (``duration_s`` seconds each).
+
+    The radar is the calibrated one, or ``radar`` for every scene, or one drawn per scene from
+    ``radar_ranges`` (what Ev-Net trains on); the town and drive of a seed stay the same.
+    """
 
     seeds: tuple[int, ...]
     duration_s: float = 20.0
+    radar: RadarVariant | None = None
+    radar_ranges: RadarRanges | None = None
+
+    def __post_init__(self) -> None:
+        if self.radar is not None and self.radar_ranges is not None:
+            raise ValueError("SimSource takes radar or radar_ranges, not both")
 
     @classmethod
-    def split(cls, split: str, n: int, first_seed: int = 0, duration_s: float = 20.0) -> "SimSource":
+    def split(cls, split: str, n: int, first_seed: int = 0, duration_s: float = 20.0, radar: RadarVariant | None = None,
+              radar_ranges: RadarRanges | None = None) -> "SimSource":
         """The first ``n`` seeds from ``first_seed`` on that belong to ``split`` (``train`` or ``val``)."""
         if split not in ("train", "val"):
             raise ValueError(f"split must be 'train' or 'val', got {split!r}")
@@ -51,7 +63,15 @@ class SimSource:
             if sim_split(s) == split:
                 seeds.append(s)
             s += 1
-        return cls(tuple(seeds), duration_s)
+        return cls(tuple(seeds), duration_s, radar, radar_ranges)
+
+    def config(self, seed: int):
+        """The simulator's configuration of scene ``seed``."""
+        from evgrid.data.sim import SimConfig
+
+        config = SimConfig(duration_s=self.duration_s)
+        radar = self.radar_ranges.draw(seed) if self.radar_ranges is not None else self.radar
+        return radar.apply(config) if radar is not None else config
 
     def names(self) -> list[str]:
         from evgrid.data.sim.scene import scene_name
@@ -59,12 +79,12 @@ class SimSource:
         return [scene_name(s) for s in self.seeds]
 
     def load(self, name: str) -> Scene:
-        from evgrid.data.sim import SimConfig, simulate_scene
+        from evgrid.data.sim import simulate_scene
 
         by_name = dict(zip(self.names(), self.seeds))
         if name not in by_name:
             raise KeyError(f"no simulated scene {name!r} among {sorted(by_name)}")
-        return simulate_scene(by_name[name], SimConfig(duration_s=self.duration_s))
+        return simulate_scene(by_name[name], self.config(by_name[name]))
 
 
 class SceneIndexError(ValueError):

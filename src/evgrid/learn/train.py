@@ -35,6 +35,7 @@ from torch.utils.data import DataLoader, Dataset
 from evgrid.classes import FREE, OCCUPIED, UNKNOWN
 from evgrid.data.frame import Frame
 from evgrid.data.radar_filter import RadarFilter
+from evgrid.data.radar_variants import RadarRanges
 from evgrid.evaluate import CLASSES
 from evgrid.geometry import GridSpec
 from evgrid.io import atomic_write, write_json
@@ -74,6 +75,8 @@ class TrainConfig:
     image: RadarImageParams = field(default_factory=RadarImageParams)
     radar_filter: RadarFilter = field(default_factory=RadarFilter)  # as in mapping
     self_returns: SelfReturnParams = field(default_factory=SelfReturnParams)  # the targets' ray ILM, as in mapping
+    #: Simulated data only: a radar drawn per scene from these ranges (None: the calibrated radar).
+    radar_ranges: RadarRanges | None = None
 
     def __post_init__(self) -> None:
         for name in ("epochs", "batch_size", "frame_stride"):
@@ -93,7 +96,8 @@ class TrainConfig:
         """Hash of the settings that decide the cached samples."""
         key = json.dumps(
             {"grid": self.grid.to_dict(), "image": asdict(self.image), "stride": self.frame_stride, "v": 2,
-             "radar_filter": self.radar_filter.to_dict(), "self_returns": asdict(self.self_returns)}, sort_keys=True
+             "radar_filter": self.radar_filter.to_dict(), "self_returns": asdict(self.self_returns),
+             "radar_ranges": self.radar_ranges.to_dict() if self.radar_ranges else None}, sort_keys=True
         )
         return hashlib.sha1(key.encode()).hexdigest()[:12]
 
