@@ -518,7 +518,7 @@ def train(
     radar_filter: str = _RADAR_FILTER,
     random_radar: bool = typer.Option(True, "--random-radar/--calibrated-radar", help="Simulator: draw each scene's "
                                       "radar (sensitivity, noise, clutter, ghosts, which radars, rate) from the "
-                                      "training ranges (docs/simulator.md), or use the calibrated radar for all."),
+                                      "training ranges (docs/decisions.md#training-on-many-radars), or use the calibrated radar for all."),
     resume: bool = typer.Option(False, "--resume", help="Continue the run in --out."),
 ) -> None:
     """Train Ev-Net (the deep IRM) on simulated scenes or nuScenes, against the ray ILM.
