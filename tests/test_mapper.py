@@ -50,6 +50,15 @@ def test_map_scene_writes_results(scene, deep, tmp_path):
     # the geometric maps know the street: the ray ILM agrees with the truth on free space
     assert m["vs_truth"]["ray_ilm"]["free"] > 0.3
     assert m["vs_truth"]["ray_irm"]["free"] > 0.3
+    # the confusion counts are the ones the IoU came from
+    from evgrid.evaluate import iou_from_confusion
+    from evgrid.runs import summarize
+
+    for name, c in m["confusion_vs_ray_ilm"].items():
+        iou = iou_from_confusion(np.array(c))
+        assert all(iou[k] == pytest.approx(v) for k, v in m["vs_ray_ilm"][name].items() if v is not None)
+    two = summarize([m, m])["confusion_vs_ray_ilm"]["fused"]
+    assert np.array_equal(two, 2 * np.array(m["confusion_vs_ray_ilm"]["fused"]))
 
 
 def test_online_mapper_frame_by_frame(scene, deep):

@@ -94,7 +94,7 @@ class SceneScores:
         self.truth = truth
         self.track = track
         self.reference = reference if reference in maps else None
-        names = tuple(maps)
+        names = self.names = tuple(maps)
         truth_ref = self.reference or names[0]
         self.vs_ref = TileScores(names, lambda k: tile_confusions_vs_map(maps, self.reference, k)) if self.reference else None
         self.vs_truth = (TileScores(names, lambda k: tile_confusions_vs_truth(maps, truth.map, truth_ref, k))
@@ -140,11 +140,15 @@ class SceneScores:
         return out
 
     def final(self) -> dict[str, Any]:
-        """Per-class IoU at the end of the scene: ``vs_ray_ilm`` and, with truth, ``vs_truth``."""
+        """Per-class IoU at the end of the scene: ``vs_ray_ilm`` and, with truth, ``vs_truth``; and
+        ``confusion_vs_ray_ilm``, per map the cell counts [reference class][map's class] (free,
+        occupied, unknown), which say where a map loses IoU."""
         out: dict[str, Any] = {}
         if self.vs_ref is not None:
             self.vs_ref.refresh()
             out["vs_ray_ilm"] = self.vs_ref.iou(skip=(self.reference,))
+            out["confusion_vs_ray_ilm"] = {n: self.vs_ref.total[i].tolist() for i, n in enumerate(self.names)
+                                           if n != self.reference}
         if self.vs_truth is not None and self.truth.map.tiles:
             self.vs_truth.dirty |= self.truth.changed
             self.truth.changed = set()

@@ -229,6 +229,9 @@ def summarize(per_scene: list[dict[str, Any]]) -> dict[str, Any]:
     maps.update(vs_ilm)
     out: dict[str, Any] = {"maps": maps, "reference": "ray_ilm", "scenes": [m["scene"] for m in per_scene]}
     out["maps_interval"] = iou_intervals(m["vs_ray_ilm"] for m in per_scene if "vs_ray_ilm" in m)
+    conf = [m["confusion_vs_ray_ilm"] for m in per_scene if m.get("confusion_vs_ray_ilm")]
+    if conf:
+        out["confusion_vs_ray_ilm"] = {n: np.sum([c[n] for c in conf if n in c], axis=0).tolist() for n in conf[0]}
     truth = [clean(m["vs_truth"]) for m in per_scene if m.get("vs_truth")]
     if truth:
         out["vs_truth"] = mean_iou(truth)
