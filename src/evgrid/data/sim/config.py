@@ -92,7 +92,7 @@ class RadarConfig:
     #: Width of the logistic detection curve of a resolution cell's summed power, dB.
     detection_softness_db: float = 2.5
     #: Scales every class's chance that a beam-hit forms a scattering centre (materials.RADAR_SCATTER).
-    scatter_probability: float = 0.6
+    scatter_probability: float = 0.8
     #: Swerling I/II fluctuation: each look's power is exponentially distributed about its mean.
     swerling: bool = True
     #: Log-normal aspect fluctuation on top, dB (1 sigma).
