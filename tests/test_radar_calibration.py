@@ -11,7 +11,7 @@ import pytest
 from evgrid.data.frame import radar_column
 from evgrid.data.mounts import SensorMount
 from evgrid.data.radar_filter import RadarFilter
-from evgrid.data.sim import RADAR_CLUTTER, RADAR_REAL, RadarConfig, SimConfig, WorldConfig, simulate_scene
+from evgrid.data.sim import RADAR_CLUTTER, RADAR_GHOST, RADAR_REAL, RadarConfig, SimConfig, WorldConfig, simulate_scene
 from evgrid.data.sim import materials as M
 from evgrid.data.sim.radar import RadarModel
 from evgrid.data.sim.raycast import pack_boxes
@@ -144,6 +144,7 @@ def test_detections_per_sample_fall_in_the_nuscenes_range():
         ({"far_azimuth_resolution_deg": -1.0}, "far_azimuth_resolution_deg"),
         ({"doppler_resolution_mps": float("nan")}, "doppler_resolution_mps"),
         ({"scatter_probability": 1.5}, "scatter_probability"),
+        ({"multipath_probability": -0.5}, "multipath_probability"),
         ({"road_clutter_rate": -1.0}, "road_clutter_rate"),
         ({"azimuth_noise_mid_deg": -0.1}, "azimuth_noise_mid_deg"),
         ({"swerling": "yes"}, "swerling"),
@@ -152,3 +153,15 @@ def test_detections_per_sample_fall_in_the_nuscenes_range():
 def test_bad_radar_config_is_named(kw, field):
     with pytest.raises(ValueError, match=field):
         RadarConfig(**kw)
+
+
+def test_multipath_probability_scales_the_ghosts():
+    # A facade left of the road (face at y = 6) and a truck ahead: ghosts behind the facade.
+    world = _world([(20.0, 11.0, 0.0, 80.0, 10.0, 0.0, 20.0, M.BUILDING), (18.0, -1.0, 0.0, 7.0, 2.4, 0.3, 3.0, M.TRUCK)])
+    cfg = dict(_EXACT, reference_range_m=25.0)
+
+    def ghosts(p: float) -> int:
+        return sum(int((lab == RADAR_GHOST).sum()) for _, lab in _sweeps(world, RadarConfig(**cfg, multipath_probability=p), 20))
+
+    assert ghosts(1.0) >= 5
+    assert ghosts(0.0) == 0

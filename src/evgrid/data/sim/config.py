@@ -123,6 +123,8 @@ class RadarConfig:
     corner_gain_db: float = 8.0
     #: Two-way loss of a bounce off a reflecting surface (multipath ghosts), dB.
     multipath_loss_db: float = 12.0
+    #: Scales every class's chance that a bounce off it forms a ghost (materials.RADAR_MIRROR).
+    multipath_probability: float = 1.0
     #: Clusters the sensor reports a cycle at most; the strongest are kept.
     max_detections: int = 125
 
@@ -164,6 +166,7 @@ class RadarConfig:
         ):
             _positive(o, name, getattr(self, name), allow_zero=True)
         _fraction(o, "scatter_probability", self.scatter_probability)
+        _fraction(o, "multipath_probability", self.multipath_probability)
         if not isinstance(self.swerling, bool):
             raise ValueError(f"{o}.swerling must be True or False, got {self.swerling!r}")
         if self.fov_deg > 90.0 or self.far_fov_deg > self.fov_deg:

@@ -227,7 +227,7 @@ class RadarModel:
                     + self._fluctuation(rng, len(g))
                     - cfg.multipath_loss_db
                 )
-                p = M.RADAR_MIRROR[fk[g]] * M.RADAR_SCATTER[kk] * cfg.scatter_probability
+                p = M.RADAR_MIRROR[fk[g]] * cfg.multipath_probability * M.RADAR_SCATTER[kk] * cfg.scatter_probability
                 det = hitg & (total <= near_reach[g]) & (rng.random(len(g)) < p)
                 if det.any():
                     # The mirror image of the target moves with the mirrored velocity.
