@@ -1,26 +1,34 @@
 """The five radars (Continental ARS 408-21 as mounted on the nuScenes vehicles).
 
 A sweep casts horizontal beams over the near scan (+-60 deg; 70 m out to +-45 deg, less at the
-edges) and the far scan (+-9 deg, 200 m), each beam with a random azimuth inside its bin.
-Along a beam up to four objects are considered in range order; the beam goes on past an
-object with a class-dependent probability (under vehicles, through foliage and fences).
-Each object met becomes a detection with probability ``scatter(class) * logistic(SNR)``,
-``SNR = RCS(class, incidence) + fluctuation + antenna gain - 40 log10(range / r_ref)``.
+edges) and the far scan (+-9 deg, 250 m), each beam with a random azimuth inside its bin and
+finer than a resolution cell. Along a beam up to four objects are considered in range order;
+the beam goes on past an object with a class-dependent probability (under vehicles, through
+foliage and fences). Each object met becomes a *scatterer* with probability
+``scatter(class) * scatter_probability`` and power
+``SNR = RCS(class, incidence) + fluctuation + antenna gain - 40 log10(range / r_ref)``, the
+fluctuation being Swerling I/II (exponential power) times a log-normal aspect term.
 
-Besides these *real* detections a sweep has:
+Besides these *real* scatterers a sweep has:
 
 * *ghosts*: a beam that meets a mirroring surface (building, wall, vehicle, barrier) is also
-  reflected specularly; if the reflected beam meets an object, a detection appears along the
+  reflected specularly; if the reflected beam meets an object, a scatterer appears along the
   original beam at the total path length, i.e. at the object's mirror image behind the
   surface, with the mirrored object's velocity (two-way bounce loss ``multipath_loss_db``);
-* *clutter*: Poisson false alarms, mostly at short range, mostly with zero ground speed.
+* *clutter*: Poisson false alarms uniform over the range-azimuth cells, mostly without ground
+  speed, and road-surface clutter (kerbs, drain covers) in the free space before each beam's
+  first obstacle, static and mostly near.
 
-Measurements get range, azimuth (worse towards the edge) and Doppler noise; positions are 2-D
-(``z = 0`` in the sensor frame, as in nuScenes). ``vx, vy`` are the radial velocity relative
-to the sensor resolved along the measured azimuth; ``vx_comp, vy_comp`` the same with the
-sensor's own motion (from odometry) removed. The validity fields follow the ARS 408 cluster
-list (see ``frame.RADAR_COLUMNS``): ghosts and clutter are flagged more often than real
-detections, but not always, as in the real sensor.
+Scatterers sharing a resolution cell (range bin x azimuth bin, even in sin(azimuth), x Doppler
+bin) merge into one cluster at their power-weighted mean position, detected with a logistic
+probability of the summed power; at most ``max_detections`` clusters are reported.
+Measurements get range, azimuth (worse towards the edge) and Doppler noise by the datasheet's
+accuracies; positions are 2-D (``z = 0`` in the sensor frame, as in nuScenes). ``vx, vy`` are
+the radial velocity relative to the sensor resolved along the measured azimuth; ``vx_comp,
+vy_comp`` the same with the sensor's own motion (from odometry) removed. The validity fields
+follow the ARS 408 cluster list (see ``frame.RADAR_COLUMNS``): ghosts and false alarms are
+flagged more often than real detections, but not always, as in the real sensor. Every default
+and its source: docs/radar-calibration.md.
 """
 
 from __future__ import annotations
