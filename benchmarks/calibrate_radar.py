@@ -17,7 +17,6 @@ os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from evgrid.data.frame import radar_column  # noqa: E402
 from evgrid.data.radar_filter import RadarFilter  # noqa: E402
 from evgrid.data.sim import RADAR_CLUTTER, RADAR_GHOST, RADAR_REAL, RadarConfig, SimConfig, WorldConfig, simulate_scene  # noqa: E402
 
