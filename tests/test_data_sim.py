@@ -284,6 +284,9 @@ def test_lidar_sees_a_wall_at_its_distance():
     assert ego[behind, 0].max() < 19.5  # nothing seen through the wall
 
 
+_NO_AZIMUTH_NOISE = dict(azimuth_noise_deg=0.0, azimuth_noise_mid_deg=0.0, azimuth_noise_edge_deg=0.0, far_azimuth_noise_deg=0.0)
+
+
 def test_radar_doppler_of_static_and_moving_targets():
     world_static = _world([(30.0, 0.0, 0.0, 1.0, 60.0, 0.0, 10.0, M.BUILDING)])
     # A car 15 m ahead driving away at 5 m/s along +x.
@@ -293,7 +296,8 @@ def test_radar_doppler_of_static_and_moving_targets():
         np.array([False]), np.array([0.0]), np.array([0.0]),
     )
     world = _world([(30.0, 0.0, 0.0, 1.0, 60.0, 0.0, 10.0, M.BUILDING)], mv)
-    cfg = RadarConfig(clutter_rate=0.0, doppler_noise_mps=0.0, azimuth_noise_deg=0.0, azimuth_noise_edge_deg=0.0, range_noise_m=0.0)
+    cfg = RadarConfig(clutter_rate=0.0, road_clutter_rate=0.0, doppler_noise_mps=0.0, range_noise_m=0.0, far_range_noise_m=0.0,
+                      **_NO_AZIMUTH_NOISE)
     radar = RadarModel(cfg, RADAR_MOUNTS["RADAR_FRONT"])
     speed = 10.0
     dboxes, dvel, _ = mv.state_at(0.0, None)
@@ -325,7 +329,7 @@ def test_multipath_ghosts_appear_behind_the_mirror():
             (18.0, -1.0, 0.0, 7.0, 2.4, 0.3, 3.0, M.TRUCK),
         ]
     )
-    radar = RadarModel(RadarConfig(clutter_rate=0.0, range_noise_m=0.0, azimuth_noise_deg=0.0, azimuth_noise_edge_deg=0.0),
+    radar = RadarModel(RadarConfig(clutter_rate=0.0, road_clutter_rate=0.0, range_noise_m=0.0, far_range_noise_m=0.0, **_NO_AZIMUTH_NOISE),
                        RADAR_MOUNTS["RADAR_FRONT_LEFT"])
     ghosts = []
     for k in range(40):

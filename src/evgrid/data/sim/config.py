@@ -68,41 +68,64 @@ class LidarConfig:
 
 @dataclass(frozen=True)
 class RadarConfig:
-    """The five Continental ARS 408-21 radars: rate, field of view, noise, clutter and ghosts."""
+    """The five Continental ARS 408-21 radars: rate, field of view, resolution, noise, clutter and
+    ghosts. docs/radar-calibration.md gives the source (or the assumption) of every default."""
 
     rate_hz: float = 13.0
-    #: Azimuth spacing of the simulated beams (about the sensor's angular resolution), degrees.
-    ray_spacing_deg: float = 2.5
+    #: Azimuth spacing of the simulated near-scan beams, degrees (finer than a resolution cell,
+    #: so that cells merge several scatterers as the real sensor does).
+    ray_spacing_deg: float = 1.0
     #: Near scan: +-fov_deg wide; range max_range_m out to +-45 deg, falling to edge_range_m at the edge.
     fov_deg: float = 60.0
     max_range_m: float = 70.0
     edge_range_m: float = 25.0
     #: Far scan: +-far_fov_deg out to far_range_m (beams spaced far_spacing_deg).
     far_fov_deg: float = 9.0
-    far_range_m: float = 200.0
-    far_spacing_deg: float = 0.75
+    far_range_m: float = 250.0
+    far_spacing_deg: float = 0.5
     #: Half-opening of the beam in elevation, degrees (what a beam at sensor height can hit).
     elevation_half_deg: float = 6.0
     #: Range at which a 0 dBsm target has 0 dB signal-to-threshold (near scan), metres.
     reference_range_m: float = 25.0
     #: Extra gain of the far scan, dB.
     far_gain_db: float = 10.0
-    #: Width of the logistic detection curve, dB.
+    #: Width of the logistic detection curve of a resolution cell's summed power, dB.
     detection_softness_db: float = 2.5
-    #: Swerling-like fluctuation of the reflected power, dB (1 sigma).
-    rcs_fluctuation_db: float = 3.0
-    range_noise_m: float = 0.2
-    #: Azimuth noise at boresight and at the edge of the field of view, degrees (1 sigma).
-    azimuth_noise_deg: float = 0.6
-    azimuth_noise_edge_deg: float = 2.5
-    doppler_noise_mps: float = 0.1
-    #: Mean number of clutter detections (false alarms) per sweep.
-    clutter_rate: float = 4.0
+    #: Scales every class's chance that a beam-hit forms a scattering centre (materials.RADAR_SCATTER).
+    scatter_probability: float = 0.8
+    #: Swerling I/II fluctuation: each look's power is exponentially distributed about its mean.
+    swerling: bool = True
+    #: Log-normal aspect fluctuation on top, dB (1 sigma).
+    rcs_fluctuation_db: float = 2.0
+    #: Resolution cells (targets closer than a cell in range, azimuth and Doppler merge into one
+    #: cluster): range bin near / far scan, m; azimuth bin at boresight (evenly spaced in
+    #: sin(azimuth), so wider off boresight) near / far, deg; Doppler bin, m/s.
+    range_resolution_m: float = 0.39
+    far_range_resolution_m: float = 1.79
+    azimuth_resolution_deg: float = 3.2
+    far_azimuth_resolution_deg: float = 1.6
+    doppler_resolution_mps: float = 0.12
+    #: Range noise near / far scan, m (1 sigma).
+    range_noise_m: float = 0.1
+    far_range_noise_m: float = 0.4
+    #: Near-scan azimuth noise at boresight, at +-45 deg and at the edge of the field of view;
+    #: far-scan azimuth noise; degrees (1 sigma, linear in between).
+    azimuth_noise_deg: float = 0.3
+    azimuth_noise_mid_deg: float = 1.0
+    azimuth_noise_edge_deg: float = 5.0
+    far_azimuth_noise_deg: float = 0.1
+    doppler_noise_mps: float = 0.03
+    #: Mean number of false alarms (noise over the threshold) per sweep.
+    clutter_rate: float = 3.0
+    #: Mean number of road-surface clutter detections (kerbs, drain covers, debris) per sweep.
+    road_clutter_rate: float = 6.0
     #: Extra return from a vertical edge of a flat-faced object (corner reflector), dB.
     corner_gain_db: float = 8.0
     #: Two-way loss of a bounce off a reflecting surface (multipath ghosts), dB.
     multipath_loss_db: float = 12.0
-    #: The ARS 408 reports at most 125 clusters a cycle; the strongest are kept.
+    #: Scales every class's chance that a bounce off it forms a ghost (materials.RADAR_MIRROR).
+    multipath_probability: float = 1.0
+    #: Clusters the sensor reports a cycle at most; the strongest are kept.
     max_detections: int = 125
 
     def __post_init__(self) -> None:
@@ -118,6 +141,11 @@ class RadarConfig:
             "elevation_half_deg",
             "reference_range_m",
             "detection_softness_db",
+            "range_resolution_m",
+            "far_range_resolution_m",
+            "azimuth_resolution_deg",
+            "far_azimuth_resolution_deg",
+            "doppler_resolution_mps",
         ):
             _positive(o, name, getattr(self, name))
         for name in (
@@ -126,13 +154,21 @@ class RadarConfig:
             "corner_gain_db",
             "rcs_fluctuation_db",
             "range_noise_m",
+            "far_range_noise_m",
             "azimuth_noise_deg",
+            "azimuth_noise_mid_deg",
             "azimuth_noise_edge_deg",
+            "far_azimuth_noise_deg",
             "doppler_noise_mps",
             "clutter_rate",
+            "road_clutter_rate",
             "multipath_loss_db",
         ):
             _positive(o, name, getattr(self, name), allow_zero=True)
+        _fraction(o, "scatter_probability", self.scatter_probability)
+        _fraction(o, "multipath_probability", self.multipath_probability)
+        if not isinstance(self.swerling, bool):
+            raise ValueError(f"{o}.swerling must be True or False, got {self.swerling!r}")
         if self.fov_deg > 90.0 or self.far_fov_deg > self.fov_deg:
             raise ValueError(f"{o} needs far_fov_deg <= fov_deg <= 90, got {self.far_fov_deg!r}, {self.fov_deg!r}")
         if self.edge_range_m > self.max_range_m:

@@ -1,26 +1,34 @@
 """The five radars (Continental ARS 408-21 as mounted on the nuScenes vehicles).
 
 A sweep casts horizontal beams over the near scan (+-60 deg; 70 m out to +-45 deg, less at the
-edges) and the far scan (+-9 deg, 200 m), each beam with a random azimuth inside its bin.
-Along a beam up to four objects are considered in range order; the beam goes on past an
-object with a class-dependent probability (under vehicles, through foliage and fences).
-Each object met becomes a detection with probability ``scatter(class) * logistic(SNR)``,
-``SNR = RCS(class, incidence) + fluctuation + antenna gain - 40 log10(range / r_ref)``.
+edges) and the far scan (+-9 deg, 250 m), each beam with a random azimuth inside its bin and
+finer than a resolution cell. Along a beam up to four objects are considered in range order;
+the beam goes on past an object with a class-dependent probability (under vehicles, through
+foliage and fences). Each object met becomes a *scatterer* with probability
+``scatter(class) * scatter_probability`` and power
+``SNR = RCS(class, incidence) + fluctuation + antenna gain - 40 log10(range / r_ref)``, the
+fluctuation being Swerling I/II (exponential power) times a log-normal aspect term.
 
-Besides these *real* detections a sweep has:
+Besides these *real* scatterers a sweep has:
 
 * *ghosts*: a beam that meets a mirroring surface (building, wall, vehicle, barrier) is also
-  reflected specularly; if the reflected beam meets an object, a detection appears along the
+  reflected specularly; if the reflected beam meets an object, a scatterer appears along the
   original beam at the total path length, i.e. at the object's mirror image behind the
   surface, with the mirrored object's velocity (two-way bounce loss ``multipath_loss_db``);
-* *clutter*: Poisson false alarms, mostly at short range, mostly with zero ground speed.
+* *clutter*: Poisson false alarms uniform over the range-azimuth cells, mostly without ground
+  speed, and road-surface clutter (kerbs, drain covers) in the free space before each beam's
+  first obstacle, static and mostly near.
 
-Measurements get range, azimuth (worse towards the edge) and Doppler noise; positions are 2-D
-(``z = 0`` in the sensor frame, as in nuScenes). ``vx, vy`` are the radial velocity relative
-to the sensor resolved along the measured azimuth; ``vx_comp, vy_comp`` the same with the
-sensor's own motion (from odometry) removed. The validity fields follow the ARS 408 cluster
-list (see ``frame.RADAR_COLUMNS``): ghosts and clutter are flagged more often than real
-detections, but not always, as in the real sensor.
+Scatterers sharing a resolution cell (range bin x azimuth bin, even in sin(azimuth), x Doppler
+bin) merge into one cluster at their power-weighted mean position, detected with a logistic
+probability of the summed power; at most ``max_detections`` clusters are reported.
+Measurements get range, azimuth (worse towards the edge) and Doppler noise by the datasheet's
+accuracies; positions are 2-D (``z = 0`` in the sensor frame, as in nuScenes). ``vx, vy`` are
+the radial velocity relative to the sensor resolved along the measured azimuth; ``vx_comp,
+vy_comp`` the same with the sensor's own motion (from odometry) removed. The validity fields
+follow the ARS 408 cluster list (see ``frame.RADAR_COLUMNS``): ghosts and false alarms are
+flagged more often than real detections, but not always, as in the real sensor. Every default
+and its source: docs/radar-calibration.md.
 """
 
 from __future__ import annotations
@@ -57,6 +65,8 @@ class RadarModel:
         self.cfg = cfg
         self.mount = mount
         self.tan_beta = math.tan(math.radians(cfg.elevation_half_deg))
+        #: Per point of the last sweep: true range (m), azimuth (rad) and scan (1 far) of its strongest scatterer.
+        self.last_truth = np.zeros((0, 3))
 
     def max_range(self, az: np.ndarray) -> np.ndarray:
         """Near-scan reach (m) at sensor azimuth ``az`` (rad)."""
@@ -69,6 +79,26 @@ class RadarModel:
         cfg = self.cfg
         gain = -10.0 * (np.degrees(az) / cfg.fov_deg) ** 2 + np.where(far, cfg.far_gain_db, 0.0)
         return rcs_db + gain - 40.0 * np.log10(np.maximum(rng_m, 0.5) / cfg.reference_range_m)
+
+    def noise_sigmas(self, az: np.ndarray, far: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """1-sigma range (m) and azimuth (rad) noise of detections at sensor azimuth ``az`` (rad):
+        the datasheet's accuracies, near scan interpolated over 0 deg, 45 deg and the edge."""
+        cfg = self.cfg
+        a = np.abs(np.degrees(az))
+        near_az = np.interp(
+            a, [0.0, 45.0, max(cfg.fov_deg, 45.0 + 1e-6)], [cfg.azimuth_noise_deg, cfg.azimuth_noise_mid_deg, cfg.azimuth_noise_edge_deg]
+        )
+        sig_az = np.radians(np.where(far, cfg.far_azimuth_noise_deg, near_az))
+        sig_r = np.where(far, cfg.far_range_noise_m, cfg.range_noise_m)
+        return sig_r, sig_az
+
+    def _fluctuation(self, rng: np.random.Generator, n: int) -> np.ndarray:
+        """Per-look RCS fluctuation, dB: Swerling I/II (exponential power, many comparable
+        scatterers) times a log-normal aspect term of ``rcs_fluctuation_db``."""
+        f = rng.normal(0.0, self.cfg.rcs_fluctuation_db, n)
+        if self.cfg.swerling:
+            f += 10.0 * np.log10(np.maximum(rng.exponential(1.0, n), 1e-6))
+        return f
 
     def sweep(
         self,
@@ -83,7 +113,10 @@ class RadarModel:
         rng: np.random.Generator,
     ) -> tuple[np.ndarray, np.ndarray]:
         """One sweep at ego pose ``(x, y, yaw)`` (m, rad), true and odometry (speed m/s, yaw rate
-        rad/s) -> (points ``(n, 12)`` float32 in the sensor frame, ``RADAR_COLUMNS``; labels (n,) uint8)."""
+        rad/s) -> (points ``(n, 12)`` float32 in the sensor frame, ``RADAR_COLUMNS``; labels (n,) uint8).
+
+        ``self.last_truth`` then holds, per point, the true range (m), azimuth (rad) and scan
+        (1 far) of its strongest scatterer, for calibration."""
         cfg = self.cfg
         mt = self.mount
         ex, ey, eyaw = ego_xy_yaw
@@ -143,13 +176,8 @@ class RadarModel:
             return np.where(ids >= 0, ids, len(cls_all) - 1)
 
         near_reach = self.max_range(az)
-        det_r: list[np.ndarray] = []
-        det_az: list[np.ndarray] = []
-        det_rcs: list[np.ndarray] = []
-        det_snr: list[np.ndarray] = []
-        det_vel: list[np.ndarray] = []
-        det_lab: list[np.ndarray] = []
-        det_moving: list[np.ndarray] = []
+        # Scatterers: every candidate return before the resolution cells merge them.
+        sc = _Scatterers()
         alive = np.ones(n_rays, dtype=bool)
         first_ids, first_t = out_id[:, 0].copy(), out_t[:, 0].copy()
         first_valid = first_ids >= 0
@@ -165,20 +193,13 @@ class RadarModel:
                 M.RADAR_RCS_DB[kk] + off_all[li]
                 + M.RADAR_SPECULAR[kk] * 20.0 * np.log10(np.maximum(out_cos[:, k], 0.05))
                 + corner_gain(li, kk, sx + gdx * np.where(valid, t, 0.0), sy + gdy * np.where(valid, t, 0.0))
-                + rng.normal(0.0, cfg.rcs_fluctuation_db, n_rays)
+                + self._fluctuation(rng, n_rays)
             )
-            snr = self._snr(rcs, t, az, far)
-            p = M.RADAR_SCATTER[kk] / (1.0 + np.exp(-snr / cfg.detection_softness_db))
             in_band = np.where(far, t > near_reach, t <= near_reach)
-            det = valid & in_band & (rng.random(n_rays) < p)
-            if det.any():
-                det_r.append(t[det])
-                det_az.append(az[det])
-                det_rcs.append(rcs[det])
-                det_snr.append(snr[det])
-                det_vel.append(vel_all[li[det]])
-                det_lab.append(np.full(int(det.sum()), RADAR_REAL, np.uint8))
-                det_moving.append(np.hypot(*vel_all[li[det]].T) > 0.2)
+            hit = valid & in_band & (rng.random(n_rays) < M.RADAR_SCATTER[kk] * cfg.scatter_probability)
+            if hit.any():
+                vt = vel_all[li[hit]]
+                sc.add(t[hit], az[hit], rcs[hit], far[hit], vt, RADAR_REAL, np.hypot(vt[:, 0], vt[:, 1]) > 0.2)
             alive = valid & (rng.random(n_rays) < M.RADAR_TRANSMIT[kk])
 
         # Multipath ghosts: bounce the first hit on a mirroring surface once, specularly.
@@ -211,67 +232,60 @@ class RadarModel:
                 rcs = (
                     M.RADAR_RCS_DB[kk] + off_all[li]
                     + M.RADAR_SPECULAR[kk] * 20.0 * np.log10(np.maximum(gcos[:, 0], 0.05))
-                    + rng.normal(0.0, cfg.rcs_fluctuation_db, len(g))
+                    + self._fluctuation(rng, len(g))
                     - cfg.multipath_loss_db
                 )
-                snr = self._snr(rcs, np.where(hitg, total, 1.0), az[g], far[g])
-                p = M.RADAR_MIRROR[fk[g]] * M.RADAR_SCATTER[kk] / (1.0 + np.exp(-snr / cfg.detection_softness_db))
+                p = M.RADAR_MIRROR[fk[g]] * cfg.multipath_probability * M.RADAR_SCATTER[kk] * cfg.scatter_probability
                 det = hitg & (total <= near_reach[g]) & (rng.random(len(g)) < p)
                 if det.any():
                     # The mirror image of the target moves with the mirrored velocity.
                     vt = vel_all[li[det]]
                     vn = vt[:, 0] * nx[det] + vt[:, 1] * ny[det]
                     vg = np.stack([vt[:, 0] - 2 * vn * nx[det], vt[:, 1] - 2 * vn * ny[det]], 1)
-                    det_r.append(total[det])
-                    det_az.append(az[g][det])
-                    det_rcs.append(rcs[det])
-                    det_snr.append(snr[det])
-                    det_vel.append(vg)
-                    det_lab.append(np.full(int(det.sum()), RADAR_GHOST, np.uint8))
-                    det_moving.append(np.hypot(vg[:, 0], vg[:, 1]) > 0.2)
+                    sc.add(total[det], az[g][det], rcs[det], far[g][det], vg, RADAR_GHOST, np.hypot(vg[:, 0], vg[:, 1]) > 0.2)
 
-        # Clutter: false alarms, most of them near the sensor and without ground speed.
+        # False alarms: noise over the threshold, uniform over the range-azimuth cells, mostly
+        # without ground speed (CFAR on a static scene), some with a random Doppler.
         n_c = int(rng.poisson(cfg.clutter_rate))
         if n_c:
             caz = rng.uniform(-fov, fov, n_c)
-            near = rng.random(n_c) < 0.6
-            cr = np.where(near, rng.uniform(1.0, 15.0, n_c), 1.0 + rng.random(n_c) * (self.max_range(caz) - 1.0))
-            crcs = rng.normal(-8.0, 4.0, n_c)
+            cr = 0.5 + rng.random(n_c) * (self.max_range(caz) - 0.5)
             moving = rng.random(n_c) < 0.2
-            # A clutter detection's ground velocity: zero, or a random radial value.
             u = np.stack([np.cos(caz + syaw), np.sin(caz + syaw)], 1)
             vrad = np.where(moving, rng.normal(0.0, 3.0, n_c), 0.0)
-            det_r.append(cr)
-            det_az.append(caz)
-            det_rcs.append(crcs)
-            det_snr.append(self._snr(crcs, cr, caz, np.zeros(n_c, bool)))
-            det_vel.append(u * vrad[:, None])
-            det_lab.append(np.full(n_c, RADAR_CLUTTER, np.uint8))
-            det_moving.append(moving)
+            sc.add(cr, caz, rng.normal(-8.0, 4.0, n_c), np.zeros(n_c, bool), u * vrad[:, None], RADAR_CLUTTER, moving, forced=True)
+        # Road clutter: returns of the road surface, kerbs, drain covers and debris in the free
+        # space in front of the first obstacle; static, strongest near the sensor (grazing angle).
+        n_g = int(rng.poisson(cfg.road_clutter_rate)) if n_near else 0
+        if n_g:
+            gi = rng.integers(0, n_near, n_g)
+            rmax = np.minimum(np.where(first_valid[gi], first_t[gi], near_reach[gi]), near_reach[gi])
+            gr = 1.0 + (rmax - 1.0) * rng.random(n_g) ** 2
+            ok = rmax > 1.5
+            if ok.any():
+                m = int(ok.sum())
+                sc.add(gr[ok], az[gi][ok], rng.normal(-10.0, 3.0, m), np.zeros(m, bool), np.zeros((m, 2)), RADAR_CLUTTER,
+                       np.zeros(m, bool), forced=True, real_flags=True)
 
-        if not det_r:
+        self.last_truth = np.zeros((0, 3))
+        if not sc.r:
             return np.zeros((0, 12), np.float32), np.zeros(0, np.uint8)
-        r = np.concatenate(det_r)
-        a = np.concatenate(det_az)
-        rcs = np.concatenate(det_rcs)
-        snr = np.concatenate(det_snr)
-        vt = np.concatenate(det_vel)
-        lab = np.concatenate(det_lab)
-        is_mover = np.concatenate(det_moving)
+        cl = self._merge(sc.arrays(), syaw, vs, rng)
+        r, a, rcs, snr, vt, lab, is_mover, real_flags, truth = cl
         # The sensor reports at most max_detections clusters: the strongest.
         if len(r) > cfg.max_detections:
             keep = np.argsort(-snr, kind="stable")[: cfg.max_detections]
-            r, a, rcs, snr, vt, lab, is_mover = r[keep], a[keep], rcs[keep], snr[keep], vt[keep], lab[keep], is_mover[keep]
+            r, a, rcs, vt, lab, is_mover, real_flags, truth = (
+                r[keep], a[keep], rcs[keep], vt[keep], lab[keep], is_mover[keep], real_flags[keep], truth[keep]
+            )
         n = len(r)
-        # Radial velocities along the true line of sight.
+        # Radial velocities along the line of sight to the cluster.
         ug = np.stack([np.cos(a + syaw), np.sin(a + syaw)], 1)
         v_raw = ((vt - vs[None, :]) * ug).sum(1) + rng.normal(0.0, cfg.doppler_noise_mps, n)
-        # Measurement noise.
-        sig_az = math.radians(cfg.azimuth_noise_deg) + (
-            math.radians(cfg.azimuth_noise_edge_deg) - math.radians(cfg.azimuth_noise_deg)
-        ) * (a / fov) ** 2
+        # Measurement noise (datasheet accuracies, 1 sigma).
+        sig_r, sig_az = self.noise_sigmas(a, truth[:, 2] > 0)
         am = a + rng.normal(0.0, 1.0, n) * sig_az
-        rm = np.maximum(r + rng.normal(0.0, cfg.range_noise_m, n), 0.2)
+        rm = np.maximum(r + rng.normal(0.0, 1.0, n) * sig_r, 0.2)
         # Compensation with the odometry's sensor velocity, in the sensor frame.
         ca, sa = np.cos(am), np.sin(am)
         vs_sensor = np.array(
@@ -291,9 +305,47 @@ class RadarModel:
         pts[:, 5] = v_raw * sa
         pts[:, 6] = v_comp * ca
         pts[:, 7] = v_comp * sa
-        pts[:, 8:12] = self._flags(rng, lab, v_comp, is_mover, rcs_q, rm)
+        # Road clutter is a real reflection to the sensor: flagged like real detections.
+        pts[:, 8:12] = self._flags(rng, np.where(real_flags, RADAR_REAL, lab).astype(np.uint8), v_comp, is_mover, rcs_q, rm)
         order = np.argsort(rm, kind="stable")
+        self.last_truth = truth[order]
         return pts[order], lab[order]
+
+    def _merge(self, sc: dict[str, np.ndarray], syaw: float, vs: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, ...]:
+        """Merge the scatterers of one resolution cell (range bin x azimuth bin x Doppler bin, per
+        scan) into one cluster and detect it: position = power-weighted mean, RCS = summed power,
+        label, velocity and truth of its strongest scatterer; detected with probability
+        ``logistic(SNR / detection_softness_db)`` of the summed power (false alarms always)."""
+        cfg = self.cfg
+        r, a, rcs, far = sc["r"], sc["a"], sc["rcs"], sc["far"]
+        snr = self._snr(rcs, r, a, far)
+        p = 10.0 ** (snr / 10.0)
+        # Radial velocity relative to the sensor: the Doppler the cell is binned by.
+        vrad = (sc["vel"][:, 0] - vs[0]) * np.cos(a + syaw) + (sc["vel"][:, 1] - vs[1]) * np.sin(a + syaw)
+        res_r = np.where(far, cfg.far_range_resolution_m, cfg.range_resolution_m)
+        # Beams of a digital beamformer are evenly spaced in sin(azimuth): cells widen off boresight.
+        res_u = np.radians(np.where(far, cfg.far_azimuth_resolution_deg, cfg.azimuth_resolution_deg))
+        rb = np.clip(np.floor(r / res_r), 0, 8191).astype(np.int64)
+        ub = np.clip(np.floor(np.sin(a) / res_u), -2047, 2047).astype(np.int64) + 2048
+        db = np.clip(np.floor(vrad / cfg.doppler_resolution_mps), -32767, 32767).astype(np.int64) + 32768
+        key = ((far.astype(np.int64) * 8192 + rb) * 4096 + ub) * 65536 + db
+        _, inv = np.unique(key, return_inverse=True)
+        inv = inv.ravel()
+        n_cells = int(inv.max()) + 1
+        psum = np.bincount(inv, p, n_cells)
+        rc = np.bincount(inv, p * r, n_cells) / psum
+        ac = np.bincount(inv, p * a, n_cells) / psum
+        order = np.lexsort((-p, inv))
+        first = np.ones(len(order), dtype=bool)
+        first[1:] = inv[order][1:] != inv[order][:-1]
+        top = order[first]  # the strongest scatterer of each cell, cells in order
+        forced = np.bincount(inv, sc["forced"].astype(np.float64), n_cells) > 0
+        snr_c = 10.0 * np.log10(psum)
+        det = forced | (rng.random(n_cells) < 1.0 / (1.0 + np.exp(-snr_c / cfg.detection_softness_db)))
+        rcs_c = 10.0 * np.log10(np.bincount(inv, 10.0 ** (rcs / 10.0), n_cells))
+        truth = np.stack([r[top], a[top], far[top].astype(np.float64)], 1)
+        t = top[det]
+        return (rc[det], ac[det], rcs_c[det], snr_c[det], sc["vel"][t], sc["lab"][t], sc["mover"][t], sc["real_flags"][t], truth[det])
 
     @staticmethod
     def _flags(rng: np.random.Generator, lab: np.ndarray, v_comp: np.ndarray, mover: np.ndarray, rcs: np.ndarray, r: np.ndarray) -> np.ndarray:
@@ -327,3 +379,24 @@ class RadarModel:
             np.where(ghost, _choice(rng, (1, 2, 3, 4), (0.6, 0.2, 0.1, 0.1), n), _choice(rng, (1, 2, 3, 4, 5), (0.5, 0.2, 0.15, 0.1, 0.05), n)),
         )
         return out
+
+
+class _Scatterers:
+    """Candidate returns of one sweep, gathered before the resolution cells merge them."""
+
+    _FIELDS = ("r", "a", "rcs", "far", "vel", "lab", "mover", "forced", "real_flags")
+
+    def __init__(self) -> None:
+        self.r: list[np.ndarray] = []
+        self._parts: dict[str, list[np.ndarray]] = {f: [] for f in self._FIELDS}
+
+    def add(self, r: np.ndarray, a: np.ndarray, rcs: np.ndarray, far: np.ndarray, vel: np.ndarray, label: int,
+            mover: np.ndarray, forced: bool = False, real_flags: bool = False) -> None:
+        n = len(r)
+        self.r.append(r)
+        for f, v in zip(self._FIELDS, (r, a, rcs, far, vel, np.full(n, label, np.uint8), mover, np.full(n, forced),
+                                       np.full(n, real_flags or label == RADAR_REAL))):
+            self._parts[f].append(np.asarray(v))
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        return {f: np.concatenate(v) for f, v in self._parts.items()}
