@@ -24,6 +24,8 @@ def test_a_variant_changes_the_radar_by_hand_computed_amounts():
     assert c.radar.reference_range_m == pytest.approx(2 * r.reference_range_m)
     assert c.radar.range_noise_m == pytest.approx(2 * r.range_noise_m)
     assert c.radar.azimuth_noise_deg == pytest.approx(2 * r.azimuth_noise_deg)
+    assert c.radar.far_azimuth_noise_deg == pytest.approx(2 * r.far_azimuth_noise_deg)
+    assert c.radar.road_clutter_rate == pytest.approx(3 * r.road_clutter_rate)
     assert c.radar.doppler_noise_mps == pytest.approx(2 * r.doppler_noise_mps)
     assert c.radar.clutter_rate == pytest.approx(3 * r.clutter_rate)
     assert c.radar.multipath_loss_db == pytest.approx(r.multipath_loss_db - 5.0)

@@ -31,8 +31,8 @@ class RadarVariant:
     """One radar, as changes to the calibrated one.
 
     ``sensitivity_db`` shifts every target's signal-to-threshold (detection rate and reach);
-    ``noise_scale`` scales range, azimuth and Doppler noise; ``clutter_scale`` the false-alarm
-    rate; ``ghost_db`` lowers the multipath bounce loss (more ghosts); ``channels`` are the
+    ``noise_scale`` scales range, azimuth and Doppler noise (near and far scan); ``clutter_scale``
+    the false-alarm and road-clutter rates; ``ghost_db`` lowers the multipath bounce loss (more ghosts); ``channels`` are the
     nuScenes mount positions carrying a radar; ``rate_hz`` their sweep rate.
     """
 
@@ -64,10 +64,14 @@ class RadarVariant:
             # SNR falls 40 log10(range / reference_range_m): +x dB is the reference range x 10^(x/40).
             reference_range_m=r.reference_range_m * 10.0 ** (self.sensitivity_db / 40.0),
             range_noise_m=r.range_noise_m * self.noise_scale,
+            far_range_noise_m=r.far_range_noise_m * self.noise_scale,
             azimuth_noise_deg=r.azimuth_noise_deg * self.noise_scale,
+            azimuth_noise_mid_deg=r.azimuth_noise_mid_deg * self.noise_scale,
             azimuth_noise_edge_deg=r.azimuth_noise_edge_deg * self.noise_scale,
+            far_azimuth_noise_deg=r.far_azimuth_noise_deg * self.noise_scale,
             doppler_noise_mps=r.doppler_noise_mps * self.noise_scale,
             clutter_rate=r.clutter_rate * self.clutter_scale,
+            road_clutter_rate=r.road_clutter_rate * self.clutter_scale,
             multipath_loss_db=max(r.multipath_loss_db - self.ghost_db, 0.0),
             rate_hz=self.rate_hz if self.rate_hz is not None else r.rate_hz,
         )
