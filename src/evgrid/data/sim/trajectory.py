@@ -128,8 +128,8 @@ class Route:
 def make_street_grid(rng: np.random.Generator, environment: str, extent_m: float, irregular: bool = False) -> StreetGrid:
     """Random street positions and widths covering ``[-extent_m, extent_m]^2`` (metres).
 
-    ``irregular``: widths vary more from street to street (lanes of 2.9-3.6 m, a fifth of the
-    streets with a second lane each way, bands of 2.5-7 m to the property line)."""
+    ``irregular``: widths vary more from street to street (half widths 0.2 m narrower to 0.5 m wider, a fifth of the
+    streets with a second lane each way, bands of 3-7 m to the property line)."""
     if environment == "urban":
         block, hw_lane, park_p, park_w, shoulder, sw = (60.0, 110.0), 3.3, 0.7, 2.4, 0.5, (3.0, 5.0)
     elif environment == "suburban":
@@ -149,8 +149,8 @@ def make_street_grid(rng: np.random.Generator, environment: str, extent_m: float
         hw = hw_lane + np.where(parking, park_w, shoulder)
         sidewalk = rng.uniform(*sw, size=len(c))
         if irregular:
-            hw = hw + rng.uniform(-0.4, 0.3, size=len(c)) + np.where(rng.random(len(c)) < 0.2, 3.3, 0.0)
-            sidewalk = sidewalk + rng.uniform(-0.5, 2.0, size=len(c))
+            hw = hw + rng.uniform(-0.2, 0.5, size=len(c)) + np.where(rng.random(len(c)) < 0.2, 3.3, 0.0)
+            sidewalk = sidewalk + rng.uniform(0.0, 2.0, size=len(c))
         return c, hw, sidewalk, parking
 
     xs, x_hw, x_sw, x_parking = axis()
