@@ -47,6 +47,8 @@ _BLOCK_USE = {"urban": (0.07, 0.07, 0.06), "suburban": (0.03, 0.04, 0.12)}
 _ROUNDABOUT_P = 0.15
 #: Expected diagonal avenues per kilometre of route (at least one chance a scene).
 _AVENUES_PER_KM = 0.6
+#: Farthest an avenue is built from its junction, metres.
+_AVENUE_REACH_M = 400.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -945,7 +947,9 @@ def generate_world(seed: int, config: SimConfig) -> tuple[World, Trajectory, Tra
             rows = rows[~_in_strip(rows, p, d, hw + sw)]
             dist = np.abs(-d[1] * (pts[:, 0] - x) + d[0] * (pts[:, 1] - y))
             u = (pts[:, 0] - x) * d[0] + (pts[:, 1] - y) * d[1]
-            close = dist < _POPULATE_RADIUS_M
+            # Populated where it passes the route, at most _AVENUE_REACH_M from its junction (so a
+            # long drive's world stays linear in its length).
+            close = (dist < _POPULATE_RADIUS_M) & (np.abs(u) < _AVENUE_REACH_M)
             u_lo = float(u[close].min()) - 60.0 if close.any() else -60.0
             u_hi = float(u[close].max()) + 60.0 if close.any() else 60.0
             avenue_spans.append((u_lo, u_hi))
