@@ -716,11 +716,29 @@ def _touch(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return (a[..., 0] <= b[..., 2]) & (b[..., 0] <= a[..., 2]) & (a[..., 1] <= b[..., 3]) & (b[..., 1] <= a[..., 3])
 
 
+#: Samples of a track whose bounds are merged into one piece's bounds.
+_SEGMENT = 16
+
+
+def _segment_bounds(box: np.ndarray) -> np.ndarray:
+    """Bounds of each run of ``_SEGMENT`` consecutive sample bounds (the last run may be shorter)."""
+    n = len(box)
+    pad = np.concatenate([box, np.repeat(box[-1:], (-n) % _SEGMENT, axis=0)]).reshape(-1, _SEGMENT, 4)
+    return np.concatenate([pad[:, :, :2].min(1), pad[:, :, 2:].max(1)], -1)
+
+
+def _segment_samples(segs: np.ndarray, n: int) -> np.ndarray:
+    """Indices of the samples in pieces ``segs`` of a track of ``n`` samples."""
+    idx = (segs[:, None] * _SEGMENT + np.arange(_SEGMENT)).ravel()
+    return idx[idx < n]
+
+
 class _MoverSet:
     """Accepts candidate movers that collide with nothing over the scene (sampled every 0.2 s).
 
-    Each test first compares axis-aligned bounds (whole tracks, then per sample time) and runs
-    the exact separating-axis test only on the pairs left, so building a long drive's world
+    Each test first compares axis-aligned bounds (whole tracks, pieces of 16 samples, then
+    per sample time) and runs the exact separating-axis test only on the pairs left, so building
+    a long drive's world
     grows with its traffic, not with traffic x duration x traffic."""
 
     def __init__(self, traj: Trajectory, duration: float, static: np.ndarray, warp: Warp | None = None) -> None:
@@ -736,6 +754,7 @@ class _MoverSet:
         self.accepted: list[dict] = []
         self.tracks: list[np.ndarray] = []
         self.track_aabbs: list[np.ndarray] = []
+        self.track_segs: list[np.ndarray] = []
         self.track_bounds = np.zeros((0, 4))
 
     def _track(self, m: dict) -> np.ndarray:
@@ -758,23 +777,32 @@ class _MoverSet:
         """Accept ``m`` if it overlaps neither the ego, nor accepted movers, nor static boxes."""
         tr = self._track(m)
         box = _aabbs(tr)
+        segs = _segment_bounds(box)
         bounds = np.concatenate([box[:, :2].min(0), box[:, 2:].max(0)])
         near = _touch(box, self.ego_aabb)
         if near.any() and _overlap(tr[near], self.ego[near]).any():
             return False
         for k in np.nonzero(_touch(self.track_bounds, bounds))[0]:
-            near = _touch(box, self.track_aabbs[k])
-            if near.any() and _overlap(tr[near], self.tracks[k][near]).any():
+            idx = _segment_samples(np.nonzero(_touch(segs, self.track_segs[k]))[0], len(box))
+            near = idx[_touch(box[idx], self.track_aabbs[k][idx])]
+            if len(near) and _overlap(tr[near], self.tracks[k][near]).any():
                 return False
         if len(self.static):
             cand = np.nonzero(_touch(self.static_aabb, bounds) & (self.static_lo < m["z1"]) & (self.static_hi > m["z0"]))[0]
             if len(cand):
-                t_idx, s_idx = np.nonzero(_touch(box[:, None, :], self.static_aabb[cand][None, :, :]))
-                if len(t_idx) and _overlap(tr[t_idx], self.static[cand[s_idx]]).any():
+                # Pieces of the track first, then its samples in the pieces that touch a box.
+                seg_idx, c_idx = np.nonzero(_touch(segs[:, None, :], self.static_aabb[cand][None, :, :]))
+                t_idx = (seg_idx[:, None] * _SEGMENT + np.arange(_SEGMENT)).ravel()
+                c_idx = np.repeat(c_idx, _SEGMENT)
+                ok = t_idx < len(box)
+                t_idx, c_idx = t_idx[ok], cand[c_idx[ok]]
+                ok = _touch(box[t_idx], self.static_aabb[c_idx])
+                if ok.any() and _overlap(tr[t_idx[ok]], self.static[c_idx[ok]]).any():
                     return False
         self.accepted.append(m)
         self.tracks.append(tr)
         self.track_aabbs.append(box)
+        self.track_segs.append(segs)
         self.track_bounds = np.vstack([self.track_bounds, bounds])
         return True
 
@@ -958,6 +986,9 @@ def generate_world(seed: int, config: SimConfig) -> tuple[World, Trajectory, Tra
                 sides.append(side)
         arows = _split_rows(_rows_array(ab.rows))
         arows = arows[~_in_grid_streets(arows, grid)]
+        for x0, y0, x1, y1 in layout.squares + layout.parking_lots + layout.parks:
+            # An avenue through an open block keeps it open.
+            arows = arows[~((arows[:, 0] > x0) & (arows[:, 0] < x1) & (arows[:, 1] > y0) & (arows[:, 1] < y1))]
         for x, y, angle, hw, sw in avenues:
             d = np.array([math.cos(angle), math.sin(angle)])
             arows = arows[~_in_strip(arows, np.array([x, y]), d, hw)]
