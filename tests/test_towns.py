@@ -160,3 +160,17 @@ def test_grid_layout_is_the_plain_grid():
 def test_bad_layout_is_named():
     with pytest.raises(ValueError, match="WorldConfig.layout"):
         WorldConfig(layout="spiral")
+
+
+def test_warped_movers_move_as_their_velocity_says(worlds):
+    """Positions, velocities and yaw of bent movers agree (radar Doppler uses the velocities)."""
+    w, traj, _ = worlds[0]
+    assert w.movers.warp is not None
+    dt = 0.01
+    b0, v0, yaw0 = w.movers.state_at(2.0, traj)
+    b1, _, _ = w.movers.state_at(2.0 + dt, traj)
+    moving = np.hypot(v0[:, 0], v0[:, 1]) > 1.0
+    assert moving.sum() >= 5
+    np.testing.assert_allclose((b1[moving, :2] - b0[moving, :2]) / dt, v0[moving], atol=0.02)
+    heading = np.arctan2(v0[moving, 1], v0[moving, 0])
+    np.testing.assert_allclose(np.cos(heading - yaw0[moving]), 1.0, atol=1e-6)
