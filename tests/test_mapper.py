@@ -10,6 +10,7 @@ import torch
 
 from evgrid import mass
 from evgrid.data import SimConfig, simulate_scene
+from evgrid.data.sim import WorldConfig
 from evgrid.fusion import MAP_NAMES
 from evgrid.geometry import GridSpec
 from evgrid.ism import RayIlmParams, RayIrmParams, ray_ilm, ray_irm
@@ -22,7 +23,9 @@ from evgrid.runs import choose_m_u_min, map_scene
 
 @pytest.fixture(scope="module")
 def scene():
-    return simulate_scene(1, SimConfig(duration_s=3.0))
+    # The grid town: the free-space bounds below were set on this scene (ray ILM free IoU vs
+    # truth varies 0.20-0.37 from scene to scene in either layout).
+    return simulate_scene(1, SimConfig(duration_s=3.0, world=WorldConfig(layout="grid")))
 
 
 @pytest.fixture(scope="module")

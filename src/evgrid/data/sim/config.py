@@ -8,12 +8,15 @@ from typing import Any
 
 from evgrid.data.frame import RADAR_CHANNELS
 from evgrid.geometry import GridSpec
-from evgrid.validation import check_int, check_number
+from evgrid.validation import check_choice, check_int, check_number
 
 __all__ = ["LidarConfig", "RadarConfig", "EgoConfig", "WorldConfig", "SweepFaults", "RigConfig", "SimConfig", "ENVIRONMENTS"]
 
 #: Procedural environments; ``"mixed"`` picks urban or suburban from the seed.
 ENVIRONMENTS: tuple[str, ...] = ("urban", "suburban", "mixed")
+#: Town layouts: ``"irregular"`` (curved streets, diagonal avenues, squares, parking lots, parks,
+#: roundabouts) or ``"grid"`` (straight perpendicular streets lined with blocks).
+LAYOUTS: tuple[str, ...] = ("irregular", "grid")
 
 
 def _positive(owner: str, name: str, value: float, allow_zero: bool = False) -> None:
@@ -223,11 +226,14 @@ class WorldConfig:
     traffic_density: float = 1.0
     #: Random rotation of the whole city in the global frame (streets are not axis aligned).
     random_orientation: bool = True
+    #: "irregular" towns (curved and diagonal streets, open squares, ...) or the plain "grid".
+    layout: str = "irregular"
 
     def __post_init__(self) -> None:
         if self.environment not in ENVIRONMENTS:
             raise ValueError(f"WorldConfig.environment must be one of {ENVIRONMENTS}, got {self.environment!r}")
         _positive("WorldConfig", "traffic_density", self.traffic_density, allow_zero=True)
+        check_choice("WorldConfig", "layout", self.layout, choices=LAYOUTS)
 
 
 @dataclass(frozen=True)

@@ -18,7 +18,7 @@ import numpy as np
 from evgrid.data.sim.config import EgoConfig
 from evgrid.geometry import SE2
 
-__all__ = ["StreetGrid", "Route", "Trajectory", "make_street_grid", "plan_route", "build_trajectory", "LANE_OFFSET_M"]
+__all__ = ["StreetGrid", "Route", "Trajectory", "Warp", "make_street_grid", "plan_route", "build_trajectory", "LANE_OFFSET_M"]
 
 #: Distance of the right lane's centre line from the street's centre line, metres.
 LANE_OFFSET_M = 1.65
@@ -46,6 +46,73 @@ class StreetGrid:
     y_parking: np.ndarray
 
 
+@dataclass(frozen=True)
+class Warp:
+    """A smooth shear of the city frame that bends straight streets into curves and makes
+    junction angles differ from 90 deg: ``w(x, y) = (x + ax sin(kx y + px), y + ay sin(ky x + py))``.
+
+    Its Jacobian ``[[1, ax kx cos(kx y + px)], [ay ky cos(ky x + py), 1]]`` has determinant
+    ``>= 1 - slope_x slope_y > 0`` when both slopes ``|ax kx|, |ay ky|`` stay below 1, so the map
+    never folds; with slopes <= 0.25 distances along a street change by at most 3 %.
+    """
+
+    ax: float
+    kx: float
+    px: float
+    ay: float
+    ky: float
+    py: float
+
+    #: Largest slope of either shear term (the tangent of the largest bend of a street).
+    MAX_SLOPE = 0.25
+
+    @staticmethod
+    def draw(rng: np.random.Generator) -> "Warp":
+        """Amplitudes up to 20 m and wavelengths 250-600 m, with slopes <= MAX_SLOPE."""
+        out = []
+        for _ in range(2):
+            wavelength = float(rng.uniform(250.0, 600.0))
+            k = 2.0 * math.pi / wavelength
+            amp = float(rng.uniform(0.3, 1.0)) * min(20.0, 0.9 * Warp.MAX_SLOPE / k)
+            amp *= 1.0 if rng.random() < 0.5 else -1.0
+            out += [amp, k, float(rng.uniform(0.0, 2.0 * math.pi))]
+        return Warp(*out)
+
+    def apply(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Warped coordinates of city-frame points (m)."""
+        return x + self.ax * np.sin(self.kx * y + self.px), y + self.ay * np.sin(self.ky * x + self.py)
+
+    def jacobian(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Off-diagonal terms (d wx / dy, d wy / dx) of the Jacobian; the diagonal is 1."""
+        return self.ax * self.kx * np.cos(self.kx * y + self.px), self.ay * self.ky * np.cos(self.ky * x + self.py)
+
+    def direction(self, x: np.ndarray, y: np.ndarray, yaw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Warped heading (rad, unwrapped next to ``yaw``) and stretch of a unit vector at ``yaw``."""
+        a, b = self.jacobian(x, y)
+        c, s = np.cos(yaw), np.sin(yaw)
+        ex, ey = c + a * s, b * c + s
+        turn = np.arctan2(ey * c - ex * s, ex * c + ey * s)  # small: the warp rotates by < 15 deg
+        return yaw + turn, np.hypot(ex, ey)
+
+    def inverse(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """City-frame points that warp to ``(x, y)`` (fixed-point iteration, a contraction by the slopes)."""
+        ux, uy = np.array(x, dtype=np.float64), np.array(y, dtype=np.float64)
+        for _ in range(30):
+            ux = x - self.ax * np.sin(self.kx * uy + self.px)
+            uy = y - self.ay * np.sin(self.ky * ux + self.py)
+        return ux, uy
+
+    def path(self, path: tuple[np.ndarray, ...]) -> tuple[np.ndarray, ...]:
+        """A dense path ``(s, x, y, yaw, kappa)`` warped, with its arc length and curvature recomputed."""
+        _, x, y, yaw, _ = path
+        wx, wy = self.apply(x, y)
+        wyaw, _ = self.direction(x, y, yaw)
+        s = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(wx), np.diff(wy)))])
+        # Central differences (a zero-length piece of the path repeats a point, never two).
+        kappa = np.gradient(wyaw) / np.maximum(np.gradient(s), 1e-6)
+        return s, wx, wy, wyaw, kappa
+
+
 @dataclass(frozen=True, eq=False)
 class Route:
     """The ego's planned route in the city frame: corner points, fillet radii, stops."""
@@ -58,8 +125,11 @@ class Route:
     start: np.ndarray
 
 
-def make_street_grid(rng: np.random.Generator, environment: str, extent_m: float) -> StreetGrid:
-    """Random street positions and widths covering ``[-extent_m, extent_m]^2`` (metres)."""
+def make_street_grid(rng: np.random.Generator, environment: str, extent_m: float, irregular: bool = False) -> StreetGrid:
+    """Random street positions and widths covering ``[-extent_m, extent_m]^2`` (metres).
+
+    ``irregular``: widths vary more from street to street (half widths 0.2 m narrower to 0.5 m wider, a fifth of the
+    streets with a second lane each way, bands of 3-7 m to the property line)."""
     if environment == "urban":
         block, hw_lane, park_p, park_w, shoulder, sw = (60.0, 110.0), 3.3, 0.7, 2.4, 0.5, (3.0, 5.0)
     elif environment == "suburban":
@@ -78,6 +148,9 @@ def make_street_grid(rng: np.random.Generator, environment: str, extent_m: float
         parking = rng.random(len(c)) < park_p
         hw = hw_lane + np.where(parking, park_w, shoulder)
         sidewalk = rng.uniform(*sw, size=len(c))
+        if irregular:
+            hw = hw + rng.uniform(-0.2, 0.5, size=len(c)) + np.where(rng.random(len(c)) < 0.2, 3.3, 0.0)
+            sidewalk = sidewalk + rng.uniform(0.0, 2.0, size=len(c))
         return c, hw, sidewalk, parking
 
     xs, x_hw, x_sw, x_parking = axis()
@@ -283,12 +356,21 @@ class Trajectory:
 
 
 def build_trajectory(
-    rng: np.random.Generator, route: Route, cfg: EgoConfig, cruise: float, duration_s: float
+    rng: np.random.Generator, route: Route, cfg: EgoConfig, cruise: float, duration_s: float, warp: Warp | None = None
 ) -> Trajectory:
-    """Speed profile along the route: cruise speed, curve limits, stops, acceleration limits."""
+    """Speed profile along the route: cruise speed, curve limits, stops, acceleration limits.
+
+    ``warp`` bends the route's path first, so that arc length, curvature (and the speed limits
+    it sets) and poses all belong to the curved street."""
     path = _dense_path(route.points, route.radii)
-    s_path, x, y, _, kappa = path
+    stop_points = route.stop_points
     s_start = _PREROLL_M
+    if warp is not None:
+        s_flat = path[0]
+        path = warp.path(path)
+        s_start = float(np.interp(_PREROLL_M, s_flat, path[0]))
+        stop_points = [np.array(warp.apply(p[0], p[1])) for p in stop_points]
+    s_path, x, y, _, kappa = path
     ds = 0.5
     s = np.arange(s_start, s_path[-1], ds)
     # Curvature limit with a little look-around so the speed is already low on entering the arc.
@@ -298,7 +380,7 @@ def build_trajectory(
     wobble = 1.0 + 0.08 * np.sin(2 * np.pi * s / rng.uniform(80, 160) + rng.uniform(0, 2 * np.pi))
     cap = np.minimum(cruise * wobble, np.sqrt(cfg.max_lateral_accel_mps2 / np.maximum(k_abs, 1e-9)))
     dwell = np.zeros_like(s)
-    for p, w in zip(route.stop_points, route.stop_dwell):
+    for p, w in zip(stop_points, route.stop_dwell):
         i = int(np.argmin(np.hypot(np.interp(s, s_path, x) - p[0], np.interp(s, s_path, y) - p[1])))
         cap[i] = 0.0
         dwell[i] = w

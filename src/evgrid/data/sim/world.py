@@ -9,7 +9,7 @@ origin) and then moved by one rigid transform into the *global frame* that poses
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -18,15 +18,18 @@ from evgrid.data.sim.config import SimConfig
 from evgrid.data.sim.raycast import GridIndex, pack_boxes
 from evgrid.data.sim.trajectory import (
     LANE_OFFSET_M,
+    Route,
     StreetGrid,
     Trajectory,
+    Warp,
+    _dense_path,
     build_trajectory,
     make_street_grid,
     plan_route,
 )
 from evgrid.geometry import SE2
 
-__all__ = ["World", "Movers", "generate_world", "plan_drive", "EGO_LENGTH_M", "EGO_WIDTH_M", "EGO_REAR_OVERHANG_M"]
+__all__ = ["World", "Movers", "TownLayout", "generate_world", "plan_drive", "EGO_LENGTH_M", "EGO_WIDTH_M", "EGO_REAR_OVERHANG_M"]
 
 #: Ego vehicle footprint (a compact car; the pose is the rear axle centre, as in nuScenes).
 EGO_LENGTH_M = 4.1
@@ -35,12 +38,26 @@ EGO_REAR_OVERHANG_M = 0.7
 #: Blocks and streets farther than this from the driven path are left empty (sensors reach
 #: about 100 m; the maps only 20 m), metres.
 _POPULATE_RADIUS_M = 110.0
+#: Longest side of a static box before an irregular town's warp bends it, metres.
+_PIECE_M = 10.0
+#: Share of the blocks near the route given over to open squares, parking lots and parks
+#: (irregular towns; urban, suburban).
+_BLOCK_USE = {"urban": (0.07, 0.07, 0.06), "suburban": (0.03, 0.04, 0.12)}
+#: Probability of a roundabout at a junction near the route that the route does not cross.
+_ROUNDABOUT_P = 0.15
+#: Expected diagonal avenues per kilometre of route (at least one chance a scene).
+_AVENUES_PER_KM = 0.6
+#: Farthest an avenue is built from its junction, metres.
+_AVENUE_REACH_M = 400.0
 
 
 @dataclass(frozen=True, eq=False)
 class Movers:
     """Moving objects. Linear movers: ``position(t) = p0 + u(heading) * speed * clip(t, t_begin, t_end)``;
-    followers (``follow``) drive the ego's path at ``s_ego(t + follow_lead_s) + follow_gap``."""
+    followers (``follow``) drive the ego's path at ``s_ego(t + follow_lead_s) + follow_gap``.
+
+    With a ``warp`` (curved towns), linear movers drive straight in the unwarped city frame and
+    are bent by the warp (heading and velocity by its Jacobian), then moved by ``frame``."""
 
     classes: np.ndarray
     half_length: np.ndarray
@@ -55,6 +72,9 @@ class Movers:
     follow: np.ndarray
     follow_gap: np.ndarray
     follow_lead_s: np.ndarray
+    warp: Warp | None = None
+    #: city frame -> this frame, applied after the warp (only used with a warp).
+    frame: SE2 = field(default_factory=SE2)
 
     def __len__(self) -> int:
         return int(self.classes.shape[0])
@@ -76,24 +96,63 @@ class Movers:
         moving = (t >= self.t_begin) & (t < self.t_end)
         vx = np.where(moving, ux * self.speed, 0.0)
         vy = np.where(moving, uy * self.speed, 0.0)
+        if self.warp is not None and m:
+            a, b = self.warp.jacobian(x, y)
+            yaw, _ = self.warp.direction(x, y, yaw)
+            x, y = self.warp.apply(x, y)
+            vx, vy = vx + a * vy, b * vx + vy
+            c, s_ = math.cos(self.frame.yaw), math.sin(self.frame.yaw)
+            x, y = self.frame.x + c * x - s_ * y, self.frame.y + s_ * x + c * y
+            vx, vy = c * vx - s_ * vy, s_ * vx + c * vy
+            yaw = yaw + self.frame.yaw
         if self.follow.any():
             f = np.nonzero(self.follow)[0]
             tf = t + self.follow_lead_s[f]
             s = traj.s_at(tf) + self.follow_gap[f]
             fx, fy, fyaw = traj.pose_at_s(s)
             x[f], y[f], yaw[f] = fx, fy, fyaw
-            fvx, fvy, _ = traj.velocity_at(tf)
+            if self.warp is None:
+                fvx, fvy, _ = traj.velocity_at(tf)
+            else:
+                # Along the follower's own heading: in a curved town the path turns between
+                # the ego's arc length and the follower's.
+                v = traj.speed_at(tf)
+                fvx, fvy = v * np.cos(fyaw), v * np.sin(fyaw)
             vx[f], vy[f] = fvx, fvy
         boxes = pack_boxes(x, y, yaw, self.half_length, self.half_width, self.z_min, self.z_max) if m else np.zeros((0, 8))
         return boxes, np.stack([vx, vy], axis=1) if m else np.zeros((0, 2)), yaw
 
     def transformed(self, tf: SE2) -> "Movers":
         """The same movers in the frame ``tf`` maps to."""
+        if self.warp is not None:
+            return Movers(
+                self.classes, self.half_length, self.half_width, self.z_min, self.z_max, self.p0, self.heading, self.speed,
+                self.t_begin, self.t_end, self.follow, self.follow_gap, self.follow_lead_s, self.warp, tf @ self.frame,
+            )
         p0 = tf.apply(self.p0) if len(self) else self.p0
         return Movers(
             self.classes, self.half_length, self.half_width, self.z_min, self.z_max, p0, self.heading + tf.yaw,
             self.speed, self.t_begin, self.t_end, self.follow, self.follow_gap, self.follow_lead_s,
         )
+
+
+@dataclass(frozen=True, eq=False)
+class TownLayout:
+    """The features of an irregular town, in the unwarped city frame (the warp bends them all)."""
+
+    warp: Warp | None
+    #: Diagonal avenues through a grid junction: (x, y, direction rad, half width m, curb to property line m).
+    avenues: list[tuple[float, float, float, float, float]] = field(default_factory=list)
+    #: Blocks given over to open squares, parking lots and parks: (x0, y0, x1, y1) each, metres.
+    squares: list[tuple[float, float, float, float]] = field(default_factory=list)
+    parking_lots: list[tuple[float, float, float, float]] = field(default_factory=list)
+    parks: list[tuple[float, float, float, float]] = field(default_factory=list)
+    #: Roundabouts at junctions the ego route does not cross: (x, y, island radius m).
+    roundabouts: list[tuple[float, float, float]] = field(default_factory=list)
+
+    def counts(self) -> dict[str, int]:
+        """Number of each feature."""
+        return {k: len(getattr(self, k)) for k in ("avenues", "squares", "parking_lots", "parks", "roundabouts")}
 
 
 @dataclass(frozen=True, eq=False)
@@ -115,6 +174,8 @@ class World:
     streets: StreetGrid
     #: city frame -> global frame
     city_to_global: SE2
+    #: What the town holds (irregular layouts; None for the plain grid).
+    layout: "TownLayout | None" = None
     index: GridIndex = field(init=False)
 
     def __post_init__(self) -> None:
@@ -241,7 +302,7 @@ def _street_furniture(b: _Builder, rng: np.random.Generator, side: _Side, urban:
             side.box(b, u - 0.25, u + 0.25, v - 0.3, v + 0.3, 0.0, rng.uniform(1.5, 1.9), M.PEDESTRIAN)
 
 
-def _urban_side(b: _Builder, rng: np.random.Generator, side: _Side, density: float) -> None:
+def _urban_side(b: _Builder, rng: np.random.Generator, side: _Side, density: float, irregular: bool = False) -> None:
     L = side.length
     max_depth = max(side.depth / 2.0 - 1.0, 8.0)
     if rng.random() < 0.12:
@@ -274,17 +335,45 @@ def _urban_side(b: _Builder, rng: np.random.Generator, side: _Side, density: flo
                 u += gap
                 continue
             w = rng.uniform(8.0, 30.0)
-            setback = 0.0 if rng.random() < 0.7 else rng.uniform(0.5, 3.0)
+            setback = 0.0 if rng.random() < (0.45 if irregular else 0.7) else rng.uniform(0.5, 4.5 if irregular else 3.0)
             depth = min(rng.uniform(12.0, 28.0), max_depth - setback)
             h = float(np.clip(rng.lognormal(math.log(14.0), 0.5), 5.0, 60.0))
-            side.box(b, u, min(u + w, L), setback, setback + depth, 0.0, h, M.BUILDING)
+            if irregular:
+                _irregular_building(b, rng, side, u, min(u + w, L), setback, depth, h)
+            else:
+                side.box(b, u, min(u + w, L), setback, setback + depth, 0.0, h, M.BUILDING)
             u += w
     _street_furniture(b, rng, side, urban=True, density=density)
     if side.parking:
         _parked_cars(b, rng, side, empty_p=0.22 / max(density, 0.2))
 
 
-def _suburban_side(b: _Builder, rng: np.random.Generator, side: _Side, density: float) -> None:
+def _irregular_building(b: _Builder, rng: np.random.Generator, side: _Side, u0: float, u1: float, v0: float, depth: float,
+                        h: float) -> None:
+    """A building that is not one box: a courtyard block, a stepped facade, or a slightly skewed box."""
+    w = u1 - u0
+    r = rng.random()
+    if r < 0.25 and w > 16.0 and depth > 15.0:
+        # Courtyard: front wing, two side wings, back wing around an open yard.
+        front, wing = rng.uniform(6.0, 9.0), rng.uniform(4.0, 6.0)
+        side.box(b, u0, u1, v0, v0 + front, 0.0, h, M.BUILDING)
+        side.box(b, u0, u0 + wing, v0 + front, v0 + depth, 0.0, h, M.BUILDING)
+        side.box(b, u1 - wing, u1, v0 + front, v0 + depth, 0.0, h, M.BUILDING)
+        side.box(b, u0 + wing, u1 - wing, v0 + depth - wing, v0 + depth, 0.0, h * rng.uniform(0.6, 1.0), M.BUILDING)
+    elif r < 0.55 and w > 10.0:
+        # Stepped: two parts of different setback, depth and height.
+        cut = u0 + w * rng.uniform(0.35, 0.65)
+        for a, c in ((u0, cut), (cut, u1)):
+            v = v0 + rng.uniform(0.0, 2.5)
+            side.box(b, a, c, v, v + depth * rng.uniform(0.6, 1.0), 0.0, h * rng.uniform(0.6, 1.3), M.BUILDING)
+    else:
+        # A box a little off the street's direction (kept behind the property line).
+        dyaw = float(rng.normal(0.0, 0.04))
+        lift = 0.5 * w * abs(math.sin(dyaw)) + 0.1
+        side.box(b, u0, u1, v0 + lift, v0 + lift + depth, 0.0, h, M.BUILDING, dyaw=dyaw)
+
+
+def _suburban_side(b: _Builder, rng: np.random.Generator, side: _Side, density: float, irregular: bool = False) -> None:
     L = side.length
     u = rng.uniform(0.0, 5.0)
     while u < L - 10.0:
@@ -325,10 +414,261 @@ def _suburban_side(b: _Builder, rng: np.random.Generator, side: _Side, density: 
             bu = rng.uniform(uc, uc + max(hw_, 1.0))
             bv = setback - rng.uniform(0.6, 1.6)
             side.box(b, bu - s / 2, bu + s / 2, bv - s / 2, bv + s / 2, 0.0, rng.uniform(0.6, 1.5), M.BUSH)
+        if irregular and rng.random() < 0.35 and lot > 8.0:
+            # A cluster of trees in the back garden.
+            v_back = setback + max(hd, 0.0) + rng.uniform(2.0, 6.0)
+            if v_back < side.depth / 2.0 - 3.0:
+                for _ in range(rng.integers(2, 6)):
+                    _tree(b, rng, side.point(rng.uniform(u + 2.0, end - 2.0), v_back + rng.uniform(0.0, 5.0)), street=False, big=True)
         u = end
     _street_furniture(b, rng, side, urban=False, density=density)
     if side.parking:
         _parked_cars(b, rng, side, empty_p=0.6 / max(density, 0.2))
+
+
+def _rect_frame(rect: tuple[float, float, float, float]) -> _Side:
+    """A block rectangle as a side along its longer edge (u along, v across, both from 0)."""
+    x0, y0, x1, y1 = rect
+    if x1 - x0 >= y1 - y0:
+        return _Side(np.array([x0, y0]), np.array([1.0, 0.0]), np.array([0.0, 1.0]), x1 - x0, y1 - y0, 0.0, 0.0, False)
+    return _Side(np.array([x1, y0]), np.array([0.0, 1.0]), np.array([-1.0, 0.0]), y1 - y0, x1 - x0, 0.0, 0.0, False)
+
+
+def _edge_line(b: _Builder, rng: np.random.Generator, f: _Side, klass: int, thick: float, z1: tuple[float, float],
+               inset: float = 0.3) -> None:
+    """Hedge, wall or fence pieces around a rectangle, with a few openings."""
+    for u0, u1, v0, v1, along_u in ((0.0, f.length, 0.0, 0.0, True), (0.0, f.length, f.depth, f.depth, True),
+                                    (0.0, 0.0, 0.0, f.depth, False), (f.length, f.length, 0.0, f.depth, False)):
+        n = (u1 - u0) if along_u else (v1 - v0)
+        a = 0.0
+        while a < n - 2.0:
+            seg = float(rng.uniform(6.0, 18.0))
+            c = min(a + seg, n - 1.0)
+            h = float(rng.uniform(*z1))
+            if along_u:
+                v = inset if v0 == 0.0 else f.depth - inset - thick
+                f.box(b, a, c, v, v + thick, 0.0, h, klass)
+            else:
+                uu = inset if u0 == 0.0 else f.length - inset - thick
+                f.box(b, uu, uu + thick, a, c, 0.0, h, klass)
+            a = c + float(rng.uniform(2.5, 5.0))
+
+
+def _open_square(b: _Builder, rng: np.random.Generator, rect: tuple[float, float, float, float]) -> None:
+    """A paved square: lamps and bollards at its edge, trees, benches, and a fountain, statue or kiosk."""
+    f = _rect_frame(rect)
+    L, D = f.length, f.depth
+    for v in (1.5, D - 1.5):
+        u = rng.uniform(3.0, 10.0)
+        while u < L - 3.0:
+            f.box(b, u - 0.12, u + 0.12, v - 0.12, v + 0.12, 0.0, rng.uniform(4.0, 6.0), M.POLE)
+            u += rng.uniform(12.0, 20.0)
+    for v in (0.4, D - 0.4):
+        u = 1.0
+        while u < L - 1.0:
+            if rng.random() < 0.7:
+                f.box(b, u - 0.12, u + 0.12, v - 0.12, v + 0.12, 0.0, rng.uniform(0.8, 1.1), M.BARRIER)
+            u += rng.uniform(2.0, 4.0)
+    if rng.random() < 0.5:
+        # An avenue of trees along the two long edges.
+        for v in (5.0, D - 5.0):
+            u = rng.uniform(4.0, 8.0)
+            while u < L - 4.0:
+                _tree(b, rng, f.point(u, v), street=False, big=True)
+                u += rng.uniform(8.0, 11.0)
+    else:
+        for _ in range(rng.integers(3, 11)):
+            _tree(b, rng, f.point(rng.uniform(4.0, L - 4.0), rng.uniform(4.0, D - 4.0)), street=False, big=True)
+    for _ in range(rng.integers(4, 13)):
+        u, v = rng.uniform(3.0, L - 3.0), rng.uniform(3.0, D - 3.0)
+        f.box(b, u - 0.9, u + 0.9, v - 0.25, v + 0.25, 0.0, 0.5, M.BARRIER, dyaw=float(rng.choice([0.0, math.pi / 2])))
+    c = f.point(L / 2, D / 2)
+    r = rng.random()
+    if r < 0.45:
+        # A fountain: a ring of low basin walls.
+        rad = rng.uniform(3.0, min(6.0, D / 4))
+        n = max(int(2 * math.pi * rad / 1.5), 8)
+        for k in range(n):
+            a = 2 * math.pi * k / n
+            b.add(float(c[0] + rad * math.cos(a)), float(c[1] + rad * math.sin(a)), a + math.pi / 2,
+                  math.pi * rad / n + 0.05, 0.2, 0.0, rng.uniform(0.5, 0.8), M.WALL)
+    elif r < 0.75:
+        b.add(float(c[0]), float(c[1]), rng.uniform(0, math.pi), 1.0, 1.0, 0.0, rng.uniform(2.5, 5.0), M.WALL)  # statue
+    else:
+        b.add(float(c[0]), float(c[1]), rng.uniform(0, math.pi), rng.uniform(1.5, 3.0), rng.uniform(1.5, 2.5), 0.0, 3.0, M.BUILDING)
+
+
+def _parking_lot(b: _Builder, rng: np.random.Generator, rect: tuple[float, float, float, float], density: float) -> None:
+    """Rows of parked cars, back to back, with aisles between, behind a hedge or low wall."""
+    f = _rect_frame(rect)
+    L, D = f.length, f.depth
+    if rng.random() < 0.6:
+        _edge_line(b, rng, f, M.HEDGE if rng.random() < 0.6 else M.WALL, 0.6, (0.8, 1.4))
+    stall, depth, aisle = rng.uniform(2.4, 2.8), 5.0, rng.uniform(6.0, 7.5)
+    v = 2.0
+    row = 0
+    while v + depth < D - 2.0:
+        u = 2.5
+        while u + stall < L - 2.5:
+            if rng.random() < 0.7 * min(density, 1.3):
+                k, length, width, z0, z1 = _vehicle_dims(rng, moving=False)
+                if length < depth - 0.2:
+                    uc = u + stall / 2 + rng.uniform(-0.15, 0.15)
+                    vc = v + depth / 2 + rng.uniform(-0.2, 0.2)
+                    f.box(b, uc - width / 2, uc + width / 2, vc - length / 2, vc + length / 2, z0, z1, k,
+                          dyaw=float(rng.normal(0.0, 0.03)))
+            u += stall
+        if row % 2 == 0 and v + 2 * depth < D - 2.0:
+            # Lamps on the line between two back-to-back rows.
+            u = rng.uniform(5.0, 15.0)
+            while u < L - 5.0:
+                f.box(b, u - 0.12, u + 0.12, v + depth - 0.12, v + depth + 0.12, 0.0, rng.uniform(6.0, 8.0), M.POLE)
+                u += rng.uniform(20.0, 30.0)
+            v += depth
+        else:
+            v += depth + aisle
+        row += 1
+
+
+def _park(b: _Builder, rng: np.random.Generator, rect: tuple[float, float, float, float]) -> None:
+    """Grass with clusters of trees, bushes, hedges and maybe a pavilion."""
+    f = _rect_frame(rect)
+    L, D = f.length, f.depth
+    if rng.random() < 0.6:
+        _edge_line(b, rng, f, M.HEDGE if rng.random() < 0.7 else M.FENCE, 0.8, (0.9, 1.8))
+    for _ in range(rng.poisson(L * D / 1200.0) + 2):
+        cu, cv = rng.uniform(5.0, L - 5.0), rng.uniform(5.0, D - 5.0)
+        spread = rng.uniform(4.0, 12.0)
+        for _ in range(rng.integers(3, 10)):
+            u = float(np.clip(cu + rng.normal(0.0, spread / 2), 3.0, L - 3.0))
+            v = float(np.clip(cv + rng.normal(0.0, spread / 2), 3.0, D - 3.0))
+            _tree(b, rng, f.point(u, v), street=False, big=True)
+    for _ in range(rng.poisson(L * D / 300.0)):
+        s = rng.uniform(0.8, 2.5)
+        u, v = rng.uniform(2.0, L - 2.0), rng.uniform(2.0, D - 2.0)
+        f.box(b, u - s / 2, u + s / 2, v - s / 2, v + s / 2, 0.0, rng.uniform(0.5, 1.6), M.BUSH)
+    if rng.random() < 0.25:
+        u, v = rng.uniform(8.0, L - 8.0), rng.uniform(8.0, D - 8.0)
+        f.box(b, u - 3.0, u + 3.0, v - 3.0, v + 3.0, 0.0, 3.5, M.BUILDING)
+
+
+def _roundabout_island(b: _Builder, rng: np.random.Generator, c: np.ndarray, rad: float, clear: float) -> None:
+    """A round central island (curb ring, a hedge ring or bushes, a tree or a monument) and
+    lamps around the circulating carriageway."""
+    n = max(int(2 * math.pi * rad / 1.2), 10)
+    for k in range(n):
+        a = 2 * math.pi * k / n
+        b.add(float(c[0] + rad * math.cos(a)), float(c[1] + rad * math.sin(a)), a + math.pi / 2,
+              math.pi * rad / n + 0.05, 0.15, 0.0, 0.35, M.BARRIER)
+    if rng.random() < 0.5 and rad > 3.0:
+        r2 = rad - 0.8
+        n2 = max(int(2 * math.pi * r2 / 1.5), 8)
+        h = rng.uniform(0.8, 1.4)
+        for k in range(n2):
+            a = 2 * math.pi * k / n2
+            b.add(float(c[0] + r2 * math.cos(a)), float(c[1] + r2 * math.sin(a)), a + math.pi / 2,
+                  math.pi * r2 / n2 + 0.05, 0.35, 0.0, h, M.HEDGE)
+    else:
+        for _ in range(rng.integers(2, 7)):
+            a, r = rng.uniform(0, 2 * math.pi), rng.uniform(0.0, rad - 1.0)
+            s = rng.uniform(0.8, 1.8)
+            b.add(float(c[0] + r * math.cos(a)), float(c[1] + r * math.sin(a)), a, s / 2, s / 2, 0.0, rng.uniform(0.6, 1.4), M.BUSH)
+    if rng.random() < 0.6:
+        _tree(b, rng, c, street=False, big=True)
+    else:
+        b.add(float(c[0]), float(c[1]), rng.uniform(0, math.pi), 0.6, 0.6, 0.0, rng.uniform(3.0, 6.0), M.WALL)
+    for k in range(rng.integers(4, 9)):
+        a = rng.uniform(0, 2 * math.pi)
+        p = c + (clear + 1.2) * np.array([math.cos(a), math.sin(a)])
+        b.add(float(p[0]), float(p[1]), 0.0, 0.12, 0.12, 0.0, rng.uniform(6.0, 8.0), M.POLE)
+
+
+def _rows_array(rows: list) -> np.ndarray:
+    return np.array(rows, dtype=np.float64).reshape(-1, 8)
+
+
+def _split_rows(rows: np.ndarray, max_len: float = _PIECE_M) -> np.ndarray:
+    """Boxes cut into pieces no longer than ``max_len`` on either side, so that a warp bends
+    long facades, walls and hedges instead of tilting them as a whole."""
+    nu = np.maximum(np.ceil(2 * rows[:, 3] / max_len), 1).astype(np.int64)
+    nv = np.maximum(np.ceil(2 * rows[:, 4] / max_len), 1).astype(np.int64)
+    if (nu * nv == 1).all():
+        return rows
+    k = np.repeat(np.arange(len(rows)), nu * nv)
+    first = np.repeat(np.cumsum(nu * nv) - nu * nv, nu * nv)
+    idx = np.arange(len(k)) - first
+    iu, iv = idx % nu[k], idx // nu[k]
+    r = rows[k].copy()
+    hl, hw = rows[k, 3] / nu[k], rows[k, 4] / nv[k]
+    du = -rows[k, 3] + (2 * iu + 1) * hl
+    dv = -rows[k, 4] + (2 * iv + 1) * hw
+    c, s = np.cos(rows[k, 2]), np.sin(rows[k, 2])
+    r[:, 0] += c * du - s * dv
+    r[:, 1] += s * du + c * dv
+    r[:, 3], r[:, 4] = hl, hw
+    return r
+
+
+def _in_strip(rows: np.ndarray, p: np.ndarray, d: np.ndarray, half: float) -> np.ndarray:
+    """Which boxes reach into the band of half width ``half`` around the line ``p + u d``?"""
+    nx, ny = -d[1], d[0]
+    c, s = np.cos(rows[:, 2]), np.sin(rows[:, 2])
+    reach = rows[:, 3] * np.abs(nx * c + ny * s) + rows[:, 4] * np.abs(-nx * s + ny * c)
+    return np.abs(nx * (rows[:, 0] - p[0]) + ny * (rows[:, 1] - p[1])) < half + reach
+
+
+def _in_grid_streets(rows: np.ndarray, grid: StreetGrid) -> np.ndarray:
+    """Which boxes reach into a grid street or its sidewalks (bounds test)?"""
+    out = np.zeros(len(rows), bool)
+    if not len(rows):
+        return out
+    c, s = np.abs(np.cos(rows[:, 2])), np.abs(np.sin(rows[:, 2]))
+    ex, ey = rows[:, 3] * c + rows[:, 4] * s, rows[:, 3] * s + rows[:, 4] * c
+    for centres, half, p, e in ((grid.xs, grid.x_hw + grid.x_sw, rows[:, 0], ex), (grid.ys, grid.y_hw + grid.y_sw, rows[:, 1], ey)):
+        k = np.clip(np.searchsorted(centres, p), 1, len(centres) - 1)
+        for kk in (k - 1, k):
+            out |= np.abs(p - centres[kk]) < half[kk] + e
+    return out
+
+
+def _warp_rows(rows: np.ndarray, warp: Warp) -> np.ndarray:
+    """City-frame boxes bent by the warp: centres moved, yaw turned and sides stretched by its Jacobian."""
+    out = rows.copy()
+    x, y, yaw = rows[:, 0], rows[:, 1], rows[:, 2]
+    out[:, 2], stretch_u = warp.direction(x, y, yaw)
+    _, stretch_v = warp.direction(x, y, yaw + math.pi / 2)
+    out[:, 0], out[:, 1] = warp.apply(x, y)
+    out[:, 3] *= stretch_u
+    out[:, 4] *= stretch_v
+    return out
+
+
+def _avenue_sides(grid: StreetGrid, p: np.ndarray, d: np.ndarray, hw: float, sw: float, u_lo: float, u_hi: float,
+                  parking: bool) -> list[_Side]:
+    """Both sides of an avenue between the grid streets it crosses (u from ``u_lo`` to ``u_hi``)."""
+    nrm = np.array([-d[1], d[0]])
+    sides = []
+    for sign in (1.0, -1.0):
+        q0 = p + sign * (hw + sw) * nrm
+        cuts = []
+        for centres, half, k in ((grid.xs, grid.x_hw + grid.x_sw, 0), (grid.ys, grid.y_hw + grid.y_sw, 1)):
+            if abs(d[k]) < 1e-9:
+                continue
+            a = (centres - half - q0[k]) / d[k]
+            b = (centres + half - q0[k]) / d[k]
+            cuts += list(zip(np.minimum(a, b), np.maximum(a, b)))
+        cuts.sort()
+        u = u_lo
+        for a, b in cuts + [(u_hi, u_hi)]:
+            if b < u:
+                continue
+            end = min(a, u_hi)
+            if end - u > 14.0:
+                sides.append(_Side(q0 + u * d, d.copy(), sign * nrm, end - u, 36.0, sw, hw, parking))
+            u = max(u, b)
+            if u >= u_hi:
+                break
+    return sides
 
 
 def _block_sides(grid: StreetGrid, i: int, j: int) -> list[_Side] | None:
@@ -382,15 +722,34 @@ def _touch(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return (a[..., 0] <= b[..., 2]) & (b[..., 0] <= a[..., 2]) & (a[..., 1] <= b[..., 3]) & (b[..., 1] <= a[..., 3])
 
 
+#: Samples of a track whose bounds are merged into one piece's bounds.
+_SEGMENT = 16
+
+
+def _segment_bounds(box: np.ndarray) -> np.ndarray:
+    """Bounds of each run of ``_SEGMENT`` consecutive sample bounds (the last run may be shorter)."""
+    n = len(box)
+    pad = np.concatenate([box, np.repeat(box[-1:], (-n) % _SEGMENT, axis=0)]).reshape(-1, _SEGMENT, 4)
+    return np.concatenate([pad[:, :, :2].min(1), pad[:, :, 2:].max(1)], -1)
+
+
+def _segment_samples(segs: np.ndarray, n: int) -> np.ndarray:
+    """Indices of the samples in pieces ``segs`` of a track of ``n`` samples."""
+    idx = (segs[:, None] * _SEGMENT + np.arange(_SEGMENT)).ravel()
+    return idx[idx < n]
+
+
 class _MoverSet:
     """Accepts candidate movers that collide with nothing over the scene (sampled every 0.2 s).
 
-    Each test first compares axis-aligned bounds (whole tracks, then per sample time) and runs
-    the exact separating-axis test only on the pairs left, so building a long drive's world
+    Each test first compares axis-aligned bounds (whole tracks, pieces of 16 samples, then
+    per sample time) and runs the exact separating-axis test only on the pairs left, so building
+    a long drive's world
     grows with its traffic, not with traffic x duration x traffic."""
 
-    def __init__(self, traj: Trajectory, duration: float, static: np.ndarray) -> None:
+    def __init__(self, traj: Trajectory, duration: float, static: np.ndarray, warp: Warp | None = None) -> None:
         self.traj = traj
+        self.warp = warp
         self.ts = np.arange(-0.3, duration + 0.31, 0.2)
         self.ego = _ego_boxes(traj, self.ts, margin=0.6)
         self.ego_aabb = _aabbs(self.ego)
@@ -401,6 +760,7 @@ class _MoverSet:
         self.accepted: list[dict] = []
         self.tracks: list[np.ndarray] = []
         self.track_aabbs: list[np.ndarray] = []
+        self.track_segs: list[np.ndarray] = []
         self.track_bounds = np.zeros((0, 4))
 
     def _track(self, m: dict) -> np.ndarray:
@@ -414,40 +774,52 @@ class _MoverSet:
             yaw = np.full(n, m["heading"])
             x = m["p0"][0] + math.cos(m["heading"]) * m["speed"] * tc
             y = m["p0"][1] + math.sin(m["heading"]) * m["speed"] * tc
+            if self.warp is not None:
+                yaw, _ = self.warp.direction(x, y, yaw)
+                x, y = self.warp.apply(x, y)
         return pack_boxes(x, y, yaw, np.full(n, m["hl"]), np.full(n, m["hw"]), np.full(n, m["z0"]), np.full(n, m["z1"]))
 
     def offer(self, m: dict) -> bool:
         """Accept ``m`` if it overlaps neither the ego, nor accepted movers, nor static boxes."""
         tr = self._track(m)
         box = _aabbs(tr)
+        segs = _segment_bounds(box)
         bounds = np.concatenate([box[:, :2].min(0), box[:, 2:].max(0)])
         near = _touch(box, self.ego_aabb)
         if near.any() and _overlap(tr[near], self.ego[near]).any():
             return False
         for k in np.nonzero(_touch(self.track_bounds, bounds))[0]:
-            near = _touch(box, self.track_aabbs[k])
-            if near.any() and _overlap(tr[near], self.tracks[k][near]).any():
+            idx = _segment_samples(np.nonzero(_touch(segs, self.track_segs[k]))[0], len(box))
+            near = idx[_touch(box[idx], self.track_aabbs[k][idx])]
+            if len(near) and _overlap(tr[near], self.tracks[k][near]).any():
                 return False
         if len(self.static):
             cand = np.nonzero(_touch(self.static_aabb, bounds) & (self.static_lo < m["z1"]) & (self.static_hi > m["z0"]))[0]
             if len(cand):
-                t_idx, s_idx = np.nonzero(_touch(box[:, None, :], self.static_aabb[cand][None, :, :]))
-                if len(t_idx) and _overlap(tr[t_idx], self.static[cand[s_idx]]).any():
+                # Pieces of the track first, then its samples in the pieces that touch a box.
+                seg_idx, c_idx = np.nonzero(_touch(segs[:, None, :], self.static_aabb[cand][None, :, :]))
+                t_idx = (seg_idx[:, None] * _SEGMENT + np.arange(_SEGMENT)).ravel()
+                c_idx = np.repeat(c_idx, _SEGMENT)
+                ok = t_idx < len(box)
+                t_idx, c_idx = t_idx[ok], cand[c_idx[ok]]
+                ok = _touch(box[t_idx], self.static_aabb[c_idx])
+                if ok.any() and _overlap(tr[t_idx[ok]], self.static[c_idx[ok]]).any():
                     return False
         self.accepted.append(m)
         self.tracks.append(tr)
         self.track_aabbs.append(box)
+        self.track_segs.append(segs)
         self.track_bounds = np.vstack([self.track_bounds, bounds])
         return True
 
     def movers(self) -> Movers:
         if not self.accepted:
-            return Movers.empty()
+            return Movers.empty() if self.warp is None else replace(Movers.empty(), warp=self.warp)
         a = self.accepted
         col = lambda k, dt=np.float64: np.array([m[k] for m in a], dtype=dt)  # noqa: E731
         return Movers(
             col("cls", np.int32), col("hl"), col("hw"), col("z0"), col("z1"), np.array([m["p0"] for m in a], dtype=np.float64),
-            col("heading"), col("speed"), col("tb"), col("te"), col("follow", bool), col("gap"), col("lead"),
+            col("heading"), col("speed"), col("tb"), col("te"), col("follow", bool), col("gap"), col("lead"), self.warp,
         )
 
 
@@ -457,33 +829,102 @@ def _mover(klass: int, length: float, width: float, z0: float, z1: float, p0: np
                 speed=speed, tb=tb, te=te, follow=follow, gap=gap, lead=lead)
 
 
-def plan_drive(seed: int, config: SimConfig) -> tuple[np.random.Generator, str, StreetGrid, Trajectory]:
-    """The first stage of :func:`generate_world`: environment, streets and the ego trajectory
-    (city frame), with the generator in the state the rest of the world continues from."""
+def _plan(seed: int, config: SimConfig) -> tuple[np.random.Generator, str, StreetGrid, Route, Warp | None, Trajectory]:
     rng = np.random.default_rng([int(seed), 0x5EED])
     env = config.world.environment
     if env == "mixed":
         env = "urban" if rng.random() < 0.6 else "suburban"
+    irregular = config.world.layout == "irregular"
     lo, hi = config.ego.cruise_speed_mps
     cruise = float(rng.uniform(lo, hi)) + (0.0 if env == "urban" else 2.0)
     need = config.duration_s * cruise * 1.2 + 80.0
-    grid = make_street_grid(rng, env, extent_m=need + 250.0)
+    grid = make_street_grid(rng, env, extent_m=need + 250.0, irregular=irregular)
     route = plan_route(rng, grid, need, config.ego)
-    traj = build_trajectory(rng, route, config.ego, cruise, config.duration_s)
+    warp = Warp.draw(rng) if irregular else None
+    traj = build_trajectory(rng, route, config.ego, cruise, config.duration_s, warp=warp)
+    return rng, env, grid, route, warp, traj
+
+
+def plan_drive(seed: int, config: SimConfig) -> tuple[np.random.Generator, str, StreetGrid, Trajectory]:
+    """The first stage of :func:`generate_world`: environment, streets and the ego trajectory
+    (city frame, bent by the town's warp), with the generator in the state the rest of the world
+    continues from."""
+    rng, env, grid, _, _, traj = _plan(seed, config)
     return rng, env, grid, traj
+
+
+def _choose_avenues(rng: np.random.Generator, grid: StreetGrid, upts: np.ndarray, env: str) -> list[tuple[float, float, float, float, float]]:
+    """Diagonal avenues, each through a grid junction near the route at 25-65 deg to the grid."""
+    length_km = float(np.hypot(*np.diff(upts, axis=0).T).sum()) / 1000.0
+    out = []
+    for _ in range(rng.poisson(_AVENUES_PER_KM * max(length_km, 1.0))):
+        p = upts[rng.integers(len(upts))]
+        x = float(grid.xs[np.argmin(np.abs(grid.xs - p[0]))])
+        y = float(grid.ys[np.argmin(np.abs(grid.ys - p[1]))])
+        if any(abs(a[0] - x) < 1.0 and abs(a[1] - y) < 1.0 for a in out):
+            continue
+        angle = float(rng.uniform(math.radians(25.0), math.radians(65.0))) * (1.0 if rng.random() < 0.5 else -1.0)
+        hw = float(rng.uniform(6.5, 9.5)) if env == "urban" else float(rng.uniform(5.5, 8.0))
+        out.append((x, y, angle, hw, float(rng.uniform(3.5, 6.0))))
+    return out
+
+
+def _choose_roundabouts(rng: np.random.Generator, grid: StreetGrid, near, path: np.ndarray,
+                        avenues: list) -> list[tuple[float, float, float]]:
+    """Roundabouts at junctions near the route that the route never crosses (the ego needs no
+    path around the island)."""
+    out = []
+    for i, x in enumerate(grid.xs):
+        if not near(x, -1e9, x, 1e9):
+            continue
+        for j, y in enumerate(grid.ys):
+            if not near(x, y, x, y) or rng.random() >= _ROUNDABOUT_P:
+                continue
+            rad = float(rng.uniform(2.5, max(min(grid.x_hw[i], grid.y_hw[j]) - 0.5, 2.6)))
+            clear = rad + 7.5
+            if np.min(np.hypot(path[:, 0] - x, path[:, 1] - y)) < clear + 4.0:
+                continue
+            if any(abs(a[0] - x) < 1.0 and abs(a[1] - y) < 1.0 for a in avenues):
+                continue
+            out.append((float(x), float(y), rad))
+    return out
+
+
+def _avenue_traffic(rng: np.random.Generator, movers: "_MoverSet", avenue: tuple, u_lo: float, u_hi: float, urban: bool,
+                    density: float) -> None:
+    """Two lanes each way along a diagonal avenue."""
+    x, y, angle, hw, _ = avenue
+    d = np.array([math.cos(angle), math.sin(angle)])
+    left = np.array([-d[1], d[0]])
+    spacing = 45.0 if urban else 90.0
+    for sense in (1.0, -1.0):
+        h = sense * d
+        for off in (LANE_OFFSET_M, LANE_OFFSET_M + 3.3):
+            if off + 1.0 > hw:
+                continue
+            speed = float(rng.uniform(7.0, 13.0))
+            n = rng.poisson(density * (u_hi - u_lo) / spacing)
+            for u in np.sort(rng.uniform(u_lo, u_hi, size=n)):
+                k, length, width, z0, z1 = _vehicle_dims(rng, moving=True)
+                p0 = np.array([x, y]) + u * d + off * sense * (-left)
+                movers.offer(_mover(k, length, width, z0, z1, p0, math.atan2(h[1], h[0]), speed))
 
 
 def generate_world(seed: int, config: SimConfig) -> tuple[World, Trajectory, Trajectory]:
     """Build the world around a random route -> (world, true trajectory (global), same in the city frame)."""
-    rng, env, grid, traj = plan_drive(seed, config)
+    rng, env, grid, route, warp, traj = _plan(seed, config)
     wc = config.world
     urban = env == "urban"
+    irregular = warp is not None
 
-    # The driven part of the path, sampled every 2 m, decides what to populate.
+    # The driven part of the path, sampled every 2 m, decides what to populate (in the unwarped
+    # city frame, where the streets are straight).
     s_lo = float(traj.s_at(-0.5))
     s_hi = float(traj.s_at(config.duration_s + 0.5))
     ss = np.arange(s_lo, s_hi + 2.0, 2.0)
     px, py, _ = traj.pose_at_s(ss)
+    if irregular:
+        px, py = warp.inverse(px, py)
     pts = np.stack([px, py], 1)
 
     def near(x0: float, y0: float, x1: float, y1: float, r: float = _POPULATE_RADIUS_M) -> bool:
@@ -494,6 +935,8 @@ def generate_world(seed: int, config: SimConfig) -> tuple[World, Trajectory, Tra
     b = _Builder()
     density = wc.traffic_density
     sides: list[_Side] = []
+    layout = TownLayout(warp)
+    use = _BLOCK_USE[env]
     for i in range(len(grid.xs) - 1):
         if not near(grid.xs[i], -1e9, grid.xs[i + 1], 1e9):
             continue
@@ -503,14 +946,75 @@ def generate_world(seed: int, config: SimConfig) -> tuple[World, Trajectory, Tra
             blk = _block_sides(grid, i, j)
             if blk is None:
                 continue
+            kind = "sides"
+            if irregular:
+                r = rng.random()
+                kind = "square" if r < use[0] else "lot" if r < use[0] + use[1] else "park" if r < sum(use) else "sides"
+            if kind != "sides":
+                p0, p1 = blk[0].origin, blk[1].origin
+                rect = (float(p0[0]), float(p0[1]), float(p1[0]), float(p1[1]))
+                if kind == "square":
+                    _open_square(b, rng, rect)
+                    layout.squares.append(rect)
+                elif kind == "lot":
+                    _parking_lot(b, rng, rect, density)
+                    layout.parking_lots.append(rect)
+                else:
+                    _park(b, rng, rect)
+                    layout.parks.append(rect)
             for side in blk:
-                (_urban_side if urban else _suburban_side)(b, rng, side, density)
+                if kind == "sides":
+                    (_urban_side if urban else _suburban_side)(b, rng, side, density, irregular)
+                else:
+                    _street_furniture(b, rng, side, urban=urban, density=density)
+                    if side.parking:
+                        _parked_cars(b, rng, side, empty_p=(0.22 if urban else 0.6) / max(density, 0.2))
                 sides.append(side)
-    rows = np.array(b.rows, dtype=np.float64).reshape(-1, 8)
+    rows = _rows_array(b.rows)
+    avenue_spans: list[tuple[float, float]] = []
+    if irregular:
+        rows = _split_rows(rows)
+        avenues = _choose_avenues(rng, grid, pts, env)
+        ab = _Builder()
+        for x, y, angle, hw, sw in avenues:
+            p, d = np.array([x, y]), np.array([math.cos(angle), math.sin(angle)])
+            rows = rows[~_in_strip(rows, p, d, hw + sw)]
+            dist = np.abs(-d[1] * (pts[:, 0] - x) + d[0] * (pts[:, 1] - y))
+            u = (pts[:, 0] - x) * d[0] + (pts[:, 1] - y) * d[1]
+            # Populated where it passes the route, at most _AVENUE_REACH_M from its junction (so a
+            # long drive's world stays linear in its length).
+            close = (dist < _POPULATE_RADIUS_M) & (np.abs(u) < _AVENUE_REACH_M)
+            u_lo = float(u[close].min()) - 60.0 if close.any() else -60.0
+            u_hi = float(u[close].max()) + 60.0 if close.any() else 60.0
+            avenue_spans.append((u_lo, u_hi))
+            for side in _avenue_sides(grid, p, d, hw, sw, u_lo, u_hi, parking=hw > 8.3):
+                (_urban_side if urban else _suburban_side)(ab, rng, side, density, irregular)
+                sides.append(side)
+        arows = _split_rows(_rows_array(ab.rows))
+        arows = arows[~_in_grid_streets(arows, grid)]
+        for x0, y0, x1, y1 in layout.squares + layout.parking_lots + layout.parks:
+            # An avenue through an open block keeps it open.
+            arows = arows[~((arows[:, 0] > x0) & (arows[:, 0] < x1) & (arows[:, 1] > y0) & (arows[:, 1] < y1))]
+        for x, y, angle, hw, sw in avenues:
+            d = np.array([math.cos(angle), math.sin(angle)])
+            arows = arows[~_in_strip(arows, np.array([x, y]), d, hw)]
+        layout.avenues.extend(avenues)
+        # Roundabouts: clear a round junction and put an island in its middle.
+        flat = _dense_path(route.points, route.radii)
+        path = np.stack([flat[1][::4], flat[2][::4]], 1)
+        rb = _Builder()
+        rows = np.concatenate([rows, arows])
+        for x, y, rad in _choose_roundabouts(rng, grid, near, path, avenues):
+            c = np.array([x, y])
+            reach = np.hypot(rows[:, 3], rows[:, 4])
+            rows = rows[np.hypot(rows[:, 0] - x, rows[:, 1] - y) > rad + 7.5 + reach]
+            _roundabout_island(rb, rng, c, rad, rad + 7.5)
+            layout.roundabouts.append((x, y, rad))
+        rows = _warp_rows(np.concatenate([rows, _rows_array(rb.rows)]), warp)
     static = pack_boxes(rows[:, 0], rows[:, 1], rows[:, 2], rows[:, 3], rows[:, 4], rows[:, 5], rows[:, 6])
     static_cls = rows[:, 7].astype(np.int32)
 
-    movers = _MoverSet(traj, config.duration_s, static)
+    movers = _MoverSet(traj, config.duration_s, static, warp)
     # A vehicle ahead of the ego and one behind, driving its path (time-shifted).
     if rng.random() < 0.55 * min(density, 1.0):
         k, length, width, z0, z1 = _vehicle_dims(rng, moving=True)
@@ -551,6 +1055,8 @@ def generate_world(seed: int, config: SimConfig) -> tuple[World, Trajectory, Tra
                     p = rng.uniform(a_lo, a_hi)
                     p0 = np.array([p, lane_c]) if axis == 0 else np.array([lane_c, p])
                     movers.offer(_mover(M.CYCLIST, 1.8, 0.6, 0.0, 1.75, p0, heading, float(rng.uniform(3.5, 6.0))))
+    for avenue, (u_lo, u_hi) in zip(layout.avenues, avenue_spans):
+        _avenue_traffic(rng, movers, avenue, u_lo, u_hi, urban, density)
     # Pedestrians walking along sidewalks, and some crossing at corners.
     for side in sides:
         sw = side.sidewalk
@@ -585,5 +1091,6 @@ def generate_world(seed: int, config: SimConfig) -> tuple[World, Trajectory, Tra
     rcs_off = rng.normal(0.0, 2.0, size=len(static_cls))
     m_refl = np.clip(M.LIDAR_REFLECTIVITY[mv.classes] * rng.uniform(0.7, 1.3, size=len(mv)), 0.02, 1.0)
     m_rcs = rng.normal(0.0, 2.0, size=len(mv))
-    world = World(env, static_g, yaw_g, static_cls, refl, rcs_off, mv.transformed(tf), m_refl, m_rcs, grid, tf)
+    world = World(env, static_g, yaw_g, static_cls, refl, rcs_off, mv.transformed(tf), m_refl, m_rcs, grid, tf,
+                  layout if irregular else None)
     return world, traj.transformed(tf), traj
