@@ -111,13 +111,10 @@ class Movers:
             s = traj.s_at(tf) + self.follow_gap[f]
             fx, fy, fyaw = traj.pose_at_s(s)
             x[f], y[f], yaw[f] = fx, fy, fyaw
-            if self.warp is None:
-                fvx, fvy, _ = traj.velocity_at(tf)
-            else:
-                # Along the follower's own heading: in a curved town the path turns between
-                # the ego's arc length and the follower's.
-                v = traj.speed_at(tf)
-                fvx, fvy = v * np.cos(fyaw), v * np.sin(fyaw)
+            # Along the follower's own heading: the path turns between the ego's arc length
+            # and the follower's (in a corner, or anywhere in a curved town).
+            v = traj.speed_at(tf)
+            fvx, fvy = v * np.cos(fyaw), v * np.sin(fyaw)
             vx[f], vy[f] = fvx, fvy
         boxes = pack_boxes(x, y, yaw, self.half_length, self.half_width, self.z_min, self.z_max) if m else np.zeros((0, 8))
         return boxes, np.stack([vx, vy], axis=1) if m else np.zeros((0, 2)), yaw
