@@ -127,7 +127,7 @@ def test_a_run_reproduces_from_its_own_config(tmp_path, tiny_checkpoint):
     assert a["maps"] == b["maps"] and a["vs_truth"] == b["vs_truth"]
     ca, cb = (json.loads((d / "config.json").read_text()) for d in (first, again))
     assert ca["mapper"] == cb["mapper"] and ca["mapper"]["update_rate_hz"] == 5.0
-    assert ca["source"] == cb["source"] == {"kind": "sim", "seeds": [4], "duration_s": 1.5}
+    assert ca["source"] == cb["source"] == {"kind": "sim", "seeds": [4], "duration_s": 1.5, "radar": None, "radar_ranges": None}
     # an option given beside --config wins over the file
     r = runner.invoke(app, ["evaluate", "--config", str(first / "config.json"), "--m-u-min", "0.5", "--workers", "1",
                             "--out", str(tmp_path / "changed")])
