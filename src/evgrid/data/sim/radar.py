@@ -268,7 +268,7 @@ class RadarModel:
                        np.zeros(m, bool), forced=True, real_flags=True)
 
         self.last_truth = np.zeros((0, 3))
-        if not sc.r:
+        if not sc:
             return np.zeros((0, 12), np.float32), np.zeros(0, np.uint8)
         cl = self._merge(sc.arrays(), syaw, vs, rng)
         r, a, rcs, snr, vt, lab, is_mover, real_flags, truth = cl
@@ -387,13 +387,15 @@ class _Scatterers:
     _FIELDS = ("r", "a", "rcs", "far", "vel", "lab", "mover", "forced", "real_flags")
 
     def __init__(self) -> None:
-        self.r: list[np.ndarray] = []
         self._parts: dict[str, list[np.ndarray]] = {f: [] for f in self._FIELDS}
+
+    def __bool__(self) -> bool:
+        """Whether any returns were added."""
+        return bool(self._parts["r"])
 
     def add(self, r: np.ndarray, a: np.ndarray, rcs: np.ndarray, far: np.ndarray, vel: np.ndarray, label: int,
             mover: np.ndarray, forced: bool = False, real_flags: bool = False) -> None:
         n = len(r)
-        self.r.append(r)
         for f, v in zip(self._FIELDS, (r, a, rcs, far, vel, np.full(n, label, np.uint8), mover, np.full(n, forced),
                                        np.full(n, real_flags or label == RADAR_REAL))):
             self._parts[f].append(np.asarray(v))
