@@ -188,3 +188,53 @@ def test_mapset_updates_all_six_maps_and_validates():
     with pytest.raises(ValueError, match="unknown map"):
         MapSet(grid, names=("ray_ilm", "octomap"))
     assert MapSet(grid, names=("ray_ilm",)).required_isms == ("ray_ilm",)
+
+
+def _maps_equal(a: MapSet, b: MapSet) -> None:
+    for name in a.names:
+        ma, ca, ra, cca = a[name].to_dense()
+        mb, cb, rb, ccb = b[name].to_dense()
+        assert (ra, cca) == (rb, ccb), name
+        np.testing.assert_array_equal(ma, mb, err_msg=name)
+        np.testing.assert_array_equal(ca, cb, err_msg=name)
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    names=st.lists(st.sampled_from(MAP_NAMES), min_size=1, max_size=6, unique=True),
+    poses=st.lists(st.tuples(st.floats(-3.0, 3.0), st.floats(-3.0, 3.0), st.floats(-math.pi, math.pi)),
+                   min_size=1, max_size=3),
+    tile_cells=st.sampled_from([8, 24, 256]),
+    seed=st.integers(0, 2**16),
+)
+def test_one_pass_update_equals_warping_whole_windows_then_fusing(names, poses, tile_cells, seed):
+    """MapSet.update samples each ISM inside the rules' loop: the same maps, bit for bit, as the
+    two passes through whole warped windows, at any pose, over any tiling, for any subset of
+    maps, with sparse ISMs (skipped vacuous blocks) and invalid cells."""
+    grid = GridSpec(40, 4.0)
+    rng = np.random.default_rng(seed)
+    one, two = MapSet(grid, P, tuple(names), tile_cells), MapSet(grid, P, tuple(names), tile_cells)
+    for x, y, yaw in poses:
+        isms = {}
+        for k in ("ray_ilm", "ray_irm", "deep_irm"):
+            m = random_masses(rng, grid.shape)
+            if rng.random() < 0.5:  # a few informative 8 x 8 blocks
+                m[~np.kron(rng.random((5, 5)) < 0.3, np.ones((8, 8), bool))] = [0, 0, 1]
+            m[tuple(rng.integers(0, 40, (2, 3)))] = [np.nan, 0.0, 1.0]
+            isms[k] = m
+        pose = SE2(x, y, yaw)
+        assert one.update(pose, isms) == {n: 0 for n in names}
+        two.update_windows(two.warp(pose, isms))
+    _maps_equal(one, two)
+    assert one.n_rejected == two.n_rejected and all(v > 0 for v in one.n_rejected.values())
+    assert one.n_updates == two.n_updates == len(poses)
+
+
+def test_one_pass_update_rejects_bad_isms_naming_them():
+    ms = MapSet(GridSpec(16, 2.0), P, ("fused",))
+    good = np.zeros((16, 16, 3), np.float32)
+    good[..., 2] = 1
+    with pytest.raises(ValueError, match=r"deep_irm: the local grid must be .* shape \(16, 16, 3\)"):
+        ms.update(SE2(), {"deep_irm": good[:8], "ray_irm": good})
+    with pytest.raises(ValueError, match="deep_irm: the local grid must be a numeric array"):
+        ms.update(SE2(), {"deep_irm": good.astype(str), "ray_irm": good})

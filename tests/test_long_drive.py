@@ -102,8 +102,7 @@ def test_keyframe_scores_recount_only_the_tiles_the_vehicle_touched(scene):
 
     class Touched:
         def on_update(self, u):
-            w = u.windows["ray_ilm"]
-            touched.update(tile_keys(u.maps.maps["ray_ilm"], w.r0, w.c0, *w.shape))
+            touched.update(tile_keys(u.maps.maps["ray_ilm"], *u.box))
 
     mapper.observers += [Touched(), truth, scores]
     checked = 0

@@ -715,8 +715,9 @@ def upgrade_checkpoint_cmd(
 def bench(
     seconds: float = typer.Option(6.0, "--duration", help="Length of the simulated scene used (s)."),
     checkpoint: Path = typer.Option(None, "--checkpoint", help="Ev-Net checkpoint; default: the shipped one."),
-    old_path: bool = typer.Option(False, "--old-path", help="Also time the deep IRM's plain path (full image, "
-                                  "torch), interleaved with the fast one: before and after in one run."),
+    old_path: bool = typer.Option(False, "--old-path", help="Also time the old path (the deep IRM's full image on "
+                                  "torch, maps updated through whole warped windows), interleaved with the new "
+                                  "one: before and after in one run."),
     end_to_end: float = typer.Option(None, "--end-to-end", help="Length (s) of the scene mapped end to end with "
                                      "figures and GIF (default: --duration)."),
     repeats: int = typer.Option(3, "--repeats", min=1, help="Passes over the scene; medians over them."),

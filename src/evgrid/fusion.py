@@ -28,14 +28,25 @@ from typing import Callable, Mapping
 import numpy as np
 
 from evgrid.geometry import SE2, GridSpec
-from evgrid.grid import EvidentialMap, MapWindow, Warper
+from evgrid.grid import EvidentialMap, MapWindow, warp_window, window_affine
 from evgrid.kernels import (
-    _k_count_invalid,
+    _BLOCK,
+    _COARSE,
+    RULE_DEEP_DISC,
+    RULE_DEEP_REPLACE,
+    RULE_DEMPSTER,
+    RULE_FUSED,
+    _k_blocks,
+    _k_coarse,
     _k_deep_disc_into,
     _k_deep_replace_into,
     _k_dempster_into,
     _k_fused_into,
-    _k_vacate_invalid,
+    _k_informative,
+    _k_load,
+    _k_spans,
+    _k_warp,
+    _k_warp_update,
     rows,
 )
 from evgrid.validation import check_number
@@ -188,6 +199,10 @@ class UpdateRule:
     update: Callable[..., int]
 
 
+# The one-pass kernel's code for each rule (evgrid.kernels._k_warp_update).
+_KERNEL_RULE = {"ray_ilm": RULE_DEMPSTER, "deep_acc": RULE_DEMPSTER, "deep_replace": RULE_DEEP_REPLACE,
+                "deep_disc": RULE_DEEP_DISC, "ray_irm": RULE_DEMPSTER, "fused": RULE_FUSED}
+
 RULES: dict[str, UpdateRule] = {
     "ray_ilm": UpdateRule("ray_ilm", ("ray_ilm",), update_ray_ilm),
     "deep_acc": UpdateRule("deep_acc", ("deep_irm",), update_deep_acc),
@@ -201,12 +216,16 @@ RULES: dict[str, UpdateRule] = {
 class MapSet:
     """Several maps of Table I over one scene, in the first pose's frame, updated in one pass.
 
-    Each ISM needed by any map is warped once per update and shared by the maps that read it.
+    :meth:`update` loads each ISM grid once (checked, into a padded copy) and then visits each
+    covered map cell once: it samples every ISM there as the warp would (bilinearly) and applies
+    every map's rule, so no warped window is written and read back. :meth:`warp` and
+    :meth:`update_windows` do the same in two passes through whole warped windows (the extra
+    map sets of the ``m_u_min`` sweep share them); both give the same maps.
 
     Invalid ISM cells never reach a map: ``n_rejected[ism]`` counts the cells of the local ISM
-    grids given to :meth:`warp` that were not masses and were taken as vacuous (no
-    information), and ``n_rejected_cells[map]`` the window cells that a map's update rule
-    rejected (non-zero only for windows that did not come from :meth:`warp`).
+    grids that were not masses and were taken as vacuous (no information), and
+    ``n_rejected_cells[map]`` the window cells that a map's update rule rejected (non-zero only
+    for windows that did not come from :meth:`warp`).
     """
 
     def __init__(
@@ -227,50 +246,112 @@ class MapSet:
             for n in self.names
         }
         self.required_isms: tuple[str, ...] = tuple(i for i in ISM_NAMES if any(i in RULES[n].isms for n in self.names))
-        self._warpers = {i: Warper(self.grid) for i in self.required_isms}
+        n, k = self.grid.n_cells, len(self.required_isms)
+        # each ISM's local grid with a vacuous border (see evgrid.kernels._k_warp), and which of
+        # its 8 x 8 blocks hold information
+        self._src = np.zeros((k, n + 3, n + 3, 3), dtype=np.float32)
+        self._src[..., 2] = 1.0
+        self._coarse = np.zeros((k, (n + 3 + _COARSE - 1) // _COARSE, (n + 3 + _COARSE - 1) // _COARSE), dtype=np.bool_)
+        slot = {i: s for s, i in enumerate(self.required_isms)}
+        # per map: its rule's kernel code and the slots of the ISMs it reads
+        self._rules = np.array([(_KERNEL_RULE[m], slot[RULES[m].isms[0]], slot[RULES[m].isms[-1]]) for m in self.names],
+                               dtype=np.int64)
+        self._bufs = np.empty((k, 3 * int(tile_cells)), dtype=np.float32)
+        side = int(np.ceil(n * np.sqrt(2.0))) + 4
+        self._spans = np.zeros((side, 2), dtype=np.int64)
+        self._windows: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         self.n_updates = 0
         self.n_rejected: dict[str, int] = {i: 0 for i in self.required_isms}
-        self.n_rejected_cells: dict[str, int] = {n: 0 for n in self.names}
+        self.n_rejected_cells: dict[str, int] = {m: 0 for m in self.names}
 
     def __getitem__(self, name: str) -> EvidentialMap:
         return self.maps[name]
 
-    def warp(self, pose: SE2, isms: Mapping[str, np.ndarray]) -> dict[str, MapWindow]:
-        """Warp every required local ISM grid ``(n, n, 3)`` at ``pose`` into map windows (views reused next call)."""
+    def load(self, isms: Mapping[str, np.ndarray]) -> None:
+        """Take the local ISM grids ``(n, n, 3)`` of one step; cells that are not masses become vacuous (counted)."""
         missing = [i for i in self.required_isms if i not in isms]
         if missing:
             raise ValueError(f"missing ISM grid(s) {missing}; these maps need {self.required_isms}")
-        return {i: self._warpers[i].warp(self._checked(i, isms[i]), pose) for i in self.required_isms}
-
-    def _checked(self, name: str, local: np.ndarray) -> np.ndarray:
-        """``local``, or a copy whose invalid cells are vacuous (counted in ``n_rejected``).
-
-        Checked before the warp: its bilinear mix would blend an invalid cell into its
-        neighbours, where a negative mass can hide inside a valid-looking sum.
-        """
-        a = np.asarray(local)
-        if a.ndim != 3 or a.shape[2] != 3 or not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):
-            return a  # the warp reports what is wrong
-        a = np.ascontiguousarray(a, dtype=np.float32)  # what the warp reads anyway
-        flat, rs, h, w = rows(a)
-        if _k_count_invalid(flat, rs, h, w) == 0:
-            return a
-        a = a.copy()  # never write into the caller's grid
-        flat, rs, h, w = rows(a)
-        n_bad = int(_k_vacate_invalid(flat, rs, h, w))
-        if self.n_rejected[name] == 0:
-            logger.warning("%s: %d cell(s) of the local grid are not masses (NaN, inf, negative or not summing to 1); "
-                           "they are taken as vacuous and counted in MapSet.n_rejected", name, n_bad)
-        self.n_rejected[name] += n_bad
-        return a
+        n = self.grid.n_cells
+        for s, name in enumerate(self.required_isms):
+            a = np.asarray(isms[name])
+            if a.shape != (n, n, 3) or not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):
+                raise ValueError(f"{name}: the local grid must be a numeric array of shape {(n, n, 3)}, got {a.dtype} {a.shape}")
+            # checked before the warp: its bilinear mix would blend an invalid cell into its
+            # neighbours, where a negative mass can hide inside a valid-looking sum
+            n_bad = int(_k_load(np.ascontiguousarray(a, dtype=np.float32), self._src[s]))
+            if n_bad:
+                if self.n_rejected[name] == 0:
+                    logger.warning("%s: %d cell(s) of the local grid are not masses (NaN, inf, negative or not summing "
+                                   "to 1); they are taken as vacuous and counted in MapSet.n_rejected", name, n_bad)
+                self.n_rejected[name] += n_bad
+            _k_coarse(self._src[s], self._coarse[s])
 
     def update(self, pose: SE2, isms: Mapping[str, np.ndarray]) -> dict[str, int]:
         """Fuse one time step: local ISM grids keyed by ISM name, taken at ego ``pose`` in the first pose's frame.
 
-        Returns, per map, the window cells its rule rejected (see :meth:`update_windows`).
+        Returns, per map, the window cells its rule rejected (always 0 here: invalid ISM cells
+        are made vacuous on loading and counted in ``n_rejected``).
         """
-        windows = self.warp(pose, isms)
-        return self.update_windows(windows)
+        self.load(isms)
+        return self.update_loaded(pose)
+
+    def update_loaded(self, pose: SE2) -> dict[str, int]:
+        """Fuse the ISM grids of the last :meth:`load`, taken at ego ``pose``, into every map in one pass."""
+        grid, n = self.grid, self.grid.n_cells
+        r0, c0, h, w = warp_window(grid, pose)
+        affine = window_affine(grid, pose, r0, c0)
+        spans = self._spans[:h]
+        _k_spans(*affine, n, h, w, spans)
+        nb = (h + _BLOCK - 1) // _BLOCK
+        jl, jh = np.empty(nb, np.int64), np.empty(nb, np.int64)
+        _k_blocks(spans, h, w, jl, jh)
+        informative = np.zeros((len(self.required_isms), nb, (w + _BLOCK - 1) // _BLOCK + 1), dtype=np.bool_)
+        for s in range(len(self.required_isms)):
+            _k_informative(self._coarse[s], n, *affine, h, jl, jh, informative[s])
+        maps = [self.maps[m] for m in self.names]
+        ts = maps[0].tile_cells
+        rejected = np.zeros(len(maps), dtype=np.int64)
+        src = self._src.reshape(len(self.required_isms), -1)
+        for key, tr, tc, wr, wc in maps[0]._pieces(r0, c0, h, w):
+            piece = spans[wr]
+            rows_on = np.flatnonzero((np.minimum(piece[:, 1], wc.stop) > np.maximum(piece[:, 0], wc.start)))
+            if len(rows_on) == 0:
+                continue
+            a, b = int(rows_on[0]), int(rows_on[-1]) + 1  # the piece's rows with covered cells
+            tiles = [m._tile(key) for m in maps]
+            _k_warp_update(src, 3 * (n + 3), n, informative, jl, *affine, spans,
+                           wr.start + a, wr.start + b, wc.start, wc.stop,
+                           tuple(t.reshape(-1) for t, _ in tiles), tuple(c.reshape(-1) for _, c in tiles),
+                           ts, tr.start + a, tc.start, self._rules, float(self.params.m_u_min), float(self.params.alpha),
+                           self._bufs, rejected)
+        self.n_updates += 1
+        out = {m: int(r) for m, r in zip(self.names, rejected)}
+        for m, r in out.items():
+            self.n_rejected_cells[m] += r
+        return out
+
+    def warp(self, pose: SE2, isms: Mapping[str, np.ndarray]) -> dict[str, MapWindow]:
+        """Every required local ISM grid ``(n, n, 3)`` at ``pose`` warped into a whole map window (buffers reused next call)."""
+        self.load(isms)
+        return self.warp_loaded(pose)
+
+    def warp_loaded(self, pose: SE2) -> dict[str, MapWindow]:
+        """The windows of the ISM grids of the last :meth:`load` at ``pose`` (see :meth:`warp`)."""
+        grid, n = self.grid, self.grid.n_cells
+        r0, c0, h, w = warp_window(grid, pose)
+        affine = window_affine(grid, pose, r0, c0)
+        out = {}
+        for s, name in enumerate(self.required_isms):
+            if name not in self._windows:
+                side = self._spans.shape[0]
+                self._windows[name] = (np.empty(side * side * 3, np.float32), np.empty(side * side, np.bool_))
+            masses, covered = self._windows[name]
+            spans = np.zeros((h, 2), dtype=np.int64)
+            _k_warp(self._src[s].reshape(-1), 3 * (n + 3), self._coarse[s], n, *affine,
+                    masses, 3 * w, covered, w, h, w, spans)
+            out[name] = MapWindow(r0, c0, masses[: h * w * 3].reshape(h, w, 3), covered[: h * w].reshape(h, w), spans)
+        return out
 
     def update_windows(self, windows: Mapping[str, MapWindow]) -> dict[str, int]:
         """Fuse already-warped ISM windows (all from the same pose) into every map.

@@ -22,22 +22,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
-import numba
 import numpy as np
 
 from evgrid.geometry import SE2, GridSpec
 from evgrid.io import atomic_write
-from evgrid.kernels import _k_count_invalid
+from evgrid.kernels import _COARSE, _k_coarse, _k_count_invalid, _k_warp
 from evgrid.mass import vacuous
 
-__all__ = ["MapWindow", "EvidentialMap", "Warper", "warp_to_map", "warp_window", "save_map", "load_map", "MapFileError"]
-
-# Fractional source positions closer than this to a whole cell (in cells) are snapped to it.
-_SNAP = 1e-6
-# Output rows are visited in bands of _BLOCK rows and, within a band, blocks of _BLOCK columns,
-# which keeps the rotated source footprint in cache at any yaw.
-_BLOCK = 32
-_COARSE = 8  # side of the source blocks whose vacuousness is checked before sampling
+__all__ = [
+    "MapWindow", "EvidentialMap", "Warper", "warp_to_map", "warp_window", "window_affine", "save_map", "load_map", "MapFileError",
+]
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -71,169 +65,19 @@ class MapWindow:
         return self.covered.shape  # type: ignore[return-value]
 
 
-@numba.njit(cache=True, fastmath=True, error_model="numpy")
-def _k_coarse(src, coarse):
-    """coarse[a, b] = any cell of src block [8a, 8a + 8) x [8b, 8b + 8) is not vacuous."""
-    # branch-free (a running min per block): a branch per cell mispredicts on scattered cells
-    n_r, n_c = src.shape[0], src.shape[1]
-    u_min = np.empty(coarse.shape[1], dtype=np.float32)
-    for a in range(coarse.shape[0]):
-        u_min[:] = 1.0
-        for r in range(a * _COARSE, min(n_r, (a + 1) * _COARSE)):
-            for c in range(n_c):
-                b = c // _COARSE
-                u_min[b] = min(u_min[b], src[r, c, 2])
-        for b in range(coarse.shape[1]):
-            coarse[a, b] = u_min[b] < 1.0
-
-
-@numba.njit(cache=True, fastmath=True, error_model="numpy")
-def _row_range(a, d, n, w):
-    """Columns j in [0, w) (padded by one either side) where -1 < a + j d < n; (0, 0) if none."""
-    if d == 0.0:
-        return (0, w) if (a > -1.0 and a < n) else (0, 0)
-    t1 = (-1.0 - a) / d
-    t2 = (n - a) / d
-    lo = max(-2.0, min(float(w), min(t1, t2)))  # clamped before int(): d may be ~1e-17
-    hi = max(-2.0, min(float(w), max(t1, t2)))
-    return max(0, int(math.floor(lo)) - 1), min(w, int(math.floor(hi)) + 2)
-
-
-@numba.njit(cache=True, fastmath=True, error_model="numpy")
-def _k_spans(u00, v00, du_di, du_dj, dv_di, dv_dj, n, h, w, spans):
-    """spans[i] = columns of row i whose local position (u, v) lies in (-1, n)^2 (see _k_warp)."""
-    nf = float(n)
-    for i in range(h):
-        a = u00 + i * du_di
-        b = v00 + i * dv_di
-        l1, h1 = _row_range(a, du_dj, nf, w)
-        l2, h2 = _row_range(b, dv_dj, nf, w)
-        lo = max(l1, l2)
-        hi = min(h1, h2)
-        # the analytic range is padded; settle its ends on the exact test (the set is convex)
-        while lo < hi:
-            u = a + lo * du_dj
-            v = b + lo * dv_dj
-            if u > -1.0 and v > -1.0 and u < nf and v < nf:
-                break
-            lo += 1
-        while hi > lo:
-            u = a + (hi - 1) * du_dj
-            v = b + (hi - 1) * dv_dj
-            if u > -1.0 and v > -1.0 and u < nf and v < nf:
-                break
-            hi -= 1
-        spans[i, 0] = lo if hi > lo else 0
-        spans[i, 1] = hi if hi > lo else 0
-
-
-@numba.njit(cache=True, fastmath=True, error_model="numpy")
-def _k_warp(src, srs, coarse, n, u00, v00, du_di, du_dj, dv_di, dv_dj, out, ors, covered, crs, h, w, spans):
-    # Map cell (i, j) of the window samples the local grid at continuous (row, col) position
-    # (u, v) = (u00 + i du_di + j du_dj, v00 + i dv_di + j dv_dj). src is the local grid with a
-    # vacuous border (local (r, c) is src[r + 1, c + 1]; one row/column before, two after, as a
-    # snapped index may reach n + 1), so bilinear sampling anywhere in (-1, n) needs no bounds
-    # checks. Fractions within _SNAP of 0 or 1 are snapped, so identity, whole-cell and
-    # quarter-turn warps copy cells exactly. Weights are float32, positions float64.
-    _k_spans(u00, v00, du_di, du_dj, dv_di, dv_dj, n, h, w, spans)
-    one = np.float32(1.0)
-    idx = np.empty(_BLOCK, dtype=np.int64)
-    frac = np.empty(2 * _BLOCK, dtype=np.float32)
-    for i in range(h):
-        ro = out[i * ors:i * ors + 3 * w]
-        cv = covered[i * crs:i * crs + w]
-        lo, hi = spans[i, 0], spans[i, 1]
-        for j in range(lo):
-            ro[3 * j] = 0.0
-            ro[3 * j + 1] = 0.0
-            ro[3 * j + 2] = 1.0
-        for j in range(hi, w):
-            ro[3 * j] = 0.0
-            ro[3 * j + 1] = 0.0
-            ro[3 * j + 2] = 1.0
-        cv[:lo] = False
-        cv[lo:hi] = True
-        cv[hi:] = False
-    n_cr, n_cc = coarse.shape[0], coarse.shape[1]
-    for bi in range(0, h, _BLOCK):
-        i1 = min(h, bi + _BLOCK)
-        jl = w
-        jh = 0
-        for i in range(bi, i1):
-            if spans[i, 1] > spans[i, 0]:
-                jl = min(jl, spans[i, 0])
-                jh = max(jh, spans[i, 1])
-        for bj in range(jl, jh, _BLOCK):
-            j1 = min(jh, bj + _BLOCK)
-            # the block's source footprint (padded indices): the box of its corners' images
-            ulo = 1e30
-            uhi = -1e30
-            vlo = 1e30
-            vhi = -1e30
-            for ci in (bi, i1 - 1):
-                for cj in (bj, j1 - 1):
-                    u = u00 + ci * du_di + cj * du_dj + 1.0
-                    v = v00 + ci * dv_di + cj * dv_dj + 1.0
-                    ulo = min(ulo, u)
-                    uhi = max(uhi, u)
-                    vlo = min(vlo, v)
-                    vhi = max(vhi, v)
-            a0 = max(0, int(max(ulo, 0.0)) - 1) // _COARSE
-            a1 = min(n_cr - 1, (int(min(max(uhi, 0.0), n + 2.0)) + 2) // _COARSE)
-            b0 = max(0, int(max(vlo, 0.0)) - 1) // _COARSE
-            b1 = min(n_cc - 1, (int(min(max(vhi, 0.0), n + 2.0)) + 2) // _COARSE)
-            informative = False
-            for a in range(a0, a1 + 1):
-                for b in range(b0, b1 + 1):
-                    informative = informative or coarse[a, b]
-            for i in range(bi, i1):
-                ro = out[i * ors:i * ors + 3 * w]
-                j0 = max(bj, spans[i, 0])
-                j2 = min(j1, spans[i, 1])
-                if not informative:
-                    for j in range(j0, j2):
-                        ro[3 * j] = 0.0
-                        ro[3 * j + 1] = 0.0
-                        ro[3 * j + 2] = 1.0
-                    continue
-                a = u00 + i * du_di + 1.0
-                b = v00 + i * dv_di + 1.0
-                # two passes: positions -> (index, fractions) vectorises once apart from the gather
-                for k in range(j2 - j0):
-                    t = a + (j0 + k) * du_dj
-                    s = b + (j0 + k) * dv_dj
-                    iu = min(int(t), n)  # t in (0, n + 1): floor; min() guards a rounding at the edge
-                    iv = min(int(s), n)
-                    fu = t - iu
-                    fv = s - iv
-                    # snap near-integer positions to the cell (a quarter-turn's cos is 6e-17, not
-                    # 0) by moving the index, not by a weight of 1: fastmath may evaluate the mix
-                    # as a + f (b - a), exact only for f = 0
-                    up = fu > 1.0 - _SNAP
-                    iu = iu + 1 if up else iu
-                    fu = 0.0 if (up or fu < _SNAP) else fu
-                    up = fv > 1.0 - _SNAP
-                    iv = iv + 1 if up else iv
-                    fv = 0.0 if (up or fv < _SNAP) else fv
-                    frac[2 * k] = np.float32(fu)
-                    frac[2 * k + 1] = np.float32(fv)
-                    idx[k] = iu * srs + 3 * iv
-                for k in range(j2 - j0):
-                    fu = frac[2 * k]
-                    fv = frac[2 * k + 1]
-                    gu = one - fu
-                    gv = one - fv
-                    p = idx[k]
-                    q = p + srs
-                    o = 3 * (j0 + k)
-                    for c in range(3):
-                        ro[o + c] = gu * (gv * src[p + c] + fv * src[p + 3 + c]) + fu * (gv * src[q + c] + fv * src[q + 3 + c])
-
-
 def _pose_affine(grid: GridSpec, pose: SE2) -> tuple[float, float, float, float]:
     """Coefficients of map (R, C) -> local (u, v): u = cu + cos a + sin b, v = cu - sin a + cos b."""
     res = grid.resolution
     return math.cos(pose.yaw), math.sin(pose.yaw), pose.x / res, pose.y / res
+
+
+def window_affine(grid: GridSpec, pose: SE2, r0: int, c0: int) -> tuple[float, float, float, float, float, float]:
+    """``(u00, v00, du_di, du_dj, dv_di, dv_dj)``: window cell (i, j) (map cell (r0 + i, c0 + j)) samples local (u, v)."""
+    cs, sn, tx, ty = _pose_affine(grid, pose)
+    cc = grid.n_cells / 2.0 - 0.5
+    a0 = r0 + 0.5 + tx
+    b0 = c0 + 0.5 + ty
+    return cc + cs * a0 + sn * b0, cc - sn * a0 + cs * b0, cs, sn, -sn, cs
 
 
 def warp_window(grid: GridSpec, pose: SE2) -> tuple[int, int, int, int]:
@@ -281,16 +125,11 @@ class Warper:
         n = grid.n_cells
         self._src[1 : n + 1, 1 : n + 1] = local
         r0, c0, h, w = warp_window(grid, pose)
-        cs, sn, tx, ty = _pose_affine(grid, pose)
-        cc = n / 2.0 - 0.5
-        a0 = r0 + 0.5 + tx
-        b0 = c0 + 0.5 + ty
         # windows are packed at the buffers' start (row stride w) so each is one contiguous block
         spans = self._spans[:h]
         _k_coarse(self._src, self._coarse)
         _k_warp(
-            self._src.reshape(-1), 3 * (n + 3), self._coarse, n,
-            cc + cs * a0 + sn * b0, cc - sn * a0 + cs * b0, cs, sn, -sn, cs,
+            self._src.reshape(-1), 3 * (n + 3), self._coarse, n, *window_affine(grid, pose, r0, c0),
             self._masses, 3 * w, self._covered, w, h, w, spans,
         )
         masses = self._masses[: h * w * 3].reshape(h, w, 3)

@@ -1,8 +1,9 @@
-"""Compiled numba kernels of the evidential algebra and the map update rules.
+"""Compiled numba kernels of the evidential algebra, the map update rules and the warp.
 
 All per-cell formulas and every kernel that inlines them live in this one module: numba's
 on-disk cache is invalidated only when the jitted function's own file changes, so kernels in
-another module would keep stale copies of an edited formula.
+another module would keep stale copies of an edited formula. The one-pass map update
+(:func:`_k_warp_update`) inlines both the warp's sampling and the rules.
 
 Kernels take ``(h, w, 3)`` float32 views as a flat buffer and a row stride (see
 :func:`rows`), loop rows, and are branch-free with ``error_model="numpy"`` so that LLVM
@@ -18,6 +19,8 @@ checks away; the other flags (and so vectorisation and the results for valid cel
 
 from __future__ import annotations
 
+
+import math
 
 import numba
 import numpy as np
@@ -238,107 +241,400 @@ def _span(spans, i, w):
     return lo, hi
 
 
+# Each rule on one row of cells: map cells mp_ and ISM cells ism_ (3 floats a cell, n cells);
+# bad[j] flags invalid ISM cells; returns their number. The kernels below loop rows over them.
+
+@numba.njit(inline="always", **_CHECKED)
+def _dempster_row(mp_, ism_, bad, n):
+    # map <- map (+)_D ISM, paper eq. (5): the ray_ilm, deep_acc and ray_irm maps.
+    for j in range(n):
+        p = 3 * j
+        f1, o1, u1 = np.float64(mp_[p]), np.float64(mp_[p + 1]), np.float64(mp_[p + 2])
+        f2, o2, u2 = np.float64(ism_[p]), np.float64(ism_[p + 1]), np.float64(ism_[p + 2])
+        ok = _valid_cell(f2, o2, u2)
+        bad[j] = 0 if ok else 1
+        f, o, u = _dempster_cell(f1, o1, u1, f2, o2, u2)
+        keep = u2 >= 1.0 or not ok
+        mp_[p] = f1 if keep else f
+        mp_[p + 1] = o1 if keep else o
+        mp_[p + 2] = u1 if keep else u
+    return _row_sum(bad, n)
+
+
+@numba.njit(inline="always", **_CHECKED)
+def _deep_replace_row(mp_, ism_, bad, n, m_u_min):
+    # deep_replace: the replace update the paper describes after eq. (23), on the prediction
+    # limited by eq. (15); a cell takes it where it is strictly less unknown
+    # (docs/decisions.md#the-six-maps).
+    for j in range(n):
+        p = 3 * j
+        f2, o2, u2 = np.float64(ism_[p]), np.float64(ism_[p + 1]), np.float64(ism_[p + 2])
+        ok = _valid_cell(f2, o2, u2)
+        bad[j] = 0 if ok else 1
+        f, o, u = _normalise_cell(f2, o2, u2)
+        f, o, u = _limit_unknown_cell(f, o, u, m_u_min)
+        f1, o1, u1 = np.float64(mp_[p]), np.float64(mp_[p + 1]), np.float64(mp_[p + 2])
+        take = (u < u1) and (ism_[p + 2] < 1.0) and ok
+        mp_[p] = f if take else f1
+        mp_[p + 1] = o if take else o1
+        mp_[p + 2] = u if take else u1
+    return _row_sum(bad, n)
+
+
+@numba.njit(inline="always", **_CHECKED)
+def _deep_disc_row(mp_, ism_, bad, n, m_u_min, alpha):
+    # deep_disc: paper eq. (29) with eqs. (15), (8) and (35), see _deep_disc_cell.
+    for j in range(n):
+        p = 3 * j
+        f1, o1, u1 = np.float64(mp_[p]), np.float64(mp_[p + 1]), np.float64(mp_[p + 2])
+        f2, o2, u2 = np.float64(ism_[p]), np.float64(ism_[p + 1]), np.float64(ism_[p + 2])
+        ok = _valid_cell(f2, o2, u2)
+        bad[j] = 0 if ok else 1
+        f, o, u = _deep_disc_cell(f1, o1, u1, f2, o2, u2, m_u_min, alpha)
+        keep = u2 >= 1.0 or not ok
+        mp_[p] = f1 if keep else f
+        mp_[p + 1] = o1 if keep else o
+        mp_[p + 2] = u1 if keep else u
+    return _row_sum(bad, n)
+
+
+@numba.njit(inline="always", **_CHECKED)
+def _fused_row(mp_, deep_, irm_, bad, n, m_u_min, alpha):
+    # fused: the deep_disc step (paper eq. (29) with eqs. (15), (8), (35)) with the deep IRM,
+    # then Dempster (eq. (5)) with the ray IRM of the same step (docs/decisions.md#the-six-maps).
+    # An invalid cell of either ISM skips that ISM's step only; both count.
+    for j in range(n):
+        p = 3 * j
+        f1, o1, u1 = np.float64(mp_[p]), np.float64(mp_[p + 1]), np.float64(mp_[p + 2])
+        fd, od, ud = np.float64(deep_[p]), np.float64(deep_[p + 1]), np.float64(deep_[p + 2])
+        ok_d = _valid_cell(fd, od, ud)
+        f, o, u = _deep_disc_cell(f1, o1, u1, fd, od, ud, m_u_min, alpha)
+        keep = ud >= 1.0 or not ok_d
+        f = f1 if keep else f
+        o = o1 if keep else o
+        u = u1 if keep else u
+        fr, or_, ur = np.float64(irm_[p]), np.float64(irm_[p + 1]), np.float64(irm_[p + 2])
+        ok_r = _valid_cell(fr, or_, ur)
+        bad[j] = (0 if ok_d else 1) + (0 if ok_r else 1)
+        f2, o2, u2 = _dempster_cell(f, o, u, fr, or_, ur)
+        keep = ur >= 1.0 or not ok_r
+        mp_[p] = f if keep else f2
+        mp_[p + 1] = o if keep else o2
+        mp_[p + 2] = u if keep else u2
+    return _row_sum(bad, n)
+
+
 @numba.njit(**_CHECKED)
 def _k_dempster_into(mp, mrs, ism, irs, h, w, spans):
-    # map <- map (+)_D ISM, paper eq. (5): the ray_ilm, deep_acc and ray_irm maps.
     n_bad = 0
     bad = np.zeros(w, np.uint8)
     for i in range(h):
         lo, hi = _span(spans, i, w)
-        mp_, ism_ = mp[i * mrs + 3 * lo:i * mrs + 3 * hi], ism[i * irs + 3 * lo:i * irs + 3 * hi]
-        for j in range(hi - lo):
-            p = 3 * j
-            f1, o1, u1 = np.float64(mp_[p]), np.float64(mp_[p + 1]), np.float64(mp_[p + 2])
-            f2, o2, u2 = np.float64(ism_[p]), np.float64(ism_[p + 1]), np.float64(ism_[p + 2])
-            ok = _valid_cell(f2, o2, u2)
-            bad[j] = 0 if ok else 1
-            f, o, u = _dempster_cell(f1, o1, u1, f2, o2, u2)
-            keep = u2 >= 1.0 or not ok
-            mp_[p] = f1 if keep else f
-            mp_[p + 1] = o1 if keep else o
-            mp_[p + 2] = u1 if keep else u
-        n_bad += _row_sum(bad, hi - lo)
+        n_bad += _dempster_row(mp[i * mrs + 3 * lo:i * mrs + 3 * hi], ism[i * irs + 3 * lo:i * irs + 3 * hi], bad, hi - lo)
     return n_bad
 
 
 @numba.njit(**_CHECKED)
 def _k_deep_replace_into(mp, mrs, ism, irs, h, w, spans, m_u_min):
-    # deep_replace: the replace update the paper describes after eq. (23), on the prediction
-    # limited by eq. (15); a cell takes it where it is strictly less unknown
-    # (docs/decisions.md#the-six-maps).
     n_bad = 0
     bad = np.zeros(w, np.uint8)
     for i in range(h):
         lo, hi = _span(spans, i, w)
-        mp_, ism_ = mp[i * mrs + 3 * lo:i * mrs + 3 * hi], ism[i * irs + 3 * lo:i * irs + 3 * hi]
-        for j in range(hi - lo):
-            p = 3 * j
-            f2, o2, u2 = np.float64(ism_[p]), np.float64(ism_[p + 1]), np.float64(ism_[p + 2])
-            ok = _valid_cell(f2, o2, u2)
-            bad[j] = 0 if ok else 1
-            f, o, u = _normalise_cell(f2, o2, u2)
-            f, o, u = _limit_unknown_cell(f, o, u, m_u_min)
-            f1, o1, u1 = np.float64(mp_[p]), np.float64(mp_[p + 1]), np.float64(mp_[p + 2])
-            take = (u < u1) and (ism_[p + 2] < 1.0) and ok
-            mp_[p] = f if take else f1
-            mp_[p + 1] = o if take else o1
-            mp_[p + 2] = u if take else u1
-        n_bad += _row_sum(bad, hi - lo)
+        n_bad += _deep_replace_row(mp[i * mrs + 3 * lo:i * mrs + 3 * hi], ism[i * irs + 3 * lo:i * irs + 3 * hi],
+                                   bad, hi - lo, m_u_min)
     return n_bad
 
 
 @numba.njit(**_CHECKED)
 def _k_deep_disc_into(mp, mrs, ism, irs, h, w, spans, m_u_min, alpha):
-    # deep_disc: paper eq. (29) with eqs. (15), (8) and (35), see _deep_disc_cell.
     n_bad = 0
     bad = np.zeros(w, np.uint8)
     for i in range(h):
         lo, hi = _span(spans, i, w)
-        mp_, ism_ = mp[i * mrs + 3 * lo:i * mrs + 3 * hi], ism[i * irs + 3 * lo:i * irs + 3 * hi]
-        for j in range(hi - lo):
-            p = 3 * j
-            f1, o1, u1 = np.float64(mp_[p]), np.float64(mp_[p + 1]), np.float64(mp_[p + 2])
-            f2, o2, u2 = np.float64(ism_[p]), np.float64(ism_[p + 1]), np.float64(ism_[p + 2])
-            ok = _valid_cell(f2, o2, u2)
-            bad[j] = 0 if ok else 1
-            f, o, u = _deep_disc_cell(f1, o1, u1, f2, o2, u2, m_u_min, alpha)
-            keep = u2 >= 1.0 or not ok
-            mp_[p] = f1 if keep else f
-            mp_[p + 1] = o1 if keep else o
-            mp_[p + 2] = u1 if keep else u
-        n_bad += _row_sum(bad, hi - lo)
+        n_bad += _deep_disc_row(mp[i * mrs + 3 * lo:i * mrs + 3 * hi], ism[i * irs + 3 * lo:i * irs + 3 * hi],
+                                bad, hi - lo, m_u_min, alpha)
     return n_bad
 
 
 @numba.njit(**_CHECKED)
 def _k_fused_into(mp, mrs, deep, drs, irm, irs, h, w, spans, m_u_min, alpha):
-    # fused: the deep_disc step (paper eq. (29) with eqs. (15), (8), (35)) with the deep IRM,
-    # then Dempster (eq. (5)) with the ray IRM of the same step (docs/decisions.md#the-six-maps).
-    # An invalid cell of either ISM skips that ISM's step only; both count.
     n_bad = 0
     bad = np.zeros(w, np.uint8)
     for i in range(h):
         lo, hi = _span(spans, i, w)
-        mp_ = mp[i * mrs + 3 * lo:i * mrs + 3 * hi]
-        deep_ = deep[i * drs + 3 * lo:i * drs + 3 * hi]
-        irm_ = irm[i * irs + 3 * lo:i * irs + 3 * hi]
-        for j in range(hi - lo):
-            p = 3 * j
-            f1, o1, u1 = np.float64(mp_[p]), np.float64(mp_[p + 1]), np.float64(mp_[p + 2])
-            fd, od, ud = np.float64(deep_[p]), np.float64(deep_[p + 1]), np.float64(deep_[p + 2])
-            ok_d = _valid_cell(fd, od, ud)
-            f, o, u = _deep_disc_cell(f1, o1, u1, fd, od, ud, m_u_min, alpha)
-            keep = ud >= 1.0 or not ok_d
-            f = f1 if keep else f
-            o = o1 if keep else o
-            u = u1 if keep else u
-            fr, or_, ur = np.float64(irm_[p]), np.float64(irm_[p + 1]), np.float64(irm_[p + 2])
-            ok_r = _valid_cell(fr, or_, ur)
-            bad[j] = (0 if ok_d else 1) + (0 if ok_r else 1)
-            f2, o2, u2 = _dempster_cell(f, o, u, fr, or_, ur)
-            keep = ur >= 1.0 or not ok_r
-            mp_[p] = f if keep else f2
-            mp_[p + 1] = o if keep else o2
-            mp_[p + 2] = u if keep else u2
-        n_bad += _row_sum(bad, hi - lo)
+        n_bad += _fused_row(mp[i * mrs + 3 * lo:i * mrs + 3 * hi], deep[i * drs + 3 * lo:i * drs + 3 * hi],
+                            irm[i * irs + 3 * lo:i * irs + 3 * hi], bad, hi - lo, m_u_min, alpha)
     return n_bad
+
+
+# --- the warp: a local grid resampled into the map (evgrid.grid) ---------------------------------
+# Map cell (i, j) of a window samples the local grid at continuous (row, col) position
+# (u, v) = (u00 + i du_di + j du_dj, v00 + i dv_di + j dv_dj), bilinearly. The local grid is
+# read from a padded copy with a vacuous border (local (r, c) is src[r + 1, c + 1]; one row and
+# column before, two after, as a snapped index may reach n + 1), so sampling anywhere in
+# (-1, n) needs no bounds checks. Fractions within _SNAP of 0 or 1 are snapped, so identity,
+# whole-cell and quarter-turn warps copy cells exactly. Weights are float32, positions float64.
+
+# Fractional source positions closer than this to a whole cell (in cells) are snapped to it.
+_SNAP = 1e-6
+# Window rows are visited in bands of _BLOCK rows and, within a band, blocks of _BLOCK columns
+# from the band's first covered column, which keeps the rotated source footprint in cache at
+# any yaw; a block whose footprint holds only vacuous cells is written vacuous, unsampled.
+_BLOCK = 32
+_COARSE = 8  # side of the source blocks whose vacuousness is checked before sampling
+
+
+@numba.njit(**_JIT)
+def _k_coarse(src, coarse):
+    """coarse[a, b] = any cell of src block [8a, 8a + 8) x [8b, 8b + 8) is not vacuous."""
+    # branch-free (a running min per block): a branch per cell mispredicts on scattered cells
+    n_r, n_c = src.shape[0], src.shape[1]
+    u_min = np.empty(coarse.shape[1], dtype=np.float32)
+    for a in range(coarse.shape[0]):
+        u_min[:] = 1.0
+        for r in range(a * _COARSE, min(n_r, (a + 1) * _COARSE)):
+            for c in range(n_c):
+                b = c // _COARSE
+                u_min[b] = min(u_min[b], src[r, c, 2])
+        for b in range(coarse.shape[1]):
+            coarse[a, b] = u_min[b] < 1.0
+
+
+@numba.njit(**_CHECKED)
+def _k_load(local, src):
+    """src[1:n+1, 1:n+1] = local with invalid cells (see _valid_cell) made vacuous; returns their number."""
+    n_bad = 0
+    for r in range(local.shape[0]):
+        for c in range(local.shape[1]):
+            f, o, u = np.float64(local[r, c, 0]), np.float64(local[r, c, 1]), np.float64(local[r, c, 2])
+            ok = _valid_cell(f, o, u)
+            n_bad += 0 if ok else 1
+            src[r + 1, c + 1, 0] = local[r, c, 0] if ok else 0.0
+            src[r + 1, c + 1, 1] = local[r, c, 1] if ok else 0.0
+            src[r + 1, c + 1, 2] = local[r, c, 2] if ok else 1.0
+    return n_bad
+
+
+@numba.njit(**_JIT)
+def _row_range(a, d, n, w):
+    """Columns j in [0, w) (padded by one either side) where -1 < a + j d < n; (0, 0) if none."""
+    if d == 0.0:
+        return (0, w) if (a > -1.0 and a < n) else (0, 0)
+    t1 = (-1.0 - a) / d
+    t2 = (n - a) / d
+    lo = max(-2.0, min(float(w), min(t1, t2)))  # clamped before int(): d may be ~1e-17
+    hi = max(-2.0, min(float(w), max(t1, t2)))
+    return max(0, int(math.floor(lo)) - 1), min(w, int(math.floor(hi)) + 2)
+
+
+@numba.njit(**_JIT)
+def _k_spans(u00, v00, du_di, du_dj, dv_di, dv_dj, n, h, w, spans):
+    """spans[i] = columns of row i whose local position (u, v) lies in (-1, n)^2."""
+    nf = float(n)
+    for i in range(h):
+        a = u00 + i * du_di
+        b = v00 + i * dv_di
+        l1, h1 = _row_range(a, du_dj, nf, w)
+        l2, h2 = _row_range(b, dv_dj, nf, w)
+        lo = max(l1, l2)
+        hi = min(h1, h2)
+        # the analytic range is padded; settle its ends on the exact test (the set is convex)
+        while lo < hi:
+            u = a + lo * du_dj
+            v = b + lo * dv_dj
+            if u > -1.0 and v > -1.0 and u < nf and v < nf:
+                break
+            lo += 1
+        while hi > lo:
+            u = a + (hi - 1) * du_dj
+            v = b + (hi - 1) * dv_dj
+            if u > -1.0 and v > -1.0 and u < nf and v < nf:
+                break
+            hi -= 1
+        spans[i, 0] = lo if hi > lo else 0
+        spans[i, 1] = hi if hi > lo else 0
+
+
+@numba.njit(**_JIT)
+def _k_blocks(spans, h, w, jl, jh):
+    """jl[b], jh[b]: the covered columns [jl, jh) of band b (rows [32 b, 32 b + 32)); (w, 0) if none."""
+    for bi in range(0, h, _BLOCK):
+        lo = w
+        hi = 0
+        for i in range(bi, min(h, bi + _BLOCK)):
+            if spans[i, 1] > spans[i, 0]:
+                lo = min(lo, spans[i, 0])
+                hi = max(hi, spans[i, 1])
+        jl[bi // _BLOCK] = lo
+        jh[bi // _BLOCK] = hi
+
+
+@numba.njit(inline="always", **_JIT)
+def _block_informative(coarse, n, u00, v00, du_di, du_dj, dv_di, dv_dj, bi, i1, bj, j1):
+    # Whether the source footprint of window block [bi, i1) x [bj, j1) (padded indices: the box
+    # of its corners' images) holds a cell that is not vacuous.
+    ulo = 1e30
+    uhi = -1e30
+    vlo = 1e30
+    vhi = -1e30
+    for ci in (bi, i1 - 1):
+        for cj in (bj, j1 - 1):
+            u = u00 + ci * du_di + cj * du_dj + 1.0
+            v = v00 + ci * dv_di + cj * dv_dj + 1.0
+            ulo = min(ulo, u)
+            uhi = max(uhi, u)
+            vlo = min(vlo, v)
+            vhi = max(vhi, v)
+    n_cr, n_cc = coarse.shape[0], coarse.shape[1]
+    a0 = max(0, int(max(ulo, 0.0)) - 1) // _COARSE
+    a1 = min(n_cr - 1, (int(min(max(uhi, 0.0), n + 2.0)) + 2) // _COARSE)
+    b0 = max(0, int(max(vlo, 0.0)) - 1) // _COARSE
+    b1 = min(n_cc - 1, (int(min(max(vhi, 0.0), n + 2.0)) + 2) // _COARSE)
+    informative = False
+    for a in range(a0, a1 + 1):
+        for b in range(b0, b1 + 1):
+            informative = informative or coarse[a, b]
+    return informative
+
+
+@numba.njit(inline="always", **_JIT)
+def _fill_vacuous(ro, o0, m):
+    for k in range(m):
+        ro[o0 + 3 * k] = 0.0
+        ro[o0 + 3 * k + 1] = 0.0
+        ro[o0 + 3 * k + 2] = 1.0
+
+
+@numba.njit(inline="always", **_JIT)
+def _sample_span(src, srs, n, a, b, du_dj, dv_dj, j0, j2, ro, o0, idx, frac):
+    # ro[o0 + 3 k + c], k < j2 - j0 (<= _BLOCK): the bilinear sample of window cell j0 + k of
+    # the row whose padded source position is (a + j du_dj, b + j dv_dj). Two passes: positions
+    # -> (index, fractions) vectorises once apart from the gather.
+    one = np.float32(1.0)
+    for k in range(j2 - j0):
+        t = a + (j0 + k) * du_dj
+        s = b + (j0 + k) * dv_dj
+        iu = min(int(t), n)  # t in (0, n + 1): floor; min() guards a rounding at the edge
+        iv = min(int(s), n)
+        fu = t - iu
+        fv = s - iv
+        # snap near-integer positions to the cell (a quarter-turn's cos is 6e-17, not 0) by
+        # moving the index, not by a weight of 1: fastmath may evaluate the mix as
+        # a + f (b - a), exact only for f = 0
+        up = fu > 1.0 - _SNAP
+        iu = iu + 1 if up else iu
+        fu = 0.0 if (up or fu < _SNAP) else fu
+        up = fv > 1.0 - _SNAP
+        iv = iv + 1 if up else iv
+        fv = 0.0 if (up or fv < _SNAP) else fv
+        frac[2 * k] = np.float32(fu)
+        frac[2 * k + 1] = np.float32(fv)
+        idx[k] = iu * srs + 3 * iv
+    for k in range(j2 - j0):
+        fu = frac[2 * k]
+        fv = frac[2 * k + 1]
+        gu = one - fu
+        gv = one - fv
+        p = idx[k]
+        q = p + srs
+        o = o0 + 3 * k
+        for c in range(3):
+            ro[o + c] = gu * (gv * src[p + c] + fv * src[p + 3 + c]) + fu * (gv * src[q + c] + fv * src[q + 3 + c])
+
+
+@numba.njit(**_JIT)
+def _k_warp(src, srs, coarse, n, u00, v00, du_di, du_dj, dv_di, dv_dj, out, ors, covered, crs, h, w, spans):
+    # The window (h, w) written whole: sampled masses on covered cells, vacuous elsewhere.
+    _k_spans(u00, v00, du_di, du_dj, dv_di, dv_dj, n, h, w, spans)
+    idx = np.empty(_BLOCK, dtype=np.int64)
+    frac = np.empty(2 * _BLOCK, dtype=np.float32)
+    for i in range(h):
+        ro = out[i * ors:i * ors + 3 * w]
+        cv = covered[i * crs:i * crs + w]
+        lo, hi = spans[i, 0], spans[i, 1]
+        _fill_vacuous(ro, 0, lo)
+        _fill_vacuous(ro, 3 * hi, w - hi)
+        cv[:lo] = False
+        cv[lo:hi] = True
+        cv[hi:] = False
+    jl = np.empty((h + _BLOCK - 1) // _BLOCK, np.int64)
+    jh = np.empty_like(jl)
+    _k_blocks(spans, h, w, jl, jh)
+    for bi in range(0, h, _BLOCK):
+        i1 = min(h, bi + _BLOCK)
+        for bj in range(jl[bi // _BLOCK], jh[bi // _BLOCK], _BLOCK):
+            j1 = min(jh[bi // _BLOCK], bj + _BLOCK)
+            informative = _block_informative(coarse, n, u00, v00, du_di, du_dj, dv_di, dv_dj, bi, i1, bj, j1)
+            for i in range(bi, i1):
+                ro = out[i * ors:i * ors + 3 * w]
+                j0 = max(bj, spans[i, 0])
+                j2 = min(j1, spans[i, 1])
+                if j2 <= j0:
+                    continue
+                if informative:
+                    _sample_span(src, srs, n, u00 + i * du_di + 1.0, v00 + i * dv_di + 1.0, du_dj, dv_dj,
+                                 j0, j2, ro, 3 * j0, idx, frac)
+                else:
+                    _fill_vacuous(ro, 3 * j0, j2 - j0)
+
+
+@numba.njit(**_JIT)
+def _k_informative(coarse, n, u00, v00, du_di, du_dj, dv_di, dv_dj, h, jl, jh, out):
+    """out[b, k]: whether block k (columns jl[b] + 32 k ...) of band b is informative (see _k_warp)."""
+    for bi in range(0, h, _BLOCK):
+        b = bi // _BLOCK
+        i1 = min(h, bi + _BLOCK)
+        for bj in range(jl[b], jh[b], _BLOCK):
+            j1 = min(jh[b], bj + _BLOCK)
+            out[b, (bj - jl[b]) // _BLOCK] = _block_informative(
+                coarse, n, u00, v00, du_di, du_dj, dv_di, dv_dj, bi, i1, bj, j1)
+
+
+# Rules of the one-pass update (_k_warp_update): (code, ISM index, second ISM index).
+RULE_DEMPSTER, RULE_DEEP_REPLACE, RULE_DEEP_DISC, RULE_FUSED = 0, 1, 2, 3
+
+
+@numba.njit(**_CHECKED)
+def _k_warp_update(src, srs, n, informative, jl, u00, v00, du_di, du_dj, dv_di, dv_dj, spans,
+                   wa, wb, wc0, wc1, tiles, covs, ts, tr0, tc0, rules, m_u_min, alpha, bufs, rejected):
+    # One tile piece of a window, every map at once: window rows [wa, wb) and columns
+    # [wc0, wc1) are tile cells (tr0 + i - wa, tc0 + j - wc0). Each row's covered cells are
+    # sampled from each ISM (src[s], the padded local grids) exactly as _k_warp writes them,
+    # into a row buffer per ISM, and each map's rule runs on the buffers: the same masses as
+    # warping whole windows and updating from them, without writing or re-reading the windows.
+    idx = np.empty(_BLOCK, dtype=np.int64)
+    frac = np.empty(2 * _BLOCK, dtype=np.float32)
+    bad = np.zeros(ts, np.uint8)
+    for i in range(wa, wb):
+        lo = max(spans[i, 0], wc0)
+        hi = min(spans[i, 1], wc1)
+        if hi <= lo:
+            continue
+        band = i // _BLOCK
+        a = u00 + i * du_di + 1.0
+        b = v00 + i * dv_di + 1.0
+        for s in range(src.shape[0]):
+            ro = bufs[s]
+            j = lo
+            while j < hi:
+                k = (j - jl[band]) // _BLOCK
+                j1 = min(hi, jl[band] + (k + 1) * _BLOCK)
+                if informative[s, band, k]:
+                    _sample_span(src[s], srs, n, a, b, du_dj, dv_dj, j, j1, ro, 3 * (j - lo), idx, frac)
+                else:
+                    _fill_vacuous(ro, 3 * (j - lo), j1 - j)
+                j = j1
+        m = hi - lo
+        t = (tr0 + i - wa) * ts + tc0 + lo - wc0  # the row's first cell in the tiles
+        for k in range(len(tiles)):
+            mp_ = tiles[k][3 * t:3 * (t + m)]
+            code, x, y = rules[k, 0], rules[k, 1], rules[k, 2]
+            if code == RULE_DEMPSTER:
+                rejected[k] += _dempster_row(mp_, bufs[x], bad, m)
+            elif code == RULE_DEEP_REPLACE:
+                rejected[k] += _deep_replace_row(mp_, bufs[x], bad, m, m_u_min)
+            elif code == RULE_DEEP_DISC:
+                rejected[k] += _deep_disc_row(mp_, bufs[x], bad, m, m_u_min, alpha)
+            else:
+                rejected[k] += _fused_row(mp_, bufs[x], bufs[y], bad, m, m_u_min, alpha)
+            covs[k][t:t + m] = True

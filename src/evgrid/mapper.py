@@ -21,7 +21,7 @@ from evgrid.data.frame import Frame, RadarSweep
 from evgrid.data.sweeps import GapCounter, RadarBuffer
 from evgrid.fusion import MapSet
 from evgrid.geometry import SE2, SE3
-from evgrid.grid import MapWindow
+from evgrid.grid import MapWindow, warp_window
 
 __all__ = ["OccupancyMapper", "MapUpdate", "Observer", "PoseGate", "PoseError", "UpdateSchedule"]
 
@@ -35,8 +35,18 @@ class MapUpdate:
     frame: Frame
     pose: SE2  # ego pose in the first pose's frame (m, rad)
     isms: Mapping[str, np.ndarray]  # local ISM grids (n, n, 3), ego frame
-    windows: Mapping[str, MapWindow]  # the same, warped into the map
     maps: MapSet
+
+    @property
+    def box(self) -> tuple[int, int, int, int]:
+        """Map cells ``(r0, c0, h, w)`` that this update could change."""
+        return warp_window(self.maps.grid, self.pose)
+
+    @property
+    def windows(self) -> dict[str, MapWindow]:
+        """The ISMs warped into whole map windows: computed on access (one warp per ISM) from the ISM
+        grids the map set holds, so valid while observers handle this update."""
+        return self.maps.warp_loaded(self.pose)
 
 
 class Observer(Protocol):
@@ -92,6 +102,8 @@ class OccupancyMapper:
         self.last_isms: dict[str, np.ndarray] = {}
         self.n_frames = 0
         self.n_updates = 0
+        # False: warp whole windows, then fuse them (the same maps; `evgrid bench --old-path` times both)
+        self.one_pass = True
 
     def process(self, frame: Frame) -> bool:
         """Take one frame; at the update rate and at keyframes update the maps. Returns whether it did."""
@@ -112,17 +124,21 @@ class OccupancyMapper:
         pose = self.pose_in_map(frame.ego_pose)
         isms = self.local_isms(frame)  # each ISM once, in the current ego frame
         t = time.perf_counter()
-        windows = self.maps.warp(pose, isms)  # into the first pose's frame
+        self.maps.load(isms)  # each ISM checked and padded once
         t = self._time("warp", t)
-        self.maps.update_windows(windows)  # the six update rules (paper Table I)
-        for extra in self.extra:
-            extra.update_windows(windows)
+        if self.extra or not self.one_pass:  # warped once into whole windows that every map set reads
+            windows = self.maps.warp_loaded(pose)
+            self.maps.update_windows(windows)
+            for extra in self.extra:
+                extra.update_windows(windows)
+        else:  # into the first pose's frame and through the six update rules (paper Table I), in one pass
+            self.maps.update_loaded(pose)
         self._time("fuse", t)
         self._time("step_total", t0)
         self.n_updates += 1
         self.last_isms = isms
         self.trajectory.append((pose.x, pose.y, pose.yaw))
-        update = MapUpdate(frame, pose, isms, windows, self.maps)
+        update = MapUpdate(frame, pose, isms, self.maps)
         for obs in self.observers:
             obs.on_update(update)
         return True

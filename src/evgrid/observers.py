@@ -107,8 +107,7 @@ class SceneScores:
         self.keyframes: list[dict[str, Any]] = []
 
     def on_update(self, update: MapUpdate) -> None:
-        any_w = next(iter(update.windows.values()))
-        keys = tile_keys(next(iter(self.maps.values())), *_window_box(any_w))
+        keys = tile_keys(next(iter(self.maps.values())), *update.box)
         if self.vs_ref is not None:
             self.vs_ref.dirty |= keys
         if self.vs_truth is not None:
