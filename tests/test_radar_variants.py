@@ -111,3 +111,21 @@ def test_transfer_command_writes_its_table(tmp_path):
 
     res = json.loads((tmp_path / "transfer.json").read_text())["radars"]
     assert set(OUT_OF_RANGE) < set(res) and (tmp_path / "transfer.md").read_text().count("\n") == len(res) + 2
+
+
+def test_transfer_makes_samples_as_the_checkpoint_was_trained(tmp_path):
+    """A checkpoint trained on every frame of a coarser grid is scored on samples made so, not on defaults."""
+    from evgrid.geometry import GridSpec
+    from evgrid.ism.deep import default_checkpoint
+    from evgrid.ism.evnet import load_checkpoint, save_checkpoint
+    from evgrid.learn.train import TrainConfig
+    from evgrid.learn.transfer import CALIBRATED, measure_transfer, transfer_sources
+
+    ck = load_checkpoint(default_checkpoint())
+    picked = {CALIBRATED: transfer_sources(1, 1000, 1.0)[CALIBRATED]}
+    trained = TrainConfig(frame_stride=1, grid=GridSpec(128, 40.0))
+    path = save_checkpoint(ck.model, tmp_path / "ck.safetensors", {**ck.extra, "config": trained.to_dict()})
+    res = measure_transfer(path, picked, tmp_path / "cache")[CALIBRATED]
+    assert res["samples"] == 20  # 1 s at 20 Hz, every frame
+    made = [p.name for p in (tmp_path / "cache").glob("*/*") if p.is_dir()]
+    assert made == [TrainConfig(frame_stride=1, grid=GridSpec(128, 40.0)).data_key()]

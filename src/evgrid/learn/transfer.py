@@ -17,6 +17,7 @@ from typing import Callable
 import torch
 from torch.utils.data import DataLoader
 
+from evgrid.config import from_dict
 from evgrid.data.radar_filter import RadarFilter
 from evgrid.data.radar_variants import NOMINAL, OUT_OF_RANGE, TRAINING_RANGES, RadarRanges
 from evgrid.ism.evnet import load_checkpoint
@@ -49,10 +50,15 @@ def measure_transfer(
     scored, and which parameters lie outside ``ranges``."""
     ck = load_checkpoint(checkpoint)
     model = ck.model.eval()
-    saved = ck.extra.get("config", {})
-    config = TrainConfig(frame_stride=int(saved.get("frame_stride", 4)), workers=0)
-    if "radar_filter" in ck.extra:
-        config = replace(config, radar_filter=RadarFilter.from_dict(ck.extra["radar_filter"]))
+    # samples made as in the checkpoint's training (grid, input image, stride, radar filter,
+    # self-return filter); the radar of each set is its source's, not the training's ranges
+    saved = ck.extra.get("config")
+    if saved is not None:
+        config = replace(from_dict(TrainConfig, saved, f"{checkpoint}: training config"), workers=0, radar_ranges=None)
+    else:  # checkpoints written before the whole training config was saved
+        config = TrainConfig(workers=0)
+        if "radar_filter" in ck.extra:
+            config = replace(config, radar_filter=RadarFilter.from_dict(ck.extra["radar_filter"]))
     results: dict[str, dict] = {}
     for name, src in sources.items():
         root = Path(cache_root) / _slug(name) / config.data_key()
