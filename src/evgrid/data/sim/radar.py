@@ -80,6 +80,18 @@ class RadarModel:
         gain = -10.0 * (np.degrees(az) / cfg.fov_deg) ** 2 + np.where(far, cfg.far_gain_db, 0.0)
         return rcs_db + gain - 40.0 * np.log10(np.maximum(rng_m, 0.5) / cfg.reference_range_m)
 
+    def _centre_probability(self, kk: np.ndarray, rng_m: np.ndarray, far: np.ndarray) -> np.ndarray:
+        """Chance that a simulated beam's hit on class ``kk`` at range ``rng_m`` (m) holds a
+        scattering centre. Centres are a property of the surface (so many per metre), so the
+        chance grows with the strip of surface the beam stands for, ``range * beam spacing``:
+        ``1 - (1 - p) ** (strip / scatter_strip_m)`` with ``p = RADAR_SCATTER * scatter_probability``.
+        Without this a near object, which many beams hit, would hold many more centres than the
+        same object far away."""
+        cfg = self.cfg
+        step = np.radians(np.where(far, cfg.far_spacing_deg, cfg.ray_spacing_deg))
+        p = np.minimum(M.RADAR_SCATTER[kk] * cfg.scatter_probability, 1.0 - 1e-12)
+        return 1.0 - (1.0 - p) ** (np.maximum(rng_m, 0.0) * step / cfg.scatter_strip_m)
+
     def noise_sigmas(self, az: np.ndarray, far: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """1-sigma range (m) and azimuth (rad) noise of detections at sensor azimuth ``az`` (rad):
         the datasheet's accuracies, near scan interpolated over 0 deg, 45 deg and the edge."""
@@ -132,7 +144,7 @@ class RadarModel:
         vo, wo = odo_speed_yawrate
         vs_odo_ego = np.array([vo - wo * mt.y, wo * mt.x])
 
-        # Beams: near scan, then the far scan (which only reports beyond the near reach).
+        # Beams: near scan, then the far scan (which reports from far_min_range_m on).
         fov = math.radians(cfg.fov_deg)
         step = math.radians(cfg.ray_spacing_deg)
         n_near = int(math.floor(2 * fov / step))
@@ -195,8 +207,8 @@ class RadarModel:
                 + corner_gain(li, kk, sx + gdx * np.where(valid, t, 0.0), sy + gdy * np.where(valid, t, 0.0))
                 + self._fluctuation(rng, n_rays)
             )
-            in_band = np.where(far, t > near_reach, t <= near_reach)
-            hit = valid & in_band & (rng.random(n_rays) < M.RADAR_SCATTER[kk] * cfg.scatter_probability)
+            in_band = np.where(far, t >= cfg.far_min_range_m, t <= near_reach)
+            hit = valid & in_band & (rng.random(n_rays) < self._centre_probability(kk, t, far))
             if hit.any():
                 vt = vel_all[li[hit]]
                 sc.add(t[hit], az[hit], rcs[hit], far[hit], vt, RADAR_REAL, np.hypot(vt[:, 0], vt[:, 1]) > 0.2)
