@@ -190,16 +190,20 @@ def test_far_scan_reports_inside_the_near_reach():
 
 def test_scattering_centres_are_per_metre_of_surface():
     # The chance that a beam-hit holds a centre grows with the strip of surface the beam stands
-    # for (range x beam spacing): RADAR_SCATTER * scatter_probability at scatter_strip_m.
+    # for (range x beam spacing / cos(incidence)): RADAR_SCATTER * scatter_probability at scatter_strip_m.
     cfg = RadarConfig()
     radar = RadarModel(cfg, _MOUNT)
     k = np.array([M.CAR, M.CAR, M.CAR])
     strip_range = cfg.scatter_strip_m / math.radians(cfg.ray_spacing_deg)
-    p = radar._centre_probability(k, np.array([strip_range, 5.0, 60.0]), np.zeros(3, bool))
+    normal = np.ones(3)
+    p = radar._centre_probability(k, np.array([strip_range, 5.0, 60.0]), np.zeros(3, bool), normal)
     assert p[0] == pytest.approx(M.RADAR_SCATTER[M.CAR] * cfg.scatter_probability)
     assert p[1] < p[0] < p[2]
     # A finer-spaced beam stands for a narrower strip: same range, smaller chance.
-    assert radar._centre_probability(k[:1], np.array([60.0]), np.ones(1, bool))[0] < p[2]
+    assert radar._centre_probability(k[:1], np.array([60.0]), np.ones(1, bool), normal[:1])[0] < p[2]
+    # At oblique incidence the beam's strip on the surface is wider: 1 / cos(60 deg) = twice.
+    oblique = radar._centre_probability(k[:1], np.array([strip_range / 2]), np.zeros(1, bool), np.array([0.5]))
+    assert oblique[0] == pytest.approx(p[0])
 
 
 def test_front_radar_detections_are_mostly_far():

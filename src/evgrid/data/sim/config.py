@@ -100,7 +100,7 @@ class RadarConfig:
     #: Width of the logistic detection curve of a resolution cell's summed power, dB.
     detection_softness_db: float = 2.5
     #: Scales every class's chance that a beam-hit forms a scattering centre (materials.RADAR_SCATTER).
-    scatter_probability: float = 0.68
+    scatter_probability: float = 0.46
     #: Width of surface (m) over which materials.RADAR_SCATTER * scatter_probability is the chance
     #: of a scattering centre; a beam standing for a wider strip (farther, or spaced wider) more likely holds one.
     scatter_strip_m: float = 0.44
