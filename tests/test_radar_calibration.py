@@ -204,6 +204,13 @@ def test_scattering_centres_are_per_metre_of_surface():
     # At oblique incidence the beam's strip on the surface is wider: 1 / cos(60 deg) = twice.
     oblique = radar._centre_probability(k[:1], np.array([strip_range / 2]), np.zeros(1, bool), np.array([0.5]))
     assert oblique[0] == pytest.approx(p[0])
+    # An object narrower than scatter_strip_m (a pole) is one centre however many beams hit it:
+    # a beam covering its whole width holds the centre with the table's chance.
+    pole = np.array([M.POLE])
+    width = 0.24
+    whole = radar._centre_probability(pole, np.array([width / math.radians(cfg.ray_spacing_deg)]), np.zeros(1, bool),
+                                      np.ones(1), np.array([width]))
+    assert whole[0] == pytest.approx(M.RADAR_SCATTER[M.POLE] * cfg.scatter_probability)
 
 
 def test_front_radar_detections_are_mostly_far():

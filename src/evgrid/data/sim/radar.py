@@ -80,18 +80,24 @@ class RadarModel:
         gain = -10.0 * (np.degrees(az) / cfg.fov_deg) ** 2 + np.where(far, cfg.far_gain_db, 0.0)
         return rcs_db + gain - 40.0 * np.log10(np.maximum(rng_m, 0.5) / cfg.reference_range_m)
 
-    def _centre_probability(self, kk: np.ndarray, rng_m: np.ndarray, far: np.ndarray, cos_inc: np.ndarray) -> np.ndarray:
-        """Chance that a simulated beam's hit on class ``kk`` at range ``rng_m`` (m) holds a
-        scattering centre. Centres are a property of the surface (so many per metre), so the
-        chance grows with the strip of surface the beam stands for, ``range * beam spacing``:
-        ``1 - (1 - p) ** (strip / scatter_strip_m)`` with ``p = RADAR_SCATTER * scatter_probability``.
-        Without this a near object, which many beams hit, would hold many more centres than the
-        same object far away."""
+    def _centre_probability(
+        self, kk: np.ndarray, rng_m: np.ndarray, far: np.ndarray, cos_inc: np.ndarray, size_m: np.ndarray | None = None
+    ) -> np.ndarray:
+        """Chance that a simulated beam's hit on class ``kk`` at range ``rng_m`` (m), incidence
+        cosine ``cos_inc``, on an object ``size_m`` (m) wide holds a scattering centre.
+
+        Centres are a property of the surface (so many per metre), so the chance grows with the
+        strip of surface the beam stands for, ``range * beam spacing / cos(incidence)``:
+        ``1 - (1 - p) ** (strip / ref)`` with ``p = RADAR_SCATTER * scatter_probability`` and
+        ``ref = scatter_strip_m``, or the object's width if narrower (a pole is one centre
+        however many beams hit it). Without this a near object, which many beams hit, would hold
+        many more centres than the same object far away."""
         cfg = self.cfg
         step = np.radians(np.where(far, cfg.far_spacing_deg, cfg.ray_spacing_deg))
         p = np.minimum(M.RADAR_SCATTER[kk] * cfg.scatter_probability, 1.0 - 1e-12)
         strip = np.maximum(rng_m, 0.0) * step / np.maximum(cos_inc, 0.05)
-        return 1.0 - (1.0 - p) ** (strip / cfg.scatter_strip_m)
+        ref = cfg.scatter_strip_m if size_m is None else np.clip(size_m, 1e-3, cfg.scatter_strip_m)
+        return 1.0 - (1.0 - p) ** (strip / ref)
 
     def noise_sigmas(self, az: np.ndarray, far: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """1-sigma range (m) and azimuth (rad) noise of detections at sensor azimuth ``az`` (rad):
@@ -209,7 +215,8 @@ class RadarModel:
                 + self._fluctuation(rng, n_rays)
             )
             in_band = np.where(far, t >= cfg.far_min_range_m, t <= near_reach)
-            hit = valid & in_band & (rng.random(n_rays) < self._centre_probability(kk, t, far, out_cos[:, k]))
+            size = 2.0 * np.maximum(box_all[li, 4], box_all[li, 5])
+            hit = valid & in_band & (rng.random(n_rays) < self._centre_probability(kk, t, far, out_cos[:, k], size))
             if hit.any():
                 vt = vel_all[li[hit]]
                 sc.add(t[hit], az[hit], rcs[hit], far[hit], vt, RADAR_REAL, np.hypot(vt[:, 0], vt[:, 1]) > 0.2)
