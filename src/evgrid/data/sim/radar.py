@@ -1,11 +1,12 @@
 """The five radars (Continental ARS 408-21 as mounted on the nuScenes vehicles).
 
 A sweep casts horizontal beams over the near scan (+-60 deg; 70 m out to +-45 deg, less at the
-edges) and the far scan (+-9 deg, 250 m), each beam with a random azimuth inside its bin and
-finer than a resolution cell. Along a beam up to four objects are considered in range order;
-the beam goes on past an object with a class-dependent probability (under vehicles, through
-foliage and fences). Each object met becomes a *scatterer* with probability
-``scatter(class) * scatter_probability`` and power
+edges) and the far scan (+-9 deg, 0.2-250 m; the two scans report their clusters apart), each
+beam with a random azimuth inside its bin and finer than a resolution cell. Along a beam up to
+four objects are considered in range order; the beam goes on past an object with a
+class-dependent probability (under vehicles, through foliage and fences). Each object met
+becomes a *scatterer* if the strip of surface the beam stands for holds a scattering centre
+(centres are so many per metre of surface, ``RadarModel._centre_probability``), with power
 ``SNR = RCS(class, incidence) + fluctuation + antenna gain - 40 log10(range / r_ref)``, the
 fluctuation being Swerling I/II (exponential power) times a log-normal aspect term.
 
