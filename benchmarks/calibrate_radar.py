@@ -3,8 +3,9 @@
 Run: ``PYTHONPATH=src python benchmarks/calibrate_radar.py [--seeds 0 1 2 3 4 5] [--duration 20]``.
 Simulates the scenes (half urban, half suburban), takes for every keyframe (a nuScenes sample)
 the latest sweep of each of the five radars, and prints statistic | simulated mean [5-95 %] |
-published | source. Measures and prints; asserts nothing. docs/radar-calibration.md explains
-the figures and their sources.
+published | source. Also CRF-Net's statistics of RADAR_FRONT (every sweep, devkit filter,
+sensor frame: distance, x, y, azimuth, RCS, dyn_prop) next to the published values. Measures
+and prints; asserts nothing. docs/radar-calibration.md explains the figures and their sources.
 """
 
 from __future__ import annotations
