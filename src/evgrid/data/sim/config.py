@@ -85,17 +85,25 @@ class RadarConfig:
     #: Far scan: +-far_fov_deg out to far_range_m (beams spaced far_spacing_deg).
     far_fov_deg: float = 9.0
     far_range_m: float = 250.0
-    far_spacing_deg: float = 0.5
+    far_spacing_deg: float = 0.1
+    #: Nearest range the far scan reports, m: the ARS 408's two scans are independent and each
+    #: reports its own clusters, the far one over 0.2-250 m (inside the near reach too).
+    far_min_range_m: float = 0.2
     #: Half-opening of the beam in elevation, degrees (what a beam at sensor height can hit).
     elevation_half_deg: float = 6.0
-    #: Range at which a 0 dBsm target has 0 dB signal-to-threshold (near scan), metres.
-    reference_range_m: float = 25.0
-    #: Extra gain of the far scan, dB.
-    far_gain_db: float = 10.0
+    #: Range at which a 0 dBsm target has 0 dB signal-to-threshold (near scan), metres: a
+    #: 10 dBsm car then reaches 0 dB at the near scan's 70 m (40 * 10 ** (10 / 40) = 71 m).
+    reference_range_m: float = 40.0
+    #: Extra gain of the far scan, dB: the same target reaches 250 m instead of 70 m,
+    #: 40 log10(250 / 70) = 22 dB.
+    far_gain_db: float = 22.0
     #: Width of the logistic detection curve of a resolution cell's summed power, dB.
     detection_softness_db: float = 2.5
     #: Scales every class's chance that a beam-hit forms a scattering centre (materials.RADAR_SCATTER).
-    scatter_probability: float = 0.8
+    scatter_probability: float = 0.46
+    #: Width of surface (m) over which materials.RADAR_SCATTER * scatter_probability is the chance
+    #: of a scattering centre; a beam standing for a wider strip (farther, or spaced wider) more likely holds one.
+    scatter_strip_m: float = 0.44
     #: Swerling I/II fluctuation: each look's power is exponentially distributed about its mean.
     swerling: bool = True
     #: Log-normal aspect fluctuation on top, dB (1 sigma).
@@ -143,6 +151,7 @@ class RadarConfig:
             "far_spacing_deg",
             "elevation_half_deg",
             "reference_range_m",
+            "scatter_strip_m",
             "detection_softness_db",
             "range_resolution_m",
             "far_range_resolution_m",
@@ -158,6 +167,7 @@ class RadarConfig:
             "rcs_fluctuation_db",
             "range_noise_m",
             "far_range_noise_m",
+            "far_min_range_m",
             "azimuth_noise_deg",
             "azimuth_noise_mid_deg",
             "azimuth_noise_edge_deg",
@@ -176,6 +186,8 @@ class RadarConfig:
             raise ValueError(f"{o} needs far_fov_deg <= fov_deg <= 90, got {self.far_fov_deg!r}, {self.fov_deg!r}")
         if self.edge_range_m > self.max_range_m:
             raise ValueError(f"{o}.edge_range_m ({self.edge_range_m!r}) must not exceed max_range_m ({self.max_range_m!r})")
+        if self.far_min_range_m >= self.far_range_m:
+            raise ValueError(f"{o}.far_min_range_m ({self.far_min_range_m!r}) must be below far_range_m ({self.far_range_m!r})")
         check_int(o, "max_detections", self.max_detections, min=1)
 
 

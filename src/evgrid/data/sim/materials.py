@@ -124,7 +124,8 @@ RADAR_RCS_DB = _table(
 )
 #: How strongly the return falls off away from normal incidence (1 = flat specular plate).
 RADAR_SPECULAR = _table({BUILDING: 1.0, WALL: 1.0, FENCE: 0.6, CAR: 0.5, TRUCK: 0.8, BARRIER: 0.6})
-#: Fraction of beam-hits on a surface that form a resolvable scattering centre.
+#: Chance that a strip of surface ``RadarConfig.scatter_strip_m`` wide (or a narrower object)
+#: holds a resolvable scattering centre (times ``RadarConfig.scatter_probability``).
 RADAR_SCATTER = _table(
     {
         BUILDING: 0.45,

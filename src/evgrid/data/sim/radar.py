@@ -1,11 +1,12 @@
 """The five radars (Continental ARS 408-21 as mounted on the nuScenes vehicles).
 
 A sweep casts horizontal beams over the near scan (+-60 deg; 70 m out to +-45 deg, less at the
-edges) and the far scan (+-9 deg, 250 m), each beam with a random azimuth inside its bin and
-finer than a resolution cell. Along a beam up to four objects are considered in range order;
-the beam goes on past an object with a class-dependent probability (under vehicles, through
-foliage and fences). Each object met becomes a *scatterer* with probability
-``scatter(class) * scatter_probability`` and power
+edges) and the far scan (+-9 deg, 0.2-250 m; the two scans report their clusters apart), each
+beam with a random azimuth inside its bin and finer than a resolution cell. Along a beam up to
+four objects are considered in range order; the beam goes on past an object with a
+class-dependent probability (under vehicles, through foliage and fences). Each object met
+becomes a *scatterer* if the strip of surface the beam stands for holds a scattering centre
+(centres are so many per metre of surface, ``RadarModel._centre_probability``), with power
 ``SNR = RCS(class, incidence) + fluctuation + antenna gain - 40 log10(range / r_ref)``, the
 fluctuation being Swerling I/II (exponential power) times a log-normal aspect term.
 
@@ -80,6 +81,25 @@ class RadarModel:
         gain = -10.0 * (np.degrees(az) / cfg.fov_deg) ** 2 + np.where(far, cfg.far_gain_db, 0.0)
         return rcs_db + gain - 40.0 * np.log10(np.maximum(rng_m, 0.5) / cfg.reference_range_m)
 
+    def _centre_probability(
+        self, kk: np.ndarray, rng_m: np.ndarray, far: np.ndarray, cos_inc: np.ndarray, size_m: np.ndarray | None = None
+    ) -> np.ndarray:
+        """Chance that a simulated beam's hit on class ``kk`` at range ``rng_m`` (m), incidence
+        cosine ``cos_inc``, on an object ``size_m`` (m) wide holds a scattering centre.
+
+        Centres are a property of the surface (so many per metre), so the chance grows with the
+        strip of surface the beam stands for, ``range * beam spacing / cos(incidence)``:
+        ``1 - (1 - p) ** (strip / ref)`` with ``p = RADAR_SCATTER * scatter_probability`` and
+        ``ref = scatter_strip_m``, or the object's width if narrower (a pole is one centre
+        however many beams hit it). Without this a near object, which many beams hit, would hold
+        many more centres than the same object far away."""
+        cfg = self.cfg
+        step = np.radians(np.where(far, cfg.far_spacing_deg, cfg.ray_spacing_deg))
+        p = np.minimum(M.RADAR_SCATTER[kk] * cfg.scatter_probability, 1.0 - 1e-12)
+        strip = np.maximum(rng_m, 0.0) * step / np.maximum(cos_inc, 0.05)
+        ref = cfg.scatter_strip_m if size_m is None else np.clip(size_m, 1e-3, cfg.scatter_strip_m)
+        return 1.0 - (1.0 - p) ** (strip / ref)
+
     def noise_sigmas(self, az: np.ndarray, far: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """1-sigma range (m) and azimuth (rad) noise of detections at sensor azimuth ``az`` (rad):
         the datasheet's accuracies, near scan interpolated over 0 deg, 45 deg and the edge."""
@@ -132,7 +152,7 @@ class RadarModel:
         vo, wo = odo_speed_yawrate
         vs_odo_ego = np.array([vo - wo * mt.y, wo * mt.x])
 
-        # Beams: near scan, then the far scan (which only reports beyond the near reach).
+        # Beams: near scan, then the far scan (which reports from far_min_range_m on).
         fov = math.radians(cfg.fov_deg)
         step = math.radians(cfg.ray_spacing_deg)
         n_near = int(math.floor(2 * fov / step))
@@ -195,8 +215,9 @@ class RadarModel:
                 + corner_gain(li, kk, sx + gdx * np.where(valid, t, 0.0), sy + gdy * np.where(valid, t, 0.0))
                 + self._fluctuation(rng, n_rays)
             )
-            in_band = np.where(far, t > near_reach, t <= near_reach)
-            hit = valid & in_band & (rng.random(n_rays) < M.RADAR_SCATTER[kk] * cfg.scatter_probability)
+            in_band = np.where(far, t >= cfg.far_min_range_m, t <= near_reach)
+            size = 2.0 * np.maximum(box_all[li, 4], box_all[li, 5])
+            hit = valid & in_band & (rng.random(n_rays) < self._centre_probability(kk, t, far, out_cos[:, k], size))
             if hit.any():
                 vt = vel_all[li[hit]]
                 sc.add(t[hit], az[hit], rcs[hit], far[hit], vt, RADAR_REAL, np.hypot(vt[:, 0], vt[:, 1]) > 0.2)
