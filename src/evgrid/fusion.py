@@ -287,6 +287,11 @@ class MapSet:
                 self.n_rejected[name] += n_bad
             _k_coarse(self._src[s], self._coarse[s])
 
+    def _window(self, pose: SE2) -> tuple[int, int, int, int, tuple[float, ...]]:
+        """The map window ``(r0, c0, h, w)`` a local grid at ``pose`` reaches, and its sampling affine."""
+        r0, c0, h, w = warp_window(self.grid, pose)
+        return r0, c0, h, w, window_affine(self.grid, pose, r0, c0)
+
     def update(self, pose: SE2, isms: Mapping[str, np.ndarray]) -> dict[str, int]:
         """Fuse one time step: local ISM grids keyed by ISM name, taken at ego ``pose`` in the first pose's frame.
 
@@ -298,9 +303,8 @@ class MapSet:
 
     def update_loaded(self, pose: SE2) -> dict[str, int]:
         """Fuse the ISM grids of the last :meth:`load`, taken at ego ``pose``, into every map in one pass."""
-        grid, n = self.grid, self.grid.n_cells
-        r0, c0, h, w = warp_window(grid, pose)
-        affine = window_affine(grid, pose, r0, c0)
+        n = self.grid.n_cells
+        r0, c0, h, w, affine = self._window(pose)
         spans = self._spans[:h]
         _k_spans(*affine, n, h, w, spans)
         nb = (h + _BLOCK - 1) // _BLOCK
@@ -338,9 +342,8 @@ class MapSet:
 
     def warp_loaded(self, pose: SE2) -> dict[str, MapWindow]:
         """The windows of the ISM grids of the last :meth:`load` at ``pose`` (see :meth:`warp`)."""
-        grid, n = self.grid, self.grid.n_cells
-        r0, c0, h, w = warp_window(grid, pose)
-        affine = window_affine(grid, pose, r0, c0)
+        n = self.grid.n_cells
+        r0, c0, h, w, affine = self._window(pose)
         out = {}
         for s, name in enumerate(self.required_isms):
             if name not in self._windows:
