@@ -74,8 +74,8 @@ ISM_NAMES: tuple[str, ...] = ("ray_ilm", "ray_irm", "deep_irm")
 # Default lower limit on the deep ISM's unknown mass; the paper gives no value
 # (docs/decisions.md#default-lower-limit-on-unknown-mass).
 # Chosen by `evgrid sweep-m-u-min` on simulated validation scenes (seeds 4, 9, 14, 19) with the
-# shipped Ev-Net: the highest limit whose deep_disc mIoU is within 0.01 of the best (0.528 vs
-# 0.530 at 0.05); at >= 0.5 a cell known only to the deep IRM can never be classified free or
+# shipped Ev-Net: the highest limit whose deep_disc mIoU is within 0.01 of the best (0.494 vs
+# 0.495 at 0.1); at >= 0.5 a cell known only to the deep IRM can never be classified free or
 # occupied (deep_disc free mIoU drops from 0.76 to 0), below 0.3 the prior is less clearly
 # apart from verified space for no gain.
 M_U_MIN_DEFAULT = 0.3
