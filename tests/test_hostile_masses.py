@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 from evgrid import mass
 from evgrid.fusion import MAP_NAMES, RULES, FusionParams, MapSet
 from evgrid.geometry import SE2, GridSpec
-from evgrid.grid import EvidentialMap, MapWindow
+from evgrid.grid import EvidentialMap, MapWindow, Warper
 from evgrid.ism import ray_ilm
 from evgrid.ism.radar import ray_irm_xy
 from tests.strategies import random_masses
@@ -96,6 +96,28 @@ def test_invalid_local_cells_do_not_leak_into_neighbours_through_the_warp():
     np.testing.assert_array_equal(m[cov], np.tile(mass.VACUOUS, (int(cov.sum()), 1)))
     assert ms.n_rejected == {"ray_ilm": 100}
     assert local[10, 10, 0] == 2.0  # the caller's grid is not modified
+
+
+def test_warper_takes_cells_that_are_not_masses_as_vacuous_counts_and_logs_them_once(caplog):
+    # the warp on its own (truth grids, the m_u_min sweep's windows) checks like the map update
+    warper = Warper(GRID, "deep_irm")
+    local = random_masses(np.random.default_rng(5), GRID.shape)
+    local[3, 4] = [np.nan, 0.0, 1.0]
+    local[20, 7] = [-0.25, 0.75, 0.5]
+    with caplog.at_level("WARNING", logger="evgrid.grid"):
+        window = warper.warp(local, SE2())
+        warper.warp(local, SE2())
+    assert warper.n_rejected == 4
+    assert len(caplog.records) == 1 and "deep_irm: 2 cell(s)" in caplog.records[0].getMessage()
+    # at the identity pose local cell (r, c) lies on map cell (r - n/2, c - n/2)
+    r, c = -window.r0 - N // 2, -window.c0 - N // 2
+    got = window.masses[r:r + N, c:c + N]
+    np.testing.assert_array_equal(got[3, 4], mass.VACUOUS)
+    np.testing.assert_array_equal(got[20, 7], mass.VACUOUS)
+    keep = np.ones(GRID.shape, bool)
+    keep[3, 4] = keep[20, 7] = False
+    np.testing.assert_array_equal(got[keep], local[keep])
+    mass.validate(window.masses)
 
 
 @pytest.mark.parametrize("name", MAP_NAMES)

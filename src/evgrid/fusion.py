@@ -28,24 +28,20 @@ from typing import Callable, Mapping
 import numpy as np
 
 from evgrid.geometry import SE2, GridSpec
-from evgrid.grid import EvidentialMap, MapWindow, warp_window, window_affine
+from evgrid.grid import EvidentialMap, MapWindow, Warper, warp_window, window_affine
 from evgrid.kernels import (
     _BLOCK,
-    _COARSE,
     RULE_DEEP_DISC,
     RULE_DEEP_REPLACE,
     RULE_DEMPSTER,
     RULE_FUSED,
     _k_blocks,
-    _k_coarse,
     _k_deep_disc_into,
     _k_deep_replace_into,
     _k_dempster_into,
     _k_fused_into,
     _k_informative,
-    _k_load,
     _k_spans,
-    _k_warp,
     _k_warp_update,
     rows,
 )
@@ -216,7 +212,8 @@ RULES: dict[str, UpdateRule] = {
 class MapSet:
     """Several maps of Table I over one scene, in the first pose's frame, updated in one pass.
 
-    :meth:`update` loads each ISM grid once (checked, into a padded copy) and then visits each
+    :meth:`update` loads each ISM grid once (checked, into the padded copy of its
+    :class:`~evgrid.grid.Warper`) and then visits each
     covered map cell once: it samples every ISM there as the warp would (bilinearly) and applies
     every map's rule, so no warped window is written and read back. :meth:`warp` and
     :meth:`update_windows` do the same in two passes through whole warped windows (the extra
@@ -246,23 +243,23 @@ class MapSet:
             for n in self.names
         }
         self.required_isms: tuple[str, ...] = tuple(i for i in ISM_NAMES if any(i in RULES[n].isms for n in self.names))
-        n, k = self.grid.n_cells, len(self.required_isms)
-        # each ISM's local grid with a vacuous border (see evgrid.kernels._k_warp), and which of
-        # its 8 x 8 blocks hold information
-        self._src = np.zeros((k, n + 3, n + 3, 3), dtype=np.float32)
-        self._src[..., 2] = 1.0
-        self._coarse = np.zeros((k, (n + 3 + _COARSE - 1) // _COARSE, (n + 3 + _COARSE - 1) // _COARSE), dtype=np.bool_)
+        # one loader / warper per ISM: its checked, padded copy of the local grid is what the
+        # one-pass update samples
+        self._warpers = {i: Warper(self.grid, i) for i in self.required_isms}
         slot = {i: s for s, i in enumerate(self.required_isms)}
         # per map: its rule's kernel code and the slots of the ISMs it reads
         self._rules = np.array([(_KERNEL_RULE[m], slot[RULES[m].isms[0]], slot[RULES[m].isms[-1]]) for m in self.names],
                                dtype=np.int64)
-        self._bufs = np.empty((k, 3 * int(tile_cells)), dtype=np.float32)
-        side = int(np.ceil(n * np.sqrt(2.0))) + 4
+        self._bufs = np.empty((len(self.required_isms), 3 * int(tile_cells)), dtype=np.float32)
+        side = int(np.ceil(self.grid.n_cells * np.sqrt(2.0))) + 4
         self._spans = np.zeros((side, 2), dtype=np.int64)
-        self._windows: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         self.n_updates = 0
-        self.n_rejected: dict[str, int] = {i: 0 for i in self.required_isms}
         self.n_rejected_cells: dict[str, int] = {m: 0 for m in self.names}
+
+    @property
+    def n_rejected(self) -> dict[str, int]:
+        """Per ISM, the cells of its local grids that were not masses and were taken as vacuous."""
+        return {i: w.n_rejected for i, w in self._warpers.items()}
 
     def __getitem__(self, name: str) -> EvidentialMap:
         return self.maps[name]
@@ -272,20 +269,8 @@ class MapSet:
         missing = [i for i in self.required_isms if i not in isms]
         if missing:
             raise ValueError(f"missing ISM grid(s) {missing}; these maps need {self.required_isms}")
-        n = self.grid.n_cells
-        for s, name in enumerate(self.required_isms):
-            a = np.asarray(isms[name])
-            if a.shape != (n, n, 3) or not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):
-                raise ValueError(f"{name}: the local grid must be a numeric array of shape {(n, n, 3)}, got {a.dtype} {a.shape}")
-            # checked before the warp: its bilinear mix would blend an invalid cell into its
-            # neighbours, where a negative mass can hide inside a valid-looking sum
-            n_bad = int(_k_load(np.ascontiguousarray(a, dtype=np.float32), self._src[s]))
-            if n_bad:
-                if self.n_rejected[name] == 0:
-                    logger.warning("%s: %d cell(s) of the local grid are not masses (NaN, inf, negative or not summing "
-                                   "to 1); they are taken as vacuous and counted in MapSet.n_rejected", name, n_bad)
-                self.n_rejected[name] += n_bad
-            _k_coarse(self._src[s], self._coarse[s])
+        for name, warper in self._warpers.items():
+            warper.load(isms[name])
 
     def _window(self, pose: SE2) -> tuple[int, int, int, int, tuple[float, ...]]:
         """The map window ``(r0, c0, h, w)`` a local grid at ``pose`` reaches, and its sampling affine."""
@@ -311,12 +296,13 @@ class MapSet:
         jl, jh = np.empty(nb, np.int64), np.empty(nb, np.int64)
         _k_blocks(spans, h, w, jl, jh)
         informative = np.zeros((len(self.required_isms), nb, (w + _BLOCK - 1) // _BLOCK + 1), dtype=np.bool_)
-        for s in range(len(self.required_isms)):
-            _k_informative(self._coarse[s], n, *affine, h, jl, jh, informative[s])
+        warpers = tuple(self._warpers.values())
+        for s, warper in enumerate(warpers):
+            _k_informative(warper.coarse, n, *affine, h, jl, jh, informative[s])
         maps = [self.maps[m] for m in self.names]
         ts = maps[0].tile_cells
         rejected = np.zeros(len(maps), dtype=np.int64)
-        src = self._src.reshape(len(self.required_isms), -1)
+        src = tuple(warper.source for warper in warpers)
         for key, tr, tc, wr, wc in maps[0]._pieces(r0, c0, h, w):
             piece = spans[wr]
             rows_on = np.flatnonzero((np.minimum(piece[:, 1], wc.stop) > np.maximum(piece[:, 0], wc.start)))
@@ -342,19 +328,7 @@ class MapSet:
 
     def warp_loaded(self, pose: SE2) -> dict[str, MapWindow]:
         """The windows of the ISM grids of the last :meth:`load` at ``pose`` (see :meth:`warp`)."""
-        n = self.grid.n_cells
-        r0, c0, h, w, affine = self._window(pose)
-        out = {}
-        for s, name in enumerate(self.required_isms):
-            if name not in self._windows:
-                side = self._spans.shape[0]
-                self._windows[name] = (np.empty(side * side * 3, np.float32), np.empty(side * side, np.bool_))
-            masses, covered = self._windows[name]
-            spans = np.zeros((h, 2), dtype=np.int64)
-            _k_warp(self._src[s].reshape(-1), 3 * (n + 3), self._coarse[s], n, *affine,
-                    masses, 3 * w, covered, w, h, w, spans)
-            out[name] = MapWindow(r0, c0, masses[: h * w * 3].reshape(h, w, 3), covered[: h * w].reshape(h, w), spans)
-        return out
+        return {name: warper.warp_loaded(pose) for name, warper in self._warpers.items()}
 
     def update_windows(self, windows: Mapping[str, MapWindow]) -> dict[str, int]:
         """Fuse already-warped ISM windows (all from the same pose) into every map.

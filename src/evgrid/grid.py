@@ -14,6 +14,7 @@ covers them, so memory grows with the area explored, not with the bounding box o
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
 import zipfile
@@ -26,8 +27,10 @@ import numpy as np
 
 from evgrid.geometry import SE2, GridSpec
 from evgrid.io import atomic_write
-from evgrid.kernels import _COARSE, _k_coarse, _k_count_invalid, _k_warp
+from evgrid.kernels import _COARSE, _k_coarse, _k_count_invalid, _k_load, _k_warp
 from evgrid.mass import vacuous
+
+logger = logging.getLogger(__name__)
 
 __all__ = [
     "MapWindow", "EvidentialMap", "Warper", "warp_to_map", "warp_window", "window_affine", "save_map", "load_map", "MapFileError",
@@ -100,14 +103,23 @@ def warp_window(grid: GridSpec, pose: SE2) -> tuple[int, int, int, int]:
 
 
 class Warper:
-    """Warps local grids into the map, reusing its output buffers between calls.
+    """Warps local grids into the map, reusing its buffers between calls.
 
     Fresh multi-megabyte arrays cost more in page faults than the warp itself; a pipeline
-    keeps one ``Warper`` per ISM. Each returned window is a view that the next call overwrites.
+    keeps one ``Warper`` per ISM. :meth:`load` takes a local grid (checked, into a padded
+    copy); :meth:`warp_loaded` resamples it at a pose, and :meth:`evgrid.fusion.MapSet.update`
+    samples the loaded copies of several warpers directly. Each returned window is a view that
+    the next call overwrites.
+
+    Cells of a local grid that are not masses (NaN, inf, a negative mass, masses not summing to
+    1) are taken as vacuous, logged the first time and counted in ``n_rejected``: a bilinear mix
+    would otherwise blend them into their neighbours, where a negative mass can hide inside a
+    valid-looking sum.
     """
 
-    def __init__(self, grid: GridSpec):
+    def __init__(self, grid: GridSpec, name: str = "local grid"):
         self.grid = grid
+        self.name = name
         n = grid.n_cells
         self._side = side = int(math.ceil(n * math.sqrt(2.0))) + 4
         self._masses = np.empty(side * side * 3, dtype=np.float32)
@@ -115,26 +127,52 @@ class Warper:
         self._spans = np.zeros((side, 2), dtype=np.int64)
         self._src = vacuous((n + 3, n + 3))  # local grid + vacuous border (see _k_warp)
         self._coarse = np.zeros(((n + 3 + _COARSE - 1) // _COARSE,) * 2, dtype=np.bool_)
+        self.n_rejected = 0
 
-    def warp(self, local: np.ndarray, pose: SE2) -> MapWindow:
-        """Resample ``local`` ``(n, n, 3)`` taken at ego ``pose`` (first-pose frame, m/rad) into the map."""
+    @property
+    def source(self) -> np.ndarray:
+        """The loaded local grid with its vacuous border, flat (row stride ``3 (n + 3)``)."""
+        return self._src.reshape(-1)
+
+    @property
+    def coarse(self) -> np.ndarray:
+        """Which 8 x 8 blocks of :attr:`source` hold a cell that is not vacuous."""
+        return self._coarse
+
+    def load(self, local: np.ndarray) -> int:
+        """Take ``local`` ``(n, n, 3)`` for the next warps; returns how many of its cells were not masses."""
+        n = self.grid.n_cells
+        a = np.asarray(local)
+        if a.shape != (n, n, 3) or not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):
+            raise ValueError(f"{self.name}: the local grid must be a numeric array of shape {(n, n, 3)}, got {a.dtype} {a.shape}")
+        n_bad = int(_k_load(np.ascontiguousarray(a, dtype=np.float32), self._src))
+        if n_bad:
+            if self.n_rejected == 0:
+                logger.warning("%s: %d cell(s) of the local grid are not masses (NaN, inf, negative or not summing "
+                               "to 1); they are taken as vacuous and counted in n_rejected", self.name, n_bad)
+            self.n_rejected += n_bad
+        _k_coarse(self._src, self._coarse)
+        return n_bad
+
+    def warp_loaded(self, pose: SE2) -> MapWindow:
+        """The grid of the last :meth:`load`, taken at ego ``pose`` (first-pose frame, m/rad), resampled into the map."""
         grid = self.grid
-        local = np.asarray(local)
-        if local.shape != (grid.n_cells, grid.n_cells, 3):
-            raise ValueError(f"local grid must have shape {(grid.n_cells, grid.n_cells, 3)}, got {local.shape}")
         n = grid.n_cells
-        self._src[1 : n + 1, 1 : n + 1] = local
         r0, c0, h, w = warp_window(grid, pose)
         # windows are packed at the buffers' start (row stride w) so each is one contiguous block
         spans = self._spans[:h]
-        _k_coarse(self._src, self._coarse)
         _k_warp(
-            self._src.reshape(-1), 3 * (n + 3), self._coarse, n, *window_affine(grid, pose, r0, c0),
+            self.source, 3 * (n + 3), self._coarse, n, *window_affine(grid, pose, r0, c0),
             self._masses, 3 * w, self._covered, w, h, w, spans,
         )
         masses = self._masses[: h * w * 3].reshape(h, w, 3)
         covered = self._covered[: h * w].reshape(h, w)
         return MapWindow(r0, c0, masses, covered, spans)
+
+    def warp(self, local: np.ndarray, pose: SE2) -> MapWindow:
+        """Resample ``local`` ``(n, n, 3)`` taken at ego ``pose`` (first-pose frame, m/rad) into the map."""
+        self.load(local)
+        return self.warp_loaded(pose)
 
 
 def warp_to_map(local: np.ndarray, pose: SE2, grid: GridSpec) -> MapWindow:

@@ -33,6 +33,10 @@ from numba.extending import intrinsic
 _JIT = dict(cache=True, fastmath=True, error_model="numpy")
 # fast math without nnan/ninf: comparisons keep their IEEE meaning for NaN and inf
 _CHECKED = dict(cache=True, fastmath={"nsz", "arcp", "contract", "afn", "reassoc"}, error_model="numpy")
+# The warp's sampling: no fused multiply-adds, no reassociation, and compiled once, not inlined,
+# so every kernel that samples (_k_warp's windows, _k_warp_update's one pass) rounds alike and
+# gives the same masses bit for bit
+_EXACT = dict(cache=True, fastmath={"nsz", "arcp", "afn"}, error_model="numpy")
 _TINY = 1e-30
 #: Masses of a valid cell sum to 1 within this (as evgrid.mass.validate checks).
 MASS_ATOL = 1e-5
@@ -523,11 +527,13 @@ def _fill_vacuous(ro, o0, m):
         ro[o0 + 3 * k + 2] = 1.0
 
 
-@numba.njit(inline="always", **_JIT)
-def _positions(srs, n, a, b, du_dj, dv_dj, j0, j2, idx, frac):
-    # idx[k], frac[2 k : 2 k + 2], k < j2 - j0 (<= _BLOCK): where window cell j0 + k of the row
-    # whose padded source position is (a + j du_dj, b + j dv_dj) samples every local grid
-    # (the same affine for all): the flat index of its top-left source cell and the fractions.
+@numba.njit(**_EXACT)
+def _positions(srs, n, u00, v00, du_di, du_dj, dv_di, dv_dj, i, j0, j2, idx, frac):
+    # idx[k], frac[2 k : 2 k + 2], k < j2 - j0 (<= _BLOCK): where window cell (i, j0 + k)
+    # samples every local grid (the same affine for all): the flat index of its top-left padded
+    # source cell and the fractions.
+    a = u00 + i * du_di + 1.0  # the row's padded source position (see the warp above)
+    b = v00 + i * dv_di + 1.0
     for k in range(j2 - j0):
         t = a + (j0 + k) * du_dj
         s = b + (j0 + k) * dv_dj
@@ -535,9 +541,8 @@ def _positions(srs, n, a, b, du_dj, dv_dj, j0, j2, idx, frac):
         iv = min(int(s), n)
         fu = t - iu
         fv = s - iv
-        # snap near-integer positions to the cell (a quarter-turn's cos is 6e-17, not 0) by
-        # moving the index, not by a weight of 1: fastmath may evaluate the mix as
-        # a + f (b - a), exact only for f = 0
+        # snap near-integer positions to the cell (a quarter-turn's cos is 6e-17, not 0), so
+        # identity, whole-cell and quarter-turn warps copy cells exactly
         up = fu > 1.0 - _SNAP
         iu = iu + 1 if up else iu
         fu = 0.0 if (up or fu < _SNAP) else fu
@@ -549,7 +554,7 @@ def _positions(srs, n, a, b, du_dj, dv_dj, j0, j2, idx, frac):
         idx[k] = iu * srs + 3 * iv
 
 
-@numba.njit(inline="always", **_JIT)
+@numba.njit(**_EXACT)
 def _gather(src, srs, m, ro, o0, idx, frac):
     # ro[o0 + 3 k + c], k < m: the bilinear samples of src at the positions of _positions
     one = np.float32(1.0)
@@ -566,9 +571,9 @@ def _gather(src, srs, m, ro, o0, idx, frac):
 
 
 @numba.njit(inline="always", **_JIT)
-def _sample_span(src, srs, n, a, b, du_dj, dv_dj, j0, j2, ro, o0, idx, frac):
-    # ro[o0 + 3 k + c], k < j2 - j0: the bilinear samples of window cells j0 ... j2 - 1 of a row
-    _positions(srs, n, a, b, du_dj, dv_dj, j0, j2, idx, frac)
+def _sample_span(src, srs, n, u00, v00, du_di, du_dj, dv_di, dv_dj, i, j0, j2, ro, o0, idx, frac):
+    # ro[o0 + 3 k + c], k < j2 - j0: the bilinear samples of window cells (i, j0) ... (i, j2 - 1)
+    _positions(srs, n, u00, v00, du_di, du_dj, dv_di, dv_dj, i, j0, j2, idx, frac)
     _gather(src, srs, j2 - j0, ro, o0, idx, frac)
 
 
@@ -618,8 +623,7 @@ def _k_warp(src, srs, coarse, n, u00, v00, du_di, du_dj, dv_di, dv_dj, out, ors,
                 if j2 <= j0:
                     continue
                 if informative:
-                    _sample_span(src, srs, n, u00 + i * du_di + 1.0, v00 + i * dv_di + 1.0, du_dj, dv_dj,
-                                 j0, j2, ro, 3 * j0, idx, frac)
+                    _sample_span(src, srs, n, u00, v00, du_di, du_dj, dv_di, dv_dj, i, j0, j2, ro, 3 * j0, idx, frac)
                 else:
                     _fill_vacuous(ro, 3 * j0, j2 - j0)
 
@@ -645,9 +649,10 @@ def _k_warp_update(src, srs, n, informative, jl, u00, v00, du_di, du_dj, dv_di, 
                    wa, wb, wc0, wc1, tiles, covs, ts, tr0, tc0, rules, m_u_min, alpha, bufs, rejected):
     # One tile piece of a window, every map at once: window rows [wa, wb) and columns
     # [wc0, wc1) are tile cells (tr0 + i - wa, tc0 + j - wc0). Each row's covered cells are
-    # sampled from each ISM (src[s], the padded local grids) exactly as _k_warp writes them,
-    # into a row buffer per ISM, and each map's rule runs on the buffers: the same masses as
-    # warping whole windows and updating from them, without writing or re-reading the windows.
+    # sampled from each ISM (src[s], a tuple of the padded local grids, flat) exactly as _k_warp
+    # writes them, into a row buffer per ISM, and each map's rule runs on the buffers: the same
+    # masses as warping whole windows and updating from them, without writing or re-reading the
+    # windows.
     idx = np.empty(_BLOCK, dtype=np.int64)
     frac = np.empty(2 * _BLOCK, dtype=np.float32)
     bad = np.zeros(ts, np.uint8)
@@ -657,17 +662,17 @@ def _k_warp_update(src, srs, n, informative, jl, u00, v00, du_di, du_dj, dv_di, 
         if hi <= lo:
             continue
         band = i // _BLOCK
-        a = u00 + i * du_di + 1.0
+        a = u00 + i * du_di + 1.0  # the row's padded source position, for the prefetch hints
         b = v00 + i * dv_di + 1.0
         j = lo
         while j < hi:
             k = (j - jl[band]) // _BLOCK
             j1 = min(hi, jl[band] + (k + 1) * _BLOCK)
             located = False  # the positions are the same for every ISM: computed once
-            for s in range(src.shape[0]):
+            for s in range(len(src)):
                 if informative[s, band, k]:
                     if not located:
-                        _positions(srs, n, a, b, du_dj, dv_dj, j, j1, idx, frac)
+                        _positions(srs, n, u00, v00, du_di, du_dj, dv_di, dv_dj, i, j, j1, idx, frac)
                         located = True
                     _gather(src[s], srs, j1 - j, bufs[s], 3 * (j - lo), idx, frac)
                     _prefetch_span(src[s], srs, n, a + _AHEAD * du_di, b + _AHEAD * dv_di, du_dj, dv_dj, j, j1)
