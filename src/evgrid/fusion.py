@@ -213,11 +213,11 @@ class MapSet:
     """Several maps of Table I over one scene, in the first pose's frame, updated in one pass.
 
     :meth:`update` loads each ISM grid once (checked, into the padded copy of its
-    :class:`~evgrid.grid.Warper`) and then visits each
-    covered map cell once: it samples every ISM there as the warp would (bilinearly) and applies
-    every map's rule, so no warped window is written and read back. :meth:`warp` and
-    :meth:`update_windows` do the same in two passes through whole warped windows (the extra
-    map sets of the ``m_u_min`` sweep share them); both give the same maps.
+    :class:`~evgrid.grid.Warper`) and then visits each covered map cell once: it samples every
+    ISM there as the warp would (bilinearly) and applies every map's rule, so no warped window
+    is written and read back. :meth:`warp` and :meth:`update_windows` do the same in two passes
+    through whole warped windows (the extra map sets of the ``m_u_min`` sweep share them); both
+    give the same maps.
 
     Invalid ISM cells never reach a map: ``n_rejected[ism]`` counts the cells of the local ISM
     grids that were not masses and were taken as vacuous (no information), and
