@@ -272,11 +272,6 @@ class MapSet:
         for name, warper in self._warpers.items():
             warper.load(isms[name])
 
-    def _window(self, pose: SE2) -> tuple[int, int, int, int, tuple[float, ...]]:
-        """The map window ``(r0, c0, h, w)`` a local grid at ``pose`` reaches, and its sampling affine."""
-        r0, c0, h, w = warp_window(self.grid, pose)
-        return r0, c0, h, w, window_affine(self.grid, pose, r0, c0)
-
     def update(self, pose: SE2, isms: Mapping[str, np.ndarray]) -> dict[str, int]:
         """Fuse one time step: local ISM grids keyed by ISM name, taken at ego ``pose`` in the first pose's frame.
 
@@ -288,8 +283,9 @@ class MapSet:
 
     def update_loaded(self, pose: SE2) -> dict[str, int]:
         """Fuse the ISM grids of the last :meth:`load`, taken at ego ``pose``, into every map in one pass."""
-        n = self.grid.n_cells
-        r0, c0, h, w, affine = self._window(pose)
+        grid, n = self.grid, self.grid.n_cells
+        r0, c0, h, w = warp_window(grid, pose)
+        affine = window_affine(grid, pose, r0, c0)
         spans = self._spans[:h]
         _k_spans(*affine, n, h, w, spans)
         nb = (h + _BLOCK - 1) // _BLOCK

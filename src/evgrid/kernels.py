@@ -578,19 +578,22 @@ def _sample_span(src, srs, n, u00, v00, du_di, du_dj, dv_di, dv_dj, i, j0, j2, r
 
 
 @numba.njit(inline="always", **_JIT)
-def _prefetch_span(src, srs, n, a, b, du_dj, dv_dj, j0, j2):
-    # Ask for the source lines of window cells j0 ... j2 - 1 of the row at (a, b) (the row
-    # _AHEAD rows on) while this one is worked: off the quarter turns, a row's samples cross
-    # source rows, which the hardware prefetcher does not follow, and a cold source line costs
-    # a memory latency (2x slower at 10 and 45 degrees without this; _k_warp's 32 x 32 blocks
-    # keep their footprint in cache instead). One hint per two cells.
-    top = len(src) - 1
+def _prefetch_span(src, informative, srs, n, a, b, du_dj, dv_dj, j0, j2):
+    # Ask for the lines of each informative source (src[s] with informative[s]) that window
+    # cells j0 ... j2 - 1 of the row at (a, b) (the row _AHEAD rows on) will sample, while this
+    # one is worked: off the quarter turns, a row's samples cross source rows, which the
+    # hardware prefetcher does not follow, and a cold source line costs a memory latency (2x
+    # slower at 10 and 45 degrees without this; _k_warp's 32 x 32 blocks keep their footprint
+    # in cache instead). One hint per two cells.
+    top = len(src[0]) - 1
     for j in range(j0, j2, 2):
         iu = min(max(int(a + j * du_dj), 0), n + 1)
         iv = min(max(int(b + j * dv_dj), 0), n + 1)
         p = iu * srs + 3 * iv
-        _prefetch(src, p)
-        _prefetch(src, min(p + srs, top))
+        for s in range(len(src)):
+            if informative[s]:
+                _prefetch(src[s], p)
+                _prefetch(src[s], min(p + srs, top))
 
 
 @numba.njit(**_JIT)
@@ -675,9 +678,11 @@ def _k_warp_update(src, srs, n, informative, jl, u00, v00, du_di, du_dj, dv_di, 
                         _positions(srs, n, u00, v00, du_di, du_dj, dv_di, dv_dj, i, j, j1, idx, frac)
                         located = True
                     _gather(src[s], srs, j1 - j, bufs[s], 3 * (j - lo), idx, frac)
-                    _prefetch_span(src[s], srs, n, a + _AHEAD * du_di, b + _AHEAD * dv_di, du_dj, dv_dj, j, j1)
                 else:
                     _fill_vacuous(bufs[s], 3 * (j - lo), j1 - j)
+            if located:
+                _prefetch_span(src, informative[:, band, k], srs, n, a + _AHEAD * du_di, b + _AHEAD * dv_di,
+                               du_dj, dv_dj, j, j1)
             j = j1
         m = hi - lo
         t = (tr0 + i - wa) * ts + tc0 + lo - wc0  # the row's first cell in the tiles
