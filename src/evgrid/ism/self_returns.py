@@ -62,8 +62,9 @@ class BodyBox:
     def contains(self, xyz: np.ndarray) -> np.ndarray:
         """Which of the ``(n, 3)`` ego-frame points lie inside the box."""
         p = np.asarray(xyz)
-        return ((p[:, 0] >= self.x0) & (p[:, 0] <= self.x1) & (p[:, 1] >= self.y0) & (p[:, 1] <= self.y1)
-                & (p[:, 2] >= self.z0) & (p[:, 2] <= self.z1))
+        out = np.empty(len(p), dtype=np.bool_)
+        _k_inside(p, *(float(v) for v in self.as_tuple()), out)
+        return out
 
 
 #: The nuScenes car (Renault Zoe, 4.1 m x 1.7 m, with its sensor rack) in the rear-axle ego
@@ -158,7 +159,7 @@ class SelfReturnFilter:
             return sweep
         xyz, near, keys = _ego_points(sweep, p)
         if p.mode == "box":
-            drop = _inside(xyz, p.box)
+            drop = p.box.contains(xyz)
         else:
             drop = self._auto(sweep, xyz, near, keys)
         n = int(drop.sum())
@@ -171,7 +172,7 @@ class SelfReturnFilter:
         near_keys = keys[near]
         self._learn(np.unique(near_keys), np.asarray(sweep.ego_pose.translation[:2], dtype=np.float64))
         box = self.learnt_box if self.learnt_box is not None else self.params.prior
-        drop = _inside(xyz, box) if box is not None else np.zeros(len(xyz), dtype=bool)
+        drop = box.contains(xyz) if box is not None else np.zeros(len(xyz), dtype=bool)
         if len(self._learnt):
             drop[near] |= np.isin(near_keys, self._learnt)
         return drop
@@ -214,17 +215,17 @@ _OFF = 1 << 20  # voxel indices are offset to be non-negative, 21 bits each
 
 
 @numba.njit(cache=True)
-def _k_ego_points(points, rot, trans, ox, oy, max_radius, min_height, voxel_m, xyz, near, keys):
+def _k_ego_points(points, rot, trans, max_radius, min_height, voxel_m, xyz, near, keys):
     # One pass over the sweep (it ran as eight numpy passes, 5 ms a 30,000-point sweep): each
-    # point in the ego frame, whether it is near the sensor (horizontally within max_radius of
-    # (ox, oy), at least min_height up) and then its voxel key.
+    # point in the ego frame (rot, trans: sensor_to_ego), whether it is near the sensor
+    # (horizontally within max_radius of it, at least min_height up) and then its voxel key.
     for i in range(points.shape[0]):
         px, py, pz = np.float64(points[i, 0]), np.float64(points[i, 1]), np.float64(points[i, 2])
         x = rot[0, 0] * px + rot[0, 1] * py + rot[0, 2] * pz + trans[0]
         y = rot[1, 0] * px + rot[1, 1] * py + rot[1, 2] * pz + trans[1]
         z = rot[2, 0] * px + rot[2, 1] * py + rot[2, 2] * pz + trans[2]
         xyz[i, 0], xyz[i, 1], xyz[i, 2] = x, y, z
-        nr = math.hypot(x - ox, y - oy) <= max_radius and z >= min_height
+        nr = math.hypot(x - trans[0], y - trans[1]) <= max_radius and z >= min_height
         near[i] = nr
         if nr:
             ix = np.int64(math.floor(x / voxel_m)) + _OFF
@@ -249,16 +250,9 @@ def _ego_points(sweep: LidarSweep, p: SelfReturnParams) -> tuple[np.ndarray, np.
     near = np.empty(n, dtype=np.bool_)
     keys = np.empty(n, dtype=np.int64)
     m = sweep.sensor_to_ego
-    t = np.asarray(m.translation, dtype=np.float64)
-    _k_ego_points(sweep.points, np.asarray(m.rotation, dtype=np.float64), t, float(t[0]), float(t[1]),
+    _k_ego_points(sweep.points, np.asarray(m.rotation, dtype=np.float64), np.asarray(m.translation, dtype=np.float64),
                   float(p.max_radius_m), float(p.min_height_m), float(p.voxel_m), xyz, near, keys)
     return xyz, near, keys
-
-
-def _inside(xyz: np.ndarray, box: BodyBox) -> np.ndarray:
-    out = np.empty(len(xyz), dtype=np.bool_)
-    _k_inside(xyz, *(float(v) for v in box.as_tuple()), out)
-    return out
 
 
 def _voxel_bounds(keys: np.ndarray, voxel_m: float) -> tuple[np.ndarray, np.ndarray]:
