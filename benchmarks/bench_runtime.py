@@ -1,8 +1,11 @@
 """Ev-Net's trunk on each inference option, one core: speed and exactness against torch eager.
 
-Run: ``python benchmarks/bench_runtime.py [--repeats 30] [--compile]``. Options: torch eager
-(channels-last, what the torch runtime runs), torch.jit trace + freeze, torch.compile (with
-``--compile``: it compiles for minutes on a small machine), ONNX Runtime fp32 (``evgrid[fast]``).
+Run: ``python benchmarks/bench_runtime.py [--repeats 30] [--compile] [--reduced]``. Options: torch
+eager (channels-last, what the torch runtime runs), torch.jit trace + freeze, torch.compile (with
+``--compile``: it compiles for minutes on a small machine), ONNX Runtime fp32 (``evgrid[fast]``);
+with ``--reduced`` also the reduced precisions: torch bf16, ONNX Runtime fp16 (the graph converted
+with fp32 inputs and outputs) and ONNX Runtime int8 (static QDQ quantization, u8 activations, s8
+per-channel weights, calibrated on the timed buffer itself: the most favourable case for int8).
 Each is timed in turns on the pooled input of the synthetic street's radar sweeps, so all see
 the same machine load; the table gives the median and minimum ms, and how far the masses of
 each option are from the plain path's (full image, whole Ev-Net on torch): max |dm| and the
@@ -12,20 +15,68 @@ number of cells whose largest mass changes.
 from __future__ import annotations
 
 import argparse
+import copy
+import logging
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
 
 from evgrid.ism.deep import DeepIrm, evidence_to_masses, radar_image
-from evgrid.ism.runtime import evnet_trunk, make_runtime, ort_available
+from evgrid.ism.runtime import evnet_trunk, make_runtime, ort_available, trunk_onnx
 from evgrid.ism.synthetic import street_radar_sweeps
+
+
+def _ort_session(model_bytes: bytes):
+    import onnxruntime as ort
+
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = opts.inter_op_num_threads = 1
+    opts.log_severity_level = 3
+    session = ort.InferenceSession(model_bytes, opts, providers=["CPUExecutionProvider"])
+    return lambda p: session.run(None, {"pooled": p})[0][0]
+
+
+def _reduced(model, pooled: np.ndarray) -> dict:
+    """The reduced-precision options: torch bf16, ONNX Runtime fp16 and int8."""
+    import onnx
+    from onnxruntime.quantization import CalibrationDataReader, QuantFormat, QuantType, quantize_static
+    from onnxruntime.transformers.float16 import convert_float_to_float16
+
+    bf16 = evnet_trunk(copy.deepcopy(model)).to(torch.bfloat16).to(memory_format=torch.channels_last)  # .to is in place
+
+    def run_bf16(p: np.ndarray) -> np.ndarray:
+        with torch.inference_mode():
+            x = torch.from_numpy(p).to(torch.bfloat16).to(memory_format=torch.channels_last)
+            return bf16(x)[0].float().numpy()
+
+    fp32 = trunk_onnx(model, pooled.shape[1:])
+    fp16 = convert_float_to_float16(onnx.load_from_string(fp32), keep_io_types=True).SerializeToString()
+
+    class _Once(CalibrationDataReader):
+        def __init__(self):
+            self.left = [{"pooled": pooled}]
+
+        def get_next(self):
+            return self.left.pop() if self.left else None
+
+    with tempfile.TemporaryDirectory() as tmp:
+        src, dst = Path(tmp) / "fp32.onnx", Path(tmp) / "int8.onnx"
+        src.write_bytes(fp32)
+        logging.getLogger().setLevel(logging.ERROR)  # its advice to pre-process, printed per call
+        quantize_static(str(src), str(dst), _Once(), quant_format=QuantFormat.QDQ, per_channel=True,
+                        activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8)
+        int8 = dst.read_bytes()
+    return {"torch bf16": run_bf16, "onnxruntime fp16": _ort_session(fp16), "onnxruntime int8": _ort_session(int8)}
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=30)
     ap.add_argument("--compile", action="store_true", help="also try torch.compile (slow to compile)")
+    ap.add_argument("--reduced", action="store_true", help="also try bf16, fp16 and int8 (needs onnxruntime)")
     args = ap.parse_args()
     torch.set_num_threads(1)
     deep = DeepIrm(runtime="torch")
@@ -58,6 +109,10 @@ def main() -> None:
         options["torch compile"] = run_compiled
     if ort_available():
         options["onnxruntime fp32"] = make_runtime(deep.model, (pooled.shape[1], m, m), "onnxruntime")
+    if args.reduced:
+        if not ort_available():
+            raise SystemExit("--reduced needs onnx and onnxruntime: pip install 'evgrid[fast]'")
+        options.update(_reduced(deep.model, pooled))
 
     for fn in options.values():
         fn(pooled)

@@ -20,7 +20,7 @@ from typing import Protocol
 
 import numpy as np
 
-__all__ = ["RUNTIMES", "EvNetRuntime", "TorchRuntime", "OrtRuntime", "evnet_trunk", "make_runtime", "ort_available"]
+__all__ = ["RUNTIMES", "EvNetRuntime", "TorchRuntime", "OrtRuntime", "evnet_trunk", "make_runtime", "trunk_onnx", "ort_available"]
 
 logger = logging.getLogger(__name__)
 
@@ -56,6 +56,19 @@ def evnet_trunk(model):
             return self.net.trunk(h)
 
     return _Trunk(model).eval()
+
+
+def trunk_onnx(model, in_shape: tuple[int, int, int]) -> bytes:
+    """``model``'s trunk as an ONNX graph (opset 17), input ``pooled`` ``(1, *in_shape)``, output ``evidence``."""
+    import torch
+
+    buf = io.BytesIO()
+    x = torch.zeros((1, *in_shape), dtype=torch.float32)
+    with warnings.catch_warnings(), torch.inference_mode(False), torch.no_grad():
+        warnings.simplefilter("ignore")  # the TorchScript exporter's deprecation notices
+        torch.onnx.export(evnet_trunk(model), (x,), buf, dynamo=False, opset_version=17,
+                          input_names=["pooled"], output_names=["evidence"])
+    return buf.getvalue()
 
 
 class TorchRuntime:
@@ -95,21 +108,14 @@ class OrtRuntime:
 
     def __init__(self, model, in_shape: tuple[int, int, int], threads: int = 1):
         import onnxruntime as ort
-        import torch
 
-        buf = io.BytesIO()
-        x = torch.zeros((1, *in_shape), dtype=torch.float32)
-        with warnings.catch_warnings(), torch.inference_mode(False), torch.no_grad():
-            warnings.simplefilter("ignore")  # the TorchScript exporter's deprecation notices
-            torch.onnx.export(evnet_trunk(model), (x,), buf, dynamo=False, opset_version=17,
-                              input_names=["pooled"], output_names=["evidence"])
         opts = ort.SessionOptions()
         opts.intra_op_num_threads = threads
         opts.inter_op_num_threads = 1
         opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
         opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
         opts.log_severity_level = 3
-        self._session = ort.InferenceSession(buf.getvalue(), opts, providers=["CPUExecutionProvider"])
+        self._session = ort.InferenceSession(trunk_onnx(model, in_shape), opts, providers=["CPUExecutionProvider"])
         self.in_shape = in_shape
 
     def __call__(self, pooled: np.ndarray) -> np.ndarray:
