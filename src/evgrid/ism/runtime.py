@@ -72,7 +72,11 @@ def trunk_onnx(model, in_shape: tuple[int, int, int]) -> bytes:
 
 
 class TorchRuntime:
-    """The trunk on torch, eager, channels-last (torch.jit.freeze and torch.compile measured no faster on one core)."""
+    """The trunk on torch, eager, channels-last: the fallback without ONNX Runtime.
+
+    torch.jit trace + freeze runs it 15-25% faster on one core and torch.compile 15% (after
+    minutes of compiling), both slower than ONNX Runtime (``benchmarks/bench_runtime.py``).
+    """
 
     name = "torch"
 
