@@ -25,18 +25,8 @@ import numpy as np
 import torch
 
 from evgrid.ism.deep import DeepIrm, evidence_to_masses, radar_image
-from evgrid.ism.runtime import evnet_trunk, make_runtime, ort_available, trunk_onnx
+from evgrid.ism.runtime import OrtRuntime, evnet_trunk, make_runtime, ort_available, trunk_onnx
 from evgrid.ism.synthetic import street_radar_sweeps
-
-
-def _ort_session(model_bytes: bytes):
-    import onnxruntime as ort
-
-    opts = ort.SessionOptions()
-    opts.intra_op_num_threads = opts.inter_op_num_threads = 1
-    opts.log_severity_level = 3
-    session = ort.InferenceSession(model_bytes, opts, providers=["CPUExecutionProvider"])
-    return lambda p: session.run(None, {"pooled": p})[0][0]
 
 
 def _reduced(model, pooled: np.ndarray) -> dict:
@@ -69,7 +59,9 @@ def _reduced(model, pooled: np.ndarray) -> dict:
         quantize_static(str(src), str(dst), _Once(), quant_format=QuantFormat.QDQ, per_channel=True,
                         activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8)
         int8 = dst.read_bytes()
-    return {"torch bf16": run_bf16, "onnxruntime fp16": _ort_session(fp16), "onnxruntime int8": _ort_session(int8)}
+    shape = pooled.shape[1:]
+    return {"torch bf16": run_bf16, "onnxruntime fp16": OrtRuntime.from_graph(fp16, shape),
+            "onnxruntime int8": OrtRuntime.from_graph(int8, shape)}
 
 
 def main() -> None:

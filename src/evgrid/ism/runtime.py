@@ -111,6 +111,16 @@ class OrtRuntime:
     name = "onnxruntime"
 
     def __init__(self, model, in_shape: tuple[int, int, int], threads: int = 1):
+        self._open(trunk_onnx(model, in_shape), in_shape, threads)
+
+    @classmethod
+    def from_graph(cls, graph: bytes, in_shape: tuple[int, int, int], threads: int = 1) -> "OrtRuntime":
+        """The runtime on an ONNX graph of the trunk: :func:`trunk_onnx`'s, or one converted from it (fp16, int8)."""
+        runtime = cls.__new__(cls)
+        runtime._open(graph, in_shape, threads)
+        return runtime
+
+    def _open(self, graph: bytes, in_shape: tuple[int, int, int], threads: int) -> None:
         import onnxruntime as ort
 
         opts = ort.SessionOptions()
@@ -119,7 +129,7 @@ class OrtRuntime:
         opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
         opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
         opts.log_severity_level = 3
-        self._session = ort.InferenceSession(trunk_onnx(model, in_shape), opts, providers=["CPUExecutionProvider"])
+        self._session = ort.InferenceSession(graph, opts, providers=["CPUExecutionProvider"])
         self.in_shape = in_shape
 
     def __call__(self, pooled: np.ndarray) -> np.ndarray:
