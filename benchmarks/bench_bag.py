@@ -44,7 +44,11 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--duration", type=float, default=10.0)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--maps", default="ray_ilm,ray_irm,fused", help="comma-separated maps (all: evgrid.fusion.MAP_NAMES)")
+    ap.add_argument(
+        "--maps",
+        default="ray_ilm,ray_irm,fused",
+        help="comma-separated maps (all: evgrid.fusion.MAP_NAMES)",
+    )
     ap.add_argument("--storage", default="mcap", choices=("mcap", "sqlite3", "ros1", "plain-mcap"))
     args = ap.parse_args()
     config = MapperConfig(maps=tuple(args.maps.split(",")))
@@ -58,11 +62,16 @@ def main() -> None:
         bag, rig = write_bag(load_sim_scene(npz), tmp / name, storage=args.storage)
         t2 = time.perf_counter()
         size = sum(p.stat().st_size for p in (bag.rglob("*") if bag.is_dir() else [bag]))
-        print(f"scene {scene.name}: {len(scene)} frames, {args.duration:g} s; npz {npz.stat().st_size / 2**20:.0f} MiB "
-              f"written in {t1 - t0:.1f} s; {args.storage} bag {size / 2**20:.0f} MiB written in {t2 - t1:.1f} s")
+        print(
+            f"scene {scene.name}: {len(scene)} frames, {args.duration:g} s; npz {npz.stat().st_size / 2**20:.0f} MiB "
+            f"written in {t1 - t0:.1f} s; {args.storage} bag {size / 2**20:.0f} MiB written in {t2 - t1:.1f} s"
+        )
         map_fps(load_sim_scene(npz), config)  # warm-up: numba kernels
         rows = []
-        sources = (("npz (SimFilesSource)", lambda: load_sim_scene(npz)), (f"bag ({args.storage})", lambda: load_bag(bag, rig)))
+        sources = (
+            ("npz (SimFilesSource)", lambda: load_sim_scene(npz)),
+            (f"bag ({args.storage})", lambda: load_bag(bag, rig)),
+        )
         for label, load in sources:
             t0 = time.perf_counter()
             sc = load()
@@ -70,13 +79,20 @@ def main() -> None:
             r, n = read_fps(sc)
             m, mapper = map_fps(load(), config)
             rows.append((label, open_s, r, m, mapper))
-        print(f"{'source':24s} {'open s':>7s} {'read fps':>9s} {'map fps':>8s}   maps: {', '.join(config.maps)}")
+        print(
+            f"{'source':24s} {'open s':>7s} {'read fps':>9s} {'map fps':>8s}   maps: {', '.join(config.maps)}"
+        )
         for label, open_s, r, m, _ in rows:
             print(f"{label:24s} {open_s:7.2f} {r:9.1f} {m:8.1f}")
         a, b = rows[0][4].maps.maps, rows[1][4].maps.maps
-        same = all(a[k].tiles.keys() == b[k].tiles.keys() and all(np.array_equal(a[k].tiles[t], b[k].tiles[t]) for t in a[k].tiles)
-                   for k in a)
-        print(f"maps bit-identical: {same}; mapping from the bag at {rows[1][3] / rows[0][3]:.0%} of the npz speed")
+        same = all(
+            a[k].tiles.keys() == b[k].tiles.keys()
+            and all(np.array_equal(a[k].tiles[t], b[k].tiles[t]) for t in a[k].tiles)
+            for k in a
+        )
+        print(
+            f"maps bit-identical: {same}; mapping from the bag at {rows[1][3] / rows[0][3]:.0%} of the npz speed"
+        )
 
 
 if __name__ == "__main__":

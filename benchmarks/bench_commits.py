@@ -26,11 +26,18 @@ _MAPS = {"fused map": "fused_only", "six maps": "six_maps"}
 
 
 def _worktree(repo: Path, rev: str, root: Path) -> tuple[str, Path]:
-    sha = subprocess.run(["git", "-C", str(repo), "rev-parse", "--short", rev], check=True,
-                         capture_output=True, text=True).stdout.strip()
+    sha = subprocess.run(
+        ["git", "-C", str(repo), "rev-parse", "--short", rev],
+        check=True,
+        capture_output=True,
+        text=True,
+    ).stdout.strip()
     path = root / sha
     if not path.exists():
-        subprocess.run(["git", "-C", str(repo), "worktree", "add", "--detach", "-q", str(path), sha], check=True)
+        subprocess.run(
+            ["git", "-C", str(repo), "worktree", "add", "--detach", "-q", str(path), sha],
+            check=True,
+        )
     return sha, path
 
 
@@ -39,7 +46,9 @@ def _bench(tree: Path, out: Path, extra: list[str]) -> dict:
     cmd = [sys.executable, "-m", "evgrid.cli", "bench", "--out", str(out), *extra]
     done = subprocess.run(cmd, cwd=tree, env=env, capture_output=True, text=True)
     if done.returncode != 0:
-        raise SystemExit(f"bench of {tree} failed: {done.stderr.strip().splitlines()[-1] if done.stderr.strip() else done.returncode}")
+        raise SystemExit(
+            f"bench of {tree} failed: {done.stderr.strip().splitlines()[-1] if done.stderr.strip() else done.returncode}"
+        )
     return json.loads(out.read_text())
 
 
@@ -58,13 +67,21 @@ def main() -> None:
         for sha, tree in trees:
             res = _bench(tree, (args.out / f"{sha}_{k}.json").resolve(), extra)
             for label, key in _MAPS.items():
-                totals[sha][label].append(float(res["per_frame"][key]["components_ms"]["step_total"]))
-            print(f"pass {k + 1}/{args.passes} {sha}: " + ", ".join(
-                f"{label} {totals[sha][label][-1]:.1f} ms" for label in _MAPS), flush=True)
+                totals[sha][label].append(
+                    float(res["per_frame"][key]["components_ms"]["step_total"])
+                )
+            print(
+                f"pass {k + 1}/{args.passes} {sha}: "
+                + ", ".join(f"{label} {totals[sha][label][-1]:.1f} ms" for label in _MAPS),
+                flush=True,
+            )
     print("\n| commit | " + " | ".join(f"{m}, ms (passes)" for m in _MAPS) + " |")
     print("|---|" + "---|" * len(_MAPS))
     for sha, _ in trees:
-        cells = [f"{np.median(v):.1f} ({' / '.join(f'{x:.1f}' for x in v)})" for v in totals[sha].values()]
+        cells = [
+            f"{np.median(v):.1f} ({' / '.join(f'{x:.1f}' for x in v)})"
+            for v in totals[sha].values()
+        ]
         print(f"| {sha} | " + " | ".join(cells) + " |")
 
 

@@ -47,9 +47,15 @@ def main() -> None:
     res: dict[str, np.ndarray] = {}
     res["dempster 512x512 (mass.dempster)"] = timeit(lambda: mass.dempster(a, b, out))
     res["yager 512x512 (mass.yager)"] = timeit(lambda: mass.yager(a, b, out))
-    res["deep_disc update 512x512 (limit + gamma + yager)"] = timeit(lambda: fusion.update_deep_disc(cur, b, params), reset)
-    res["deep_replace update 512x512"] = timeit(lambda: fusion.update_deep_replace(cur, b, params), reset)
-    res["fused update 512x512 (deep_disc + dempster)"] = timeit(lambda: fusion.update_fused(cur, b, ism_like, params), reset)
+    res["deep_disc update 512x512 (limit + gamma + yager)"] = timeit(
+        lambda: fusion.update_deep_disc(cur, b, params), reset
+    )
+    res["deep_replace update 512x512"] = timeit(
+        lambda: fusion.update_deep_replace(cur, b, params), reset
+    )
+    res["fused update 512x512 (deep_disc + dempster)"] = timeit(
+        lambda: fusion.update_fused(cur, b, ism_like, params), reset
+    )
 
     # Warp + fuse one 512 x 512 local grid into a map through the public path (MapSet.update):
     # a dense grid (every cell informative, as the deep IRM's) with the deep_disc rule, at yaws
@@ -59,11 +65,15 @@ def main() -> None:
         pose = SE2(3.3, -1.7, math.radians(deg))
         res[f"warp 512x512 into map, yaw {deg} deg (dense)"] = timeit(lambda: warper.warp(b, pose))
         one = fusion.MapSet(grid, params, names=("deep_disc",))
-        res[f"warp + deep_disc fuse into map, yaw {deg} deg (dense)"] = timeit(lambda: one.update(pose, {"deep_irm": b}))
+        res[f"warp + deep_disc fuse into map, yaw {deg} deg (dense)"] = timeit(
+            lambda: one.update(pose, {"deep_irm": b})
+        )
     for deg in (0, 45):
         pose = SE2(3.3, -1.7, math.radians(deg))
         one = fusion.MapSet(grid, params, names=("ray_ilm",))
-        res[f"warp + dempster fuse into map, yaw {deg} deg (ISM-like)"] = timeit(lambda: one.update(pose, {"ray_ilm": ism_like}))
+        res[f"warp + dempster fuse into map, yaw {deg} deg (ISM-like)"] = timeit(
+            lambda: one.update(pose, {"ray_ilm": ism_like})
+        )
 
     from evgrid.ism import ray_ilm
     from evgrid.ism.synthetic import street_lidar_sweep
@@ -72,7 +82,9 @@ def main() -> None:
     for deg in (0, 45):
         pose = SE2(3.3, -1.7, math.radians(deg))
         one = fusion.MapSet(grid, params, names=("ray_ilm",))
-        res[f"warp + dempster fuse into map, yaw {deg} deg (ray ILM of a street)"] = timeit(lambda: one.update(pose, {"ray_ilm": ilm}))
+        res[f"warp + dempster fuse into map, yaw {deg} deg (ray ILM of a street)"] = timeit(
+            lambda: one.update(pose, {"ray_ilm": ilm})
+        )
 
     ms = fusion.MapSet(grid, params)
     isms = {"ray_ilm": ism_like, "ray_irm": ism_like, "deep_irm": b}
@@ -86,13 +98,22 @@ def main() -> None:
 
     width = max(len(k) for k in res)
     # the median is the figure; the minimum shows what the code does when the machine is quiet
-    print(f"evgrid core benchmark - {platform.processor() or platform.machine()}, 1 thread, ms per call")
+    print(
+        f"evgrid core benchmark - {platform.processor() or platform.machine()}, 1 thread, ms per call"
+    )
     print(f"  {'':<{width}}  {'median':>8}  {'min':>8}")
     for name, ts in res.items():
         print(f"  {name:<{width}}  {np.median(ts):8.3f}  {ts.min():8.3f}")
     if args.json:
         with open(args.json, "w") as f:
-            json.dump({k: {"median_ms": float(np.median(v)), "min_ms": float(v.min())} for k, v in res.items()}, f, indent=2)
+            json.dump(
+                {
+                    k: {"median_ms": float(np.median(v)), "min_ms": float(v.min())}
+                    for k, v in res.items()
+                },
+                f,
+                indent=2,
+            )
 
 
 if __name__ == "__main__":

@@ -25,7 +25,7 @@ import argparse  # noqa: E402
 import math  # noqa: E402
 import statistics  # noqa: E402
 import time  # noqa: E402
-from typing import Callable  # noqa: E402
+from collections.abc import Callable  # noqa: E402
 
 import numpy as np  # noqa: E402
 
@@ -62,8 +62,15 @@ def open_road(sweeps: list[RadarSweep], seed: int = 1) -> list[RadarSweep]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--repeats", type=int, default=30, help="timed calls per row (default 30)")
-    ap.add_argument("--octomap-repeats", type=int, default=3, help="timed OctoMap insertions (default 3)")
-    ap.add_argument("--threads", type=int, default=2, help="thread count of the extra multi-threaded rows (default 2)")
+    ap.add_argument(
+        "--octomap-repeats", type=int, default=3, help="timed OctoMap insertions (default 3)"
+    )
+    ap.add_argument(
+        "--threads",
+        type=int,
+        default=2,
+        help="thread count of the extra multi-threaded rows (default 2)",
+    )
     args = ap.parse_args()
 
     grid = GridSpec()
@@ -80,13 +87,33 @@ def main() -> None:
         rows.append((name, med, mn, note))
         return med
 
-    ilm_ms = row("ray ILM, reused out buffer", lambda: ray_ilm(lidar, out=out), f"{len(lidar.points)} points, 1 thread")
+    ilm_ms = row(
+        "ray ILM, reused out buffer",
+        lambda: ray_ilm(lidar, out=out),
+        f"{len(lidar.points)} points, 1 thread",
+    )
     row("ray ILM, fresh output array", lambda: ray_ilm(lidar), "allocates 3 MB each call")
-    row(f"ray ILM, {args.threads} threads", lambda: ray_ilm(lidar, out=out, threads=args.threads), "")
-    row("ray IRM, street", lambda: ray_irm(sweeps, now, out=out), f"5 radars x 10 sweeps, {n_det} detections, 1 thread")
+    row(
+        f"ray ILM, {args.threads} threads",
+        lambda: ray_ilm(lidar, out=out, threads=args.threads),
+        "",
+    )
+    row(
+        "ray IRM, street",
+        lambda: ray_irm(sweeps, now, out=out),
+        f"5 radars x 10 sweeps, {n_det} detections, 1 thread",
+    )
     row("ray IRM, street, fresh output", lambda: ray_irm(sweeps, now), "")
-    row(f"ray IRM, street, {args.threads} threads", lambda: ray_irm(sweeps, now, out=out, threads=args.threads), "")
-    row("ray IRM, open road (worst case)", lambda: ray_irm(sweeps_open, now, out=out), "all cones run to the grid edge")
+    row(
+        f"ray IRM, street, {args.threads} threads",
+        lambda: ray_irm(sweeps, now, out=out, threads=args.threads),
+        "",
+    )
+    row(
+        "ray IRM, open road (worst case)",
+        lambda: ray_irm(sweeps_open, now, out=out),
+        "all cones run to the grid edge",
+    )
 
     octo_ms = math.nan
     try:
@@ -105,14 +132,18 @@ def main() -> None:
         octo_ms = row("OctoMap insertPointCloud", insert, octo_note, repeats=args.octomap_repeats)
 
     w = max(len(r[0]) for r in rows)
-    print(f"\nISM benchmark: {grid.n_cells}x{grid.n_cells} cells over {grid.length_m:g} m; ms per call over {args.repeats} calls\n")
+    print(
+        f"\nISM benchmark: {grid.n_cells}x{grid.n_cells} cells over {grid.length_m:g} m; ms per call over {args.repeats} calls\n"
+    )
     print(f"{'':{w}}  {'median':>8}  {'min':>8}  notes")
     for name, med, mn, note in rows:
         print(f"{name:{w}}  {med:8.3f}  {mn:8.3f}  {note}")
     print()
-    print(f"targets: ray ILM <= 3 ms: {'met' if ilm_ms <= 3 else 'MISSED'} ({ilm_ms:.2f} ms); "
-          f"ray IRM <= 15 ms: {'met' if rows[3][1] <= 15 else 'MISSED'} ({rows[3][1]:.2f} ms street, "
-          f"{rows[6][1]:.2f} ms open road)")
+    print(
+        f"targets: ray ILM <= 3 ms: {'met' if ilm_ms <= 3 else 'MISSED'} ({ilm_ms:.2f} ms); "
+        f"ray IRM <= 15 ms: {'met' if rows[3][1] <= 15 else 'MISSED'} ({rows[3][1]:.2f} ms street, "
+        f"{rows[6][1]:.2f} ms open road)"
+    )
     if math.isfinite(octo_ms):
         print(f"OctoMap / ray ILM: {octo_ms / ilm_ms:.0f}x (expected >= 100x)")
 

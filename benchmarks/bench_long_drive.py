@@ -32,7 +32,10 @@ def _glitched(frames, index: int, jump_m: float):
         if f.index == index:
             shift = SE3(np.eye(3), np.array([jump_m, 0.0, 0.0]))
             lidar = dataclasses.replace(f.lidar, ego_pose=shift @ f.lidar.ego_pose)
-            radar = {ch: tuple(dataclasses.replace(s, ego_pose=shift @ s.ego_pose) for s in sw) for ch, sw in f.radar.items()}
+            radar = {
+                ch: tuple(dataclasses.replace(s, ego_pose=shift @ s.ego_pose) for s in sw)
+                for ch, sw in f.radar.items()
+            }
             f = dataclasses.replace(f, ego_pose=shift @ f.ego_pose, lidar=lidar, radar=radar)
         yield f
 
@@ -64,10 +67,17 @@ def child(seed: int, duration: float, glitch_m: float) -> dict:
 
 
 def _run(seed: int, duration: float, glitch_m: float = 0.0) -> dict:
-    out = subprocess.run([sys.executable, __file__, "--child", str(seed), str(duration), str(glitch_m)],
-                         capture_output=True, text=True)
+    out = subprocess.run(
+        [sys.executable, __file__, "--child", str(seed), str(duration), str(glitch_m)],
+        capture_output=True,
+        text=True,
+    )
     if out.returncode != 0:
-        return {"duration_s": duration, "glitch_m": glitch_m, "error": out.stderr.strip().splitlines()[-1:]}
+        return {
+            "duration_s": duration,
+            "glitch_m": glitch_m,
+            "error": out.stderr.strip().splitlines()[-1:],
+        }
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
@@ -81,19 +91,25 @@ def main() -> None:
         print(json.dumps(child(int(args.child[0]), float(args.child[1]), float(args.child[2]))))
         return
     print(f"long drives (seed {args.seed}; six maps, truth at keyframes, figures and GIF)")
-    print(f"{'drive s':>8} {'frames':>7} {'wall s':>7} {'ms/frame first 10%':>19} {'last 10%':>9} {'last/first':>10} "
-          f"{'peak RSS GB':>11} {'area km2':>8} {'GB/km2':>7}")
+    print(
+        f"{'drive s':>8} {'frames':>7} {'wall s':>7} {'ms/frame first 10%':>19} {'last 10%':>9} {'last/first':>10} "
+        f"{'peak RSS GB':>11} {'area km2':>8} {'GB/km2':>7}"
+    )
     for d in args.durations:
         r = _run(args.seed, d)
         if "error" in r:
             print(f"{d:>8g} failed: {r['error']}")
             continue
         fm = r["frame_ms"]
-        print(f"{d:>8g} {r['frames']:>7d} {r['wall_s']:>7.1f} {fm['first_tenth_mean']:>19.1f} {fm['last_tenth_mean']:>9.1f} "
-              f"{fm['last_tenth_mean'] / fm['first_tenth_mean']:>10.2f} {r['peak_rss_gb']:>11.2f} {r['map_area_km2']:>8.3f} "
-              f"{r['peak_rss_gb'] / max(r['map_area_km2'], 1e-9):>7.1f}")
+        print(
+            f"{d:>8g} {r['frames']:>7d} {r['wall_s']:>7.1f} {fm['first_tenth_mean']:>19.1f} {fm['last_tenth_mean']:>9.1f} "
+            f"{fm['last_tenth_mean'] / fm['first_tenth_mean']:>10.2f} {r['peak_rss_gb']:>11.2f} {r['map_area_km2']:>8.3f} "
+            f"{r['peak_rss_gb'] / max(r['map_area_km2'], 1e-9):>7.1f}"
+        )
     print("\nan odometry glitch: one ego pose of a 20 s drive moved 1 km")
-    print(f"{'glitch m':>8} {'wall s':>7} {'peak RSS GB':>11} {'fused free IoU':>14} {'occ IoU':>7}  skipped")
+    print(
+        f"{'glitch m':>8} {'wall s':>7} {'peak RSS GB':>11} {'fused free IoU':>14} {'occ IoU':>7}  skipped"
+    )
     for g in (0.0, 1000.0):
         r = _run(args.seed, 20.0, g)
         if "error" in r:
@@ -101,8 +117,10 @@ def main() -> None:
             continue
         f = r["fused_vs_truth"]
         skipped = {k: v for k, v in r["counts"].items() if v and k not in ("frames", "updates")}
-        print(f"{g:>8g} {r['wall_s']:>7.1f} {r['peak_rss_gb']:>11.2f} {f.get('free', float('nan')):>14.3f} "
-              f"{f.get('occupied', float('nan')):>7.3f}  {skipped}")
+        print(
+            f"{g:>8g} {r['wall_s']:>7.1f} {r['peak_rss_gb']:>11.2f} {f.get('free', float('nan')):>14.3f} "
+            f"{f.get('occupied', float('nan')):>7.3f}  {skipped}"
+        )
 
 
 if __name__ == "__main__":

@@ -32,10 +32,17 @@ from evgrid.ism.synthetic import street_radar_sweeps
 def _reduced(model, pooled: np.ndarray) -> dict:
     """The reduced-precision options: torch bf16, ONNX Runtime fp16 and int8."""
     import onnx
-    from onnxruntime.quantization import CalibrationDataReader, QuantFormat, QuantType, quantize_static
+    from onnxruntime.quantization import (
+        CalibrationDataReader,
+        QuantFormat,
+        QuantType,
+        quantize_static,
+    )
     from onnxruntime.transformers.float16 import convert_float_to_float16
 
-    bf16 = evnet_trunk(copy.deepcopy(model)).to(torch.bfloat16).to(memory_format=torch.channels_last)  # .to is in place
+    bf16 = (
+        evnet_trunk(copy.deepcopy(model)).to(torch.bfloat16).to(memory_format=torch.channels_last)
+    )  # .to is in place
 
     def run_bf16(p: np.ndarray) -> np.ndarray:
         with torch.inference_mode():
@@ -43,7 +50,9 @@ def _reduced(model, pooled: np.ndarray) -> dict:
             return bf16(x)[0].float().numpy()
 
     fp32 = trunk_onnx(model, pooled.shape[1:])
-    fp16 = convert_float_to_float16(onnx.load_from_string(fp32), keep_io_types=True).SerializeToString()
+    fp16 = convert_float_to_float16(
+        onnx.load_from_string(fp32), keep_io_types=True
+    ).SerializeToString()
 
     class _Once(CalibrationDataReader):
         def __init__(self):
@@ -56,19 +65,33 @@ def _reduced(model, pooled: np.ndarray) -> dict:
         src, dst = Path(tmp) / "fp32.onnx", Path(tmp) / "int8.onnx"
         src.write_bytes(fp32)
         logging.getLogger().setLevel(logging.ERROR)  # its advice to pre-process, printed per call
-        quantize_static(str(src), str(dst), _Once(), quant_format=QuantFormat.QDQ, per_channel=True,
-                        activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8)
+        quantize_static(
+            str(src),
+            str(dst),
+            _Once(),
+            quant_format=QuantFormat.QDQ,
+            per_channel=True,
+            activation_type=QuantType.QUInt8,
+            weight_type=QuantType.QInt8,
+        )
         int8 = dst.read_bytes()
     shape = pooled.shape[1:]
-    return {"torch bf16": run_bf16, "onnxruntime fp16": OrtRuntime.from_graph(fp16, shape),
-            "onnxruntime int8": OrtRuntime.from_graph(int8, shape)}
+    return {
+        "torch bf16": run_bf16,
+        "onnxruntime fp16": OrtRuntime.from_graph(fp16, shape),
+        "onnxruntime int8": OrtRuntime.from_graph(int8, shape),
+    }
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=30)
-    ap.add_argument("--compile", action="store_true", help="also try torch.compile (slow to compile)")
-    ap.add_argument("--reduced", action="store_true", help="also try bf16, fp16 and int8 (needs onnxruntime)")
+    ap.add_argument(
+        "--compile", action="store_true", help="also try torch.compile (slow to compile)"
+    )
+    ap.add_argument(
+        "--reduced", action="store_true", help="also try bf16, fp16 and int8 (needs onnxruntime)"
+    )
     args = ap.parse_args()
     torch.set_num_threads(1)
     deep = DeepIrm(runtime="torch")
@@ -93,14 +116,18 @@ def main() -> None:
 
         def run_compiled(p: np.ndarray) -> np.ndarray:
             with torch.inference_mode():
-                return compiled(torch.from_numpy(p).to(memory_format=torch.channels_last))[0].numpy()
+                return compiled(torch.from_numpy(p).to(memory_format=torch.channels_last))[
+                    0
+                ].numpy()
 
         t = time.perf_counter()
         run_compiled(pooled)
         print(f"torch.compile: compiled in {time.perf_counter() - t:.0f} s")
         options["torch compile"] = run_compiled
     if ort_available():
-        options["onnxruntime fp32"] = make_runtime(deep.model, (pooled.shape[1], m, m), "onnxruntime")
+        options["onnxruntime fp32"] = make_runtime(
+            deep.model, (pooled.shape[1], m, m), "onnxruntime"
+        )
     if args.reduced:
         if not ort_available():
             raise SystemExit("--reduced needs onnx and onnxruntime: pip install 'evgrid[fast]'")

@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from evgrid.classes import FREE, OCCUPIED, UNKNOWN
-from evgrid.learn.train import TrainConfig
 from evgrid.config import from_dict
+from evgrid.learn.train import TrainConfig
 from evgrid.sources import SimSource
 
 _NAMES = {FREE: "free", OCCUPIED: "occupied", UNKNOWN: "unknown"}
@@ -29,18 +29,26 @@ def _targets(cache: Path, names: list[str]):
     for name in names:
         path = cache / f"{name}.target.npy"
         if not path.exists():
-            raise SystemExit(f"{path}: not in the run's cache (train with the same --scenes/--val-scenes/--seed)")
+            raise SystemExit(
+                f"{path}: not in the run's cache (train with the same --scenes/--val-scenes/--seed)"
+            )
         yield np.load(path)
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--run", type=Path, default=Path("out/train"), help="an `evgrid train --out` folder")
+    ap.add_argument(
+        "--run", type=Path, default=Path("out/train"), help="an `evgrid train --out` folder"
+    )
     ap.add_argument("--scenes", type=int, default=40)
     ap.add_argument("--val-scenes", type=int, default=8)
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
-    config = from_dict(TrainConfig, json.loads((args.run / "config.json").read_text()), str(args.run / "config.json"))
+    config = from_dict(
+        TrainConfig,
+        json.loads((args.run / "config.json").read_text()),
+        str(args.run / "config.json"),
+    )
     cache = args.run / "cache" / config.data_key()
     train = SimSource.split("train", args.scenes, args.seed).names()
     val = SimSource.split("val", args.val_scenes, args.seed).names()
@@ -59,17 +67,33 @@ def main() -> None:
     iou = {_NAMES[k]: inter[k] / union[k] if union[k] else float("nan") for k in range(3)}
 
     rows = list(csv.DictReader(open(args.run / "metrics.csv")))
-    best = max(rows, key=lambda r: np.nanmean([float(r[f"val_{c}"]) for c in ("free", "occupied", "unknown")]))
-    print(f"{len(train)} training and {len(val)} validation scenes; the prior calls "
-          + ", ".join(f"{100 * float((prior == k).mean()):.1f} % of cells {_NAMES[k]}" for k in range(3)))
+    best = max(
+        rows,
+        key=lambda r: np.nanmean([float(r[f"val_{c}"]) for c in ("free", "occupied", "unknown")]),
+    )
+    print(
+        f"{len(train)} training and {len(val)} validation scenes; the prior calls "
+        + ", ".join(
+            f"{100 * float((prior == k).mean()):.1f} % of cells {_NAMES[k]}" for k in range(3)
+        )
+    )
     print("| IoU against the ray ILM | free | occupied | unknown |")
     print("|---|---|---|---|")
-    print("| prior: each cell's most frequent training class, no radar | "
-          + " | ".join(f"{iou[c]:.3f}" for c in ("free", "occupied", "unknown")) + " |")
-    print(f"| Ev-Net, best epoch ({best['epoch']}) | "
-          + " | ".join(f"{float(best[f'val_{c}']):.3f}" for c in ("free", "occupied", "unknown")) + " |")
-    print("| ray IRM, one time step | "
-          + " | ".join(f"{float(best[f'ray_irm_{c}']):.3f}" for c in ("free", "occupied", "unknown")) + " |")
+    print(
+        "| prior: each cell's most frequent training class, no radar | "
+        + " | ".join(f"{iou[c]:.3f}" for c in ("free", "occupied", "unknown"))
+        + " |"
+    )
+    print(
+        f"| Ev-Net, best epoch ({best['epoch']}) | "
+        + " | ".join(f"{float(best[f'val_{c}']):.3f}" for c in ("free", "occupied", "unknown"))
+        + " |"
+    )
+    print(
+        "| ray IRM, one time step | "
+        + " | ".join(f"{float(best[f'ray_irm_{c}']):.3f}" for c in ("free", "occupied", "unknown"))
+        + " |"
+    )
 
 
 if __name__ == "__main__":

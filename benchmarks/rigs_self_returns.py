@@ -28,7 +28,12 @@ from evgrid.mapper import OccupancyMapper
 RIGS = {
     "nuscenes (20 Hz lidar, 5 x 13 Hz radar)": (20.0, RigConfig()),
     "10 Hz lidar, 3 x 4 Hz radar (nuScenes layout)": (
-        10.0, RigConfig(radar_channels=("RADAR_FRONT", "RADAR_BACK_LEFT", "RADAR_BACK_RIGHT"), radar_rates_hz=(4.0,))),
+        10.0,
+        RigConfig(
+            radar_channels=("RADAR_FRONT", "RADAR_BACK_LEFT", "RADAR_BACK_RIGHT"),
+            radar_rates_hz=(4.0,),
+        ),
+    ),
 }
 
 
@@ -50,7 +55,9 @@ def scene_frames(seed: int, cfg: SimConfig, via_nuscenes: bool):
 
 
 def map_free(frames, mode: str) -> tuple[float, dict]:
-    mapper = OccupancyMapper(MapperConfig(maps=("ray_ilm",), self_returns=SelfReturnParams(mode=mode)))
+    mapper = OccupancyMapper(
+        MapperConfig(maps=("ray_ilm",), self_returns=SelfReturnParams(mode=mode))
+    )
     for f in frames:
         mapper.process(f)
     return free_near_path(mapper), mapper.counts()
@@ -71,9 +78,14 @@ def removal_stats(seed: int, duration: float) -> dict[str, float]:
         removed += int(gone.sum())
         removed_body += int((gone & is_body).sum())
         n += 1
-    return {"sweeps": n, "body_per_sweep": body / n, "removed_per_sweep": removed / n,
-            "body_removed_pct": 100.0 * removed_body / max(body, 1), "other_removed_per_sweep": (removed - removed_body) / n,
-            "learnt_box": f.learnt_box.as_tuple() if f.learnt_box else None}
+    return {
+        "sweeps": n,
+        "body_per_sweep": body / n,
+        "removed_per_sweep": removed / n,
+        "body_removed_pct": 100.0 * removed_body / max(body, 1),
+        "other_removed_per_sweep": (removed - removed_body) / n,
+        "learnt_box": f.learnt_box.as_tuple() if f.learnt_box else None,
+    }
 
 
 def main() -> None:
@@ -82,8 +94,12 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=10.0)
     a = ap.parse_args()
     seeds = [int(s) for s in a.seeds.split(",")]
-    print(f"free fraction of ray_ilm cells within 10 m of the path ({a.duration:g} s scenes, seeds {seeds})")
-    print("| rig | seed | no self-returns | self-returns, --self-returns off | self-returns, default (auto) |")
+    print(
+        f"free fraction of ray_ilm cells within 10 m of the path ({a.duration:g} s scenes, seeds {seeds})"
+    )
+    print(
+        "| rig | seed | no self-returns | self-returns, --self-returns off | self-returns, default (auto) |"
+    )
     print("|---|---|---|---|---|")
     for name, (rate, rig) in RIGS.items():
         via = rate == 10.0
@@ -91,12 +107,19 @@ def main() -> None:
             t = time.perf_counter()
             row = []
             for sr, mode in ((False, "auto"), (True, "off"), (True, "auto")):
-                cfg = SimConfig(duration_s=a.duration, lidar=LidarConfig(rate_hz=rate, self_returns=sr), rig=rig)
+                cfg = SimConfig(
+                    duration_s=a.duration, lidar=LidarConfig(rate_hz=rate, self_returns=sr), rig=rig
+                )
                 row.append(map_free(scene_frames(seed, cfg, via), mode)[0])
-            print(f"| {name} | {seed} | {row[0]:.4f} | {row[1]:.4f} | {row[2]:.4f} |  ({time.perf_counter() - t:.0f} s)",
-                  flush=True)
+            print(
+                f"| {name} | {seed} | {row[0]:.4f} | {row[1]:.4f} | {row[2]:.4f} |  ({time.perf_counter() - t:.0f} s)",
+                flush=True,
+            )
     for seed in seeds:
-        print(f"default filter on nuScenes-like sweeps, seed {seed}: {removal_stats(seed, a.duration)}", flush=True)
+        print(
+            f"default filter on nuScenes-like sweeps, seed {seed}: {removal_stats(seed, a.duration)}",
+            flush=True,
+        )
 
 
 if __name__ == "__main__":

@@ -78,7 +78,9 @@ def test_ros2_mcap_bag_maps_bit_identically_to_the_scene(frames, mcap_bag):
             assert np.array_equal(m.covered_tiles[k], other.covered_tiles[k]), name
 
 
-@pytest.mark.parametrize("storage,name", [("sqlite3", "drive"), ("ros1", "drive.bag"), ("plain-mcap", "drive.mcap")])
+@pytest.mark.parametrize(
+    "storage,name", [("sqlite3", "drive"), ("ros1", "drive.bag"), ("plain-mcap", "drive.mcap")]
+)
 def test_other_storages_give_the_same_frames(frames, tmp_path, storage, name):
     bag, rig = write_bag(frames[:6], tmp_path / name, storage=storage)
     scene = load_bag(bag, rig)
@@ -104,7 +106,14 @@ def test_radar_scan_messages(frames, tmp_path):
     assert n > 0
 
 
-def _handmade(tmp_path, *, radar_fields=("x", "y", "z", "snr", "v_r"), storage="mcap", yaw_rate=0.5, compensated=True):
+def _handmade(
+    tmp_path,
+    *,
+    radar_fields=("x", "y", "z", "snr", "v_r"),
+    storage="mcap",
+    yaw_rate=0.5,
+    compensated=True,
+):
     """Odometry at 10 Hz driving along x at 2 m/s while turning at ``yaw_rate``; lidar and radar between samples."""
     path = tmp_path / "hand"
     w = RecordingWriter(path, storage)
@@ -114,37 +123,67 @@ def _handmade(tmp_path, *, radar_fields=("x", "y", "z", "snr", "v_r"), storage="
         pose = SE3.from_se2(SE2(0.2 * k, 0.0, 0.1 * yaw_rate * k))
         (tx, ty, tz), (qx, qy, qz, qw) = se3_to_transform(pose)
         odo = s.types["nav_msgs/msg/Odometry"](
-            header=transform_msg("odom", "base_link", t, pose, s).header, child_frame_id="base_link",
+            header=transform_msg("odom", "base_link", t, pose, s).header,
+            child_frame_id="base_link",
             pose=s.types["geometry_msgs/msg/PoseWithCovariance"](
                 pose=s.types["geometry_msgs/msg/Pose"](
                     position=s.types["geometry_msgs/msg/Point"](x=tx, y=ty, z=tz),
-                    orientation=s.types["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw)),
-                covariance=np.zeros(36)),
+                    orientation=s.types["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw),
+                ),
+                covariance=np.zeros(36),
+            ),
             twist=s.types["geometry_msgs/msg/TwistWithCovariance"](
-                twist=s.types["geometry_msgs/msg/Twist"](linear=s.types["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
-                                                         angular=s.types["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)),
-                covariance=np.zeros(36)))
+                twist=s.types["geometry_msgs/msg/Twist"](
+                    linear=s.types["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
+                    angular=s.types["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
+                ),
+                covariance=np.zeros(36),
+            ),
+        )
         w.write("/odom", "nav_msgs/msg/Odometry", t * 1000, odo)
     for k in range(4):
         t = 1_050_000 + 200_000 * k  # halfway between odometry samples
         sec, ns = divmod(t, 1_000_000)
         cloud = np.array([[10.0, 0.0, 0.0, 5.0, 1.0], [0.0, 5.0, 1.0, 7.0, 2.0]], np.float32)
-        w.write("/velodyne_points", "sensor_msgs/msg/PointCloud2", t * 1000,
-                columns_to_cloud(cloud[:, :4], ("x", "y", "z", "intensity"), sec, ns * 1000, "velodyne", s))
+        w.write(
+            "/velodyne_points",
+            "sensor_msgs/msg/PointCloud2",
+            t * 1000,
+            columns_to_cloud(
+                cloud[:, :4], ("x", "y", "z", "intensity"), sec, ns * 1000, "velodyne", s
+            ),
+        )
         radar = np.array([[3.0, 4.0, 0.0, 12.0, -2.5]], np.float32)
-        w.write("/radar/points", "sensor_msgs/msg/PointCloud2", (t - 20_000) * 1000,
-                columns_to_cloud(radar[:, : len(radar_fields)], radar_fields, sec, (ns - 20_000) * 1000, "radar", s))
+        w.write(
+            "/radar/points",
+            "sensor_msgs/msg/PointCloud2",
+            (t - 20_000) * 1000,
+            columns_to_cloud(
+                radar[:, : len(radar_fields)], radar_fields, sec, (ns - 20_000) * 1000, "radar", s
+            ),
+        )
     w.close()
-    rig = RigConfig.from_dict({
-        "world_frame": "odom", "base_frame": "base_link",
-        "poses": {"source": "odometry", "topic": "/odom"},
-        "lidar": {"topic": "/velodyne_points"},
-        "radars": [{"topic": "/radar/points", "channel": "RADAR_FRONT", "fields": {"rcs": "snr", "radial_velocity": "v_r"},
-                    "compensated": compensated}],
-        "extrinsics": {"velodyne": {"translation": [1.0, 0.0, 1.8], "yaw_deg": -90},
-                       "radar": {"translation": [3.5, 0.0, 0.5], "rotation_wxyz": [1, 0, 0, 0]}},
-        "keyframes": {"rate_hz": 2.5},
-    })
+    rig = RigConfig.from_dict(
+        {
+            "world_frame": "odom",
+            "base_frame": "base_link",
+            "poses": {"source": "odometry", "topic": "/odom"},
+            "lidar": {"topic": "/velodyne_points"},
+            "radars": [
+                {
+                    "topic": "/radar/points",
+                    "channel": "RADAR_FRONT",
+                    "fields": {"rcs": "snr", "radial_velocity": "v_r"},
+                    "compensated": compensated,
+                }
+            ],
+            "extrinsics": {
+                "velodyne": {"translation": [1.0, 0.0, 1.8], "yaw_deg": -90},
+                "radar": {"translation": [3.5, 0.0, 0.5], "rotation_wxyz": [1, 0, 0, 0]},
+            },
+            "keyframes": {"rate_hz": 2.5},
+        }
+    )
     return path, rig
 
 
@@ -170,7 +209,10 @@ def test_odometry_interpolation_rig_extrinsics_and_field_names(tmp_path):
     # the radial speed as a vector along the line of sight (3, 4, 0) / 5
     assert p[RADAR_COLUMNS.index("vx_comp")] == pytest.approx(-2.5 * 0.6)
     assert p[RADAR_COLUMNS.index("vy_comp")] == pytest.approx(-2.5 * 0.8)
-    assert p[RADAR_COLUMNS.index("invalid_state")] == 0.0 and p[RADAR_COLUMNS.index("ambig_state")] == 3.0
+    assert (
+        p[RADAR_COLUMNS.index("invalid_state")] == 0.0
+        and p[RADAR_COLUMNS.index("ambig_state")] == 3.0
+    )
 
 
 def test_raw_doppler_is_compensated_with_the_ego_motion(tmp_path):
@@ -180,7 +222,9 @@ def test_raw_doppler_is_compensated_with_the_ego_motion(tmp_path):
     assert load_rig(write_rig(rig, tmp_path / "rig.yaml")).radars[0].compensated is False
     (sweep,) = next(iter(load_bag(path, rig))).radar["RADAR_FRONT"]
     p = sweep.points[0]
-    assert (p[RADAR_COLUMNS.index("vx")], p[RADAR_COLUMNS.index("vy")]) == pytest.approx((-2.5 * 0.6, -2.5 * 0.8))
+    assert (p[RADAR_COLUMNS.index("vx")], p[RADAR_COLUMNS.index("vy")]) == pytest.approx(
+        (-2.5 * 0.6, -2.5 * 0.8)
+    )
     assert p[RADAR_COLUMNS.index("vx_comp")] == pytest.approx(-1.3 * 0.6, abs=1e-5)
     assert p[RADAR_COLUMNS.index("vy_comp")] == pytest.approx(-1.3 * 0.8, abs=1e-5)
 
@@ -214,16 +258,24 @@ def test_rig_file_errors_and_round_trip(tmp_path):
     with pytest.raises(RigError, match="colour"):
         RigConfig.from_dict({"lidar": {"topic": "/l"}, "colour": 1})
     with pytest.raises(RigError, match="dopler"):
-        RigConfig.from_dict({"lidar": {"topic": "/l"}, "radars": [{"topic": "/r", "fields": {"dopler": "v"}}]})
+        RigConfig.from_dict(
+            {"lidar": {"topic": "/l"}, "radars": [{"topic": "/r", "fields": {"dopler": "v"}}]}
+        )
     with pytest.raises(RigError, match="keyframes"):
         RigConfig.from_dict({"lidar": {"topic": "/l"}, "keyframes": {"every": 0}})
-    rig = RigConfig.from_dict({"lidar": {"topic": "/l", "fields": {"ring": "channel"}},
-                               "radars": [{"topic": "/radar/front"}],
-                               "extrinsics": {"l": {"translation": [1, 2, 3], "yaw_deg": 90}}})
+    rig = RigConfig.from_dict(
+        {
+            "lidar": {"topic": "/l", "fields": {"ring": "channel"}},
+            "radars": [{"topic": "/radar/front"}],
+            "extrinsics": {"l": {"translation": [1, 2, 3], "yaw_deg": 90}},
+        }
+    )
     assert rig.radars[0].channel == "RADAR_FRONT"
     back = load_rig(write_rig(rig, tmp_path / "rig.yaml"))
     assert back.to_dict() == rig.to_dict()
-    np.testing.assert_allclose(back.extrinsics["l"].matrix(), rig.extrinsics["l"].matrix(), atol=1e-12)
+    np.testing.assert_allclose(
+        back.extrinsics["l"].matrix(), rig.extrinsics["l"].matrix(), atol=1e-12
+    )
 
 
 @pytest.mark.parametrize("storage,suffix", [("plain-mcap", ".mcap"), ("ros1", ".bag")])
@@ -231,7 +283,9 @@ def test_truncated_recording_maps_what_is_readable(frames, tmp_path, caplog, sto
     bag, rig = write_bag(frames, tmp_path / f"whole{suffix}", storage=storage)
     cut = tmp_path / f"cut{suffix}"
     data = bag.read_bytes()
-    cut.write_bytes(data[: int(len(data) * 0.6)])  # a ROS 1 bag loses its index, an MCAP file its summary
+    cut.write_bytes(
+        data[: int(len(data) * 0.6)]
+    )  # a ROS 1 bag loses its index, an MCAP file its summary
     with caplog.at_level(logging.WARNING, logger="evgrid.data.bag"):
         scene = load_bag(cut, rig)
         got = list(scene)
@@ -243,8 +297,16 @@ def test_truncated_recording_maps_what_is_readable(frames, tmp_path, caplog, sto
 
 def test_transform_chain_and_exact_planar_quaternions():
     tf = TransformBuffer()
-    tf.add("map", "odom", 0, (10.0, 0.0, 0.0), (0.0, 0.0, math.sin(math.pi / 4), math.cos(math.pi / 4)))
-    tf.add("map", "odom", 1_000_000, (10.0, 0.0, 0.0), (0.0, 0.0, math.sin(math.pi / 4), math.cos(math.pi / 4)))
+    tf.add(
+        "map", "odom", 0, (10.0, 0.0, 0.0), (0.0, 0.0, math.sin(math.pi / 4), math.cos(math.pi / 4))
+    )
+    tf.add(
+        "map",
+        "odom",
+        1_000_000,
+        (10.0, 0.0, 0.0),
+        (0.0, 0.0, math.sin(math.pi / 4), math.cos(math.pi / 4)),
+    )
     tf.add("odom", "base_link", 0, (0.0, 0.0, 0.0), (0, 0, 0, 1))
     tf.add("odom", "base_link", 1_000_000, (2.0, 0.0, 0.0), (0, 0, 0, 1))
     tf.add("base_link", "lidar", 0, (1.0, 0.0, 2.0), (0, 0, 0, 1), static=True)
@@ -274,17 +336,28 @@ def test_lidar_recorded_out_of_order_is_put_in_place_and_duplicates_dropped(tmp_
     s = w.store
     for k in range(10):
         t = 1_000_000 + 100_000 * k
-        w.write("/tf", "tf2_msgs/msg/TFMessage", t * 1000,
-                tf_message([transform_msg("odom", "base_link", t, SE3.identity(), s)], s))
+        w.write(
+            "/tf",
+            "tf2_msgs/msg/TFMessage",
+            t * 1000,
+            tf_message([transform_msg("odom", "base_link", t, SE3.identity(), s)], s),
+        )
     for k in (0, 2, 1, 3, 3):  # bag times 1 ms after the stamps, in this order
         t = 1_000_000 + 100_000 * k
-        cloud = columns_to_cloud(np.full((2, 3), k, np.float32), "xyz", 1, k * 100_000_000, "base_link", s)
+        cloud = columns_to_cloud(
+            np.full((2, 3), k, np.float32), "xyz", 1, k * 100_000_000, "base_link", s
+        )
         w.write("/l", "sensor_msgs/msg/PointCloud2", t * 1000 + 1_000_000, cloud)
     w.close()
     scene = load_bag(tmp_path / "x.mcap", {"lidar": {"topic": "/l"}})
     got = list(scene)
     assert [f.timestamp for f in got] == [1_000_000, 1_100_000, 1_200_000, 1_300_000]
-    assert [f.lidar.points[0, 0] for f in got] == [0, 1, 2, 3] and [f.index for f in got] == [0, 1, 2, 3]
+    assert [f.lidar.points[0, 0] for f in got] == [0, 1, 2, 3] and [f.index for f in got] == [
+        0,
+        1,
+        2,
+        3,
+    ]
     assert scene.counts["lidar_sweeps_late"] == 1
 
 

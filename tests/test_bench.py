@@ -33,13 +33,26 @@ def test_interleaved_ms_times_each_function():
 
 
 def test_run_bench_reports_old_and_new_paths_rig_and_end_to_end(tmp_path):
-    res = run_bench(0.5, str(_tiny(tmp_path)), old_path=True, repeats=1, rig_s=0.5, end_to_end_s=0.5,
-                    timing_repeat=1)
+    res = run_bench(
+        0.5,
+        str(_tiny(tmp_path)),
+        old_path=True,
+        repeats=1,
+        rig_s=0.5,
+        end_to_end_s=0.5,
+        timing_repeat=1,
+    )
     per = res["per_frame"]
     assert {"six_maps", "six_maps_old_path", "fused_only", "fused_only_old_path"} <= set(per)
-    assert "deep_irm" in per["fused_only"]["components_ms"] and "deep_irm" in per["fused_only_old_path"]["components_ms"]
+    assert (
+        "deep_irm" in per["fused_only"]["components_ms"]
+        and "deep_irm" in per["fused_only_old_path"]["components_ms"]
+    )
     parts = res["deep_irm_parts_ms"]
     assert parts["exactness_vs_plain"]["torch"]["max_abs_mass_diff"] <= 2e-6
     assert "new: pooled_input" in parts["ms"] and "old: radar_image" in parts["ms"]
-    assert res["rig"]["lidar_hz"] == 10.0 and res["rig"]["fused_only"]["updates"] == res["rig"]["frames"]
+    assert (
+        res["rig"]["lidar_hz"] == 10.0
+        and res["rig"]["fused_only"]["updates"] == res["rig"]["frames"]
+    )
     assert res["end_to_end"]["frames"] > 0 and res["end_to_end"]["frames_per_second"] > 0

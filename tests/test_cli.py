@@ -20,19 +20,43 @@ runner = CliRunner()
 def tiny_checkpoint(tmp_path_factory):
     torch.manual_seed(0)
     net = EvNet(EvNetConfig(in_channels=len(CHANNELS), width=4, depth=2))
-    return save_checkpoint(net, tmp_path_factory.mktemp("ck") / "tiny.safetensors", extra={"grid": GridSpec().to_dict()})
+    return save_checkpoint(
+        net,
+        tmp_path_factory.mktemp("ck") / "tiny.safetensors",
+        extra={"grid": GridSpec().to_dict()},
+    )
 
 
 def test_map_writes_per_scene_results_and_table(tmp_path, tiny_checkpoint):
-    r = runner.invoke(app, ["map", "--scenes", "1", "--duration", "2", "--checkpoint", str(tiny_checkpoint),
-                            "--out", str(tmp_path), "--save-maps"])
+    r = runner.invoke(
+        app,
+        [
+            "map",
+            "--scenes",
+            "1",
+            "--duration",
+            "2",
+            "--checkpoint",
+            str(tiny_checkpoint),
+            "--out",
+            str(tmp_path),
+            "--save-maps",
+        ],
+    )
     assert r.exit_code == 0, r.output
     assert "frames/s" in r.output and "| `fused` |" in r.output
     scene_dir = tmp_path / "sim-000004"  # the first validation seed
     for name in ("metrics.json", "maps.png", "isms.png", "maps.gif", "maps/fused.npz"):
         assert (scene_dir / name).is_file(), name
     summary = json.loads((tmp_path / "summary.json").read_text())
-    assert set(summary["maps"]) == {"ray_ilm", "deep_acc", "deep_replace", "deep_disc", "ray_irm", "fused"}
+    assert set(summary["maps"]) == {
+        "ray_ilm",
+        "deep_acc",
+        "deep_replace",
+        "deep_disc",
+        "ray_irm",
+        "fused",
+    }
     assert summary["scenes"] == ["sim-000004"] and summary["frames_per_second"] > 0
     assert (tmp_path / "convergence_truth.png").is_file()
     assert summary["convergence_truth"]["t_s"] == [1.0, 2.0, 5.0, 10.0]
@@ -40,9 +64,26 @@ def test_map_writes_per_scene_results_and_table(tmp_path, tiny_checkpoint):
 
 
 def test_evaluate_over_two_scenes_in_two_processes(tmp_path, tiny_checkpoint):
-    r = runner.invoke(app, ["evaluate", "--scenes", "2", "--duration", "1.5", "--workers", "2",
-                            "--checkpoint", str(tiny_checkpoint), "--out", str(tmp_path), "--m-u-min", "0.4",
-                            "--lidar-min-range", "1.5"])
+    r = runner.invoke(
+        app,
+        [
+            "evaluate",
+            "--scenes",
+            "2",
+            "--duration",
+            "1.5",
+            "--workers",
+            "2",
+            "--checkpoint",
+            str(tiny_checkpoint),
+            "--out",
+            str(tmp_path),
+            "--m-u-min",
+            "0.4",
+            "--lidar-min-range",
+            "1.5",
+        ],
+    )
     assert r.exit_code == 0, r.output
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["scenes"] == ["sim-000004", "sim-000009"]
@@ -51,9 +92,15 @@ def test_evaluate_over_two_scenes_in_two_processes(tmp_path, tiny_checkpoint):
     assert config["fusion"]["m_u_min"] == 0.4 and config["lidar"]["min_range_m"] == 1.5
     assert config["radar"]["n_sweeps"] == 10  # the ISM parameters used are written down
     table = (tmp_path / "table.md").read_text()
-    assert "against the true occupancy" in table and "convergence against the true occupancy" in table
+    assert (
+        "against the true occupancy" in table and "convergence against the true occupancy" in table
+    )
     assert summary["maps_interval"]["fused"]["free"]["n"] == 2
-    assert summary["maps_interval"]["fused"]["free"]["lo"] <= summary["maps"]["fused"]["free"] <= summary["maps_interval"]["fused"]["free"]["hi"]
+    assert (
+        summary["maps_interval"]["fused"]["free"]["lo"]
+        <= summary["maps"]["fused"]["free"]
+        <= summary["maps_interval"]["fused"]["free"]["hi"]
+    )
 
 
 def test_bad_options_are_rejected(tmp_path):
@@ -65,7 +112,9 @@ def test_bad_options_are_rejected(tmp_path):
 
 def test_bench_prints_json(tmp_path, tiny_checkpoint):
     out = tmp_path / "bench.json"
-    r = runner.invoke(app, ["bench", "--duration", "1", "--checkpoint", str(tiny_checkpoint), "--out", str(out)])
+    r = runner.invoke(
+        app, ["bench", "--duration", "1", "--checkpoint", str(tiny_checkpoint), "--out", str(out)]
+    )
     assert r.exit_code == 0, r.output
     res = json.loads(out.read_text())
     fused = res["per_frame"]["fused_only"]["components_ms"]
@@ -75,8 +124,24 @@ def test_bench_prints_json(tmp_path, tiny_checkpoint):
 
 
 def test_sweep_m_u_min(tmp_path, tiny_checkpoint):
-    r = runner.invoke(app, ["sweep-m-u-min", "--scenes", "1", "--duration", "1.5", "--values", "0.2,0.6", "--workers", "1",
-                            "--checkpoint", str(tiny_checkpoint), "--out", str(tmp_path)])
+    r = runner.invoke(
+        app,
+        [
+            "sweep-m-u-min",
+            "--scenes",
+            "1",
+            "--duration",
+            "1.5",
+            "--values",
+            "0.2,0.6",
+            "--workers",
+            "1",
+            "--checkpoint",
+            str(tiny_checkpoint),
+            "--out",
+            str(tmp_path),
+        ],
+    )
     assert r.exit_code == 0, r.output
     res = json.loads((tmp_path / "m_u_min_sweep.json").read_text())
     assert [row["m_u_min"] for row in res["rows"]] == [0.2, 0.6]
@@ -88,12 +153,40 @@ def test_sweep_m_u_min(tmp_path, tiny_checkpoint):
 def test_map_on_a_dataset_in_the_nuscenes_layout(tmp_path, tiny_checkpoint):
     """`evgrid map --nuscenes`: the devkit reads a simulated dataset written in the nuScenes layout."""
     data = tmp_path / "nuscenes"
-    r = runner.invoke(app, ["simulate", "--out", str(data), "--scenes", "1", "--seed", "4", "--duration", "1.5",
-                            "--format", "nuscenes"])
+    r = runner.invoke(
+        app,
+        [
+            "simulate",
+            "--out",
+            str(data),
+            "--scenes",
+            "1",
+            "--seed",
+            "4",
+            "--duration",
+            "1.5",
+            "--format",
+            "nuscenes",
+        ],
+    )
     assert r.exit_code == 0, r.output
     out = tmp_path / "out"
-    r = runner.invoke(app, ["map", "--nuscenes", str(data), "--version", "v1.0-sim", "--split", "val",
-                            "--checkpoint", str(tiny_checkpoint), "--out", str(out)])
+    r = runner.invoke(
+        app,
+        [
+            "map",
+            "--nuscenes",
+            str(data),
+            "--version",
+            "v1.0-sim",
+            "--split",
+            "val",
+            "--checkpoint",
+            str(tiny_checkpoint),
+            "--out",
+            str(out),
+        ],
+    )
     assert r.exit_code == 0, r.output
     m = json.loads((out / "sim-000004" / "metrics.json").read_text())
     assert m["frames"] == 30 and "vs_truth" not in m  # nuScenes has no true occupancy
@@ -102,10 +195,19 @@ def test_map_on_a_dataset_in_the_nuscenes_layout(tmp_path, tiny_checkpoint):
 
 def test_demo_writes_the_metrics_contract(tmp_path):
     """DIR/metrics.json = {"maps": {<six names>: {"free", "occupied", "unknown"}}, ...} with the shipped Ev-Net."""
-    r = runner.invoke(app, ["demo", "--scenes", "1", "--duration", "2", "--workers", "1", "--out", str(tmp_path)])
+    r = runner.invoke(
+        app, ["demo", "--scenes", "1", "--duration", "2", "--workers", "1", "--out", str(tmp_path)]
+    )
     assert r.exit_code == 0, r.output
     m = json.loads((tmp_path / "metrics.json").read_text())
-    assert set(m["maps"]) == {"ray_ilm", "deep_acc", "deep_replace", "deep_disc", "ray_irm", "fused"}
+    assert set(m["maps"]) == {
+        "ray_ilm",
+        "deep_acc",
+        "deep_replace",
+        "deep_disc",
+        "ray_irm",
+        "fused",
+    }
     for ious in m["maps"].values():
         assert set(ious) == {"free", "occupied", "unknown"}
         assert all(v is None or 0.0 <= v <= 1.0 for v in ious.values())
@@ -116,28 +218,82 @@ def test_demo_writes_the_metrics_contract(tmp_path):
 
 def test_a_run_reproduces_from_its_own_config(tmp_path, tiny_checkpoint):
     first, again = tmp_path / "first", tmp_path / "again"
-    r = runner.invoke(app, ["evaluate", "--scenes", "1", "--duration", "1.5", "--workers", "1", "--seed", "3",
-                            "--checkpoint", str(tiny_checkpoint), "--m-u-min", "0.35", "--update-rate", "5",
-                            "--out", str(first)])
+    r = runner.invoke(
+        app,
+        [
+            "evaluate",
+            "--scenes",
+            "1",
+            "--duration",
+            "1.5",
+            "--workers",
+            "1",
+            "--seed",
+            "3",
+            "--checkpoint",
+            str(tiny_checkpoint),
+            "--m-u-min",
+            "0.35",
+            "--update-rate",
+            "5",
+            "--out",
+            str(first),
+        ],
+    )
     assert r.exit_code == 0, r.output
-    r = runner.invoke(app, ["evaluate", "--config", str(first / "config.json"), "--workers", "1", "--out", str(again)])
+    r = runner.invoke(
+        app,
+        ["evaluate", "--config", str(first / "config.json"), "--workers", "1", "--out", str(again)],
+    )
     assert r.exit_code == 0, r.output
     a, b = (json.loads((d / "summary.json").read_text()) for d in (first, again))
     assert a["scenes"] == b["scenes"] == ["sim-000004"]
     assert a["maps"] == b["maps"] and a["vs_truth"] == b["vs_truth"]
     ca, cb = (json.loads((d / "config.json").read_text()) for d in (first, again))
     assert ca["mapper"] == cb["mapper"] and ca["mapper"]["update_rate_hz"] == 5.0
-    assert ca["source"] == cb["source"] == {"kind": "sim", "seeds": [4], "duration_s": 1.5, "radar": None, "radar_ranges": None}
+    assert (
+        ca["source"]
+        == cb["source"]
+        == {"kind": "sim", "seeds": [4], "duration_s": 1.5, "radar": None, "radar_ranges": None}
+    )
     # an option given beside --config wins over the file
-    r = runner.invoke(app, ["evaluate", "--config", str(first / "config.json"), "--m-u-min", "0.5", "--workers", "1",
-                            "--out", str(tmp_path / "changed")])
+    r = runner.invoke(
+        app,
+        [
+            "evaluate",
+            "--config",
+            str(first / "config.json"),
+            "--m-u-min",
+            "0.5",
+            "--workers",
+            "1",
+            "--out",
+            str(tmp_path / "changed"),
+        ],
+    )
     assert r.exit_code == 0, r.output
-    assert json.loads((tmp_path / "changed" / "config.json").read_text())["mapper"]["fusion"]["m_u_min"] == 0.5
+    assert (
+        json.loads((tmp_path / "changed" / "config.json").read_text())["mapper"]["fusion"][
+            "m_u_min"
+        ]
+        == 0.5
+    )
 
 
 def test_results_are_never_silently_overwritten(tmp_path, tiny_checkpoint):
-    args = ["evaluate", "--scenes", "1", "--duration", "1", "--workers", "1", "--checkpoint", str(tiny_checkpoint),
-            "--out", str(tmp_path)]
+    args = [
+        "evaluate",
+        "--scenes",
+        "1",
+        "--duration",
+        "1",
+        "--workers",
+        "1",
+        "--checkpoint",
+        str(tiny_checkpoint),
+        "--out",
+        str(tmp_path),
+    ]
     r = runner.invoke(app, args)
     assert r.exit_code == 0, r.output
     before = (tmp_path / "summary.json").read_text()
@@ -152,37 +308,96 @@ def test_failures_print_one_line_and_leave_no_empty_folder(tmp_path):
     r = runner.invoke(app, ["map", "--sim-dir", str(tmp_path / "missing"), "--out", str(out)])
     assert r.exit_code == 1
     lines = [ln for ln in r.output.splitlines() if ln.strip()]
-    assert len(lines) == 1 and lines[0].startswith("evgrid: error:") and "index.json" in lines[0], r.output
+    assert len(lines) == 1 and lines[0].startswith("evgrid: error:") and "index.json" in lines[0], (
+        r.output
+    )
     assert not out.exists()
     bad = tmp_path / "bad.json"
     bad.write_text('{"mapper": {"fusion": {"m_u_min": 2.0}}}')
     r = runner.invoke(app, ["map", "--config", str(bad), "--out", str(out)])
-    assert r.exit_code == 1 and "m_u_min" in r.output and str(bad) in r.output and "Traceback" not in r.output
+    assert (
+        r.exit_code == 1
+        and "m_u_min" in r.output
+        and str(bad) in r.output
+        and "Traceback" not in r.output
+    )
     bad.write_text('{"mapper": {"lidar": {"m_fre": 0.1}}}')
     r = runner.invoke(app, ["map", "--config", str(bad), "--out", str(out)])
-    assert r.exit_code == 1 and "config.mapper.lidar" in r.output.replace(str(bad), "config") and "m_fre" in r.output
+    assert (
+        r.exit_code == 1
+        and "config.mapper.lidar" in r.output.replace(str(bad), "config")
+        and "m_fre" in r.output
+    )
     r = runner.invoke(app, ["--debug", "map", "--config", str(bad), "--out", str(out)])
-    assert r.exit_code == 1 and r.exception is not None  # --debug lets the exception (and its traceback) through
+    assert (
+        r.exit_code == 1 and r.exception is not None
+    )  # --debug lets the exception (and its traceback) through
     assert not out.exists()
 
 
 def test_too_short_a_scene_still_gives_a_table(tmp_path, tiny_checkpoint):
-    r = runner.invoke(app, ["evaluate", "--scenes", "1", "--duration", "0.1", "--workers", "1",
-                            "--checkpoint", str(tiny_checkpoint), "--out", str(tmp_path)])
+    r = runner.invoke(
+        app,
+        [
+            "evaluate",
+            "--scenes",
+            "1",
+            "--duration",
+            "0.1",
+            "--workers",
+            "1",
+            "--checkpoint",
+            str(tiny_checkpoint),
+            "--out",
+            str(tmp_path),
+        ],
+    )
     assert r.exit_code == 0, r.output
     assert "| `fused` |" in (tmp_path / "table.md").read_text()
 
 
 def test_a_simulated_recording_maps_through_bag_and_rig_and_exports(tmp_path, tiny_checkpoint):
     pytest.importorskip("rosbags")
-    r = runner.invoke(app, ["simulate", "--format", "ros2", "--out", str(tmp_path / "bags"), "--seed", "4",
-                            "--duration", "1", "--lidar-rate", "10", "--radar-rate", "4"])
+    r = runner.invoke(
+        app,
+        [
+            "simulate",
+            "--format",
+            "ros2",
+            "--out",
+            str(tmp_path / "bags"),
+            "--seed",
+            "4",
+            "--duration",
+            "1",
+            "--lidar-rate",
+            "10",
+            "--radar-rate",
+            "4",
+        ],
+    )
     assert r.exit_code == 0, r.output
     bag, rig = tmp_path / "bags" / "sim-000004", tmp_path / "bags" / "sim-000004.rig.yaml"
     assert bag.is_dir() and rig.is_file()
-    r = runner.invoke(app, ["map", "--bag", str(bag), "--rig", str(rig), "--maps", "ray_ilm,ray_irm,fused",
-                            "--checkpoint", str(tiny_checkpoint), "--export", "nav2,mcap", "--save-maps",
-                            "--out", str(tmp_path / "out")])
+    r = runner.invoke(
+        app,
+        [
+            "map",
+            "--bag",
+            str(bag),
+            "--rig",
+            str(rig),
+            "--maps",
+            "ray_ilm,ray_irm,fused",
+            "--checkpoint",
+            str(tiny_checkpoint),
+            "--export",
+            "nav2,mcap",
+            "--save-maps",
+            "--out",
+            str(tmp_path / "out"),
+        ],
+    )
     assert r.exit_code == 0, r.output
     scene = tmp_path / "out" / "sim-000004"
     assert (scene / "nav2" / "fused.pgm").is_file() and (scene / "sim-000004.mcap").is_file()
@@ -191,7 +406,17 @@ def test_a_simulated_recording_maps_through_bag_and_rig_and_exports(tmp_path, ti
     run = json.loads((tmp_path / "out" / "config.json").read_text())
     assert run["source"]["kind"] == "bag" and run["outputs"]["exports"] == ["nav2", "mcap"]
     # a saved map exports on its own too
-    r = runner.invoke(app, ["export", str(scene / "maps" / "fused.npz"), "--format", "nav2", "--out", str(tmp_path / "f")])
+    r = runner.invoke(
+        app,
+        [
+            "export",
+            str(scene / "maps" / "fused.npz"),
+            "--format",
+            "nav2",
+            "--out",
+            str(tmp_path / "f"),
+        ],
+    )
     assert r.exit_code == 0, r.output
     assert (tmp_path / "f.yaml").is_file() and "mode: trinary" in (tmp_path / "f.yaml").read_text()
 
@@ -199,7 +424,18 @@ def test_a_simulated_recording_maps_through_bag_and_rig_and_exports(tmp_path, ti
 def test_bag_options_fail_in_one_line(tmp_path):
     r = runner.invoke(app, ["map", "--bag", str(tmp_path / "x.mcap"), "--out", str(tmp_path / "o")])
     assert r.exit_code != 0 and "--rig" in r.output
-    r = runner.invoke(app, ["map", "--bag", str(tmp_path / "x.mcap"), "--sim-dir", str(tmp_path), "--out", str(tmp_path / "o")])
+    r = runner.invoke(
+        app,
+        [
+            "map",
+            "--bag",
+            str(tmp_path / "x.mcap"),
+            "--sim-dir",
+            str(tmp_path),
+            "--out",
+            str(tmp_path / "o"),
+        ],
+    )
     assert r.exit_code != 0 and "one data source" in r.output
     r = runner.invoke(app, ["export", str(tmp_path / "missing.npz"), "--format", "nav2"])
     assert r.exit_code == 1 and "missing.npz" in r.output and "Traceback" not in r.output

@@ -5,7 +5,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from evgrid import mass
 from evgrid.evaluate import bootstrap_interval, iou_intervals, tile_confusions_vs_truth
@@ -28,7 +29,10 @@ def test_bootstrap_interval_hand_cases():
 @given(st.lists(st.floats(0, 1), min_size=2, max_size=30))
 def test_bootstrap_interval_holds_the_mean_within_the_values(v):
     ci = bootstrap_interval(v)
-    assert min(v) - 1e-12 <= ci["lo"] <= ci["mean"] + 1e-12 and ci["mean"] - 1e-12 <= ci["hi"] <= max(v) + 1e-12
+    assert (
+        min(v) - 1e-12 <= ci["lo"] <= ci["mean"] + 1e-12
+        and ci["mean"] - 1e-12 <= ci["hi"] <= max(v) + 1e-12
+    )
 
 
 def test_iou_intervals_per_map_and_class():
@@ -40,7 +44,10 @@ def test_iou_intervals_per_map_and_class():
 
 def test_convergence_at_picks_the_first_keyframe_after_each_time():
     def kf(t_s, free):
-        return {"timestamp": int(t_s * 1e6), "field": {"fused": {"free": free, "occupied": 0.1, "area_m2": 100 * free}}}
+        return {
+            "timestamp": int(t_s * 1e6),
+            "field": {"fused": {"free": free, "occupied": 0.1, "area_m2": 100 * free}},
+        }
 
     kfs = [kf(0.0, 0.0), kf(0.5, 0.1), kf(1.0, 0.2), kf(1.5, 0.3), kf(2.5, 0.4)]
     c = convergence_at(kfs, (1.0, 2.0, 5.0))
@@ -52,8 +59,16 @@ def test_convergence_at_picks_the_first_keyframe_after_each_time():
 
 def test_convergence_table_shows_intervals_and_gaps():
     ci = bootstrap_interval([0.5, 0.7])
-    conv = {"t_s": [1.0, 10.0], "maps": {"fused": {"free": [ci, bootstrap_interval([])],
-                                                   "occupied": [ci, ci], "area_m2": [bootstrap_interval([100.0]), ci]}}}
+    conv = {
+        "t_s": [1.0, 10.0],
+        "maps": {
+            "fused": {
+                "free": [ci, bootstrap_interval([])],
+                "occupied": [ci, ci],
+                "area_m2": [bootstrap_interval([100.0]), ci],
+            }
+        },
+    }
     table = convergence_table(conv)
     assert "free IoU 1 s" in table and "correct m² 10 s" in table
     row = table.strip().splitlines()[-1]
@@ -75,4 +90,6 @@ def test_the_perception_field_counts_true_cells_the_reference_never_covered():
     restricted = tile_confusions_vs_truth(maps, truth, "ray_ilm", right)
     everything = tile_confusions_vs_truth(maps, truth, None, right)
     assert restricted.sum() == 0
-    assert everything[1, 0, 0] == 64 and everything[0, 0, 0] == 0  # deep_disc right, ray_ilm unknown
+    assert (
+        everything[1, 0, 0] == 64 and everything[0, 0, 0] == 0
+    )  # deep_disc right, ray_ilm unknown

@@ -12,7 +12,12 @@ import pytest
 
 from evgrid.data import LIDAR_CHANNEL, RADAR_CHANNELS, RADAR_COLUMNS, radar_column
 from evgrid.data.nuscenes import NuScenesError, load_nuscenes, nuscenes_splits
-from evgrid.data.nuscenes_format import RADAR_PCD_FIELDS, read_radar_pcd, write_nuscenes, write_radar_pcd
+from evgrid.data.nuscenes_format import (
+    RADAR_PCD_FIELDS,
+    read_radar_pcd,
+    write_nuscenes,
+    write_radar_pcd,
+)
 from evgrid.data.sim import EgoConfig, SimConfig, WorldConfig, simulate_scene
 
 pytest.importorskip("nuscenes")
@@ -20,7 +25,9 @@ from nuscenes.nuscenes import NuScenes  # noqa: E402
 from nuscenes.utils.data_classes import LidarPointCloud, RadarPointCloud  # noqa: E402
 
 VERSION = "v1.0-sim"
-ALL_STATES = dict(invalid_states=list(range(18)), dynprop_states=list(range(8)), ambig_states=list(range(5)))
+ALL_STATES = dict(
+    invalid_states=list(range(18)), dynprop_states=list(range(8)), ambig_states=list(range(5))
+)
 
 
 @pytest.fixture(scope="module")
@@ -28,9 +35,13 @@ def written(tmp_path_factory):
     root = tmp_path_factory.mktemp("nusc")
     moving = simulate_scene(3, SimConfig(duration_s=1.6, world=WorldConfig(environment="urban")))
     # A scene whose ego waits at a light the whole time (it never moves 1 m).
-    parked = simulate_scene(4, SimConfig(duration_s=0.5, ego=EgoConfig(start_at_rest_probability=1.0)))
+    parked = simulate_scene(
+        4, SimConfig(duration_s=0.5, ego=EgoConfig(start_at_rest_probability=1.0))
+    )
     frames = {moving.name: list(moving), parked.name: list(parked)}
-    write_nuscenes([moving, parked], root, VERSION, splits={"train": [moving.name], "val": [parked.name]})
+    write_nuscenes(
+        [moving, parked], root, VERSION, splits={"train": [moving.name], "val": [parked.name]}
+    )
     return root, frames
 
 
@@ -63,17 +74,30 @@ def test_devkit_reads_every_frame_back(written):
             while sd["prev"]:
                 sd = nusc.get("sample_data", sd["prev"])
             for s in sweeps:
-                assert sd["timestamp"] == s.timestamp and nusc.get("sensor", nusc.get("calibrated_sensor", sd["calibrated_sensor_token"])["sensor_token"])["channel"] == ch
+                assert (
+                    sd["timestamp"] == s.timestamp
+                    and nusc.get(
+                        "sensor",
+                        nusc.get("calibrated_sensor", sd["calibrated_sensor_token"])[
+                            "sensor_token"
+                        ],
+                    )["channel"]
+                    == ch
+                )
                 path = os.path.join(nusc.dataroot, sd["filename"])
                 pc = RadarPointCloud.from_file(path, **ALL_STATES)
                 names = [f[0] for f in RADAR_PCD_FIELDS]
-                got = np.stack([pc.points[names.index(n)] for n in RADAR_COLUMNS], axis=1).astype(np.float32)
+                got = np.stack([pc.points[names.index(n)] for n in RADAR_COLUMNS], axis=1).astype(
+                    np.float32
+                )
                 np.testing.assert_array_equal(got, s.points)
                 # The devkit's default filters act on the fields we wrote, at the right places.
                 default = RadarPointCloud.from_file(path)
                 p = s.points
-                keep = (p[:, radar_column("invalid_state")] == 0) & (p[:, radar_column("dyn_prop")] <= 6) & (
-                    p[:, radar_column("ambig_state")] == 3
+                keep = (
+                    (p[:, radar_column("invalid_state")] == 0)
+                    & (p[:, radar_column("dyn_prop")] <= 6)
+                    & (p[:, radar_column("ambig_state")] == 3)
                 )
                 assert default.points.shape[1] == int(keep.sum())
                 np.testing.assert_array_equal(default.points[0].astype(np.float32), p[keep, 0])
@@ -90,17 +114,26 @@ def test_our_loader_yields_the_original_frames(written):
     orig = frames["sim-000003"]
     assert len(scenes[0]) == len(orig)
     for fo, fl in zip(orig, scenes[0]):
-        assert (fl.index, fl.timestamp, fl.is_keyframe, fl.scene) == (fo.index, fo.timestamp, fo.is_keyframe, fo.scene)
+        assert (fl.index, fl.timestamp, fl.is_keyframe, fl.scene) == (
+            fo.index,
+            fo.timestamp,
+            fo.is_keyframe,
+            fo.scene,
+        )
         assert fl.occupancy is None
         np.testing.assert_array_equal(fl.lidar.points, fo.lidar.points)
         np.testing.assert_allclose(fl.ego_pose.matrix(), fo.ego_pose.matrix(), atol=1e-9)
-        np.testing.assert_allclose(fl.lidar.sensor_to_ego.matrix(), fo.lidar.sensor_to_ego.matrix(), atol=1e-12)
+        np.testing.assert_allclose(
+            fl.lidar.sensor_to_ego.matrix(), fo.lidar.sensor_to_ego.matrix(), atol=1e-12
+        )
         for ch in RADAR_CHANNELS:
             assert [s.timestamp for s in fl.radar[ch]] == [s.timestamp for s in fo.radar[ch]]
             for sl, so in zip(fl.radar[ch], fo.radar[ch]):
                 np.testing.assert_array_equal(sl.points, so.points)  # unfiltered, bit-exact float32
                 np.testing.assert_allclose(sl.ego_pose.matrix(), so.ego_pose.matrix(), atol=1e-9)
-                np.testing.assert_allclose(sl.sensor_to_ego.matrix(), so.sensor_to_ego.matrix(), atol=1e-12)
+                np.testing.assert_allclose(
+                    sl.sensor_to_ego.matrix(), so.sensor_to_ego.matrix(), atol=1e-12
+                )
 
 
 def test_splits_and_the_one_metre_rule(written):
@@ -110,7 +143,9 @@ def test_splits_and_the_one_metre_rule(written):
     assert [s.name for s in kept] == ["sim-000004"] and kept[0].travel_m() < 1.0
     assert {s.name for s in load_nuscenes(root, VERSION, split=None)} == {"sim-000003"}
     splits = nuscenes_splits(root, VERSION)
-    assert splits["train"] == ["sim-000003"] and len(splits["mini_val"]) == 2  # official lists are there too
+    assert (
+        splits["train"] == ["sim-000003"] and len(splits["mini_val"]) == 2
+    )  # official lists are there too
     with pytest.raises(ValueError, match="unknown split 'bogus'"):
         load_nuscenes(root, VERSION, split="bogus")
     with pytest.raises(ValueError, match="mini_train"):
@@ -123,7 +158,9 @@ def test_missing_data_says_what_to_download(tmp_path):
     with pytest.raises(FileNotFoundError, match=r"nuscenes.org/download.*scene\.json"):
         load_nuscenes(tmp_path / "nowhere", "v1.0-trainval")
     (tmp_path / "v1.0-mini").mkdir()
-    with pytest.raises(FileNotFoundError, match=r"v1\.0-trainval.*found \['v1\.0-mini'\].*download"):
+    with pytest.raises(
+        FileNotFoundError, match=r"v1\.0-trainval.*found \['v1\.0-mini'\].*download"
+    ):
         load_nuscenes(tmp_path, "v1.0-trainval")
 
 
@@ -165,7 +202,9 @@ def test_same_seed_writes_the_same_files(tmp_path):
     cfg = SimConfig(duration_s=0.6)
     for d in ("a", "b"):
         write_nuscenes([simulate_scene(21, cfg)], tmp_path / d, VERSION)
-    files = sorted(p.relative_to(tmp_path / "a") for p in (tmp_path / "a").rglob("*") if p.is_file())
+    files = sorted(
+        p.relative_to(tmp_path / "a") for p in (tmp_path / "a").rglob("*") if p.is_file()
+    )
     assert len(files) > 20
     for f in files:
         assert (tmp_path / "a" / f).read_bytes() == (tmp_path / "b" / f).read_bytes(), f

@@ -11,7 +11,6 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from evgrid.ism.self_returns import NUSCENES_BODY
 from evgrid.data import RADAR_CHANNELS, RADAR_COLUMNS, Frame, radar_column
 from evgrid.data.sim import (
     LIDAR_MOUNT,
@@ -33,6 +32,7 @@ from evgrid.data.sim.raycast import pack_boxes
 from evgrid.data.sim.store import load_sim_scene, save_sim_scene
 from evgrid.data.sim.world import Movers, World, plan_drive
 from evgrid.geometry import SE2
+from evgrid.ism.self_returns import NUSCENES_BODY
 
 SHORT = 3.0  # seconds: 60 frames, 6 keyframes, about 39 sweeps a radar
 
@@ -83,9 +83,13 @@ def test_same_seed_same_bytes_in_any_order():
 def test_different_seeds_give_different_scenes():
     cfg = _cfg("urban", duration=0.2)
     a, b = simulate_scene(1, cfg), simulate_scene(2, cfg)
-    assert a.world.boxes.shape != b.world.boxes.shape or not np.array_equal(a.world.boxes, b.world.boxes)
+    assert a.world.boxes.shape != b.world.boxes.shape or not np.array_equal(
+        a.world.boxes, b.world.boxes
+    )
     fa, fb = a.frame(0), b.frame(0)
-    assert fa.lidar.points.shape != fb.lidar.points.shape or not np.array_equal(fa.lidar.points, fb.lidar.points)
+    assert fa.lidar.points.shape != fb.lidar.points.shape or not np.array_equal(
+        fa.lidar.points, fb.lidar.points
+    )
     assert not np.allclose(fa.ego_pose.translation, fb.ego_pose.translation)
 
 
@@ -108,7 +112,9 @@ def test_frames_follow_the_contract(urban):
         else:
             assert f.occupancy is None
         assert f.lidar.timestamp == f.timestamp and f.lidar.ego_pose is f.ego_pose
-        np.testing.assert_allclose(f.lidar.sensor_to_ego.matrix(), LIDAR_MOUNT.sensor_to_ego().matrix())
+        np.testing.assert_allclose(
+            f.lidar.sensor_to_ego.matrix(), LIDAR_MOUNT.sensor_to_ego().matrix()
+        )
         assert set(f.radar) == set(RADAR_CHANNELS)
         for ch, sweeps in f.radar.items():
             ts = [s.timestamp for s in sweeps]
@@ -117,7 +123,9 @@ def test_frames_follow_the_contract(urban):
                 # A sweep belongs to the first frame whose lidar timestamp is >= its own.
                 assert prev_ts < s.timestamp <= f.timestamp
                 assert s.channel == ch
-                np.testing.assert_allclose(s.sensor_to_ego.matrix(), RADAR_MOUNTS[ch].sensor_to_ego().matrix())
+                np.testing.assert_allclose(
+                    s.sensor_to_ego.matrix(), RADAR_MOUNTS[ch].sensor_to_ego().matrix()
+                )
                 pose = scene.odometry_pose(s.timestamp)
                 np.testing.assert_allclose(s.ego_pose.translation[:2], [pose.x, pose.y], atol=1e-9)
             n_sweeps[ch] += len(sweeps)
@@ -152,7 +160,12 @@ def test_keyframe_occupancy_matches_the_world(urban):
             assert (f.occupancy[r[ok], c[ok]] == 2).all()
             n_checked += int(ok.sum())
         # The ego vehicle's own footprint is free.
-        assert f.occupancy[g.n_cells // 2 - 10 : g.n_cells // 2, g.n_cells // 2 - 5 : g.n_cells // 2 + 5].max() == 0
+        assert (
+            f.occupancy[
+                g.n_cells // 2 - 10 : g.n_cells // 2, g.n_cells // 2 - 5 : g.n_cells // 2 + 5
+            ].max()
+            == 0
+        )
     assert n_checked > 0
 
 
@@ -164,7 +177,9 @@ def _lidar_vs_truth(scene, frames):
         f = frames[i]
         occ = (f.occupancy > 0).astype(np.uint8)
         p = f.lidar.sensor_to_ego.apply(f.lidar.points[:, :3])
-        band = (p[:, 2] > 0.3) & (p[:, 2] < 3.0) & ~NUSCENES_BODY.contains(p)  # the ego car is not in the truth
+        band = (
+            (p[:, 2] > 0.3) & (p[:, 2] < 3.0) & ~NUSCENES_BODY.contains(p)
+        )  # the ego car is not in the truth
         r, c = g.xy_to_cell(p[band, 0], p[band, 1])
         ok = g.contains_cell(r, c)
         r, c = r[ok], c[ok]
@@ -187,7 +202,9 @@ def test_lidar_statistics(which, request):
     assert 25_000 <= counts.mean() <= 34_560
     pts = np.concatenate([f.lidar.points for f in frames[:5]])
     assert set(np.unique(pts[:, 4])) == set(range(32))
-    assert pts[:, 3].min() >= 0 and pts[:, 3].max() <= 255 and np.all(pts[:, 3] == np.rint(pts[:, 3]))
+    assert (
+        pts[:, 3].min() >= 0 and pts[:, 3].max() <= 255 and np.all(pts[:, 3] == np.rint(pts[:, 3]))
+    )
     rng = np.linalg.norm(pts[:, :3], axis=1)
     assert rng.min() >= 0.7 and rng.max() <= 100.2  # 0.8 m blind zone, range noise
     ego = frames[0].lidar.sensor_to_ego.apply(pts[:, :3])
@@ -236,7 +253,10 @@ def test_radar_statistics(which, ghost_range, request):
     assert rng.max() <= RadarConfig().far_range_m + 1.0
     # the field of view (+-60 deg) plus four sigmas of the datasheet's azimuth noise at its edge
     cfg = RadarConfig()
-    assert np.all(np.abs(np.degrees(np.arctan2(pts[:, 1], pts[:, 0]))) <= cfg.fov_deg + 4 * cfg.azimuth_noise_edge_deg)
+    assert np.all(
+        np.abs(np.degrees(np.arctan2(pts[:, 1], pts[:, 0])))
+        <= cfg.fov_deg + 4 * cfg.azimuth_noise_edge_deg
+    )
 
 
 def test_radar_validity_fields(urban):
@@ -267,15 +287,31 @@ def _world(static: list[tuple], movers: Movers | None = None) -> World:
     cls = np.array([s[7] for s in static], dtype=np.int32)
     mv = movers if movers is not None else Movers.empty()
     return World(
-        "urban", boxes, a[:, 2], cls, M.LIDAR_REFLECTIVITY[cls], np.zeros(len(cls)), mv,
-        M.LIDAR_REFLECTIVITY[mv.classes], np.zeros(len(mv)), None, SE2(),
+        "urban",
+        boxes,
+        a[:, 2],
+        cls,
+        M.LIDAR_REFLECTIVITY[cls],
+        np.zeros(len(cls)),
+        mv,
+        M.LIDAR_REFLECTIVITY[mv.classes],
+        np.zeros(len(mv)),
+        None,
+        SE2(),
     )
 
 
 def test_lidar_sees_a_wall_at_its_distance():
     world = _world([(20.0, 0.0, 0.0, 1.0, 40.0, 0.0, 30.0, M.BUILDING)])  # face at x = 19.5
     lidar = LidarModel(LidarConfig(range_noise_m=0.0, dropout=0.0))
-    pts, hit = lidar.sweep(world, np.zeros((0, 8)), np.zeros(0, np.int32), np.zeros(0), (0.0, 0.0, 0.0), np.random.default_rng(0))
+    pts, hit = lidar.sweep(
+        world,
+        np.zeros((0, 8)),
+        np.zeros(0, np.int32),
+        np.zeros(0),
+        (0.0, 0.0, 0.0),
+        np.random.default_rng(0),
+    )
     ego = LIDAR_MOUNT.sensor_to_ego().apply(pts[:, :3])
     on_wall = hit == 0
     assert on_wall.sum() > 1000
@@ -286,36 +322,80 @@ def test_lidar_sees_a_wall_at_its_distance():
     assert ego[behind, 0].max() < 19.5  # nothing seen through the wall
 
 
-_NO_AZIMUTH_NOISE = dict(azimuth_noise_deg=0.0, azimuth_noise_mid_deg=0.0, azimuth_noise_edge_deg=0.0, far_azimuth_noise_deg=0.0)
+_NO_AZIMUTH_NOISE = dict(
+    azimuth_noise_deg=0.0,
+    azimuth_noise_mid_deg=0.0,
+    azimuth_noise_edge_deg=0.0,
+    far_azimuth_noise_deg=0.0,
+)
 
 
 def test_radar_doppler_of_static_and_moving_targets():
     world_static = _world([(30.0, 0.0, 0.0, 1.0, 60.0, 0.0, 10.0, M.BUILDING)])
     # A car 15 m ahead driving away at 5 m/s along +x.
     mv = Movers(
-        np.array([M.CAR], np.int32), np.array([2.2]), np.array([0.9]), np.array([0.15]), np.array([1.5]),
-        np.array([[15.0, 0.0]]), np.array([0.0]), np.array([5.0]), np.array([-1e9]), np.array([1e9]),
-        np.array([False]), np.array([0.0]), np.array([0.0]),
+        np.array([M.CAR], np.int32),
+        np.array([2.2]),
+        np.array([0.9]),
+        np.array([0.15]),
+        np.array([1.5]),
+        np.array([[15.0, 0.0]]),
+        np.array([0.0]),
+        np.array([5.0]),
+        np.array([-1e9]),
+        np.array([1e9]),
+        np.array([False]),
+        np.array([0.0]),
+        np.array([0.0]),
     )
     world = _world([(30.0, 0.0, 0.0, 1.0, 60.0, 0.0, 10.0, M.BUILDING)], mv)
-    cfg = RadarConfig(clutter_rate=0.0, road_clutter_rate=0.0, doppler_noise_mps=0.0, range_noise_m=0.0, far_range_noise_m=0.0,
-                      **_NO_AZIMUTH_NOISE)
+    cfg = RadarConfig(
+        clutter_rate=0.0,
+        road_clutter_rate=0.0,
+        doppler_noise_mps=0.0,
+        range_noise_m=0.0,
+        far_range_noise_m=0.0,
+        **_NO_AZIMUTH_NOISE,
+    )
     radar = RadarModel(cfg, RADAR_MOUNTS["RADAR_FRONT"])
     speed = 10.0
     dboxes, dvel, _ = mv.state_at(0.0, None)
     ci = {n: radar_column(n) for n in RADAR_COLUMNS}
     for k in range(5):
         rng = np.random.default_rng(k)
-        pts, lab = radar.sweep(world_static, np.zeros((0, 8)), np.zeros(0, np.int32), np.zeros((0, 2)), np.zeros(0),
-                               (0.0, 0.0, 0.0), (speed, 0.0), (speed, 0.0), rng)
+        pts, lab = radar.sweep(
+            world_static,
+            np.zeros((0, 8)),
+            np.zeros(0, np.int32),
+            np.zeros((0, 2)),
+            np.zeros(0),
+            (0.0, 0.0, 0.0),
+            (speed, 0.0),
+            (speed, 0.0),
+            rng,
+        )
         real = lab == RADAR_REAL
         assert real.sum() > 3
         az = np.arctan2(pts[real, 1], pts[real, 0])
         v_raw = pts[real, ci["vx"]] * np.cos(az) + pts[real, ci["vy"]] * np.sin(az)
         # A static target closes at the sensor's speed projected on the line of sight.
-        np.testing.assert_allclose(v_raw, -speed * np.cos(az + math.radians(RADAR_MOUNTS["RADAR_FRONT"].yaw_deg)), atol=0.05)
+        np.testing.assert_allclose(
+            v_raw,
+            -speed * np.cos(az + math.radians(RADAR_MOUNTS["RADAR_FRONT"].yaw_deg)),
+            atol=0.05,
+        )
         np.testing.assert_allclose(pts[real, ci["vx_comp"]], 0.0, atol=0.05)
-        pts, lab = radar.sweep(world, dboxes, mv.classes, dvel, np.zeros(1), (0.0, 0.0, 0.0), (speed, 0.0), (speed, 0.0), rng)
+        pts, lab = radar.sweep(
+            world,
+            dboxes,
+            mv.classes,
+            dvel,
+            np.zeros(1),
+            (0.0, 0.0, 0.0),
+            (speed, 0.0),
+            (speed, 0.0),
+            rng,
+        )
         on_car = (lab == RADAR_REAL) & (pts[:, 0] < 14.0)
         if on_car.any():
             vc = pts[on_car, ci["vx_comp"]]
@@ -331,13 +411,32 @@ def test_multipath_ghosts_appear_behind_the_mirror():
             (18.0, -1.0, 0.0, 7.0, 2.4, 0.3, 3.0, M.TRUCK),
         ]
     )
-    radar = RadarModel(RadarConfig(clutter_rate=0.0, road_clutter_rate=0.0, range_noise_m=0.0, far_range_noise_m=0.0, **_NO_AZIMUTH_NOISE),
-                       RADAR_MOUNTS["RADAR_FRONT_LEFT"])
+    radar = RadarModel(
+        RadarConfig(
+            clutter_rate=0.0,
+            road_clutter_rate=0.0,
+            range_noise_m=0.0,
+            far_range_noise_m=0.0,
+            **_NO_AZIMUTH_NOISE,
+        ),
+        RADAR_MOUNTS["RADAR_FRONT_LEFT"],
+    )
     ghosts = []
     for k in range(40):
-        pts, lab = radar.sweep(world, np.zeros((0, 8)), np.zeros(0, np.int32), np.zeros((0, 2)), np.zeros(0),
-                               (0.0, 0.0, 0.0), (0.0, 0.0), (0.0, 0.0), np.random.default_rng(k))
-        ghosts.append(RADAR_MOUNTS["RADAR_FRONT_LEFT"].sensor_to_ego().apply(pts[lab == RADAR_GHOST, :3]))
+        pts, lab = radar.sweep(
+            world,
+            np.zeros((0, 8)),
+            np.zeros(0, np.int32),
+            np.zeros((0, 2)),
+            np.zeros(0),
+            (0.0, 0.0, 0.0),
+            (0.0, 0.0),
+            (0.0, 0.0),
+            np.random.default_rng(k),
+        )
+        ghosts.append(
+            RADAR_MOUNTS["RADAR_FRONT_LEFT"].sensor_to_ego().apply(pts[lab == RADAR_GHOST, :3])
+        )
     g = np.concatenate(ghosts)
     assert len(g) >= 5
     # Mirror images of the truck (y in [-2.2, 0.2]) across y = 6 lie in y in [11.8, 14.2].
@@ -367,15 +466,25 @@ def test_ego_drives_like_a_car():
 
 def test_odometry_drift_moves_poses_not_sensors():
     base = _cfg("urban", duration=1.0)
-    drift = _cfg("urban", duration=1.0, ego=EgoConfig(odometry_yaw_bias_std_deg_s=2.0, odometry_scale_std=0.05))
+    drift = _cfg(
+        "urban",
+        duration=1.0,
+        ego=EgoConfig(odometry_yaw_bias_std_deg_s=2.0, odometry_scale_std=0.05),
+    )
     a, b = simulate_scene(5, base), simulate_scene(5, drift)
     fa, fb = a.frame(19), b.frame(19)
     assert fa.lidar.points.tobytes() == fb.lidar.points.tobytes()  # the world is measured the same
-    np.testing.assert_allclose(a.frame(0).ego_pose.matrix(), b.frame(0).ego_pose.matrix(), atol=1e-9)
-    err = np.linalg.norm(fa.ego_pose.translation - fb.ego_pose.translation) + abs(fa.ego_pose.yaw - fb.ego_pose.yaw)
+    np.testing.assert_allclose(
+        a.frame(0).ego_pose.matrix(), b.frame(0).ego_pose.matrix(), atol=1e-9
+    )
+    err = np.linalg.norm(fa.ego_pose.translation - fb.ego_pose.translation) + abs(
+        fa.ego_pose.yaw - fb.ego_pose.yaw
+    )
     assert err > 1e-3
     true = a.true_pose(fa.timestamp)
-    np.testing.assert_allclose(fa.ego_pose.translation[:2], [true.x, true.y], atol=1e-9)  # no drift: odometry = truth
+    np.testing.assert_allclose(
+        fa.ego_pose.translation[:2], [true.x, true.y], atol=1e-9
+    )  # no drift: odometry = truth
 
 
 # --- configuration and files --------------------------------------------------------------------
@@ -403,7 +512,9 @@ def test_bad_seed_is_named():
 
 
 def test_config_round_trips_through_a_dict():
-    cfg = SimConfig(duration_s=7.5, lidar=LidarConfig(n_azimuth=720), ego=EgoConfig(stop_duration_s=(1.0, 2.0)))
+    cfg = SimConfig(
+        duration_s=7.5, lidar=LidarConfig(n_azimuth=720), ego=EgoConfig(stop_duration_s=(1.0, 2.0))
+    )
     assert SimConfig.from_dict(cfg.to_dict()) == cfg
     with pytest.raises(ValueError, match="bogus"):
         SimConfig.from_dict({**cfg.to_dict(), "bogus": 1})
@@ -418,7 +529,10 @@ def test_npz_scene_file_round_trip(tmp_path):
         fo, fb = scene.frame(i), back.frame(i)
         _frames_equal(fo, fb)
         for s in fo.radar_sweeps():
-            np.testing.assert_array_equal(back.radar_labels(s.channel, s.timestamp), scene.radar_labels(s.channel, s.timestamp))
+            np.testing.assert_array_equal(
+                back.radar_labels(s.channel, s.timestamp),
+                scene.radar_labels(s.channel, s.timestamp),
+            )
     np.testing.assert_array_equal(back.true_poses, scene.true_poses())
     again = save_sim_scene(simulate_scene(3, _cfg("mixed", duration=0.6)), tmp_path / "again.npz")
     assert again.read_bytes() == path.read_bytes()  # same seed, same file
@@ -431,7 +545,9 @@ def test_npz_scene_file_round_trip(tmp_path):
 
 @settings(max_examples=300, deadline=None)
 @given(
-    st.lists(st.floats(-6.0, 6.0), min_size=2, max_size=2), st.floats(-math.pi, math.pi), st.floats(-math.pi, math.pi),
+    st.lists(st.floats(-6.0, 6.0), min_size=2, max_size=2),
+    st.floats(-math.pi, math.pi),
+    st.floats(-math.pi, math.pi),
     st.lists(st.floats(0.2, 3.0), min_size=4, max_size=4),
 )
 def test_bounds_prefilter_never_hides_an_overlap(offset, yaw_a, yaw_b, half):
@@ -439,8 +555,23 @@ def test_bounds_prefilter_never_hides_an_overlap(offset, yaw_a, yaw_b, half):
     touch; that must never skip a pair that overlaps."""
     from evgrid.data.sim.world import _aabbs, _overlap, _touch
 
-    a = pack_boxes(np.zeros(1), np.zeros(1), np.array([yaw_a]), np.array([half[0]]), np.array([half[1]]), np.zeros(1), np.ones(1))
-    b = pack_boxes(np.array([offset[0]]), np.array([offset[1]]), np.array([yaw_b]), np.array([half[2]]), np.array([half[3]]),
-                   np.zeros(1), np.ones(1))
+    a = pack_boxes(
+        np.zeros(1),
+        np.zeros(1),
+        np.array([yaw_a]),
+        np.array([half[0]]),
+        np.array([half[1]]),
+        np.zeros(1),
+        np.ones(1),
+    )
+    b = pack_boxes(
+        np.array([offset[0]]),
+        np.array([offset[1]]),
+        np.array([yaw_b]),
+        np.array([half[2]]),
+        np.array([half[3]]),
+        np.zeros(1),
+        np.ones(1),
+    )
     if _overlap(a, b)[0]:
         assert _touch(_aabbs(a), _aabbs(b))[0]

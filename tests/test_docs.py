@@ -14,7 +14,6 @@ EQUATIONS = DOCS / "equations.md"
 CITING = ("src", "tests", "benchmarks")
 
 
-
 def slug(heading: str) -> str:
     """GitHub's anchor of a Markdown heading: lower case, punctuation dropped, spaces to hyphens."""
     s = heading.strip().lower()
@@ -77,7 +76,9 @@ def equation_names() -> list[str]:
         header, rows = table_rows(text, first)
         modules = [h.strip("`") if re.fullmatch(r"`evgrid(\.\w+)+`", h) else None for h in header]
         for row in rows:
-            assert len(row) == len(header), f"row {row[0]} has {len(row)} cells, the header {len(header)}"
+            assert len(row) == len(header), (
+                f"row {row[0]} has {len(row)} cells, the header {len(header)}"
+            )
             for module, cell in zip(modules, row):
                 for name in re.findall(r"`([\w.]+)`", cell):
                     if name.startswith("evgrid."):
@@ -117,7 +118,9 @@ def test_tests_named_in_the_equation_table_exist():
     assert cited
     for name, path in cited:
         files = [ROOT / path] if path else sorted((ROOT / "tests").glob("test_*.py"))
-        assert any(f"def {name}(" in f.read_text() for f in files), f"no test {name} in {path or 'tests/'}"
+        assert any(f"def {name}(" in f.read_text() for f in files), (
+            f"no test {name} in {path or 'tests/'}"
+        )
 
 
 def _sources() -> list[Path]:
@@ -131,7 +134,10 @@ def test_cited_docs_anchors_exist():
         text = f.read_text()
         cited += [(f, p, a) for p, a in re.findall(r"(docs/[\w/.-]+?\.md)(?:#([\w-]+))?", text)]
         if f.parent == DOCS:  # relative links between the notes
-            cited += [(f, f"docs/{p}", a) for p, a in re.findall(r"\]\(([\w-]+\.md)(?:#([\w-]+))?\)", text)]
+            cited += [
+                (f, f"docs/{p}", a)
+                for p, a in re.findall(r"\]\(([\w-]+\.md)(?:#([\w-]+))?\)", text)
+            ]
     assert len(cited) > 20
     bad = []
     for f, path, anchor in cited:
@@ -155,7 +161,11 @@ _DESIGN = re.compile(r"\bDESIGN\b")
 
 def test_no_citations_of_the_private_design_notes():
     here = Path(__file__).resolve()
-    citing = {str(f.relative_to(ROOT)) for f in _sources() if f.resolve() != here and _DESIGN.search(f.read_text())}
+    citing = {
+        str(f.relative_to(ROOT))
+        for f in _sources()
+        if f.resolve() != here and _DESIGN.search(f.read_text())
+    }
     assert not citing, "cite docs/ or the paper's equation numbers instead of DESIGN"
 
 

@@ -8,14 +8,30 @@ import numpy as np
 import pytest
 
 from evgrid import mass
-from evgrid.evaluate import FREE, OCCUPIED, UNKNOWN, classify, compare_maps, iou_per_class, markdown_table, mean_iou
+from evgrid.evaluate import (
+    FREE,
+    OCCUPIED,
+    UNKNOWN,
+    classify,
+    compare_maps,
+    iou_per_class,
+    markdown_table,
+    mean_iou,
+)
 from evgrid.fusion import MapSet
 from evgrid.geometry import SE2, GridSpec
 
 
 def test_classify_largest_mass_ties_to_unknown():
     m = np.array(
-        [[0.6, 0.3, 0.1], [0.1, 0.6, 0.3], [0.2, 0.2, 0.6], [0.4, 0.4, 0.2], [0.45, 0.1, 0.45], [0, 0, 1]],
+        [
+            [0.6, 0.3, 0.1],
+            [0.1, 0.6, 0.3],
+            [0.2, 0.2, 0.6],
+            [0.4, 0.4, 0.2],
+            [0.45, 0.1, 0.45],
+            [0, 0, 1],
+        ],
         np.float32,
     )
     assert classify(m).tolist() == [FREE, OCCUPIED, UNKNOWN, UNKNOWN, UNKNOWN, UNKNOWN]
@@ -26,7 +42,11 @@ def test_iou_hand_computed():
     ref = np.array([FREE, OCCUPIED, OCCUPIED, UNKNOWN, FREE])
     got = iou_per_class(pred, ref)
     # free: inter {0}, union {0, 1, 4} -> 1/3; occupied: inter {2}, union {1, 2} -> 1/2; unknown: {3} / {3, 4}
-    assert got == {"free": pytest.approx(1 / 3), "occupied": pytest.approx(0.5), "unknown": pytest.approx(0.5)}
+    assert got == {
+        "free": pytest.approx(1 / 3),
+        "occupied": pytest.approx(0.5),
+        "unknown": pytest.approx(0.5),
+    }
     mask = np.array([True, False, True, True, False])
     assert iou_per_class(pred, ref, mask) == {"free": 1.0, "occupied": 1.0, "unknown": 1.0}
     assert math.isnan(iou_per_class(np.array([FREE]), np.array([FREE]))["occupied"])
@@ -56,7 +76,11 @@ def test_mean_iou_skips_undefined_and_table_lists_paper():
         {"fused": {"free": 0.7, "occupied": 0.1, "unknown": 0.4}},
     ]
     m = mean_iou(per_scene)
-    assert m["fused"] == {"free": pytest.approx(0.6), "occupied": pytest.approx(0.1), "unknown": pytest.approx(0.3)}
+    assert m["fused"] == {
+        "free": pytest.approx(0.6),
+        "occupied": pytest.approx(0.1),
+        "unknown": pytest.approx(0.3),
+    }
     table = markdown_table(m)
     assert "| `fused` | 60.00 | 10.00 | 30.00 | 76.88 | 5.44 | 45.69 |" in table
 
@@ -72,6 +96,8 @@ def test_free_fraction_near_path_hand_computed():
     m.apply(MapWindow(0, 0, masses, np.ones(grid.shape, bool)), lambda c, w: np.copyto(c, w))
     # a path along the boundary between the halves: x in the map frame is -row, y is -col
     path = [(-(r + 0.5) * 0.1, -8.05 * 0.1, 0.0) for r in range(16)]
-    assert free_fraction_near_path(m, path, radius_m=0.05) == 0.0  # only the path's own cells (column 8)
+    assert (
+        free_fraction_near_path(m, path, radius_m=0.05) == 0.0
+    )  # only the path's own cells (column 8)
     # within 0.35 m: columns 5..11 of every row, 3 of them free on the left of column 8
     assert abs(free_fraction_near_path(m, path, radius_m=0.35) - 3 / 7) < 1e-9

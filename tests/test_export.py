@@ -10,22 +10,41 @@ import pytest
 from evgrid.config import MapperConfig
 from evgrid.data import SimConfig, simulate_scene
 from evgrid.export import FORMATS, export_map, make_observer
-from evgrid.export.nav2 import FREE, OCCUPIED, UNKNOWN, Nav2Thresholds, classify, read_nav2, write_nav2
+from evgrid.export.nav2 import (
+    FREE,
+    OCCUPIED,
+    UNKNOWN,
+    Nav2Thresholds,
+    classify,
+    read_nav2,
+    write_nav2,
+)
 from evgrid.geometry import GridSpec
 from evgrid.grid import EvidentialMap
 from evgrid.mapper import OccupancyMapper
 
-O, F, U = OCCUPIED, FREE, UNKNOWN
+O, F, U = OCCUPIED, FREE, UNKNOWN  # noqa: E741 (reads as the map it checks)
 
 
 def _three_by_three() -> EvidentialMap:
     """Map cells R, C in 0..2 (rows towards -x, columns towards -y), 0.1 m cells."""
     m = EvidentialMap(GridSpec(8, 0.8), tile_cells=8)
-    masses = np.array([
-        [[0.0, 0.9, 0.1], [0.9, 0.0, 0.1], [0.1, 0.3, 0.6]],     # P(occ) .95 occ, .05 free, m_u .6 > .5 unknown
-        [[0.3, 0.4, 0.3], [0.7, 0.1, 0.2], [0.8, 0.05, 0.15]],   # .55 unknown, .2 unknown (>= .196), .125 free
-        [[0.0, 0.6, 0.4], [0.25, 0.45, 0.3], [0.05, 0.7, 0.25]],  # .8 occ, .6 unknown, .825 occ
-    ], dtype=np.float32)
+    masses = np.array(
+        [
+            [
+                [0.0, 0.9, 0.1],
+                [0.9, 0.0, 0.1],
+                [0.1, 0.3, 0.6],
+            ],  # P(occ) .95 occ, .05 free, m_u .6 > .5 unknown
+            [
+                [0.3, 0.4, 0.3],
+                [0.7, 0.1, 0.2],
+                [0.8, 0.05, 0.15],
+            ],  # .55 unknown, .2 unknown (>= .196), .125 free
+            [[0.0, 0.6, 0.4], [0.25, 0.45, 0.3], [0.05, 0.7, 0.25]],  # .8 occ, .6 unknown, .825 occ
+        ],
+        dtype=np.float32,
+    )
     tile = m._tile((0, 0))[0]
     tile[:3, :3] = masses
     m.covered_tiles[(0, 0)][:3, :3] = True
@@ -50,14 +69,22 @@ def test_nav2_hand_computed_three_by_three(tmp_path):
     # the lower-left cell (i = 0, j = 0) is centred at x = y = -0.25 m: map cell R = C = 2
     assert m.grid.map_xy_to_cell(-0.25, -0.25) == (2, 2)
     text = yml.read_text()
-    for key in ("image: map.pgm", "mode: trinary", "negate: 0", "occupied_thresh: 0.65", "free_thresh: 0.196"):
+    for key in (
+        "image: map.pgm",
+        "mode: trinary",
+        "negate: 0",
+        "occupied_thresh: 0.65",
+        "free_thresh: 0.196",
+    ):
         assert key in text
 
 
 def test_classify_thresholds():
     m = np.array([[0.0, 0.6, 0.4], [0.5, 0.0, 0.5], [0.0, 0.3, 0.7]], np.float32)
     np.testing.assert_array_equal(classify(m), [O, U, U])  # .8 occ; P .25 unknown; m_u .7 unknown
-    np.testing.assert_array_equal(classify(m, th=Nav2Thresholds(free_thresh=0.3, unknown_mass=0.8)), [O, F, U])
+    np.testing.assert_array_equal(
+        classify(m, th=Nav2Thresholds(free_thresh=0.3, unknown_mass=0.8)), [O, F, U]
+    )
     np.testing.assert_array_equal(classify(m, covered=np.array([False, True, True])), [U, U, U])
     with pytest.raises(ValueError, match="free_thresh"):
         Nav2Thresholds(occupied_thresh=0.2, free_thresh=0.3)
@@ -71,14 +98,19 @@ def run(tmp_path_factory):
     pytest.importorskip("rosbags")
     pytest.importorskip("mcap")
     out = tmp_path_factory.mktemp("run")
-    obs = [make_observer("mcap", out / "run.mcap"), make_observer("nav2", out / "nav2", maps=("fused",))]
+    obs = [
+        make_observer("mcap", out / "run.mcap"),
+        make_observer("nav2", out / "nav2", maps=("fused",)),
+    ]
     try:
         import rerun  # noqa: F401
 
         obs.append(make_observer("rerun", out / "run.rrd"))
     except ImportError:
         pass
-    mapper = OccupancyMapper(MapperConfig(maps=("ray_ilm", "ray_irm", "fused")), observers=tuple(obs))
+    mapper = OccupancyMapper(
+        MapperConfig(maps=("ray_ilm", "ray_irm", "fused")), observers=tuple(obs)
+    )
     frames = list(simulate_scene(2, SimConfig(duration_s=1.0)))
     for f in frames:
         mapper.process(f)
@@ -95,8 +127,10 @@ def _decoded(path, start_ns: int = 0):
 
     with open(path, "rb") as fh:
         reader = make_reader(fh, decoder_factories=[DecoderFactory()])
-        return [(ch.topic, schema.name, msg.log_time, dec)
-                for schema, ch, msg, dec in reader.iter_decoded_messages(starting_at=start_ns)]
+        return [
+            (ch.topic, schema.name, msg.log_time, dec)
+            for schema, ch, msg, dec in reader.iter_decoded_messages(starting_at=start_ns)
+        ]
 
 
 def _topic_counts(path) -> dict[str, int]:
@@ -104,14 +138,18 @@ def _topic_counts(path) -> dict[str, int]:
 
     with open(path, "rb") as fh:
         summary = make_reader(fh).get_summary()
-    return {summary.channels[k].topic: n for k, n in summary.statistics.channel_message_counts.items()}
+    return {
+        summary.channels[k].topic: n for k, n in summary.statistics.channel_message_counts.items()
+    }
 
 
 def test_mcap_run_reads_back_with_the_reference_reader(run):
     mapper, frames, out = run
     counts = _topic_counts(out / "run.mcap")
     assert counts["/tf"] == mapper.n_updates
-    msgs = _decoded(out / "run.mcap", frames[-2].timestamp * 1000)  # the last pose (updates: every other frame), final maps
+    msgs = _decoded(
+        out / "run.mcap", frames[-2].timestamp * 1000
+    )  # the last pose (updates: every other frame), final maps
     tfs = [d for t, _, _, d in msgs if t == "/tf"]
     x, y, yaw = mapper.trajectory[-1]
     tr = tfs[-1].transforms[0]
@@ -129,20 +167,28 @@ def test_mcap_run_reads_back_with_the_reference_reader(run):
         res = m.grid.resolution
         g = grids[-1]
         assert (g.info.width, g.info.height, g.info.resolution) == (h, w, res)
-        assert (g.info.origin.position.x, g.info.origin.position.y) == pytest.approx((-(r0 + h) * res, -(c0 + w) * res))
+        assert (g.info.origin.position.x, g.info.origin.position.y) == pytest.approx(
+            (-(r0 + h) * res, -(c0 + w) * res)
+        )
         masses, cov = m.read(r0, c0, h, w)
         data = np.asarray(g.data, dtype=np.int8).reshape(w, h)  # rows along +y, columns along +x
         # cell (i, j) is map cell R = r0 + h - 1 - i, C = c0 + w - 1 - j
-        want = np.clip(np.rint(100 * (masses[..., 1] + 0.5 * masses[..., 2])), 0, 100).astype(np.int8)
+        want = np.clip(np.rint(100 * (masses[..., 1] + 0.5 * masses[..., 2])), 0, 100).astype(
+            np.int8
+        )
         want[classify(masses, cov) == UNKNOWN] = -1
         np.testing.assert_array_equal(data, want[::-1, ::-1].T)
         gm = gms[-1]
         assert list(gm.layers) == ["m_free", "m_occupied", "m_unknown"]
         assert (gm.info.resolution, gm.info.length_x, gm.info.length_y) == (res, h * res, w * res)
-        assert (gm.info.pose.position.x, gm.info.pose.position.y) == pytest.approx((-(r0 + h / 2) * res, -(c0 + w / 2) * res))
+        assert (gm.info.pose.position.x, gm.info.pose.position.y) == pytest.approx(
+            (-(r0 + h / 2) * res, -(c0 + w / 2) * res)
+        )
         for k, layer in enumerate(gm.data):
             assert [d.label for d in layer.layout.dim] == ["column_index", "row_index"]
-            np.testing.assert_array_equal(np.asarray(layer.data, np.float32).reshape(w, h).T, masses[..., k])
+            np.testing.assert_array_equal(
+                np.asarray(layer.data, np.float32).reshape(w, h).T, masses[..., k]
+            )
 
 
 def test_rerun_recording_has_maps_isms_and_trajectory(run):
@@ -150,14 +196,25 @@ def test_rerun_recording_has_maps_isms_and_trajectory(run):
     _, _, out = run
     rec = rr.dataframe.load_recording(str(out / "run.rrd"))
     paths = {c.entity_path for c in rec.schema().component_columns()}
-    for p in ("/trajectory", "/ego", "/maps/fused", "/isms/ray_ilm", "/isms/ray_irm", "/final/fused"):
+    for p in (
+        "/trajectory",
+        "/ego",
+        "/maps/fused",
+        "/isms/ray_ilm",
+        "/isms/ray_irm",
+        "/final/fused",
+    ):
         assert p in paths
 
 
 def test_export_map_every_format(run, tmp_path):
     mapper, _, out = run
     m = mapper.maps.maps["fused"]
-    files = {f: export_map(m, tmp_path / "fused", f) for f in FORMATS if f != "rerun" or "rerun" in sys.modules}
+    files = {
+        f: export_map(m, tmp_path / "fused", f)
+        for f in FORMATS
+        if f != "rerun" or "rerun" in sys.modules
+    }
     assert [p.name for p in files["nav2"]] == ["fused.pgm", "fused.yaml"]
     # the run's nav2 observer wrote the same final map (and only the one asked for)
     assert sorted(p.name for p in (out / "nav2").iterdir()) == ["fused.pgm", "fused.yaml"]
@@ -169,7 +226,10 @@ def test_export_map_every_format(run, tmp_path):
     # the OccupancyGrid and the nav2 map agree on every cell they both call free or occupied
     occ = np.asarray(grid.data, np.int8).reshape(w, h)
     assert np.array_equal(occ == -1, data == -1)
-    assert np.array_equal(data[data == 100], np.full((data == 100).sum(), 100)) and (occ[data == 100] >= 65).all()
+    assert (
+        np.array_equal(data[data == 100], np.full((data == 100).sum(), 100))
+        and (occ[data == 100] >= 65).all()
+    )
     with pytest.raises(ValueError, match="nav2"):
         export_map(m, tmp_path / "x", "png")
     with pytest.raises(ValueError, match="rerun"):

@@ -14,13 +14,17 @@ def test_a_run_writes_the_exports_it_is_asked_for(tmp_path):
     scene = simulate_scene(4, SimConfig(duration_s=1.0))
     outputs = OutputConfig(figures=False, exports=("nav2", "mcap"))
     res = map_scene(scene, tmp_path / "run", MapperConfig(maps=("ray_ilm", "ray_irm")), outputs)
-    assert (tmp_path / "run" / "nav2" / "ray_ilm.yaml").is_file() and (tmp_path / "run" / "nav2" / "ray_irm.pgm").is_file()
+    assert (tmp_path / "run" / "nav2" / "ray_ilm.yaml").is_file() and (
+        tmp_path / "run" / "nav2" / "ray_irm.pgm"
+    ).is_file()
     assert (tmp_path / "run" / f"{scene.name}.mcap").stat().st_size > 0
     assert set(res.files) >= {"export_nav2", "export_mcap", "metrics", "config"}
 
 
 def test_exports_are_part_of_the_run_config():
-    back = RunConfig.from_dict(RunConfig(outputs=OutputConfig(exports=("mcap",), export_window_m=50.0)).to_dict())
+    back = RunConfig.from_dict(
+        RunConfig(outputs=OutputConfig(exports=("mcap",), export_window_m=50.0)).to_dict()
+    )
     assert back.outputs.exports == ("mcap",) and back.outputs.export_window_m == 50.0
     with pytest.raises(ConfigError, match="unknown format"):
         RunConfig.from_dict({"outputs": {"exports": ["png"]}})

@@ -202,8 +202,11 @@ def _maps_equal(a: MapSet, b: MapSet) -> None:
 @settings(max_examples=25, deadline=None)
 @given(
     names=st.lists(st.sampled_from(MAP_NAMES), min_size=1, max_size=6, unique=True),
-    poses=st.lists(st.tuples(st.floats(-3.0, 3.0), st.floats(-3.0, 3.0), st.floats(-math.pi, math.pi)),
-                   min_size=1, max_size=3),
+    poses=st.lists(
+        st.tuples(st.floats(-3.0, 3.0), st.floats(-3.0, 3.0), st.floats(-math.pi, math.pi)),
+        min_size=1,
+        max_size=3,
+    ),
     tile_cells=st.sampled_from([8, 24, 256]),
     seed=st.integers(0, 2**16),
 )
@@ -234,7 +237,9 @@ def test_one_pass_update_rejects_bad_isms_naming_them():
     ms = MapSet(GridSpec(16, 2.0), P, ("fused",))
     good = np.zeros((16, 16, 3), np.float32)
     good[..., 2] = 1
-    with pytest.raises(ValueError, match=r"deep_irm: the local grid must be .* shape \(16, 16, 3\)"):
+    with pytest.raises(
+        ValueError, match=r"deep_irm: the local grid must be .* shape \(16, 16, 3\)"
+    ):
         ms.update(SE2(), {"deep_irm": good[:8], "ray_irm": good})
     with pytest.raises(ValueError, match="deep_irm: the local grid must be a numeric array"):
         ms.update(SE2(), {"deep_irm": good.astype(str), "ray_irm": good})

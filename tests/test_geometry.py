@@ -74,7 +74,11 @@ def test_se2_compose_inverse_apply():
         SE2(float("nan"), 0, 0)
 
 
-@given(st.lists(st.floats(-1, 1), min_size=4, max_size=4).filter(lambda q: sum(v * v for v in q) > 0.01))
+@given(
+    st.lists(st.floats(-1, 1), min_size=4, max_size=4).filter(
+        lambda q: sum(v * v for v in q) > 0.01
+    )
+)
 def test_quaternion_roundtrip(q):
     r = quaternion_to_matrix(q)
     np.testing.assert_allclose(r @ r.T, np.eye(3), atol=1e-9)
@@ -116,7 +120,11 @@ def test_composition_skips_validation_but_equals_the_checked_pose(monkeypatch):
     d = SE3.identity() @ SE3.from_se2(c.to_se2())
     assert calls == []
     assert c == SE3(c.rotation, c.translation) and len(calls) == 1
-    assert d.rotation.shape == (3, 3) and d.translation.shape == (3,) and d.rotation.dtype == np.float64
+    assert (
+        d.rotation.shape == (3, 3)
+        and d.translation.shape == (3,)
+        and d.rotation.dtype == np.float64
+    )
     with pytest.raises(ValueError, match="finite"):
         SE3.from_se2(SE2(0.0, 0.0, 0.0), float("inf"))
     with pytest.raises(ValueError, match="finite"):

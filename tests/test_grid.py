@@ -12,7 +12,15 @@ from hypothesis import strategies as st
 from evgrid import mass
 from evgrid.fusion import update_ray_ilm
 from evgrid.geometry import SE2, GridSpec
-from evgrid.grid import EvidentialMap, MapFileError, MapWindow, Warper, load_map, save_map, warp_to_map
+from evgrid.grid import (
+    EvidentialMap,
+    MapFileError,
+    MapWindow,
+    Warper,
+    load_map,
+    save_map,
+    warp_to_map,
+)
 from tests.strategies import random_masses
 
 SPEC = GridSpec(64, 5.0)  # small grids keep the tests fast; the code is size-agnostic
@@ -43,7 +51,9 @@ def test_whole_cell_translation_is_exact():
     w = warp_to_map(local, SE2(3 * RES, -5 * RES, 0.0), SPEC)
     # x forward by 3 cells = 3 rows up, y left by -5 cells = 5 columns right
     R, C = -32 - 3, -32 + 5
-    np.testing.assert_array_equal(w.masses[R - w.r0 : R - w.r0 + 64, C - w.c0 : C - w.c0 + 64], local)
+    np.testing.assert_array_equal(
+        w.masses[R - w.r0 : R - w.r0 + 64, C - w.c0 : C - w.c0 + 64], local
+    )
 
 
 def test_90_degree_yaw_and_translation_move_a_cell_where_hand_computation_says():
@@ -79,7 +89,9 @@ def test_half_cell_shift_mixes_bilinearly_with_vacuous_outside():
     w = warp_to_map(local, SE2(0.5 * RES, 0.0, 0.0), SPEC)
     # shifted half a cell forward: map cells R = -33 and -32 each get half of the mark
     for R in (-33, -32):
-        np.testing.assert_allclose(w.masses[R - w.r0, -12 - w.c0], 0.5 * MARK + 0.5 * np.float32([0, 0, 1]), atol=1e-6)
+        np.testing.assert_allclose(
+            w.masses[R - w.r0, -12 - w.c0], 0.5 * MARK + 0.5 * np.float32([0, 0, 1]), atol=1e-6
+        )
     np.testing.assert_allclose(w.masses.sum(-1), 1.0, atol=1e-6)
 
 
@@ -109,7 +121,9 @@ def test_grown_map_matches_a_fixed_large_map():
         h, wd = w.shape
         update_ray_ilm(dense[w.r0 + off : w.r0 + off + h, w.c0 + off : w.c0 + off + wd], w.masses)
     m, cov, r0, c0 = tiled.to_dense()
-    np.testing.assert_array_equal(m, dense[r0 + off : r0 + off + m.shape[0], c0 + off : c0 + off + m.shape[1]])
+    np.testing.assert_array_equal(
+        m, dense[r0 + off : r0 + off + m.shape[0], c0 + off : c0 + off + m.shape[1]]
+    )
     # outside the tiles nothing was touched
     inside = np.zeros((size, size), bool)
     inside[r0 + off : r0 + off + m.shape[0], c0 + off : c0 + off + m.shape[1]] = True
@@ -189,7 +203,9 @@ def test_failed_save_keeps_the_previous_file(tmp_path, monkeypatch):
     assert [p.name for p in tmp_path.iterdir()] == ["m.npz"]
 
 
-def _numpy_warp_reference(local: np.ndarray, pose: SE2, grid: GridSpec, r0: int, c0: int, h: int, w: int) -> np.ndarray:
+def _numpy_warp_reference(
+    local: np.ndarray, pose: SE2, grid: GridSpec, r0: int, c0: int, h: int, w: int
+) -> np.ndarray:
     """Bilinear resampling written plainly: map cell centre -> ego frame -> continuous local index."""
     R, C = np.meshgrid(np.arange(r0, r0 + h), np.arange(c0, c0 + w), indexing="ij")
     x, y = grid.map_cell_to_xy(R, C)
@@ -202,8 +218,12 @@ def _numpy_warp_reference(local: np.ndarray, pose: SE2, grid: GridSpec, r0: int,
     ok = (u > -1) & (v > -1) & (u < n) & (v < n)
     iu, iv = np.floor(u[ok]).astype(int) + 1, np.floor(v[ok]).astype(int) + 1
     fu, fv = (u[ok] + 1 - iu)[:, None], (v[ok] + 1 - iv)[:, None]
-    out[ok] = ((1 - fu) * (1 - fv) * padded[iu, iv] + (1 - fu) * fv * padded[iu, iv + 1]
-               + fu * (1 - fv) * padded[iu + 1, iv] + fu * fv * padded[iu + 1, iv + 1])
+    out[ok] = (
+        (1 - fu) * (1 - fv) * padded[iu, iv]
+        + (1 - fu) * fv * padded[iu, iv + 1]
+        + fu * (1 - fv) * padded[iu + 1, iv]
+        + fu * fv * padded[iu + 1, iv + 1]
+    )
     return out
 
 
@@ -237,7 +257,9 @@ def test_warp_matches_a_plain_numpy_reference_on_dense_grids(deg):
 
 @settings(max_examples=60, deadline=None)
 @given(
-    x=st.floats(-6.0, 6.0), y=st.floats(-6.0, 6.0), yaw=st.floats(-math.pi, math.pi),
+    x=st.floats(-6.0, 6.0),
+    y=st.floats(-6.0, 6.0),
+    yaw=st.floats(-math.pi, math.pi),
 )
 def test_spans_are_exactly_the_covered_cells_and_the_rest_is_vacuous(x, y, yaw):
     pose = SE2(x, y, yaw)
@@ -247,7 +269,9 @@ def test_spans_are_exactly_the_covered_cells_and_the_rest_is_vacuous(x, y, yaw):
     cols = np.arange(wd)
     from_spans = (cols >= w.spans[:, :1]) & (cols < w.spans[:, 1:])
     np.testing.assert_array_equal(from_spans, w.covered)
-    np.testing.assert_array_equal(w.masses[~w.covered], np.tile(np.float32([0, 0, 1]), ((~w.covered).sum(), 1)))
+    np.testing.assert_array_equal(
+        w.masses[~w.covered], np.tile(np.float32([0, 0, 1]), ((~w.covered).sum(), 1))
+    )
     # coverage is the local square (-1, n) in continuous local indices, up to rounding at its edge
     R, C = np.meshgrid(np.arange(w.r0, w.r0 + h), np.arange(w.c0, w.c0 + wd), indexing="ij")
     lx, ly = SE2.inverse(pose).apply(np.stack(SPEC.map_cell_to_xy(R, C), -1)).transpose(2, 0, 1)
@@ -290,8 +314,11 @@ def test_a_window_built_by_hand_without_spans_fuses_its_covered_rows_whole():
 
 @settings(max_examples=50, deadline=None)
 @given(
-    x=st.floats(-4.0, 4.0), y=st.floats(-4.0, 4.0), yaw=st.floats(-math.pi, math.pi),
-    sparse=st.booleans(), seed=st.integers(0, 2**16),
+    x=st.floats(-4.0, 4.0),
+    y=st.floats(-4.0, 4.0),
+    yaw=st.floats(-math.pi, math.pi),
+    sparse=st.booleans(),
+    seed=st.integers(0, 2**16),
 )
 def test_warp_matches_the_numpy_reference_at_any_pose(x, y, yaw, sparse, seed):
     """Blocks are skipped only where the local grid is vacuous, at any pose."""
@@ -299,7 +326,9 @@ def test_warp_matches_the_numpy_reference_at_any_pose(x, y, yaw, sparse, seed):
     rng = np.random.default_rng(seed)
     local = random_masses(rng, grid.shape)
     if sparse:  # a few informative 8 x 8 blocks and scattered cells
-        keep = np.kron(rng.random((6, 6)) < 0.2, np.ones((8, 8), bool)) | (rng.random(grid.shape) < 0.01)
+        keep = np.kron(rng.random((6, 6)) < 0.2, np.ones((8, 8), bool)) | (
+            rng.random(grid.shape) < 0.01
+        )
         local[~keep] = [0, 0, 1]
     pose = SE2(x, y, yaw)
     w = warp_to_map(local, pose, grid)

@@ -19,7 +19,14 @@ import torch
 from safetensors.torch import save, save_file
 
 from evgrid.ism.deep import default_checkpoint
-from evgrid.ism.evnet import CheckpointError, EvNet, EvNetConfig, load_checkpoint, save_checkpoint, upgrade_checkpoint
+from evgrid.ism.evnet import (
+    CheckpointError,
+    EvNet,
+    EvNetConfig,
+    load_checkpoint,
+    save_checkpoint,
+    upgrade_checkpoint,
+)
 
 TINY = EvNetConfig(in_channels=3, width=4, pool=2, depth=2)
 
@@ -51,7 +58,9 @@ def test_a_flipped_exponent_bit_is_caught_by_the_checksum(tmp_path):
     w = _net().state_dict()[name].reshape(-1)
     i = int(torch.nonzero((w.abs() < 1) & (w != 0))[0])  # |w| < 1: the flipped value stays finite
     buf = bytearray(path.read_bytes())
-    buf[start + header[name]["data_offsets"][0] + 4 * i + 3] ^= 0x40  # an exponent bit (little-endian float32)
+    buf[start + header[name]["data_offsets"][0] + 4 * i + 3] ^= (
+        0x40  # an exponent bit (little-endian float32)
+    )
     bad = tmp_path / "flipped.safetensors"
     bad.write_bytes(bytes(buf))
     with pytest.raises(CheckpointError, match=r"flipped\.safetensors.*checksum"):
@@ -67,18 +76,31 @@ def test_int32_weights_are_refused(tmp_path):
 
 def test_an_oversized_architecture_fails_fast_without_allocating(tmp_path):
     path = tmp_path / "huge.safetensors"
-    save_file({"w": torch.zeros(1)}, str(path), metadata=_v1_meta({"in_channels": 6, "width": 4000, "pool": 4, "depth": 4}))
+    save_file(
+        {"w": torch.zeros(1)},
+        str(path),
+        metadata=_v1_meta({"in_channels": 6, "width": 4000, "pool": 4, "depth": 4}),
+    )
     assert path.stat().st_size < 300
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     t0 = time.perf_counter()
-    with pytest.raises(CheckpointError, match=r"huge\.safetensors.*'config\.width' must be an integer in \[1, 512\]"):
+    with pytest.raises(
+        CheckpointError,
+        match=r"huge\.safetensors.*'config\.width' must be an integer in \[1, 512\]",
+    ):
         load_checkpoint(path)
     # within the per-field bounds, but far too many parameters together
-    save_file({"w": torch.zeros(1)}, str(path), metadata=_v1_meta({"in_channels": 64, "width": 512, "pool": 4, "depth": 8}))
+    save_file(
+        {"w": torch.zeros(1)},
+        str(path),
+        metadata=_v1_meta({"in_channels": 64, "width": 512, "pool": 4, "depth": 8}),
+    )
     with pytest.raises(CheckpointError, match=r"huge\.safetensors.*parameters, more than"):
         load_checkpoint(path)
     assert time.perf_counter() - t0 < 5.0
-    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss0 < 200_000  # kB: no GB-sized tensors
+    assert (
+        resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss0 < 200_000
+    )  # kB: no GB-sized tensors
 
 
 @pytest.mark.parametrize(
@@ -93,7 +115,10 @@ def test_an_oversized_architecture_fails_fast_without_allocating(tmp_path):
         (_v1_meta('{"in_channels": 3, "width": 4, "pool": 2, "depth": 2, "heads": 9}'), "config"),
         (_v1_meta('{"in_channels": 3, "width": -4, "pool": 2, "depth": 2}'), "config.width"),
         (_v1_meta('{"in_channels": 3, "width": 4.5, "pool": 2, "depth": 2}'), "config.width"),
-        (_v1_meta('{"in_channels": true, "width": 4, "pool": 2, "depth": 2}'), "config.in_channels"),
+        (
+            _v1_meta('{"in_channels": true, "width": 4, "pool": 2, "depth": 2}'),
+            "config.in_channels",
+        ),
         ({**_v1_meta(), "extra": "{broken"}, "extra"),
         ({**_v1_meta(), "extra": "[1, 2]"}, "extra"),
         ({**_v1_meta(), "extra": '{"grid": "garbage"}'}, "extra.grid"),

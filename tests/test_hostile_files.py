@@ -47,6 +47,7 @@ def _garble_member(src: Path, dst: Path, member: str) -> None:
 
 # --- scene files ------------------------------------------------------------------------------------
 
+
 def test_an_empty_scene_file_names_the_file(tmp_path):
     (tmp_path / "empty.npz").write_bytes(b"")
     with pytest.raises(SceneFileError, match=r"empty\.npz: the scene file is empty"):
@@ -62,11 +63,15 @@ def test_a_truncated_scene_file_names_the_file(scene_file, tmp_path):
             load_sim_scene(path)
 
 
-@pytest.mark.parametrize("member", ["meta.npy", "timestamps.npy", "radar_RADAR_FRONT_points.npy", "lidar_points.npy"])
+@pytest.mark.parametrize(
+    "member", ["meta.npy", "timestamps.npy", "radar_RADAR_FRONT_points.npy", "lidar_points.npy"]
+)
 def test_a_corrupt_array_names_the_file_and_the_array(scene_file, tmp_path, member):
     path = tmp_path / "garbled.npz"
     _garble_member(scene_file, path, member)
-    with pytest.raises(SceneFileError, match=rf"garbled\.npz: .*{member[:-4]}|garbled\.npz: .*corrupt"):
+    with pytest.raises(
+        SceneFileError, match=rf"garbled\.npz: .*{member[:-4]}|garbled\.npz: .*corrupt"
+    ):
         load_sim_scene(path)
 
 
@@ -74,18 +79,46 @@ def test_a_corrupt_array_names_the_file_and_the_array(scene_file, tmp_path, memb
     "change, says",
     [
         (lambda d: d.pop("lidar_offsets"), "'lidar_offsets' is missing"),
-        (lambda d: d.pop("radar_RADAR_BACK_LEFT_labels"), "'radar_RADAR_BACK_LEFT_labels' is missing"),
+        (
+            lambda d: d.pop("radar_RADAR_BACK_LEFT_labels"),
+            "'radar_RADAR_BACK_LEFT_labels' is missing",
+        ),
         (lambda d: d.__setitem__("meta", np.array("{not json")), "'meta' is not JSON"),
         (lambda d: d.__setitem__("meta", np.array("[1, 2]")), "'meta' must hold a JSON object"),
-        (lambda d: d.__setitem__("meta", np.array(json.dumps({**json.loads(str(d["meta"])), "seed": "x"}))), "'seed'"),
-        (lambda d: d["lidar_offsets"].__setitem__(-1, d["lidar_offsets"][-1] + 7), "'lidar_offsets' does not index"),
+        (
+            lambda d: d.__setitem__(
+                "meta", np.array(json.dumps({**json.loads(str(d["meta"])), "seed": "x"}))
+            ),
+            "'seed'",
+        ),
+        (
+            lambda d: d["lidar_offsets"].__setitem__(-1, d["lidar_offsets"][-1] + 7),
+            "'lidar_offsets' does not index",
+        ),
         (lambda d: d.__setitem__("ego_poses", d["ego_poses"][:-1]), "'ego_poses' has shape"),
-        (lambda d: d.__setitem__("radar_RADAR_FRONT_frame", d["radar_RADAR_FRONT_frame"] + 10_000), "names frames outside"),
+        (
+            lambda d: d.__setitem__(
+                "radar_RADAR_FRONT_frame", d["radar_RADAR_FRONT_frame"] + 10_000
+            ),
+            "names frames outside",
+        ),
         (lambda d: d.__setitem__("occupancy", d["occupancy"][:0]), "'occupancy' holds 0 keyframes"),
     ],
-    ids=["no-lidar-offsets", "no-radar-labels", "meta-not-json", "meta-list", "bad-seed", "offsets", "poses", "frames", "occupancy"],
+    ids=[
+        "no-lidar-offsets",
+        "no-radar-labels",
+        "meta-not-json",
+        "meta-list",
+        "bad-seed",
+        "offsets",
+        "poses",
+        "frames",
+        "occupancy",
+    ],
 )
-def test_an_inconsistent_scene_file_names_the_file_and_the_array(scene_file, tmp_path, change, says):
+def test_an_inconsistent_scene_file_names_the_file_and_the_array(
+    scene_file, tmp_path, change, says
+):
     d = _arrays(scene_file)
     change(d)
     path = tmp_path / "bad.npz"
@@ -110,6 +143,7 @@ def test_scene_file_errors_are_value_errors():
 
 # --- map files --------------------------------------------------------------------------------------
 
+
 @pytest.fixture(scope="module")
 def map_file(tmp_path_factory) -> Path:
     grid = GridSpec(32, 4.0)
@@ -131,12 +165,29 @@ def test_a_corrupt_deflate_stream_in_a_map_names_the_file(map_file, tmp_path):
         (lambda h, a: h.pop("tile_cells"), "'tile_cells'"),
         (lambda h, a: h.__setitem__("tile_cells", "16"), "'tile_cells'"),
         (lambda h, a: h.pop("spec"), "'spec'"),
-        (lambda h, a: a["tiles"].__setitem__((0, 3, 4, 1), np.nan), "1 cell\\(s\\) hold no valid mass"),
-        (lambda h, a: a["tiles"].__setitem__((0, 3, 4), [2.0, 0.0, -1.0]), "1 cell\\(s\\) hold no valid mass"),
+        (
+            lambda h, a: a["tiles"].__setitem__((0, 3, 4, 1), np.nan),
+            "1 cell\\(s\\) hold no valid mass",
+        ),
+        (
+            lambda h, a: a["tiles"].__setitem__((0, 3, 4), [2.0, 0.0, -1.0]),
+            "1 cell\\(s\\) hold no valid mass",
+        ),
         (lambda h, a: a.__setitem__("covered", a["covered"].astype(np.uint8)), "coverage"),
-        (lambda h, a: a.__setitem__("header", np.frombuffer(b"[1, 2]", np.uint8)), "not an evgrid map"),
+        (
+            lambda h, a: a.__setitem__("header", np.frombuffer(b"[1, 2]", np.uint8)),
+            "not an evgrid map",
+        ),
     ],
-    ids=["no-tile-cells", "text-tile-cells", "no-spec", "nan-tile", "negative-tile", "coverage-dtype", "header-list"],
+    ids=[
+        "no-tile-cells",
+        "text-tile-cells",
+        "no-spec",
+        "nan-tile",
+        "negative-tile",
+        "coverage-dtype",
+        "header-list",
+    ],
 )
 def test_a_broken_map_file_is_one_map_file_error(map_file, tmp_path, change, says):
     a = _arrays(map_file)
@@ -150,7 +201,9 @@ def test_a_broken_map_file_is_one_map_file_error(map_file, tmp_path, change, say
         load_map(path)
 
 
-@pytest.mark.parametrize("text", ["", "{", "[]", '{"scenes": 3}', '{"scenes": [{"name": "x"}]}', '{"other": []}'])
+@pytest.mark.parametrize(
+    "text", ["", "{", "[]", '{"scenes": 3}', '{"scenes": [{"name": "x"}]}', '{"other": []}']
+)
 def test_a_bad_scene_index_is_one_error_naming_the_file(tmp_path, text):
     from evgrid.sources import SceneIndexError, SimFilesSource
 
@@ -162,7 +215,9 @@ def test_a_bad_scene_index_is_one_error_naming_the_file(tmp_path, text):
 def test_a_scene_missing_from_the_index_is_named(tmp_path):
     from evgrid.sources import SceneIndexError, SimFilesSource
 
-    (tmp_path / "index.json").write_text('{"scenes": [{"name": "sim-000001", "file": "sim-000001.npz"}]}')
+    (tmp_path / "index.json").write_text(
+        '{"scenes": [{"name": "sim-000001", "file": "sim-000001.npz"}]}'
+    )
     with pytest.raises(SceneIndexError, match="no scene 'sim-000002'.*sim-000001"):
         SimFilesSource(str(tmp_path)).load("sim-000002")
 
@@ -173,14 +228,20 @@ def test_a_cut_lidar_file_is_an_error_not_fewer_points(tmp_path, cut):
 
     path = tmp_path / "sweep.pcd.bin"
     write_lidar_bin(path, np.ones((51, 5), np.float32))
-    path.write_bytes(path.read_bytes()[:-cut])  # 1,019 .. 1,004 bytes: 4 of them still a multiple of 4
+    path.write_bytes(
+        path.read_bytes()[:-cut]
+    )  # 1,019 .. 1,004 bytes: 4 of them still a multiple of 4
     with pytest.raises(ValueError, match=r"sweep\.pcd\.bin.*not a multiple of 20"):
         read_lidar_bin(path)
 
 
 def test_one_nan_radar_record_drops_that_record_only(tmp_path, caplog):
     from evgrid.data.frame import RADAR_COLUMNS
-    from evgrid.data.nuscenes_format import read_radar_pcd, read_radar_pcd_with_stats, write_radar_pcd
+    from evgrid.data.nuscenes_format import (
+        read_radar_pcd,
+        read_radar_pcd_with_stats,
+        write_radar_pcd,
+    )
 
     pts = np.zeros((40, len(RADAR_COLUMNS)), np.float32)
     pts[:, 0] = np.arange(40) + 1.0

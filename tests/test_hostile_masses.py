@@ -64,7 +64,9 @@ def test_nan_ism_cells_leave_informed_map_cells_untouched_and_are_counted():
     for name in MAP_NAMES:
         after = _dense(ms, name)
         # bit for bit where the ISM held NaN (they used to be reset to vacuous), updated elsewhere
-        np.testing.assert_array_equal(after[4:10, 5:9].view(np.uint32), before[name][4:10, 5:9].view(np.uint32))
+        np.testing.assert_array_equal(
+            after[4:10, 5:9].view(np.uint32), before[name][4:10, 5:9].view(np.uint32)
+        )
         assert not np.array_equal(after[12:], before[name][12:])
         mass.validate(after)
     assert ms.n_rejected == {k: 24 for k in ISMS}
@@ -111,7 +113,7 @@ def test_warper_takes_cells_that_are_not_masses_as_vacuous_counts_and_logs_them_
     assert len(caplog.records) == 1 and "deep_irm: 2 cell(s)" in caplog.records[0].getMessage()
     # at the identity pose local cell (r, c) lies on map cell (r - n/2, c - n/2)
     r, c = -window.r0 - N // 2, -window.c0 - N // 2
-    got = window.masses[r:r + N, c:c + N]
+    got = window.masses[r : r + N, c : c + N]
     np.testing.assert_array_equal(got[3, 4], mass.VACUOUS)
     np.testing.assert_array_equal(got[20, 7], mass.VACUOUS)
     keep = np.ones(GRID.shape, bool)
@@ -143,7 +145,14 @@ def test_apply_and_update_windows_count_rejected_window_cells():
     em = EvidentialMap(GRID, tile_cells=8)
     assert em.apply(window, RULES["ray_ilm"].update) == 2
     ms = MapSet(GRID, P)
-    assert ms.update_windows({k: window for k in ISMS}) == {"ray_ilm": 2, "deep_acc": 2, "deep_replace": 2, "deep_disc": 2, "ray_irm": 2, "fused": 4}
+    assert ms.update_windows({k: window for k in ISMS}) == {
+        "ray_ilm": 2,
+        "deep_acc": 2,
+        "deep_replace": 2,
+        "deep_disc": 2,
+        "ray_irm": 2,
+        "fused": 4,
+    }
     assert ms.n_rejected_cells["fused"] == 4
     for name in MAP_NAMES:
         np.testing.assert_array_equal(ms[name].read(5, -3, 4, 6)[0], mass.vacuous((4, 6)))
@@ -156,8 +165,11 @@ _ANY_FLOAT = st.one_of(
 
 
 @settings(max_examples=60, deadline=None)
-@given(st.integers(0, 2**32 - 1), st.lists(st.tuples(_ANY_FLOAT, _ANY_FLOAT, _ANY_FLOAT), min_size=12, max_size=12),
-       st.sampled_from(MAP_NAMES))
+@given(
+    st.integers(0, 2**32 - 1),
+    st.lists(st.tuples(_ANY_FLOAT, _ANY_FLOAT, _ANY_FLOAT), min_size=12, max_size=12),
+    st.sampled_from(MAP_NAMES),
+)
 def test_whatever_ism_is_applied_every_stored_cell_stays_a_valid_mass(seed, garbage, name):
     """Rejecting an invalid ISM cell is the same as the ISM saying nothing (vacuous) there."""
     rng = np.random.default_rng(seed)
@@ -165,8 +177,12 @@ def test_whatever_ism_is_applied_every_stored_cell_stays_a_valid_mass(seed, garb
     m = random_masses(rng, (3, 4), p_edge=0.3)
     isms = [random_masses(rng, (3, 4), p_edge=0.3) for _ in rule.isms]
     isms[0][...] = np.array(garbage, np.float32).reshape(3, 4, 3)
-    valid = np.array([np.isfinite(c).all() and min(c) >= 0 and abs(sum(map(float, c)) - 1) <= 1e-5
-                      for c in isms[0].reshape(-1, 3)]).reshape(3, 4)
+    valid = np.array(
+        [
+            np.isfinite(c).all() and min(c) >= 0 and abs(sum(map(float, c)) - 1) <= 1e-5
+            for c in isms[0].reshape(-1, 3)
+        ]
+    ).reshape(3, 4)
     ref, cleaned = m.copy(), [a.copy() for a in isms]
     cleaned[0][~valid] = mass.VACUOUS
     n = rule.update(m, *isms, P)
@@ -200,7 +216,17 @@ def test_dempster_of_the_issue_raises_instead_of_returning_negative_masses():
         (lambda b: mass.deep_discount_factor(GOOD, b, 0.3), "m_pred"),
         (lambda b: mass.deep_discount_factor(b, GOOD, 0.3), "m_map"),
     ],
-    ids=["dempster-m2", "dempster-m1", "yager", "conflict", "discount", "limit_unknown", "pignistic", "gamma-pred", "gamma-map"],
+    ids=[
+        "dempster-m2",
+        "dempster-m1",
+        "yager",
+        "conflict",
+        "discount",
+        "limit_unknown",
+        "pignistic",
+        "gamma-pred",
+        "gamma-map",
+    ],
 )
 def test_the_algebra_raises_naming_the_invalid_argument(call, arg, bad):
     grid = np.tile(GOOD, (5, 3, 1))
@@ -220,7 +246,9 @@ def test_nothing_is_written_to_out_when_an_argument_is_invalid():
 @given(st.tuples(_ANY_FLOAT, _ANY_FLOAT, _ANY_FLOAT))
 def test_dempster_accepts_exactly_the_masses(m):
     m32 = np.array(m, np.float32)
-    valid = bool(np.isfinite(m32).all() and m32.min() >= 0 and abs(m32.astype(np.float64).sum() - 1) <= 1e-5)
+    valid = bool(
+        np.isfinite(m32).all() and m32.min() >= 0 and abs(m32.astype(np.float64).sum() - 1) <= 1e-5
+    )
     if valid:
         out = mass.dempster(GOOD, m32)
         mass.validate(out)
@@ -230,6 +258,7 @@ def test_dempster_accepts_exactly_the_masses(m):
 
 
 # --- point arrays in the devkit's (columns, n) layout -------------------------------------------------
+
 
 @pytest.mark.parametrize("rows", [3, 4, 5])
 def test_ray_ilm_refuses_transposed_point_arrays(rows):

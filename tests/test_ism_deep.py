@@ -17,7 +17,9 @@ from evgrid.ism.evnet import CheckpointError, EvNet, EvNetConfig, save_checkpoin
 SPEC = GridSpec()
 
 
-def sweep(points, t_us=0, ego=SE3.identity(), sensor=SE3.identity(), channel="RADAR_FRONT") -> RadarSweep:
+def sweep(
+    points, t_us=0, ego=SE3.identity(), sensor=SE3.identity(), channel="RADAR_FRONT"
+) -> RadarSweep:
     p = np.zeros((len(points), len(RADAR_COLUMNS)), np.float32)
     for k, d in enumerate(points):
         for name, v in d.items():
@@ -42,8 +44,12 @@ def test_image_hand_computed():
 def test_image_moves_old_sweeps_and_rotates_doppler():
     # the old sweep was taken 1 m behind the current pose, by a radar looking left
     left = SE3.from_se2(SE2(0.0, 0.0, math.pi / 2))
-    old = sweep([{"x": 5.0, "vx_comp": 3.0}], t_us=0, ego=SE3.from_se2(SE2(-1.0, 0.0, 0.0)), sensor=left)
-    img = radar_image([old], SE3.identity(), SPEC, now_us=500_000, params=RadarImageParams(horizon_s=1.0))
+    old = sweep(
+        [{"x": 5.0, "vx_comp": 3.0}], t_us=0, ego=SE3.from_se2(SE2(-1.0, 0.0, 0.0)), sensor=left
+    )
+    img = radar_image(
+        [old], SE3.identity(), SPEC, now_us=500_000, params=RadarImageParams(horizon_s=1.0)
+    )
     # global (-1, 5) -> current ego (-1, 5): row floor(256 + 12.8) = 268, col floor(256 - 64) = 192
     assert img[0, 268, 192] > 0
     assert img[3, 268, 192] == pytest.approx(0.3)  # vx along the radar axis = +y in the ego frame
@@ -112,7 +118,9 @@ def random_scene(rng, n_radars=5, n_sweeps=3):
     sweeps = []
     cols = {c: RADAR_COLUMNS.index(c) for c in ("x", "y", "z", "rcs", "vx_comp", "vy_comp")}
     for r in range(n_radars):
-        sensor = SE3.from_se2(SE2(rng.uniform(-1, 3), rng.uniform(-1, 1), rng.uniform(-math.pi, math.pi)), 0.5)
+        sensor = SE3.from_se2(
+            SE2(rng.uniform(-1, 3), rng.uniform(-1, 1), rng.uniform(-math.pi, math.pi)), 0.5
+        )
         for k in range(n_sweeps):
             n = int(rng.integers(300, 500))
             p = np.zeros((n, len(RADAR_COLUMNS)), np.float32)
@@ -175,8 +183,9 @@ def test_evidence_to_masses_is_upsample_then_from_evidence():
     rng = np.random.default_rng(0)
     e = rng.gamma(0.5, 4.0, (2, 128, 128)).astype(np.float32)
     e[:, :3, :3] = 0.0  # vacuous cells
-    up = torch.nn.functional.interpolate(torch.from_numpy(e)[None], size=(512, 512), mode="bilinear",
-                                         align_corners=False)[0]
+    up = torch.nn.functional.interpolate(
+        torch.from_numpy(e)[None], size=(512, 512), mode="bilinear", align_corners=False
+    )[0]
     expected = mass.from_evidence(up.permute(1, 2, 0).numpy())
     np.testing.assert_allclose(evidence_to_masses(e, SPEC), expected, rtol=0, atol=2e-7)
     for bad in (-1.0, np.nan, np.inf):
@@ -186,12 +195,18 @@ def test_evidence_to_masses_is_upsample_then_from_evidence():
             evidence_to_masses(e2, SPEC)
 
 
-def test_values_outside_the_sensor_range_are_dropped_counted_and_logged_once_per_sweep(tmp_path, caplog):
+def test_values_outside_the_sensor_range_are_dropped_counted_and_logged_once_per_sweep(
+    tmp_path, caplog
+):
     deep = DeepIrm(_checkpoint(tmp_path), SPEC, runtime="torch")
     good = {"x": 6.0, "y": 1.0, "rcs": 5.0}
-    bad = [{"x": 6.0, "y": -1.0, "rcs": 70.0}, {"x": 6.0, "y": -2.0, "rcs": -65.0},
-           {"x": 7.0, "y": 2.0, "vx_comp": 130.0}, {"x": 7.0, "y": 3.0, "vy_comp": -129.0},
-           {"x": 8.0, "y": 4.0, "rcs": float("inf")}]
+    bad = [
+        {"x": 6.0, "y": -1.0, "rcs": 70.0},
+        {"x": 6.0, "y": -2.0, "rcs": -65.0},
+        {"x": 7.0, "y": 2.0, "vx_comp": 130.0},
+        {"x": 7.0, "y": 3.0, "vy_comp": -129.0},
+        {"x": 8.0, "y": 4.0, "rcs": float("inf")},
+    ]
     s = sweep([good, *bad], t_us=123, channel="RADAR_FRONT_LEFT")
     with caplog.at_level("WARNING", logger="evgrid.ism.deep"):
         for _ in range(3):  # the sweep stays in the buffer for several updates

@@ -47,10 +47,13 @@ def is_mass(m: np.ndarray, ref: np.ndarray) -> np.ndarray:
 
 def wall_points(x: float, y0: float, y1: float, step: float = 0.02) -> np.ndarray:
     y = np.arange(y0, y1, step)
-    return np.concatenate([np.stack([np.full_like(y, x), y, np.full_like(y, z)], 1) for z in (0.5, 1.0, 1.6, 2.4)])
+    return np.concatenate(
+        [np.stack([np.full_like(y, x), y, np.full_like(y, z)], 1) for z in (0.5, 1.0, 1.6, 2.4)]
+    )
 
 
 # --- analytic worlds -------------------------------------------------------------------------------
+
 
 def test_wall_ahead_free_before_occupied_on_unknown_behind():
     # A wall 10 m ahead (x = 10.03 m, |y| <= 4 m), nothing else.
@@ -167,6 +170,7 @@ def test_sweep_and_raw_arrays_agree():
 
 # --- an independent slow reference on a realistic scan -------------------------------------------
 
+
 def street_world() -> np.ndarray:
     """Boxes [x0, y0, z0, x1, y1, z1] (m) of a small street, in the global frame."""
     return np.array(
@@ -184,7 +188,9 @@ def street_world() -> np.ndarray:
     )
 
 
-def reference_ilm(points_ego: np.ndarray, origin_xy: tuple[float, float], grid: GridSpec, p: RayIlmParams) -> np.ndarray:
+def reference_ilm(
+    points_ego: np.ndarray, origin_xy: tuple[float, float], grid: GridSpec, p: RayIlmParams
+) -> np.ndarray:
     """Pure numpy ray ILM: exact segment/grid-line intersections per ray, no DDA. Labels 0/1/2."""
     n = grid.n_cells
     res = grid.resolution
@@ -245,6 +251,7 @@ def test_agrees_with_slow_reference_on_realistic_scan():
 
 # --- bad input ---------------------------------------------------------------------------------
 
+
 def test_nan_and_inf_points_are_dropped_counted_and_logged_once(caplog):
     pts = to_sensor(wall_points(10.03, -1.0, 1.0))
     clean = ray_ilm(pts, LIDAR)
@@ -284,13 +291,19 @@ def test_bad_arguments_raise_clear_errors():
         ray_ilm(pts, LIDAR, threads=0)
     with pytest.raises(ValueError, match="out must be"):
         ray_ilm(pts, LIDAR, out=np.zeros((512, 512, 3), np.float64))
-    for kw in ({"z_min_m": 3.0, "z_max_m": 0.3}, {"max_range_m": 0.0}, {"m_free": 1.5}, {"angular_resolution_deg": 0.0},
-               {"m_occupied": float("nan")}):
+    for kw in (
+        {"z_min_m": 3.0, "z_max_m": 0.3},
+        {"max_range_m": 0.0},
+        {"m_free": 1.5},
+        {"angular_resolution_deg": 0.0},
+        {"m_occupied": float("nan")},
+    ):
         with pytest.raises(ValueError, match="RayIlmParams"):
             RayIlmParams(**kw)
 
 
 # --- output, threads, simplex ----------------------------------------------------------------------
+
 
 def test_out_buffer_is_filled_and_returned():
     pts = to_sensor(wall_points(10.03, -4.0, 4.0))

@@ -12,9 +12,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from evgrid.data import RadarBuffer
 from evgrid.data.frame import RADAR_COLUMNS, Frame, LidarSweep, RadarSweep
 from evgrid.geometry import SE3, GridSpec
-from evgrid.data import RadarBuffer
 from evgrid.ism import IsmResult, RayIrmParams, ray_irm, ray_irm_with_stats, ray_irm_xy
 from evgrid.ism.synthetic import street_radar_sweeps
 
@@ -49,16 +49,27 @@ def corners_polar(grid: GridSpec, apex: tuple[float, float], axis_deg: float = 0
 def inside(polar, r0: float, r1: float, a0_deg: float, a1_deg: float) -> np.ndarray:
     """Cells lying wholly inside range [r0, r1] m and angle [a0, a1] degrees."""
     rmin, rmax, amin, amax = polar
-    return (rmin >= r0) & (rmax <= r1) & (amin >= math.radians(a0_deg)) & (amax <= math.radians(a1_deg))
+    return (
+        (rmin >= r0)
+        & (rmax <= r1)
+        & (amin >= math.radians(a0_deg))
+        & (amax <= math.radians(a1_deg))
+    )
 
 
 def touching(polar, r0: float, r1: float, a0_deg: float, a1_deg: float) -> np.ndarray:
     """Cells whose corner hull overlaps range [r0, r1] and angle [a0, a1] (a superset of the cells touched)."""
     rmin, rmax, amin, amax = polar
-    return (rmax >= r0) & (rmin <= r1) & (amax >= math.radians(a0_deg)) & (amin <= math.radians(a1_deg))
+    return (
+        (rmax >= r0)
+        & (rmin <= r1)
+        & (amax >= math.radians(a0_deg))
+        & (amin <= math.radians(a1_deg))
+    )
 
 
 # --- cone geometry -------------------------------------------------------------------------------
+
 
 @pytest.mark.parametrize("rng_m", [5.0, 25.0])
 def test_cone_width_is_2_degrees_within_one_cell(rng_m):
@@ -101,7 +112,10 @@ def test_near_cap_blocks_far_cone_behind_it_and_nowhere_else_same_sensor():
     det = np.array([[8.0, 0.0], [16.0, 0.3]])
     res = ray_irm_xy(det, np.array([0.0, 0.0]))
     m = res.masses
-    b_lo, b_hi = math.degrees(math.atan2(0.3, 16.0)) - 1.0, math.degrees(math.atan2(0.3, 16.0)) + 1.0
+    b_lo, b_hi = (
+        math.degrees(math.atan2(0.3, 16.0)) - 1.0,
+        math.degrees(math.atan2(0.3, 16.0)) + 1.0,
+    )
     polar = corners_polar(GRID, (0.0, 0.0))
     shadow = inside(polar, 8.0 + 2 * RES, 16.0, b_lo, 1.0)
     lit_far = inside(polar, 8.0 + 2 * RES, 16.0 - 2 * RES, 1.0, b_hi)
@@ -141,7 +155,9 @@ def test_detection_beyond_the_grid_casts_to_the_edge():
     assert is_mass(m[0:250, 255:257], FREE).all()  # from the front edge (x = 20 m) to the sensor
     assert is_mass(m[300:, :], VAC).all()
     # absurd ranges are clamped, not overflowed: the same cone to the edge
-    far = ray_irm_xy(np.array([[1e30, 0.03 * 1e30 / 60.0], [5.0, 1e250]]), np.array([0.0, 0.0])).masses
+    far = ray_irm_xy(
+        np.array([[1e30, 0.03 * 1e30 / 60.0], [5.0, 1e250]]), np.array([0.0, 0.0])
+    ).masses
     assert is_mass(far[0:250, 255:257], FREE).all() and not (far[..., 1] > 0).any()
 
 
@@ -161,7 +177,10 @@ def test_detection_in_another_sensors_cell_is_occupied_and_does_not_stop_that_se
 
 # --- sweeps, poses, buffer -------------------------------------------------------------------------
 
-def radar_sweep(xy_sensor, sensor_to_ego: SE3, ego_pose: SE3, t: int, channel: str = "RADAR_FRONT") -> RadarSweep:
+
+def radar_sweep(
+    xy_sensor, sensor_to_ego: SE3, ego_pose: SE3, t: int, channel: str = "RADAR_FRONT"
+) -> RadarSweep:
     xy = np.asarray(xy_sensor, dtype=np.float32).reshape(-1, 2)
     pts = np.zeros((len(xy), len(RADAR_COLUMNS)), dtype=np.float32)
     pts[:, :2] = xy
@@ -242,7 +261,14 @@ def test_radar_buffer_keeps_the_last_n_sweeps_per_channel():
     for k in range(5):
         front = radar_sweep([[5.0, 0.0]], FRONT, SE3.identity(), 10 * k)
         back = radar_sweep([[1.0, 0.0]], FRONT, SE3.identity(), 10 * k + 1, "RADAR_BACK_RIGHT")
-        buf.update(make_frame(k, {"RADAR_FRONT": (front,), "RADAR_BACK_RIGHT": (back,)} if k % 2 == 0 else {"RADAR_FRONT": (front,)}))
+        buf.update(
+            make_frame(
+                k,
+                {"RADAR_FRONT": (front,), "RADAR_BACK_RIGHT": (back,)}
+                if k % 2 == 0
+                else {"RADAR_FRONT": (front,)},
+            )
+        )
     held = buf.sweeps()
     assert [s.timestamp for s in held if s.channel == "RADAR_FRONT"] == [20, 30, 40]
     assert [s.timestamp for s in held if s.channel == "RADAR_BACK_RIGHT"] == [1, 21, 41]
@@ -260,7 +286,10 @@ def test_radar_buffer_keeps_the_last_n_sweeps_per_channel():
 
 # --- a dense numerical reference -----------------------------------------------------------------
 
-def dense_reference(det_xy: np.ndarray, org_xy: np.ndarray, grid: GridSpec) -> tuple[np.ndarray, np.ndarray]:
+
+def dense_reference(
+    det_xy: np.ndarray, org_xy: np.ndarray, grid: GridSpec
+) -> tuple[np.ndarray, np.ndarray]:
     """Ray IRM by brute force: caps sampled every 0.002 cells, cones as sub-rays 0.05 cells apart
     (at their far end) marched in 0.02-cell steps. Returns (free, occupied) masks."""
     n = grid.n_cells
@@ -283,12 +312,17 @@ def dense_reference(det_xy: np.ndarray, org_xy: np.ndarray, grid: GridSpec) -> t
     for o, r, phi in cones:
         b = np.linspace(-HALF, HALF, max(int(2 * HALF * r / 0.05), 2))
         t = np.arange(0, r, 0.02)
-        p = o[None, None] + t[None, :, None] * np.stack([np.cos(phi + b), np.sin(phi + b)], 1)[:, None, :]
+        p = (
+            o[None, None]
+            + t[None, :, None] * np.stack([np.cos(phi + b), np.sin(phi + b)], 1)[:, None, :]
+        )
         c = np.floor(p).astype(int)
         ins = ((c >= 0) & (c < n)).all(-1)
         cc = np.clip(c, 0, n - 1)
         own = np.floor(o).astype(int)
-        bar = barrier[cc[..., 0], cc[..., 1]] & ins & ~((c[..., 0] == own[0]) & (c[..., 1] == own[1]))
+        bar = (
+            barrier[cc[..., 0], cc[..., 1]] & ins & ~((c[..., 0] == own[0]) & (c[..., 1] == own[1]))
+        )
         first = np.where(bar.any(1), bar.argmax(1), len(t))
         valid = (np.arange(len(t))[None] < first[:, None]) & ins
         free[c[valid][:, 0], c[valid][:, 1]] = True
@@ -321,6 +355,7 @@ def test_agrees_with_dense_subray_reference(seed):
 
 
 # --- bad input ---------------------------------------------------------------------------------
+
 
 def test_nan_and_inf_detections_are_dropped_counted_and_logged_once(caplog):
     good = radar_sweep([[10.0, 1.0], [7.0, -2.0]], FRONT, SE3.identity(), 0)
@@ -364,12 +399,18 @@ def test_bad_arguments_raise_clear_errors():
         ray_irm([], SE3.identity(), threads=-1)
     with pytest.raises(ValueError, match="out must be"):
         ray_irm([], SE3.identity(), out=np.zeros((10, 10, 3), np.float32))
-    for kw in ({"n_sweeps": 0}, {"opening_angle_deg": 0.0}, {"opening_angle_deg": 180.0}, {"m_free": -0.1}):
+    for kw in (
+        {"n_sweeps": 0},
+        {"opening_angle_deg": 0.0},
+        {"opening_angle_deg": 180.0},
+        {"m_free": -0.1},
+    ):
         with pytest.raises(ValueError, match="RayIrmParams"):
             RayIrmParams(**kw)
 
 
 # --- realistic input: simplex, threads, parameters ---------------------------------------------------
+
 
 def test_realistic_sweeps_masses_on_simplex_and_threads_agree():
     sweeps, now = street_radar_sweeps(seed=2)
@@ -402,7 +443,9 @@ def test_masses_and_opening_are_parameters():
 def test_wide_cones_spanning_several_octants(opening):
     # cones wider than an octant take the general (trigonometric) split; check the sector
     apex, axis = (0.3, -0.2), 100.0
-    det = np.array(apex) + 9.0 * np.array([math.cos(math.radians(axis)), math.sin(math.radians(axis))])
+    det = np.array(apex) + 9.0 * np.array(
+        [math.cos(math.radians(axis)), math.sin(math.radians(axis))]
+    )
     m = ray_irm_xy(det[None], np.array(apex), params=RayIrmParams(opening_angle_deg=opening)).masses
     polar = corners_polar(GRID, apex, axis)
     half = opening / 2
@@ -435,13 +478,18 @@ def test_property_simplex_detections_and_free_inside_cones(dets, orgs):
         rng_m = float(np.hypot(*v))
         polar = corners_polar(grid, tuple(o), math.degrees(math.atan2(v[1], v[0])))
         rmin = polar[0]
-        reach |= touching(polar, 0.0, rng_m, -1.0, 1.0) | (rmin <= grid.resolution)  # (the apex's own cell)
+        reach |= touching(polar, 0.0, rng_m, -1.0, 1.0) | (
+            rmin <= grid.resolution
+        )  # (the apex's own cell)
     assert not ((m[..., 0] > 0) & ~reach).any()
 
 
 def test_radar_buffer_skips_and_counts_duplicate_and_late_sweeps_of_any_channel():
     buf = RadarBuffer(n_sweeps=2)
-    kept = [buf.push(radar_sweep([[5.0, 0.0]], FRONT, SE3.identity(), t, "corner_fl")) for t in (10, 20, 15, 20, 30)]
+    kept = [
+        buf.push(radar_sweep([[5.0, 0.0]], FRONT, SE3.identity(), t, "corner_fl"))
+        for t in (10, 20, 15, 20, 30)
+    ]
     assert kept == [True, True, False, False, True]
     assert (buf.n_out_of_order, buf.n_duplicate) == (1, 1)
     assert [x.timestamp for x in buf.sweeps()] == [20, 30]

@@ -103,14 +103,26 @@ def test_bad_checkpoints_raise_clear_errors(tmp_path):
         load_checkpoint(tmp_path / "missing.safetensors")
     # weights of another shape under a valid header
     other = EvNet(EvNetConfig(in_channels=3, width=8, pool=2, depth=2))
-    meta = {"format": "evgrid-evnet", "version": "1", "config": '{"in_channels": 3, "width": 4, "pool": 2, "depth": 2}'}
-    save_file({k: v.contiguous() for k, v in other.state_dict().items()}, str(tmp_path / "shape.safetensors"), metadata=meta)
+    meta = {
+        "format": "evgrid-evnet",
+        "version": "1",
+        "config": '{"in_channels": 3, "width": 4, "pool": 2, "depth": 2}',
+    }
+    save_file(
+        {k: v.contiguous() for k, v in other.state_dict().items()},
+        str(tmp_path / "shape.safetensors"),
+        metadata=meta,
+    )
     with pytest.raises(CheckpointError, match="shape"):
         load_checkpoint(tmp_path / "shape.safetensors")
     nan = {k: v.clone() for k, v in net.state_dict().items()}
     first = next(k for k, v in nan.items() if v.is_floating_point())
     nan[first].fill_(float("nan"))
     meta["config"] = '{"in_channels": 3, "width": 4, "pool": 2, "depth": 2}'
-    save_file({k: v.contiguous() for k, v in nan.items()}, str(tmp_path / "nan.safetensors"), metadata=meta)
+    save_file(
+        {k: v.contiguous() for k, v in nan.items()},
+        str(tmp_path / "nan.safetensors"),
+        metadata=meta,
+    )
     with pytest.raises(CheckpointError, match="NaN"):
         load_checkpoint(tmp_path / "nan.safetensors")

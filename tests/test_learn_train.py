@@ -8,12 +8,18 @@ import numpy as np
 import pytest
 import torch
 
-from evgrid.data import SimConfig, simulate_scene
 from evgrid.classes import FREE, OCCUPIED, UNKNOWN
+from evgrid.data import SimConfig, simulate_scene
 from evgrid.ism.evnet import EvNetConfig, load_checkpoint
 from evgrid.learn.train import RadarDataset, TrainConfig, build_cache, ilm_classes, train
 
-CFG = TrainConfig(epochs=2, batch_size=2, workers=0, frame_stride=10, model=EvNetConfig(in_channels=6, width=4, depth=2))
+CFG = TrainConfig(
+    epochs=2,
+    batch_size=2,
+    workers=0,
+    frame_stride=10,
+    model=EvNetConfig(in_channels=6, width=4, depth=2),
+)
 
 
 @pytest.fixture(scope="module")
@@ -57,7 +63,14 @@ def test_train_writes_logs_and_checkpoints_and_resumes(cache, tmp_path):
     assert ck.extra["grid"] == CFG.grid.to_dict() and "val_iou" in ck.extra
     assert ck.extra["radar_filter"] == CFG.radar_filter.to_dict()  # mapping with another one warns
     # resume adds one epoch from where the run stopped
-    res2 = train(TrainConfig(**{**CFG.__dict__, "epochs": 3}), root, names[:1], names[1:], tmp_path, resume=True)
+    res2 = train(
+        TrainConfig(**{**CFG.__dict__, "epochs": 3}),
+        root,
+        names[:1],
+        names[1:],
+        tmp_path,
+        resume=True,
+    )
     rows = list(csv.DictReader(open(tmp_path / "metrics.csv")))
     assert [r["epoch"] for r in rows] == ["0", "1", "2"]
     assert res2.seconds_per_epoch > 0
@@ -89,8 +102,19 @@ def test_training_runs_under_torchrun_with_two_processes(cache, tmp_path):
     )
     torchrun = Path(sys.executable).parent / "torchrun"
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    r = subprocess.run([str(torchrun), "--nproc_per_node=2", "--master_port=29517", str(script), str(tmp_path / "run")],
-                       capture_output=True, text=True, timeout=300, env=env)
+    r = subprocess.run(
+        [
+            str(torchrun),
+            "--nproc_per_node=2",
+            "--master_port=29517",
+            str(script),
+            str(tmp_path / "run"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=env,
+    )
     assert r.returncode == 0, r.stderr[-3000:]
     assert (tmp_path / "run" / "best.safetensors").is_file()
     rows = list(csv.DictReader(open(tmp_path / "run" / "metrics.csv")))

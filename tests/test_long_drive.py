@@ -29,7 +29,10 @@ def _moved(frame, dx: float, sweeps: bool = True):
     if not sweeps:
         return dataclasses.replace(frame, ego_pose=shift @ frame.ego_pose)
     lidar = dataclasses.replace(frame.lidar, ego_pose=shift @ frame.lidar.ego_pose)
-    radar = {ch: tuple(dataclasses.replace(s, ego_pose=shift @ s.ego_pose) for s in sw) for ch, sw in frame.radar.items()}
+    radar = {
+        ch: tuple(dataclasses.replace(s, ego_pose=shift @ s.ego_pose) for s in sw)
+        for ch, sw in frame.radar.items()
+    }
     return dataclasses.replace(frame, ego_pose=shift @ frame.ego_pose, lidar=lidar, radar=radar)
 
 
@@ -56,7 +59,9 @@ def test_a_pose_jump_of_1_km_is_skipped_and_reported(scene, caplog):
     assert m.covered_bounds()[2:] == ref.covered_bounds()[2:]
 
 
-@pytest.mark.parametrize("where", [1e9, 1e19, 1e30])  # non-finite poses never get this far: SE3 refuses them
+@pytest.mark.parametrize(
+    "where", [1e9, 1e19, 1e30]
+)  # non-finite poses never get this far: SE3 refuses them
 def test_absurd_poses_are_errors_naming_the_record(scene, where):
     frames = [(_moved(f, where, sweeps=False) if f.index == 3 else f) for f in scene]
     with pytest.raises(PoseError, match=rf"frame 3 \(t = {scene[3].timestamp} us\)"):
@@ -65,13 +70,17 @@ def test_absurd_poses_are_errors_naming_the_record(scene, where):
 
 def test_a_jump_that_never_comes_back_is_an_error(scene):
     frames = [(_moved(f, 500.0) if f.index >= 5 else f) for f in scene]
-    with pytest.raises(PoseError, match=f"jumped at t = {scene[4].timestamp} us and has not come back within 0.5 s"):
+    with pytest.raises(
+        PoseError, match=f"jumped at t = {scene[4].timestamp} us and has not come back within 0.5 s"
+    ):
         _map(frames, dataclasses.replace(ILM_ONLY, poses=PoseLimits(max_glitch_s=0.5)))
 
 
 def test_the_speed_bound_is_configurable(scene):
     # the simulated vehicle drives at city speed: a 1 m/s bound makes its motion a run of glitches
-    slow = dataclasses.replace(ILM_ONLY, poses=PoseLimits(max_speed_mps=1.0, slack_m=0.0, max_glitch_s=100.0))
+    slow = dataclasses.replace(
+        ILM_ONLY, poses=PoseLimits(max_speed_mps=1.0, slack_m=0.0, max_glitch_s=100.0)
+    )
     assert _map(scene, slow).poses.n_jumps > 0
     assert _map(scene).poses.n_jumps == 0
 
@@ -81,7 +90,10 @@ def test_stale_frames_and_radar_sweeps_with_bad_poses_are_dropped(scene):
     frames.insert(6, frames[5])  # the same timestamp again
     f = frames[8]
     ch = next(iter(f.radar))
-    bad = tuple(dataclasses.replace(s, ego_pose=SE3(np.eye(3), np.array([2000.0, 0, 0])) @ s.ego_pose) for s in f.radar[ch])
+    bad = tuple(
+        dataclasses.replace(s, ego_pose=SE3(np.eye(3), np.array([2000.0, 0, 0])) @ s.ego_pose)
+        for s in f.radar[ch]
+    )
     frames[8] = dataclasses.replace(f, radar={**f.radar, ch: bad})
     counts = _map(frames).counts()
     assert counts["frames_stale"] == 1
@@ -122,7 +134,9 @@ def test_the_gif_keeps_a_bounded_number_of_frames(scene):
     gif = GifRecorder(MapperConfig().grid, window_m=20.0, step=16, max_frames=4)
     mapper = OccupancyMapper(ILM_ONLY, observers=(gif,))
     for f in scene:
-        mapper.process(dataclasses.replace(f, is_keyframe=True))  # every frame a keyframe: 40 GIF candidates
+        mapper.process(
+            dataclasses.replace(f, is_keyframe=True)
+        )  # every frame a keyframe: 40 GIF candidates
     assert 2 <= len(gif.frames) < 4
     assert gif.frames[0].shape == gif.frames[-1].shape
 

@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from evgrid import mass
+from evgrid.config import MapperConfig, OutputConfig
 from evgrid.data import SimConfig, simulate_scene
 from evgrid.data.sim import WorldConfig
 from evgrid.fusion import MAP_NAMES
@@ -16,7 +17,6 @@ from evgrid.geometry import GridSpec
 from evgrid.ism import RayIlmParams, RayIrmParams, ray_ilm, ray_irm
 from evgrid.ism.deep import CHANNELS, DeepIrm
 from evgrid.ism.evnet import EvNet, EvNetConfig, save_checkpoint
-from evgrid.config import MapperConfig, OutputConfig
 from evgrid.mapper import OccupancyMapper
 from evgrid.runs import choose_m_u_min, map_scene
 
@@ -32,7 +32,11 @@ def scene():
 def deep(tmp_path_factory):
     torch.manual_seed(0)
     net = EvNet(EvNetConfig(in_channels=len(CHANNELS), width=4, depth=2))
-    path = save_checkpoint(net, tmp_path_factory.mktemp("ck") / "tiny.safetensors", extra={"grid": GridSpec().to_dict()})
+    path = save_checkpoint(
+        net,
+        tmp_path_factory.mktemp("ck") / "tiny.safetensors",
+        extra={"grid": GridSpec().to_dict()},
+    )
     return DeepIrm(path)
 
 
@@ -59,20 +63,31 @@ def test_map_scene_writes_results(scene, deep, tmp_path):
 
     for name, c in m["confusion_vs_ray_ilm"].items():
         iou = iou_from_confusion(np.array(c))
-        assert all(iou[k] == pytest.approx(v) for k, v in m["vs_ray_ilm"][name].items() if v is not None)
+        assert all(
+            iou[k] == pytest.approx(v) for k, v in m["vs_ray_ilm"][name].items() if v is not None
+        )
     two = summarize([m, m])["confusion_vs_ray_ilm"]["fused"]
     assert np.array_equal(two, 2 * np.array(m["confusion_vs_ray_ilm"]["fused"]))
 
 
 def test_online_mapper_frame_by_frame(scene, deep):
-    mapper = OccupancyMapper(MapperConfig(maps=("ray_ilm", "ray_irm", "fused"), update_rate_hz=4.0), deep=deep)
+    mapper = OccupancyMapper(
+        MapperConfig(maps=("ray_ilm", "ray_irm", "fused"), update_rate_hz=4.0), deep=deep
+    )
     updated = [mapper.process(f) for f in scene]
     assert sum(updated) == 12  # every 5th frame, keyframes included
     for m in mapper.maps.maps.values():
         dense, cov, _, _ = m.to_dense()
         mass.validate(dense)
         assert cov.sum() > 512 * 512 * 0.9
-    assert set(mapper.timing_summary()) >= {"ray_ilm", "ray_irm", "deep_irm", "warp", "fuse", "step_total"}
+    assert set(mapper.timing_summary()) >= {
+        "ray_ilm",
+        "ray_irm",
+        "deep_irm",
+        "warp",
+        "fuse",
+        "step_total",
+    }
     with pytest.raises(TypeError):
         mapper.process("frame")
 
@@ -93,13 +108,19 @@ def test_config_validation():
 
 
 def test_m_u_min_choice_rule():
-    rows = [{"m_u_min": v, "mean_of_classes": {"deep_disc": d}} for v, d in ((0.1, 0.530), (0.3, 0.525), (0.4, 0.49), (0.6, 0.2))]
+    rows = [
+        {"m_u_min": v, "mean_of_classes": {"deep_disc": d}}
+        for v, d in ((0.1, 0.530), (0.3, 0.525), (0.4, 0.49), (0.6, 0.2))
+    ]
     assert choose_m_u_min(rows) == 0.3  # the highest within 0.01 of the best
     assert choose_m_u_min(rows, tolerance=0.0) == 0.1
 
 
 def test_the_ism_parameters_of_the_config_are_the_ones_used(scene):
-    lidar, radar = RayIlmParams(max_range_m=6.0, min_range_m=2.0), RayIrmParams(n_sweeps=3, m_free=0.2)
+    lidar, radar = (
+        RayIlmParams(max_range_m=6.0, min_range_m=2.0),
+        RayIrmParams(n_sweeps=3, m_free=0.2),
+    )
     mapper = OccupancyMapper(MapperConfig(maps=("ray_ilm", "ray_irm"), lidar=lidar, radar=radar))
     frames = list(scene)[:5]
     for f in frames:
@@ -111,11 +132,14 @@ def test_the_ism_parameters_of_the_config_are_the_ones_used(scene):
     assert mapper.buffer.n_sweeps == 10  # the deep IRM's image still needs its 10 sweeps
     sweeps = mapper.buffer.sweeps()  # all 10 held; ray_irm keeps the last n_sweeps of each radar
     np.testing.assert_array_equal(isms["ray_irm"], ray_irm(sweeps, pose, params=radar))
-    assert not np.array_equal(isms["ray_irm"], ray_irm(sweeps, pose, params=RayIrmParams(m_free=0.2)))
+    assert not np.array_equal(
+        isms["ray_irm"], ray_irm(sweeps, pose, params=RayIrmParams(m_free=0.2))
+    )
     assert np.isclose(isms["ray_irm"][..., 0].max(), 0.2, atol=1e-6)
 
 
 # --- the update rate, in Hz -----------------------------------------------------------------------
+
 
 def schedule(rate_hz, times_ms, keyframes=()):
     from evgrid.mapper import UpdateSchedule
@@ -125,7 +149,13 @@ def schedule(rate_hz, times_ms, keyframes=()):
 
 
 def test_update_schedule_hand_computed():
-    assert schedule(10, range(0, 500, 50)) == [0, 100, 200, 300, 400]  # 20 Hz lidar: every other frame
+    assert schedule(10, range(0, 500, 50)) == [
+        0,
+        100,
+        200,
+        300,
+        400,
+    ]  # 20 Hz lidar: every other frame
     assert schedule(10, range(0, 500, 100)) == [0, 100, 200, 300, 400]  # 10 Hz lidar: every frame
     assert schedule(4, range(0, 1000, 50)) == [0, 250, 500, 750]
     assert schedule(10, range(0, 300, 50), keyframes=(50,)) == [0, 50, 100, 200]  # keyframes always

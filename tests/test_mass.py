@@ -18,6 +18,7 @@ M2 = np.array([0.1, 0.6, 0.3], dtype=np.float32)
 
 # --- hand-computed cases -------------------------------------------------------------------------
 
+
 def test_conflict_hand_computed():
     # K = m_f1 m_o2 + m_o1 m_f2 = 0.5 * 0.6 + 0.2 * 0.1
     assert mass.conflict(M1, M2) == pytest.approx(0.32)
@@ -25,11 +26,15 @@ def test_conflict_hand_computed():
 
 def test_dempster_hand_computed():
     # f = .5*.1 + .5*.3 + .3*.1 = .23; o = .2*.6 + .2*.3 + .3*.6 = .36; u = .09; 1 - K = .68
-    np.testing.assert_allclose(mass.dempster(M1, M2), [0.23 / 0.68, 0.36 / 0.68, 0.09 / 0.68], rtol=1e-6)
+    np.testing.assert_allclose(
+        mass.dempster(M1, M2), [0.23 / 0.68, 0.36 / 0.68, 0.09 / 0.68], rtol=1e-6
+    )
 
 
 def test_dempster_total_conflict_is_vacuous():
-    out = mass.dempster(np.array([[1, 0, 0], [0, 1, 0]], np.float32), np.array([[0, 1, 0], [1, 0, 0]], np.float32))
+    out = mass.dempster(
+        np.array([[1, 0, 0], [0, 1, 0]], np.float32), np.array([[0, 1, 0], [1, 0, 0]], np.float32)
+    )
     np.testing.assert_array_equal(out, [[0, 0, 1], [0, 0, 1]])
 
 
@@ -48,16 +53,22 @@ def test_discount_hand_computed():
 
 def test_discount_broadcasts_per_cell_gamma():
     m = np.array([[0.6, 0.2, 0.2], [0.6, 0.2, 0.2]], np.float32)
-    np.testing.assert_allclose(mass.discount(m, np.array([0.0, 1.0])), [[0, 0, 1], [0.6, 0.2, 0.2]], rtol=1e-6)
+    np.testing.assert_allclose(
+        mass.discount(m, np.array([0.0, 1.0])), [[0, 0, 1], [0.6, 0.2, 0.2]], rtol=1e-6
+    )
 
 
 def test_limit_unknown_hand_computed():
     # Delta = 0.4 - 0.2 = 0.2, alpha = 0.2 / 0.8 = 0.25: [0.6 * 0.75, 0.2 * 0.75, 0.4]
-    np.testing.assert_allclose(mass.limit_unknown([0.6, 0.2, 0.2], 0.4), [0.45, 0.15, 0.4], rtol=1e-6)
+    np.testing.assert_allclose(
+        mass.limit_unknown([0.6, 0.2, 0.2], 0.4), [0.45, 0.15, 0.4], rtol=1e-6
+    )
 
 
 def test_limit_unknown_leaves_cells_above_limit_and_vacuous_cells():
-    np.testing.assert_array_equal(mass.limit_unknown([0.1, 0.2, 0.7], 0.4), np.float32([0.1, 0.2, 0.7]))
+    np.testing.assert_array_equal(
+        mass.limit_unknown([0.1, 0.2, 0.7], 0.4), np.float32([0.1, 0.2, 0.7])
+    )
     np.testing.assert_array_equal(mass.limit_unknown([0.0, 0.0, 1.0], 0.4), [0, 0, 1])
 
 
@@ -101,6 +112,7 @@ def test_deep_discount_exact_bound_where_papers_bound_fails():
 
 
 # --- validation ----------------------------------------------------------------------------------
+
 
 @pytest.mark.parametrize(
     "bad, message",
@@ -166,6 +178,7 @@ def test_kernels_match_a_float64_numpy_reference():
 
 
 # --- properties (paper section III/IV) -----------------------------------------------------------
+
 
 @given(masses(), masses())
 def test_dempster_never_raises_unknown(m1, m2):

@@ -10,7 +10,9 @@ import evgrid
 
 def test_import_evgrid_is_light():
     code = "import sys, evgrid; print(sorted(m for m in ('torch', 'numba', 'matplotlib') if m in sys.modules))"
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True
+    ).stdout.strip()
     assert out == "[]"
 
 
@@ -30,7 +32,11 @@ def test_the_docstring_example_runs(tmp_path):
 
 def test_ism_never_imports_learn():
     """The ISMs (Ev-Net and its checkpoints included) stand without the training code."""
-    code = ("import sys, evgrid.ism, evgrid.ism.deep, evgrid.ism.evnet; "
-            "print(sorted(m for m in sys.modules if m.startswith('evgrid.learn')))")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
+    code = (
+        "import sys, evgrid.ism, evgrid.ism.deep, evgrid.ism.evnet; "
+        "print(sorted(m for m in sys.modules if m.startswith('evgrid.learn')))"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True
+    ).stdout.strip()
     assert out == "[]"

@@ -11,7 +11,15 @@ import pytest
 from evgrid.data.frame import radar_column
 from evgrid.data.mounts import SensorMount
 from evgrid.data.radar_filter import RadarFilter
-from evgrid.data.sim import RADAR_CLUTTER, RADAR_GHOST, RADAR_REAL, RadarConfig, SimConfig, WorldConfig, simulate_scene
+from evgrid.data.sim import (
+    RADAR_CLUTTER,
+    RADAR_GHOST,
+    RADAR_REAL,
+    RadarConfig,
+    SimConfig,
+    WorldConfig,
+    simulate_scene,
+)
 from evgrid.data.sim import materials as M
 from evgrid.data.sim.radar import RadarModel
 from evgrid.data.sim.raycast import pack_boxes
@@ -24,9 +32,20 @@ _MOUNT = SensorMount("RADAR_FRONT", 0.0, 0.0, 0.5, 0.0)
 #: and so much sensitivity that every cell is detected; near scan only (the far scan, which
 #: reports its own clusters of the same objects, is tested apart).
 _EXACT = dict(
-    far_fov_deg=0.0, scatter_probability=1.0, swerling=False, rcs_fluctuation_db=0.0, clutter_rate=0.0, road_clutter_rate=0.0,
-    range_noise_m=0.0, far_range_noise_m=0.0, azimuth_noise_deg=0.0, azimuth_noise_mid_deg=0.0,
-    azimuth_noise_edge_deg=0.0, far_azimuth_noise_deg=0.0, doppler_noise_mps=0.0, reference_range_m=1000.0,
+    far_fov_deg=0.0,
+    scatter_probability=1.0,
+    swerling=False,
+    rcs_fluctuation_db=0.0,
+    clutter_rate=0.0,
+    road_clutter_rate=0.0,
+    range_noise_m=0.0,
+    far_range_noise_m=0.0,
+    azimuth_noise_deg=0.0,
+    azimuth_noise_mid_deg=0.0,
+    azimuth_noise_edge_deg=0.0,
+    far_azimuth_noise_deg=0.0,
+    doppler_noise_mps=0.0,
+    reference_range_m=1000.0,
 )
 
 
@@ -36,8 +55,19 @@ def _world(static: list[tuple]) -> World:
     boxes = pack_boxes(a[:, 0], a[:, 1], a[:, 2], a[:, 3] / 2, a[:, 4] / 2, a[:, 5], a[:, 6])
     cls = np.array([s[7] for s in static], dtype=np.int32)
     mv = Movers.empty()
-    return World("urban", boxes, a[:, 2], cls, M.LIDAR_REFLECTIVITY[cls], np.zeros(len(cls)), mv,
-                 M.LIDAR_REFLECTIVITY[mv.classes], np.zeros(0), None, SE2())
+    return World(
+        "urban",
+        boxes,
+        a[:, 2],
+        cls,
+        M.LIDAR_REFLECTIVITY[cls],
+        np.zeros(len(cls)),
+        mv,
+        M.LIDAR_REFLECTIVITY[mv.classes],
+        np.zeros(0),
+        None,
+        SE2(),
+    )
 
 
 def _pole(r: float, az_deg: float, size: float = 0.6) -> tuple:
@@ -49,7 +79,12 @@ def _pole(r: float, az_deg: float, size: float = 0.6) -> tuple:
 def _sweeps(world: World, cfg: RadarConfig, n: int) -> list[tuple[np.ndarray, np.ndarray]]:
     radar = RadarModel(cfg, _MOUNT)
     empty = (np.zeros((0, 8)), np.zeros(0, np.int32), np.zeros((0, 2)), np.zeros(0))
-    return [radar.sweep(world, *empty, (0.0, 0.0, 0.0), (0.0, 0.0), (0.0, 0.0), np.random.default_rng(k)) for k in range(n)]
+    return [
+        radar.sweep(
+            world, *empty, (0.0, 0.0, 0.0), (0.0, 0.0), (0.0, 0.0), np.random.default_rng(k)
+        )
+        for k in range(n)
+    ]
 
 
 def test_two_targets_in_one_resolution_cell_give_one_detection():
@@ -69,7 +104,9 @@ def test_two_targets_in_one_resolution_cell_give_one_detection():
     assert max(int((lab == RADAR_REAL).sum()) for _, lab in _sweeps(world, fine, 10)) >= 2
 
 
-@pytest.mark.parametrize("second", [(30.5, 20.0), (36.0, 2.6)], ids=["apart_in_azimuth", "apart_in_range"])
+@pytest.mark.parametrize(
+    "second", [(30.5, 20.0), (36.0, 2.6)], ids=["apart_in_azimuth", "apart_in_range"]
+)
 def test_two_targets_in_different_cells_give_two_detections(second):
     # 1.2 m poles: two or more beams each, so that each is seen in almost every sweep.
     world = _world([_pole(30.5, 0.8, 1.2), _pole(*second, 1.2)])
@@ -77,8 +114,11 @@ def test_two_targets_in_different_cells_give_two_detections(second):
     # A cluster at each pole (a wide pole can straddle a cell boundary and give two).
     r2, az2 = second[0] - 0.6, second[1]
     both = [
-        np.any(np.abs(np.hypot(p[:, 0], p[:, 1]) - 29.9) < 0.2) and np.any(
-            (np.abs(np.hypot(p[:, 0], p[:, 1]) - r2) < 0.2) & (np.abs(np.degrees(np.arctan2(p[:, 1], p[:, 0])) - az2) < 1.5))
+        np.any(np.abs(np.hypot(p[:, 0], p[:, 1]) - 29.9) < 0.2)
+        and np.any(
+            (np.abs(np.hypot(p[:, 0], p[:, 1]) - r2) < 0.2)
+            & (np.abs(np.degrees(np.arctan2(p[:, 1], p[:, 0])) - az2) < 1.5)
+        )
         for p, _ in sweeps
     ]
     assert np.mean(both) >= 0.8
@@ -160,11 +200,19 @@ def test_bad_radar_config_is_named(kw, field):
 
 def test_multipath_probability_scales_the_ghosts():
     # A facade left of the road (face at y = 6) and a truck ahead: ghosts behind the facade.
-    world = _world([(20.0, 11.0, 0.0, 80.0, 10.0, 0.0, 20.0, M.BUILDING), (18.0, -1.0, 0.0, 7.0, 2.4, 0.3, 3.0, M.TRUCK)])
+    world = _world(
+        [
+            (20.0, 11.0, 0.0, 80.0, 10.0, 0.0, 20.0, M.BUILDING),
+            (18.0, -1.0, 0.0, 7.0, 2.4, 0.3, 3.0, M.TRUCK),
+        ]
+    )
     cfg = dict(_EXACT, reference_range_m=25.0)
 
     def ghosts(p: float) -> int:
-        return sum(int((lab == RADAR_GHOST).sum()) for _, lab in _sweeps(world, RadarConfig(**cfg, multipath_probability=p), 20))
+        return sum(
+            int((lab == RADAR_GHOST).sum())
+            for _, lab in _sweeps(world, RadarConfig(**cfg, multipath_probability=p), 20)
+        )
 
     assert ghosts(1.0) >= 5
     assert ghosts(0.0) == 0
@@ -181,7 +229,9 @@ def test_far_scan_reports_inside_the_near_reach():
         empty = (np.zeros((0, 8)), np.zeros(0, np.int32), np.zeros((0, 2)), np.zeros(0))
         seen = []
         for k in range(5):
-            pts, lab = radar.sweep(world, *empty, (0.0, 0.0, 0.0), (0.0, 0.0), (0.0, 0.0), np.random.default_rng(k))
+            pts, lab = radar.sweep(
+                world, *empty, (0.0, 0.0, 0.0), (0.0, 0.0), (0.0, 0.0), np.random.default_rng(k)
+            )
             seen.append(radar.last_truth[lab == RADAR_REAL, 2])
         scans.append(np.concatenate(seen))
     assert np.sum(scans[0] > 0) >= 4 and np.sum(scans[0] == 0) >= 4  # both scans, most sweeps
@@ -200,16 +250,25 @@ def test_scattering_centres_are_per_metre_of_surface():
     assert p[0] == pytest.approx(M.RADAR_SCATTER[M.CAR] * cfg.scatter_probability)
     assert p[1] < p[0] < p[2]
     # A finer-spaced beam stands for a narrower strip: same range, smaller chance.
-    assert radar._centre_probability(k[:1], np.array([60.0]), np.ones(1, bool), normal[:1])[0] < p[2]
+    assert (
+        radar._centre_probability(k[:1], np.array([60.0]), np.ones(1, bool), normal[:1])[0] < p[2]
+    )
     # At oblique incidence the beam's strip on the surface is wider: 1 / cos(60 deg) = twice.
-    oblique = radar._centre_probability(k[:1], np.array([strip_range / 2]), np.zeros(1, bool), np.array([0.5]))
+    oblique = radar._centre_probability(
+        k[:1], np.array([strip_range / 2]), np.zeros(1, bool), np.array([0.5])
+    )
     assert oblique[0] == pytest.approx(p[0])
     # An object narrower than scatter_strip_m (a pole) is one centre however many beams hit it:
     # a beam covering its whole width holds the centre with the table's chance.
     pole = np.array([M.POLE])
     width = 0.24
-    whole = radar._centre_probability(pole, np.array([width / math.radians(cfg.ray_spacing_deg)]), np.zeros(1, bool),
-                                      np.ones(1), np.array([width]))
+    whole = radar._centre_probability(
+        pole,
+        np.array([width / math.radians(cfg.ray_spacing_deg)]),
+        np.zeros(1, bool),
+        np.ones(1),
+        np.array([width]),
+    )
     assert whole[0] == pytest.approx(M.RADAR_SCATTER[M.POLE] * cfg.scatter_probability)
 
 
@@ -219,7 +278,10 @@ def test_front_radar_detections_are_mostly_far():
     # has its mean distance in a band around the calibrated 42 m (the previous model: 20 m).
     scene = simulate_scene(2, SimConfig(duration_s=3.0, world=WorldConfig(environment="urban")))
     keep = RadarFilter("nuscenes").keep
-    pts = [scene.radar_sweep("RADAR_FRONT", j)[0].points for j in range(len(scene.radar_timestamps["RADAR_FRONT"]))]
+    pts = [
+        scene.radar_sweep("RADAR_FRONT", j)[0].points
+        for j in range(len(scene.radar_timestamps["RADAR_FRONT"]))
+    ]
     pts = np.concatenate([p[keep(p)] for p in pts])
     d = np.hypot(pts[:, 0], pts[:, 1])
     assert len(d) > 400

@@ -17,5 +17,7 @@ BLOCKS = re.findall(r"```python\n(.*?)```", README.read_text(), re.S)
 def test_readme_python_block_runs(code, tmp_path):
     if code.startswith("# requires: nuScenes"):
         pytest.skip("needs the nuScenes dataset on disk")
-    r = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    r = subprocess.run(
+        [sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=300
+    )
     assert r.returncode == 0, r.stderr

@@ -17,10 +17,17 @@ def test_masses_to_rgb_uses_the_papers_colours():
 def test_figures_and_gif_are_written(tmp_path):
     m = mass.vacuous((40, 40))
     m[10:20, 5:30] = [0.8, 0.0, 0.2]
-    p = plot_panels({"a": m, "b": m, "c": m, "d": m}, tmp_path / "fig.png", title="t", tracks={"a": np.array([[1, 1], [20, 20]])})
+    p = plot_panels(
+        {"a": m, "b": m, "c": m, "d": m},
+        tmp_path / "fig.png",
+        title="t",
+        tracks={"a": np.array([[1, 1], [20, 20]])},
+    )
     with Image.open(p) as im:
         assert im.size[0] > 300 and im.size[1] > 200
-    c = plot_convergence({"fused": [{"free": 0.2, "occupied": 0.1, "unknown": 0.5}] * 3}, tmp_path / "conv.png")
+    c = plot_convergence(
+        {"fused": [{"free": 0.2, "occupied": 0.1, "unknown": 0.5}] * 3}, tmp_path / "conv.png"
+    )
     assert c.stat().st_size > 1000
     g = write_gif([masses_to_rgb(m), masses_to_rgb(mass.vacuous((40, 40)))], tmp_path / "a.gif")
     with Image.open(g) as im:

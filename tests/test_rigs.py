@@ -21,10 +21,18 @@ from evgrid.data.sweeps import GapCounter, RadarBuffer
 from evgrid.evaluate import free_fraction_near_path
 from evgrid.geometry import SE3
 from evgrid.ism import ray_ilm
-from evgrid.ism.self_returns import NUSCENES_BODY, BodyBox, SelfReturnFilter, SelfReturnParams, parse_body_box
+from evgrid.ism.self_returns import (
+    NUSCENES_BODY,
+    BodyBox,
+    SelfReturnFilter,
+    SelfReturnParams,
+    parse_body_box,
+)
 from evgrid.mapper import OccupancyMapper
 
-RIG = RigConfig(radar_channels=("RADAR_FRONT", "RADAR_BACK_LEFT", "RADAR_BACK_RIGHT"), radar_rates_hz=(4.0,))
+RIG = RigConfig(
+    radar_channels=("RADAR_FRONT", "RADAR_BACK_LEFT", "RADAR_BACK_RIGHT"), radar_rates_hz=(4.0,)
+)
 
 
 def free_near_path(mapper: OccupancyMapper, radius_m: float = 10.0) -> float:
@@ -34,21 +42,44 @@ def free_near_path(mapper: OccupancyMapper, radius_m: float = 10.0) -> float:
 
 # --- self-returns ---------------------------------------------------------------------------------
 
+
 def _body_points(n: int, rng: np.random.Generator) -> np.ndarray:
     """Returns from a roof rack 0.1 m below the lidar and from the bonnet, in the lidar frame."""
-    ego = np.concatenate([
-        np.column_stack([rng.uniform(-0.5, 2.4, n), rng.uniform(-0.75, 0.75, n), np.full(n, LIDAR_MOUNT.z - 0.1)]),
-        np.column_stack([rng.uniform(2.5, 3.4, n // 4), rng.uniform(-0.8, 0.8, n // 4), np.full(n // 4, 0.95)]),
-    ])
+    ego = np.concatenate(
+        [
+            np.column_stack(
+                [
+                    rng.uniform(-0.5, 2.4, n),
+                    rng.uniform(-0.75, 0.75, n),
+                    np.full(n, LIDAR_MOUNT.z - 0.1),
+                ]
+            ),
+            np.column_stack(
+                [
+                    rng.uniform(2.5, 3.4, n // 4),
+                    rng.uniform(-0.8, 0.8, n // 4),
+                    np.full(n // 4, 0.95),
+                ]
+            ),
+        ]
+    )
     xyz = LIDAR_MOUNT.sensor_to_ego().inverse().apply(ego)
     return np.column_stack([xyz, np.full(len(xyz), 50.0), np.zeros(len(xyz))]).astype(np.float32)
 
 
-@pytest.mark.parametrize("params", [SelfReturnParams(), SelfReturnParams(mode="box")], ids=["auto", "box"])
+@pytest.mark.parametrize(
+    "params", [SelfReturnParams(), SelfReturnParams(mode="box")], ids=["auto", "box"]
+)
 def test_self_returns_leave_the_ray_ilm_outside_the_body_unchanged(params):
-    clean, _ = simulate_scene(4, SimConfig(duration_s=1.0, lidar=LidarConfig(self_returns=False))).lidar_sweep(3)
-    dirty = LidarSweep(np.concatenate([clean.points, _body_points(3000, np.random.default_rng(0))]),
-                       clean.sensor_to_ego, clean.ego_pose, clean.timestamp)
+    clean, _ = simulate_scene(
+        4, SimConfig(duration_s=1.0, lidar=LidarConfig(self_returns=False))
+    ).lidar_sweep(3)
+    dirty = LidarSweep(
+        np.concatenate([clean.points, _body_points(3000, np.random.default_rng(0))]),
+        clean.sensor_to_ego,
+        clean.ego_pose,
+        clean.timestamp,
+    )
     f = SelfReturnFilter(params)
     want = ray_ilm(clean)
     assert np.array_equal(ray_ilm(f(dirty)), want)
@@ -65,9 +96,17 @@ def _moving_sweeps(n: int, step_m: float, body: np.ndarray, rng: np.random.Gener
     for k in range(n):
         x = k * step_m
         posts = np.arange(np.floor(x / 5) * 5 - 10, x + 10, 5.0)
-        world = np.column_stack([np.repeat(posts - x, 20), np.full(20 * len(posts), 2.5), np.tile(np.linspace(0.4, 1.5, 20), len(posts))])
+        world = np.column_stack(
+            [
+                np.repeat(posts - x, 20),
+                np.full(20 * len(posts), 2.5),
+                np.tile(np.linspace(0.4, 1.5, 20), len(posts)),
+            ]
+        )
         ego = np.concatenate([body, world]) + rng.normal(0, 0.01, (len(body) + len(world), 3))
-        pts = np.column_stack([s2e.inverse().apply(ego), np.zeros((len(ego), 2))]).astype(np.float32)
+        pts = np.column_stack([s2e.inverse().apply(ego), np.zeros((len(ego), 2))]).astype(
+            np.float32
+        )
         pose = SE3(np.eye(3), np.array([x, 0.0, 0.0]))
         yield LidarSweep(pts, s2e, pose, k * 100_000), len(body)
 
@@ -75,7 +114,9 @@ def _moving_sweeps(n: int, step_m: float, body: np.ndarray, rng: np.random.Gener
 def test_auto_learns_the_body_of_a_vehicle_it_was_not_told_about():
     rng = np.random.default_rng(1)
     # a van: a rack from 1.0 m behind to 2.0 m ahead of the lidar, 1.2 m wide each side
-    body = np.column_stack([rng.uniform(-0.1, 2.9, 400), rng.uniform(-1.2, 1.2, 400), np.full(400, 1.7)])
+    body = np.column_stack(
+        [rng.uniform(-0.1, 2.9, 400), rng.uniform(-1.2, 1.2, 400), np.full(400, 1.7)]
+    )
     f = SelfReturnFilter(SelfReturnParams(prior=None))
     removed = []
     for sweep, n_body in _moving_sweeps(60, 0.6, body, rng):
@@ -84,7 +125,9 @@ def test_auto_learns_the_body_of_a_vehicle_it_was_not_told_about():
     assert removed[0] == 0  # nothing is known before the vehicle has moved
     assert f.learnt_box is not None
     b = f.learnt_box
-    assert b.x0 <= -0.1 and b.x1 >= 2.9 and b.y0 <= -1.2 and b.y1 >= 1.2 and b.y1 < 2.4  # the posts are not the body
+    assert (
+        b.x0 <= -0.1 and b.x1 >= 2.9 and b.y0 <= -1.2 and b.y1 >= 1.2 and b.y1 < 2.4
+    )  # the posts are not the body
     assert removed[-1] == len(body)
 
 
@@ -108,7 +151,9 @@ def test_simulated_lidar_sees_its_own_car():
     ego = sweep.sensor_to_ego.apply(sweep.points[body, :3].astype(np.float64))
     assert NUSCENES_BODY.contains(ego).all()
     # the rest of the sweep is what the lidar sees without the body, less what the body hides
-    clean, _ = simulate_scene(4, SimConfig(duration_s=0.5, lidar=LidarConfig(self_returns=False))).lidar_sweep(2)
+    clean, _ = simulate_scene(
+        4, SimConfig(duration_s=0.5, lidar=LidarConfig(self_returns=False))
+    ).lidar_sweep(2)
     assert len(clean.points) > (~body).sum()
 
 
@@ -124,7 +169,9 @@ def rig_maps(tmp_path_factory):
         cfg = SimConfig(duration_s=5.0, lidar=LidarConfig(rate_hz=10.0, self_returns=sr), rig=RIG)
         write_nuscenes([simulate_scene(4, cfg)], root, splits={"val": ["sim-000004"]})
         (scene,) = load_nuscenes(root, "v1.0-sim", split="val")
-        mapper = OccupancyMapper(replace(MapperConfig(), maps=("ray_ilm", "ray_irm")))  # default filters
+        mapper = OccupancyMapper(
+            replace(MapperConfig(), maps=("ray_ilm", "ray_irm"))
+        )  # default filters
         for frame in scene:
             mapper.process(frame)
         out[sr] = (scene, mapper)
@@ -144,13 +191,18 @@ def test_rig_with_self_returns_maps_free_space_as_without(rig_maps):
 
 # --- any rig, faulty sweeps -----------------------------------------------------------------------
 
+
 def test_faulty_rig_maps_and_counts(tmp_path):
     from evgrid.data.nuscenes import load_nuscenes
     from evgrid.data.nuscenes_format import write_nuscenes
 
     faults = SweepFaults(drop=0.2, duplicate=0.2, reorder=0.3, lidar_drop=0.15, seed=3)
-    rig = RigConfig(radar_channels=("FRONT", "REAR"), radar_mounts=("RADAR_FRONT", "RADAR_BACK_LEFT"),
-                    radar_rates_hz=(20.0, 7.0), faults=faults)
+    rig = RigConfig(
+        radar_channels=("FRONT", "REAR"),
+        radar_mounts=("RADAR_FRONT", "RADAR_BACK_LEFT"),
+        radar_rates_hz=(20.0, 7.0),
+        faults=faults,
+    )
     cfg = SimConfig(duration_s=2.5, lidar=LidarConfig(rate_hz=10.0), rig=rig)
     sc = simulate_scene(9, cfg)
     assert len(sc) < 25 and all(sc.is_keyframe(int(i)) for i in sc.keyframe_indices)
@@ -165,7 +217,11 @@ def test_faulty_rig_maps_and_counts(tmp_path):
     (scene,) = load_nuscenes(tmp_path, "v1.0-sim", split="val")
     assert scene.radar_channels == ("FRONT", "REAR")
     s = scene.stats
-    assert s["radar_sweeps_duplicate"] > 0 and s["radar_sweeps_out_of_order"] > 0 and s["radar_sweeps_missing"] > 0
+    assert (
+        s["radar_sweeps_duplicate"] > 0
+        and s["radar_sweeps_out_of_order"] > 0
+        and s["radar_sweeps_missing"] > 0
+    )
     assert s["lidar_sweeps_missing"] > 0
 
 
@@ -174,7 +230,9 @@ def test_simulator_rig_without_faults_is_the_default_scene():
     b = simulate_scene(3, SimConfig(duration_s=0.5, rig=RigConfig(radar_rates_hz=(13.0,))))
     fa, fb = a.frame(4), b.frame(4)
     assert np.array_equal(fa.lidar.points, fb.lidar.points)
-    assert all(np.array_equal(x.points, y.points) for x, y in zip(fa.radar_sweeps(), fb.radar_sweeps()))
+    assert all(
+        np.array_equal(x.points, y.points) for x, y in zip(fa.radar_sweeps(), fb.radar_sweeps())
+    )
     with pytest.raises(ValueError, match="radar mount"):
         RigConfig(radar_channels=("X",))
 
@@ -192,13 +250,16 @@ def test_gap_counter_and_buffer_count_missing_sweeps():
 
 # --- radar validity fields ------------------------------------------------------------------------
 
+
 def _sweep_with_states() -> RadarSweep:
     pts = np.zeros((6, 12), np.float32)
     pts[:, 0] = 10.0
     pts[:, radar_column("invalid_state")] = [0, 0, 0, 1, 0, 0]
     pts[:, radar_column("dyn_prop")] = [0, 3, 7, 0, 1, 0]
     pts[:, radar_column("ambig_state")] = [3, 3, 3, 3, 3, 2]
-    return RadarSweep(pts, RADAR_MOUNTS["RADAR_FRONT"].sensor_to_ego(), SE3.identity(), 1, "RADAR_FRONT")
+    return RadarSweep(
+        pts, RADAR_MOUNTS["RADAR_FRONT"].sensor_to_ego(), SE3.identity(), 1, "RADAR_FRONT"
+    )
 
 
 def test_radar_filter_modes():
@@ -243,23 +304,40 @@ def test_mapping_with_another_filter_than_training_warns(caplog):
     trained = {"radar_filter": RadarFilter.named("nuscenes").to_dict()}
     with caplog.at_level(logging.WARNING, logger="evgrid.data.radar_filter"):
         OccupancyMapper(MapperConfig(maps=("deep_acc",)), deep=_FakeDeep(trained))
-    assert "'none'" in caplog.text and "'nuscenes'" in caplog.text and "fake.safetensors" in caplog.text
+    assert (
+        "'none'" in caplog.text
+        and "'nuscenes'" in caplog.text
+        and "fake.safetensors" in caplog.text
+    )
     caplog.clear()
     with caplog.at_level(logging.WARNING, logger="evgrid.data.radar_filter"):
-        OccupancyMapper(MapperConfig(maps=("deep_acc",), radar_filter=RadarFilter.named("nuscenes")), deep=_FakeDeep(trained))
-        assert check_trained_filter(RadarFilter(), {})  # a checkpoint without a record was trained unfiltered
+        OccupancyMapper(
+            MapperConfig(maps=("deep_acc",), radar_filter=RadarFilter.named("nuscenes")),
+            deep=_FakeDeep(trained),
+        )
+        assert check_trained_filter(
+            RadarFilter(), {}
+        )  # a checkpoint without a record was trained unfiltered
     assert caplog.text == ""
 
 
 # --- configs and options --------------------------------------------------------------------------
 
+
 def test_config_round_trip_with_rig_fields():
-    mc = MapperConfig(self_returns=SelfReturnParams(mode="box", body=BodyBox(-1, -1, 0, 4, 1, 2), prior=None),
-                      radar_filter=RadarFilter("custom", invalid_state=(0, 1), ambig_state=(3,)))
+    mc = MapperConfig(
+        self_returns=SelfReturnParams(mode="box", body=BodyBox(-1, -1, 0, 4, 1, 2), prior=None),
+        radar_filter=RadarFilter("custom", invalid_state=(0, 1), ambig_state=(3,)),
+    )
     text = json.dumps(RunConfig(mapper=mc).to_dict(), allow_nan=False)
     assert RunConfig.from_dict(json.loads(text)).mapper == mc
-    assert from_dict(MapperConfig, json.loads(json.dumps(MapperConfig().to_dict(), allow_nan=False))) == MapperConfig()
-    sim = SimConfig(lidar=LidarConfig(rate_hz=10.0), rig=replace(RIG, faults=SweepFaults(drop=0.1, seed=2)))
+    assert (
+        from_dict(MapperConfig, json.loads(json.dumps(MapperConfig().to_dict(), allow_nan=False)))
+        == MapperConfig()
+    )
+    sim = SimConfig(
+        lidar=LidarConfig(rate_hz=10.0), rig=replace(RIG, faults=SweepFaults(drop=0.1, seed=2))
+    )
     assert SimConfig.from_dict(json.loads(json.dumps(sim.to_dict()))) == sim
     assert sim.keyframe_step == 5 and SimConfig().keyframe_step == 10
 
@@ -270,27 +348,42 @@ def test_cli_options_reach_the_mapper_config():
     cfg = _mapper_config(MapperConfig(), self_returns="off", radar_filter="nuscenes")
     assert cfg.self_returns.mode == "off" and cfg.radar_filter == RadarFilter("nuscenes")
     cfg = _mapper_config(MapperConfig(), body_box="-1,-1,0,5,1,2.5")
-    assert cfg.self_returns.mode == "box" and cfg.self_returns.box == parse_body_box("-1,-1,0,5,1,2.5")
+    assert cfg.self_returns.mode == "box" and cfg.self_returns.box == parse_body_box(
+        "-1,-1,0,5,1,2.5"
+    )
     with pytest.raises(ValueError, match="six numbers"):
         parse_body_box("1,2,3")
     sim = _sim_config(4.0, "urban", 10.0, "RADAR_FRONT,SIDE=RADAR_FRONT_LEFT", "4,8", False, 0.1)
-    assert sim.rig.radar_channels == ("RADAR_FRONT", "SIDE") and sim.rig.mounts() == ("RADAR_FRONT", "RADAR_FRONT_LEFT")
-    assert sim.rig.rates(13.0) == (4.0, 8.0) and not sim.lidar.self_returns and sim.rig.faults.reorder == 0.1
+    assert sim.rig.radar_channels == ("RADAR_FRONT", "SIDE") and sim.rig.mounts() == (
+        "RADAR_FRONT",
+        "RADAR_FRONT_LEFT",
+    )
+    assert (
+        sim.rig.rates(13.0) == (4.0, 8.0)
+        and not sim.lidar.self_returns
+        and sim.rig.faults.reorder == 0.1
+    )
 
 
 def test_body_hits_hand_computed():
     from evgrid.data.sim.lidar import body_hits
 
     box = np.array([[0.0, -1.0, 0.0, 2.0, 1.0, 1.0]])
-    dirs = np.array([
-        [0.0, 0.0, -1.0],                  # straight down onto the top face from 3 m up: 2 m, cos 1
-        [1.0, 0.0, 0.0],                   # level, above the box: a miss
-        [0.6, 0.0, -0.8],                  # slanting down onto the top face: 2 / 0.8 = 2.5 m, cos 0.8
-        [-1.0, 0.0, 0.0],                  # away from the box: a miss
-    ])
+    dirs = np.array(
+        [
+            [0.0, 0.0, -1.0],  # straight down onto the top face from 3 m up: 2 m, cos 1
+            [1.0, 0.0, 0.0],  # level, above the box: a miss
+            [0.6, 0.0, -0.8],  # slanting down onto the top face: 2 / 0.8 = 2.5 m, cos 0.8
+            [-1.0, 0.0, 0.0],  # away from the box: a miss
+        ]
+    )
     t, cos = body_hits(np.array([0.2, 0.0, 3.0]), dirs, box)
     np.testing.assert_allclose(t, [2.0, np.inf, 2.5, np.inf])
     np.testing.assert_allclose(cos, [1.0, 0.0, 0.8, 0.0])
     # from inside a slab, level rays leave through the side faces: the nearer box wins
-    t, _ = body_hits(np.array([-1.0, 0.0, 0.5]), np.array([[1.0, 0.0, 0.0]]), np.vstack([box, box + [3, 0, 0, 3, 0, 0]]))
+    t, _ = body_hits(
+        np.array([-1.0, 0.0, 0.5]),
+        np.array([[1.0, 0.0, 0.0]]),
+        np.vstack([box, box + [3, 0, 0, 3, 0, 0]]),
+    )
     assert t[0] == 1.0

@@ -35,7 +35,9 @@ def test_trunk_then_upsample_is_the_whole_network():
     with torch.inference_mode():
         whole = net(torch.from_numpy(x))[0].numpy()
         trunk = rt.evnet_trunk(net)(torch.from_numpy(pooled))
-        up = torch.nn.functional.interpolate(trunk, size=(128, 128), mode="bilinear", align_corners=False)[0].numpy()
+        up = torch.nn.functional.interpolate(
+            trunk, size=(128, 128), mode="bilinear", align_corners=False
+        )[0].numpy()
     np.testing.assert_array_equal(up, whole)
     out = rt.TorchRuntime(net)(pooled)
     assert out.shape == (2, 32, 32) and out.dtype == np.float32

@@ -7,7 +7,8 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from evgrid.data.sim import SimConfig, WorldConfig
 from evgrid.data.sim import materials as M
@@ -48,8 +49,15 @@ def _inside(boxes: np.ndarray, xy: np.ndarray, margin: float) -> np.ndarray:
 
 
 def _shrunk(p: np.ndarray, by: float) -> np.ndarray:
-    return pack_boxes(p[:, 0], p[:, 1], np.arctan2(p[:, 3], p[:, 2]), np.maximum(p[:, 4] - by, 0.02),
-                      np.maximum(p[:, 5] - by, 0.02), p[:, 6], p[:, 7])
+    return pack_boxes(
+        p[:, 0],
+        p[:, 1],
+        np.arctan2(p[:, 3], p[:, 2]),
+        np.maximum(p[:, 4] - by, 0.02),
+        np.maximum(p[:, 5] - by, 0.02),
+        p[:, 6],
+        p[:, 7],
+    )
 
 
 def _any_overlap(a: np.ndarray, b: np.ndarray) -> bool:
@@ -82,7 +90,9 @@ def test_streets_are_curved():
             _, _, _, traj = plan_drive(seed, _cfg(20.0, layout=layout))
             s = traj.s_at(np.arange(0.0, 20.0, 0.1))
             k = np.abs(np.interp(s, traj.path_s, traj.path_kappa))
-            fracs.append(float(((k > 1e-4) & (k < 0.02)).mean()))  # bending gently, not a turn at a corner
+            fracs.append(
+                float(((k > 1e-4) & (k < 0.02)).mean())
+            )  # bending gently, not a turn at a corner
         curved += fracs[0] > 0.5
         straight += fracs[1] < 0.05  # only where the speed profile samples the end of a corner arc
     assert curved >= 5 and straight == 6
@@ -143,7 +153,9 @@ def test_squares_lots_parks_roundabouts_appear(worlds):
             assert in_rect(r, [M.CANOPY]) >= 3
         for x, y, rad in w.layout.roundabouts:
             d = np.hypot(city[:, 0] - x, city[:, 1] - y)
-            assert ((d > rad - 0.5) & (d < rad + 0.5) & (w.classes == M.BARRIER)).sum() >= 8  # the island's curb
+            assert (
+                (d > rad - 0.5) & (d < rad + 0.5) & (w.classes == M.BARRIER)
+            ).sum() >= 8  # the island's curb
             ring = (d > rad + 0.5) & (d < rad + 7.0) & (w.boxes[:, 7] > 0.3)
             assert not ring.any()  # the circulating carriageway is clear
     assert all(v >= 2 for v in total.values()), total

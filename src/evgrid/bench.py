@@ -24,7 +24,8 @@ import os
 import platform
 import tempfile
 import time
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
@@ -83,7 +84,9 @@ class PlainDeepIrm:
         return d.predict_image(radar_image(sweeps, ego_pose, d.grid, now_us, d.params))
 
 
-def _map_frames(frames: Sequence, maps: tuple[str, ...], deep, update_rate_hz: float = 10.0) -> tuple[Any, np.ndarray]:
+def _map_frames(
+    frames: Sequence, maps: tuple[str, ...], deep, update_rate_hz: float = 10.0
+) -> tuple[Any, np.ndarray]:
     """Map ``frames``; return the mapper and each frame's ``process`` time (ms).
 
     With the deep IRM's plain path (:class:`PlainDeepIrm`) the maps are also updated the old
@@ -147,17 +150,26 @@ def _deep_parts(deep, sweeps, ego_pose, now_us: int, repeat: int) -> dict[str, A
     pooled = deep.pooled_input(sweeps, ego_pose, now_us).copy()
     m = grid.n_cells // deep.pool
     names = ["torch"] + (["onnxruntime"] if ort_available() else [])
-    runtimes = {n: deep.runtime if deep.runtime.name == n else
-                make_runtime(deep.model, (len(pooled[0]), m, m), n, deep.threads) for n in names}
+    runtimes = {
+        n: deep.runtime
+        if deep.runtime.name == n
+        else make_runtime(deep.model, (len(pooled[0]), m, m), n, deep.threads)
+        for n in names
+    }
     ev = deep.runtime(pooled)
-    ts = interleaved_timings({
-        "old: radar_image": lambda: radar_image(sweeps, ego_pose, grid, now_us, deep.params),
-        "old: predict_image (whole Ev-Net on torch, from_evidence)": lambda: deep.predict_image(image),
-        "new: pooled_input": lambda: deep.pooled_input(sweeps, ego_pose, now_us),
-        **{f"new: net on {n}": (lambda r=r: r(pooled)) for n, r in runtimes.items()},
-        "new: upsample_and_masses": lambda: evidence_to_masses(ev, grid),
-        "new: predict (all)": lambda: deep.predict(sweeps, ego_pose, now_us),
-    }, repeat)
+    ts = interleaved_timings(
+        {
+            "old: radar_image": lambda: radar_image(sweeps, ego_pose, grid, now_us, deep.params),
+            "old: predict_image (whole Ev-Net on torch, from_evidence)": lambda: deep.predict_image(
+                image
+            ),
+            "new: pooled_input": lambda: deep.pooled_input(sweeps, ego_pose, now_us),
+            **{f"new: net on {n}": (lambda r=r: r(pooled)) for n, r in runtimes.items()},
+            "new: upsample_and_masses": lambda: evidence_to_masses(ev, grid),
+            "new: predict (all)": lambda: deep.predict(sweeps, ego_pose, now_us),
+        },
+        repeat,
+    )
     res: dict[str, Any] = {
         "detections": n_det,
         "runtime": deep.runtime.name,
@@ -180,8 +192,12 @@ def _rig(deep, seed: int, duration_s: float) -> dict[str, Any]:
     from evgrid.data import SimConfig, simulate_scene
     from evgrid.data.sim.config import LidarConfig, RadarConfig
 
-    cfg = SimConfig(duration_s=duration_s, keyframe_every=5, lidar=LidarConfig(rate_hz=10.0),
-                    radar=RadarConfig(rate_hz=4.0))
+    cfg = SimConfig(
+        duration_s=duration_s,
+        keyframe_every=5,
+        lidar=LidarConfig(rate_hz=10.0),
+        radar=RadarConfig(rate_hz=4.0),
+    )
     frames = list(simulate_scene(seed, cfg))
     out: dict[str, Any] = {"lidar_hz": 10.0, "radar_hz": 4.0, "frames": len(frames)}
     for label, maps in (("six_maps", fusion.MAP_NAMES), ("fused_only", ("fused",))):
@@ -266,16 +282,25 @@ def run_bench(
     rep = timing_repeat
     kernels = {
         "dempster_512": median_ms(lambda: mass.dempster(a, b, out), repeat=rep),
-        "deep_disc_update_512": median_ms(lambda: fusion.update_deep_disc(cur, b, params), repeat=rep),
+        "deep_disc_update_512": median_ms(
+            lambda: fusion.update_deep_disc(cur, b, params), repeat=rep
+        ),
         "fused_update_512": median_ms(lambda: fusion.update_fused(cur, b, a, params), repeat=rep),
         "warp_512_yaw45": median_ms(lambda: warper.warp(a, pose), repeat=rep),
-        "warp_and_deep_disc_fuse_512_yaw45": median_ms(lambda: one_map.update(pose, {"deep_irm": a}), repeat=rep),
+        "warp_and_deep_disc_fuse_512_yaw45": median_ms(
+            lambda: one_map.update(pose, {"deep_irm": a}), repeat=rep
+        ),
         "warp_and_deep_disc_fuse_512_yaw45_two_pass": median_ms(
-            lambda: one_map.update_windows(one_map.warp(pose, {"deep_irm": a})), repeat=rep),
+            lambda: one_map.update_windows(one_map.warp(pose, {"deep_irm": a})), repeat=rep
+        ),
     }
     result: dict[str, Any] = {
-        "machine": {"processor": platform.processor() or platform.machine(), "cpus": os.cpu_count(), "threads": 1,
-                    "load_average": os.getloadavg() if hasattr(os, "getloadavg") else None},
+        "machine": {
+            "processor": platform.processor() or platform.machine(),
+            "cpus": os.cpu_count(),
+            "threads": 1,
+            "load_average": os.getloadavg() if hasattr(os, "getloadavg") else None,
+        },
         "scene": {"name": scene.name, "duration_s": duration_s},
         "checkpoint": str(deep.checkpoint),
         "runtime": deep.runtime.name,
@@ -283,8 +308,8 @@ def run_bench(
         "deep_irm_parts_ms": parts,
         "kernels_ms": kernels,
         "note": "components_ms are medians per map update (the median over runs of each run's median), "
-                "components_ms_p10 the 10th percentile over all updates; step_total is one whole update of "
-                "all listed maps",
+        "components_ms_p10 the 10th percentile over all updates; step_total is one whole update of "
+        "all listed maps",
     }
     rig_s = duration_s if rig_s is None else rig_s
     end_to_end_s = duration_s if end_to_end_s is None else end_to_end_s

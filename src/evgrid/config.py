@@ -22,11 +22,19 @@ from evgrid.geometry import GridSpec
 from evgrid.ism.deep import RadarImageParams
 from evgrid.ism.lidar import RayIlmParams
 from evgrid.ism.radar import RayIrmParams
-from evgrid.ism.self_returns import SelfReturnParams
 from evgrid.ism.runtime import RUNTIMES
+from evgrid.ism.self_returns import SelfReturnParams
 from evgrid.validation import check_choice, check_int, check_number
 
-__all__ = ["PoseLimits", "MapperConfig", "OutputConfig", "RunConfig", "ConfigError", "from_dict", "load_run_config"]
+__all__ = [
+    "PoseLimits",
+    "MapperConfig",
+    "OutputConfig",
+    "RunConfig",
+    "ConfigError",
+    "from_dict",
+    "load_run_config",
+]
 
 _FORMAT = "evgrid-run"
 _FORMAT_VERSION = 1
@@ -83,13 +91,17 @@ class MapperConfig:
     poses: PoseLimits = field(default_factory=PoseLimits)
     threads: int = 1
     tile_cells: int = 256
-    runtime: str = "auto"  # Ev-Net's inference: auto (ONNX Runtime when installed), onnxruntime, torch
+    runtime: str = (
+        "auto"  # Ev-Net's inference: auto (ONNX Runtime when installed), onnxruntime, torch
+    )
 
     def __post_init__(self) -> None:
         check_choice(self, "runtime", choices=RUNTIMES)
         unknown = [m for m in self.maps if m not in MAP_NAMES]
         if unknown or not self.maps:
-            raise ValueError(f"MapperConfig.maps: unknown map name(s) {unknown}; choose from {MAP_NAMES}")
+            raise ValueError(
+                f"MapperConfig.maps: unknown map name(s) {unknown}; choose from {MAP_NAMES}"
+            )
         check_number(self, "update_rate_hz", min=0.0, min_open=True)
         check_int(self, "threads", min=1)
         check_int(self, "tile_cells", min=8)
@@ -124,7 +136,9 @@ class OutputConfig:
 
         bad = [e for e in self.exports if e not in FORMATS]
         if bad:
-            raise ValueError(f"OutputConfig.exports: unknown format(s) {bad}; choose from {FORMATS}")
+            raise ValueError(
+                f"OutputConfig.exports: unknown format(s) {bad}; choose from {FORMATS}"
+            )
         check_number(self, "export_window_m", min=0.0, min_open=True)
         check_number(self, "gif_window_m", min=0.0, min_open=True)
         check_int(self, "gif_step", min=1)
@@ -144,10 +158,15 @@ class RunConfig:
         """Plain-JSON form, tagged with the file format and the evgrid version that wrote it."""
         import evgrid
 
-        return {"format": _FORMAT, "version": _FORMAT_VERSION, "evgrid": evgrid.__version__, **_plain(asdict(self))}
+        return {
+            "format": _FORMAT,
+            "version": _FORMAT_VERSION,
+            "evgrid": evgrid.__version__,
+            **_plain(asdict(self)),
+        }
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any], where: str = "config") -> "RunConfig":
+    def from_dict(cls, d: dict[str, Any], where: str = "config") -> RunConfig:
         """Inverse of :meth:`to_dict`; raises :class:`ConfigError` naming the bad field."""
         if not isinstance(d, dict):
             raise ConfigError(f"{where}: expected a JSON object, got {type(d).__name__}")
@@ -156,7 +175,9 @@ class RunConfig:
             raise ConfigError(f"{where}: not an evgrid run config (format {d.get('format')!r})")
         version = d.pop("version", _FORMAT_VERSION)
         if version != _FORMAT_VERSION:
-            raise ConfigError(f"{where}: run config version {version!r}; this evgrid reads {_FORMAT_VERSION}")
+            raise ConfigError(
+                f"{where}: run config version {version!r}; this evgrid reads {_FORMAT_VERSION}"
+            )
         d.pop("evgrid", None)
         return from_dict(cls, d, where)
 

@@ -8,7 +8,7 @@ covered (the reference map's coverage).
 from __future__ import annotations
 
 import math
-from typing import Iterable, Mapping
+from collections.abc import Iterable, Mapping
 
 import numba
 import numpy as np
@@ -59,7 +59,9 @@ def classify(m: np.ndarray) -> np.ndarray:
     return out
 
 
-def iou_per_class(pred: np.ndarray, ref: np.ndarray, mask: np.ndarray | None = None) -> dict[str, float]:
+def iou_per_class(
+    pred: np.ndarray, ref: np.ndarray, mask: np.ndarray | None = None
+) -> dict[str, float]:
     """IoU of each class between two class rasters over ``mask``; NaN where a class is in neither."""
     pred = np.asarray(pred)
     ref = np.asarray(ref)
@@ -100,8 +102,12 @@ def _k_confusion(ref_cls, mask, m, out):
 def confusion(ref_cls: np.ndarray, mask: np.ndarray, masses: np.ndarray) -> np.ndarray:
     """3 x 3 counts (int64) of reference class (rows) against the class of ``masses`` (columns) over ``mask``."""
     out = np.zeros((3, 3), dtype=np.int64)
-    _k_confusion(np.ascontiguousarray(ref_cls, dtype=np.uint8), np.ascontiguousarray(mask, dtype=np.bool_),
-                 np.ascontiguousarray(masses, dtype=np.float32), out)
+    _k_confusion(
+        np.ascontiguousarray(ref_cls, dtype=np.uint8),
+        np.ascontiguousarray(mask, dtype=np.bool_),
+        np.ascontiguousarray(masses, dtype=np.float32),
+        out,
+    )
     return out
 
 
@@ -123,10 +129,16 @@ def _tile(m: EvidentialMap, key: tuple[int, int]) -> tuple[np.ndarray, np.ndarra
 def tile_keys(m: EvidentialMap, r0: int, c0: int, h: int, w: int) -> set[tuple[int, int]]:
     """Keys of the tiles of ``m``'s layout that the cell box ``[r0, r0+h) x [c0, c0+w)`` meets."""
     ts = m.tile_cells
-    return {(ti, tj) for ti in range(r0 // ts, (r0 + h - 1) // ts + 1) for tj in range(c0 // ts, (c0 + w - 1) // ts + 1)}
+    return {
+        (ti, tj)
+        for ti in range(r0 // ts, (r0 + h - 1) // ts + 1)
+        for tj in range(c0 // ts, (c0 + w - 1) // ts + 1)
+    }
 
 
-def tile_confusions_vs_map(maps: Mapping[str, EvidentialMap], reference: str, key: tuple[int, int]) -> np.ndarray:
+def tile_confusions_vs_map(
+    maps: Mapping[str, EvidentialMap], reference: str, key: tuple[int, int]
+) -> np.ndarray:
     """Confusion counts ``(len(maps), 3, 3)`` of every map against ``maps[reference]`` on one tile, over its covered cells."""
     out = np.zeros((len(maps), 3, 3), dtype=np.int64)
     ref = _tile(maps[reference], key)
@@ -154,7 +166,10 @@ def observable(cls: np.ndarray) -> np.ndarray:
 
 
 def tile_confusions_vs_truth(
-    maps: Mapping[str, EvidentialMap], truth: EvidentialMap, reference: str | None, key: tuple[int, int]
+    maps: Mapping[str, EvidentialMap],
+    truth: EvidentialMap,
+    reference: str | None,
+    key: tuple[int, int],
 ) -> np.ndarray:
     """Confusion counts ``(len(maps), 3, 3)`` of every map against the true occupancy on one tile.
 
@@ -185,7 +200,9 @@ def tile_confusions_vs_truth(
     return out
 
 
-def compare_maps(maps: Mapping[str, EvidentialMap], reference: str = "ray_ilm") -> dict[str, dict[str, float]]:
+def compare_maps(
+    maps: Mapping[str, EvidentialMap], reference: str = "ray_ilm"
+) -> dict[str, dict[str, float]]:
     """Per-class IoU of every map against ``maps[reference]`` over the reference's covered cells.
 
     Works tile by tile over the reference's tiles: the cost grows with the area mapped, never
@@ -193,17 +210,26 @@ def compare_maps(maps: Mapping[str, EvidentialMap], reference: str = "ray_ilm") 
     """
     if reference not in maps:
         raise KeyError(f"reference map {reference!r} not among {sorted(maps)}")
-    total = sum((tile_confusions_vs_map(maps, reference, k) for k in list(maps[reference].tiles)),
-                np.zeros((len(maps), 3, 3), dtype=np.int64))
+    total = sum(
+        (tile_confusions_vs_map(maps, reference, k) for k in list(maps[reference].tiles)),
+        np.zeros((len(maps), 3, 3), dtype=np.int64),
+    )
     return {name: iou_from_confusion(total[i]) for i, name in enumerate(maps) if name != reference}
 
 
-def compare_truth(maps: Mapping[str, EvidentialMap], truth: EvidentialMap, reference: str = "ray_ilm") -> dict[str, dict[str, float]]:
+def compare_truth(
+    maps: Mapping[str, EvidentialMap], truth: EvidentialMap, reference: str = "ray_ilm"
+) -> dict[str, dict[str, float]]:
     """Per-class IoU (free, occupied) of every map against the accumulated true occupancy (simulation)."""
     reference = reference if reference in maps else next(iter(maps))
-    total = sum((tile_confusions_vs_truth(maps, truth, reference, k) for k in list(truth.tiles)),
-                np.zeros((len(maps), 3, 3), dtype=np.int64))
-    return {name: {c: v for c, v in iou_from_confusion(total[i]).items() if c != "unknown"} for i, name in enumerate(maps)}
+    total = sum(
+        (tile_confusions_vs_truth(maps, truth, reference, k) for k in list(truth.tiles)),
+        np.zeros((len(maps), 3, 3), dtype=np.int64),
+    )
+    return {
+        name: {c: v for c, v in iou_from_confusion(total[i]).items() if c != "unknown"}
+        for i, name in enumerate(maps)
+    }
 
 
 def mean_iou(per_scene: Iterable[Mapping[str, Mapping[str, float]]]) -> dict[str, dict[str, float]]:
@@ -216,11 +242,14 @@ def mean_iou(per_scene: Iterable[Mapping[str, Mapping[str, float]]]) -> dict[str
                 if not math.isnan(v):
                     acc[name][cls].append(v)
     return {
-        name: {cls: (float(np.mean(v)) if v else math.nan) for cls, v in d.items()} for name, d in acc.items()
+        name: {cls: (float(np.mean(v)) if v else math.nan) for cls, v in d.items()}
+        for name, d in acc.items()
     }
 
 
-def free_fraction_near_path(m: EvidentialMap, trajectory: Iterable[tuple[float, float, float]], radius_m: float = 10.0) -> float:
+def free_fraction_near_path(
+    m: EvidentialMap, trajectory: Iterable[tuple[float, float, float]], radius_m: float = 10.0
+) -> float:
     """Fraction of the map's cells within ``radius_m`` of the driven path (map-frame ``(x, y, yaw)``
     poses) classified free: how much free space a reference map holds around the vehicle."""
     import cv2
@@ -237,7 +266,9 @@ def free_fraction_near_path(m: EvidentialMap, trajectory: Iterable[tuple[float, 
     return float((classify(masses)[near] == FREE).mean())
 
 
-def bootstrap_interval(values: Iterable[float], level: float = 0.95, n_resamples: int = 4000, seed: int = 0) -> dict[str, float]:
+def bootstrap_interval(
+    values: Iterable[float], level: float = 0.95, n_resamples: int = 4000, seed: int = 0
+) -> dict[str, float]:
     """Mean over scenes with a percentile-bootstrap confidence interval (resampling scenes).
 
     NaNs (a class absent from a scene) are left out; ``n`` says how many scenes remain. With
@@ -253,18 +284,26 @@ def bootstrap_interval(values: Iterable[float], level: float = 0.95, n_resamples
     return {"mean": float(v.mean()), "lo": float(lo), "hi": float(hi), "n": int(len(v))}
 
 
-def iou_intervals(per_scene: Iterable[Mapping[str, Mapping[str, float]]], level: float = 0.95) -> dict[str, dict[str, dict]]:
+def iou_intervals(
+    per_scene: Iterable[Mapping[str, Mapping[str, float]]], level: float = 0.95
+) -> dict[str, dict[str, dict]]:
     """Per-map, per-class mean IoU over scenes with its bootstrap interval (see :func:`bootstrap_interval`)."""
     acc: dict[str, dict[str, list[float]]] = {}
     for scene in per_scene:
         for name, ious in scene.items():
             for cls, v in ious.items():
                 acc.setdefault(name, {}).setdefault(cls, []).append(math.nan if v is None else v)
-    return {name: {cls: bootstrap_interval(v, level) for cls, v in d.items()} for name, d in acc.items()}
+    return {
+        name: {cls: bootstrap_interval(v, level) for cls, v in d.items()} for name, d in acc.items()
+    }
 
 
-def markdown_table(results: Mapping[str, Mapping[str, float]], title: str = "ours", paper: bool = True,
-                   intervals: Mapping[str, Mapping[str, Mapping[str, float]]] | None = None) -> str:
+def markdown_table(
+    results: Mapping[str, Mapping[str, float]],
+    title: str = "ours",
+    paper: bool = True,
+    intervals: Mapping[str, Mapping[str, Mapping[str, float]]] | None = None,
+) -> str:
     """A Markdown table of per-class mIoU in %, with the paper's Table I beside it.
 
     With ``intervals`` (from :func:`iou_intervals`) each value carries its 95% interval over scenes.
@@ -276,7 +315,11 @@ def markdown_table(results: Mapping[str, Mapping[str, float]], title: str = "our
     lines = [f"**{title}** (mIoU in %)", "", head, sep]
     for name, ious in results.items():
         ci = (intervals or {}).get(name, {})
-        row = f"| `{name}` | " + " | ".join(_pct(ious.get(c)) + _interval(ci.get(c)) for c in CLASSES) + " |"
+        row = (
+            f"| `{name}` | "
+            + " | ".join(_pct(ious.get(c)) + _interval(ci.get(c)) for c in CLASSES)
+            + " |"
+        )
         if paper:
             p = PAPER_TABLE_I.get(name)
             row += " " + " | ".join(f"{p[c]:.2f}" if p else "-" for c in CLASSES) + " |"

@@ -22,8 +22,8 @@ docs/equations.md#the-six-maps-of-table-i.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Callable, Mapping
 
 import numpy as np
 
@@ -63,7 +63,14 @@ __all__ = [
 ]
 
 #: The six maps of the paper's Table I, in its order.
-MAP_NAMES: tuple[str, ...] = ("ray_ilm", "deep_acc", "deep_replace", "deep_disc", "ray_irm", "fused")
+MAP_NAMES: tuple[str, ...] = (
+    "ray_ilm",
+    "deep_acc",
+    "deep_replace",
+    "deep_disc",
+    "ray_irm",
+    "fused",
+)
 #: The three inverse sensor models that feed them.
 ISM_NAMES: tuple[str, ...] = ("ray_ilm", "ray_irm", "deep_irm")
 
@@ -94,10 +101,13 @@ class FusionParams:
 
 # --- public rules ----------------------------------------------------------------------------
 
+
 def _check_views(cell: np.ndarray, *isms: np.ndarray) -> None:
     for a in (cell, *isms):
         if a.ndim != 3 or a.shape[2] != 3 or a.dtype != np.float32:
-            raise ValueError(f"map and ISM views must be float32 (h, w, 3), got {a.dtype} {a.shape}")
+            raise ValueError(
+                f"map and ISM views must be float32 (h, w, 3), got {a.dtype} {a.shape}"
+            )
         if a.shape != cell.shape:
             raise ValueError(f"ISM view shape {a.shape} differs from the map view's {cell.shape}")
     if not cell.flags.writeable:
@@ -112,7 +122,11 @@ def _row_spans(spans: np.ndarray | None, h: int, w: int) -> np.ndarray:
         out[:, 1] = w
         return out
     if not isinstance(spans, np.ndarray) or spans.shape != (h, 2) or spans.dtype != np.int64:
-        got = f"{spans.dtype} {spans.shape}" if isinstance(spans, np.ndarray) else type(spans).__name__
+        got = (
+            f"{spans.dtype} {spans.shape}"
+            if isinstance(spans, np.ndarray)
+            else type(spans).__name__
+        )
         raise ValueError(f"spans must be an int64 array of shape {(h, 2)}, got {got}")
     return spans  # kernels clamp each [lo, hi) to [0, w]
 
@@ -128,8 +142,12 @@ def _pair(cell: np.ndarray, ism: np.ndarray, spans: np.ndarray | None) -> tuple:
 # a warped window (:attr:`evgrid.grid.MapWindow.spans`); cells outside are left untouched.
 # Each returns the number of invalid ISM cells it rejected (their map cells are left untouched).
 
+
 def update_ray_ilm(
-    cell: np.ndarray, ilm: np.ndarray, params: FusionParams = FusionParams(), spans: np.ndarray | None = None
+    cell: np.ndarray,
+    ilm: np.ndarray,
+    params: FusionParams = FusionParams(),
+    spans: np.ndarray | None = None,
 ) -> int:
     """``map = map (+)_D ray ILM``, in place on ``(h, w, 3)`` float32 views."""
     _check_views(cell, ilm)
@@ -137,7 +155,10 @@ def update_ray_ilm(
 
 
 def update_deep_acc(
-    cell: np.ndarray, deep: np.ndarray, params: FusionParams = FusionParams(), spans: np.ndarray | None = None
+    cell: np.ndarray,
+    deep: np.ndarray,
+    params: FusionParams = FusionParams(),
+    spans: np.ndarray | None = None,
 ) -> int:
     """``map = map (+)_D deep IRM`` (paper: deep IRM (acc.)), in place."""
     _check_views(cell, deep)
@@ -145,7 +166,10 @@ def update_deep_acc(
 
 
 def update_deep_replace(
-    cell: np.ndarray, deep: np.ndarray, params: FusionParams = FusionParams(), spans: np.ndarray | None = None
+    cell: np.ndarray,
+    deep: np.ndarray,
+    params: FusionParams = FusionParams(),
+    spans: np.ndarray | None = None,
 ) -> int:
     """Replace a cell by ``limit_unknown(deep IRM, m_u_min)`` where that is less unknown (paper: deep IRM (replace))."""
     _check_views(cell, deep)
@@ -153,15 +177,23 @@ def update_deep_replace(
 
 
 def update_deep_disc(
-    cell: np.ndarray, deep: np.ndarray, params: FusionParams = FusionParams(), spans: np.ndarray | None = None
+    cell: np.ndarray,
+    deep: np.ndarray,
+    params: FusionParams = FusionParams(),
+    spans: np.ndarray | None = None,
 ) -> int:
     """``map = map (+)_Y (gamma (x) limit_unknown(deep IRM))`` (paper eqs. (29), (35); deep IRM (disc.)), in place."""
     _check_views(cell, deep)
-    return int(_k_deep_disc_into(*_pair(cell, deep, spans), float(params.m_u_min), float(params.alpha)))
+    return int(
+        _k_deep_disc_into(*_pair(cell, deep, spans), float(params.m_u_min), float(params.alpha))
+    )
 
 
 def update_ray_irm(
-    cell: np.ndarray, irm: np.ndarray, params: FusionParams = FusionParams(), spans: np.ndarray | None = None
+    cell: np.ndarray,
+    irm: np.ndarray,
+    params: FusionParams = FusionParams(),
+    spans: np.ndarray | None = None,
 ) -> int:
     """``map = map (+)_D ray IRM``, in place."""
     _check_views(cell, irm)
@@ -183,7 +215,21 @@ def update_fused(
     fm, mrs, h, w = rows(cell)
     fd, drs, _, _ = rows(deep)
     fi, irs, _, _ = rows(irm)
-    return int(_k_fused_into(fm, mrs, fd, drs, fi, irs, h, w, _row_spans(spans, h, w), float(params.m_u_min), float(params.alpha)))
+    return int(
+        _k_fused_into(
+            fm,
+            mrs,
+            fd,
+            drs,
+            fi,
+            irs,
+            h,
+            w,
+            _row_spans(spans, h, w),
+            float(params.m_u_min),
+            float(params.alpha),
+        )
+    )
 
 
 @dataclass(frozen=True, slots=True)
@@ -196,8 +242,14 @@ class UpdateRule:
 
 
 # The one-pass kernel's code for each rule (evgrid.kernels._k_warp_update).
-_KERNEL_RULE = {"ray_ilm": RULE_DEMPSTER, "deep_acc": RULE_DEMPSTER, "deep_replace": RULE_DEEP_REPLACE,
-                "deep_disc": RULE_DEEP_DISC, "ray_irm": RULE_DEMPSTER, "fused": RULE_FUSED}
+_KERNEL_RULE = {
+    "ray_ilm": RULE_DEMPSTER,
+    "deep_acc": RULE_DEMPSTER,
+    "deep_replace": RULE_DEEP_REPLACE,
+    "deep_disc": RULE_DEEP_DISC,
+    "ray_irm": RULE_DEMPSTER,
+    "fused": RULE_FUSED,
+}
 
 RULES: dict[str, UpdateRule] = {
     "ray_ilm": UpdateRule("ray_ilm", ("ray_ilm",), update_ray_ilm),
@@ -239,17 +291,28 @@ class MapSet:
         self.params = params or FusionParams()
         self.names = tuple(names)
         self.maps: dict[str, EvidentialMap] = {
-            n: EvidentialMap(self.grid, tile_cells, {"rule": n, "m_u_min": self.params.m_u_min, "alpha": self.params.alpha})
+            n: EvidentialMap(
+                self.grid,
+                tile_cells,
+                {"rule": n, "m_u_min": self.params.m_u_min, "alpha": self.params.alpha},
+            )
             for n in self.names
         }
-        self.required_isms: tuple[str, ...] = tuple(i for i in ISM_NAMES if any(i in RULES[n].isms for n in self.names))
+        self.required_isms: tuple[str, ...] = tuple(
+            i for i in ISM_NAMES if any(i in RULES[n].isms for n in self.names)
+        )
         # one loader / warper per ISM: its checked, padded copy of the local grid is what the
         # one-pass update samples
         self._warpers = {i: Warper(self.grid, i) for i in self.required_isms}
         slot = {i: s for s, i in enumerate(self.required_isms)}
         # per map: its rule's kernel code and the slots of the ISMs it reads
-        self._rules = np.array([(_KERNEL_RULE[m], slot[RULES[m].isms[0]], slot[RULES[m].isms[-1]]) for m in self.names],
-                               dtype=np.int64)
+        self._rules = np.array(
+            [
+                (_KERNEL_RULE[m], slot[RULES[m].isms[0]], slot[RULES[m].isms[-1]])
+                for m in self.names
+            ],
+            dtype=np.int64,
+        )
         self._bufs = np.empty((len(self.required_isms), 3 * int(tile_cells)), dtype=np.float32)
         side = int(np.ceil(self.grid.n_cells * np.sqrt(2.0))) + 4
         self._spans = np.zeros((side, 2), dtype=np.int64)
@@ -291,7 +354,9 @@ class MapSet:
         nb = (h + _BLOCK - 1) // _BLOCK
         jl, jh = np.empty(nb, np.int64), np.empty(nb, np.int64)
         _k_blocks(spans, h, w, jl, jh)
-        informative = np.zeros((len(self.required_isms), nb, (w + _BLOCK - 1) // _BLOCK + 1), dtype=np.bool_)
+        informative = np.zeros(
+            (len(self.required_isms), nb, (w + _BLOCK - 1) // _BLOCK + 1), dtype=np.bool_
+        )
         warpers = tuple(self._warpers.values())
         for s, warper in enumerate(warpers):
             _k_informative(warper.coarse, n, *affine, h, jl, jh, informative[s])
@@ -301,16 +366,36 @@ class MapSet:
         src = tuple(warper.source for warper in warpers)
         for key, tr, tc, wr, wc in maps[0]._pieces(r0, c0, h, w):
             piece = spans[wr]
-            rows_on = np.flatnonzero((np.minimum(piece[:, 1], wc.stop) > np.maximum(piece[:, 0], wc.start)))
+            rows_on = np.flatnonzero(
+                np.minimum(piece[:, 1], wc.stop) > np.maximum(piece[:, 0], wc.start)
+            )
             if len(rows_on) == 0:
                 continue
             a, b = int(rows_on[0]), int(rows_on[-1]) + 1  # the piece's rows with covered cells
             tiles = [m._tile(key) for m in maps]
-            _k_warp_update(src, 3 * (n + 3), n, informative, jl, *affine, spans,
-                           wr.start + a, wr.start + b, wc.start, wc.stop,
-                           tuple(t.reshape(-1) for t, _ in tiles), tuple(c.reshape(-1) for _, c in tiles),
-                           ts, tr.start + a, tc.start, self._rules, float(self.params.m_u_min), float(self.params.alpha),
-                           self._bufs, rejected)
+            _k_warp_update(
+                src,
+                3 * (n + 3),
+                n,
+                informative,
+                jl,
+                *affine,
+                spans,
+                wr.start + a,
+                wr.start + b,
+                wc.start,
+                wc.stop,
+                tuple(t.reshape(-1) for t, _ in tiles),
+                tuple(c.reshape(-1) for _, c in tiles),
+                ts,
+                tr.start + a,
+                tc.start,
+                self._rules,
+                float(self.params.m_u_min),
+                float(self.params.alpha),
+                self._bufs,
+                rejected,
+            )
         self.n_updates += 1
         out = {m: int(r) for m, r in zip(self.names, rejected)}
         for m, r in out.items():
@@ -339,11 +424,18 @@ class MapSet:
             arrays = tuple(windows[i].masses for i in rule.isms)
             params = self.params
             rejected[name] = n = self.maps[name].apply(
-                any_w, lambda cell, *views, spans, _u=rule.update: _u(cell, *views, params, spans), *arrays, pass_spans=True
+                any_w,
+                lambda cell, *views, spans, _u=rule.update: _u(cell, *views, params, spans),
+                *arrays,
+                pass_spans=True,
             )
             if n and self.n_rejected_cells[name] == 0:
-                logger.warning("%s: the update rule rejected %d window cell(s) that are not masses; "
-                               "counted in MapSet.n_rejected_cells", name, n)
+                logger.warning(
+                    "%s: the update rule rejected %d window cell(s) that are not masses; "
+                    "counted in MapSet.n_rejected_cells",
+                    name,
+                    n,
+                )
             self.n_rejected_cells[name] += n
         self.n_updates += 1
         return rejected

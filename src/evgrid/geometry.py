@@ -27,10 +27,11 @@ Map grid (the first pose's frame)
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
+
 from evgrid.validation import check_int, check_number
 
 __all__ = ["GridSpec", "SE2", "SE3", "quaternion_to_matrix", "matrix_to_quaternion"]
@@ -45,7 +46,9 @@ class GridSpec:
 
     def __post_init__(self) -> None:
         if check_int(self, "n_cells", min=2) % 2:
-            raise ValueError(f"GridSpec.n_cells must be even (the ego vehicle sits on a cell corner), got {self.n_cells!r}")
+            raise ValueError(
+                f"GridSpec.n_cells must be even (the ego vehicle sits on a cell corner), got {self.n_cells!r}"
+            )
         check_number(self, "length_m", min=0.0, min_open=True)
 
     @property
@@ -83,7 +86,9 @@ class GridSpec:
         """Local (row, col) -> ego-frame metres of the cell centre."""
         c0 = self.n_cells / 2.0 - 0.5
         res = self.resolution
-        return (c0 - np.asarray(rows, dtype=np.float64)) * res, (c0 - np.asarray(cols, dtype=np.float64)) * res
+        return (c0 - np.asarray(rows, dtype=np.float64)) * res, (
+            c0 - np.asarray(cols, dtype=np.float64)
+        ) * res
 
     def contains_cell(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         """Boolean mask of local (row, col) indices that lie inside the grid."""
@@ -96,7 +101,9 @@ class GridSpec:
     def map_cell_to_xy(self, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Map (R, C) -> metres of the cell centre in the first pose's frame."""
         res = self.resolution
-        return -(np.asarray(rows, dtype=np.float64) + 0.5) * res, -(np.asarray(cols, dtype=np.float64) + 0.5) * res
+        return -(np.asarray(rows, dtype=np.float64) + 0.5) * res, -(
+            np.asarray(cols, dtype=np.float64) + 0.5
+        ) * res
 
     def map_xy_to_cell(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Metres in the first pose's frame -> integer map (R, C) of the containing cell."""
@@ -110,7 +117,7 @@ class GridSpec:
         return {"n_cells": int(self.n_cells), "length_m": float(self.length_m)}
 
     @classmethod
-    def from_dict(cls, d: dict) -> "GridSpec":
+    def from_dict(cls, d: dict) -> GridSpec:
         """Inverse of :meth:`to_dict`."""
         return cls(n_cells=int(d["n_cells"]), length_m=float(d["length_m"]))
 
@@ -161,10 +168,12 @@ class SE2:
 
     def __post_init__(self) -> None:
         if not all(math.isfinite(v) for v in (self.x, self.y, self.yaw)):
-            raise ValueError(f"SE2 needs finite x, y, yaw, got ({self.x!r}, {self.y!r}, {self.yaw!r})")
+            raise ValueError(
+                f"SE2 needs finite x, y, yaw, got ({self.x!r}, {self.y!r}, {self.yaw!r})"
+            )
 
     @classmethod
-    def _unchecked(cls, x: float, y: float, yaw: float) -> "SE2":
+    def _unchecked(cls, x: float, y: float, yaw: float) -> SE2:
         # Poses computed from valid poses are valid: the hot path skips __post_init__.
         p = object.__new__(cls)
         object.__setattr__(p, "x", x)
@@ -177,7 +186,7 @@ class SE2:
         c, s = math.cos(self.yaw), math.sin(self.yaw)
         return np.array([[c, -s, self.x], [s, c, self.y], [0.0, 0.0, 1.0]])
 
-    def __matmul__(self, other: "SE2") -> "SE2":
+    def __matmul__(self, other: SE2) -> SE2:
         c, s = math.cos(self.yaw), math.sin(self.yaw)
         return SE2._unchecked(
             self.x + c * other.x - s * other.y,
@@ -185,7 +194,7 @@ class SE2:
             math.remainder(self.yaw + other.yaw, 2 * math.pi),
         )
 
-    def inverse(self) -> "SE2":
+    def inverse(self) -> SE2:
         """The transform that undoes this one."""
         c, s = math.cos(self.yaw), math.sin(self.yaw)
         return SE2._unchecked(-(c * self.x + s * self.y), -(-s * self.x + c * self.y), -self.yaw)
@@ -220,7 +229,9 @@ class SE3:
         r = np.asarray(self.rotation, dtype=np.float64)
         t = np.asarray(self.translation, dtype=np.float64).reshape(-1)
         if r.shape != (3, 3) or t.shape != (3,):
-            raise ValueError(f"SE3 needs a 3x3 rotation and a 3-vector, got {r.shape} and {t.shape}")
+            raise ValueError(
+                f"SE3 needs a 3x3 rotation and a 3-vector, got {r.shape} and {t.shape}"
+            )
         if not (np.isfinite(r).all() and np.isfinite(t).all()):
             raise ValueError("SE3 rotation and translation must be finite")
         if not np.allclose(r @ r.T, np.eye(3), atol=1e-6):
@@ -229,7 +240,7 @@ class SE3:
         object.__setattr__(self, "translation", t)
 
     @classmethod
-    def _unchecked(cls, rotation: np.ndarray, translation: np.ndarray) -> "SE3":
+    def _unchecked(cls, rotation: np.ndarray, translation: np.ndarray) -> SE3:
         # float64 arrays of shapes (3, 3) and (3,) computed from valid poses
         p = object.__new__(cls)
         object.__setattr__(p, "rotation", rotation)
@@ -237,25 +248,27 @@ class SE3:
         return p
 
     @classmethod
-    def identity(cls) -> "SE3":
+    def identity(cls) -> SE3:
         """The identity transform."""
         return cls._unchecked(np.eye(3), np.zeros(3))
 
     @classmethod
-    def from_quaternion(cls, q_wxyz: Sequence[float], t: Sequence[float]) -> "SE3":
+    def from_quaternion(cls, q_wxyz: Sequence[float], t: Sequence[float]) -> SE3:
         """From a nuScenes-style ``rotation`` ``[w, x, y, z]`` and ``translation`` (m)."""
         return cls(quaternion_to_matrix(q_wxyz), np.asarray(t, dtype=np.float64))
 
     @classmethod
-    def from_se2(cls, p: SE2, z: float = 0.0) -> "SE3":
+    def from_se2(cls, p: SE2, z: float = 0.0) -> SE3:
         """Lift a planar pose to 3-D at height ``z`` metres."""
         if not math.isfinite(z):
             raise ValueError(f"SE3.from_se2 needs a finite height z, got {z!r}")
         c, s = math.cos(p.yaw), math.sin(p.yaw)
-        return cls._unchecked(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]), np.array([p.x, p.y, float(z)]))
+        return cls._unchecked(
+            np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]), np.array([p.x, p.y, float(z)])
+        )
 
     @classmethod
-    def from_matrix(cls, m: np.ndarray) -> "SE3":
+    def from_matrix(cls, m: np.ndarray) -> SE3:
         """From a 4x4 homogeneous matrix."""
         m = np.asarray(m, dtype=np.float64)
         if m.shape != (4, 4):
@@ -273,12 +286,14 @@ class SE3:
         """Rotation as ``[w, x, y, z]``."""
         return matrix_to_quaternion(self.rotation)
 
-    def __matmul__(self, other: "SE3") -> "SE3":
+    def __matmul__(self, other: SE3) -> SE3:
         if not isinstance(other, SE3):
             return NotImplemented
-        return SE3._unchecked(self.rotation @ other.rotation, self.rotation @ other.translation + self.translation)
+        return SE3._unchecked(
+            self.rotation @ other.rotation, self.rotation @ other.translation + self.translation
+        )
 
-    def inverse(self) -> "SE3":
+    def inverse(self) -> SE3:
         """The transform that undoes this one."""
         rt = self.rotation.T
         return SE3._unchecked(rt, -(rt @ self.translation))

@@ -19,9 +19,10 @@ import math
 import os
 import zipfile
 import zlib
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any
 
 import numpy as np
 
@@ -33,7 +34,15 @@ from evgrid.mass import vacuous
 logger = logging.getLogger(__name__)
 
 __all__ = [
-    "MapWindow", "EvidentialMap", "Warper", "warp_to_map", "warp_window", "window_affine", "save_map", "load_map", "MapFileError",
+    "MapWindow",
+    "EvidentialMap",
+    "Warper",
+    "warp_to_map",
+    "warp_window",
+    "window_affine",
+    "save_map",
+    "load_map",
+    "MapFileError",
 ]
 
 
@@ -74,7 +83,9 @@ def _pose_affine(grid: GridSpec, pose: SE2) -> tuple[float, float, float, float]
     return math.cos(pose.yaw), math.sin(pose.yaw), pose.x / res, pose.y / res
 
 
-def window_affine(grid: GridSpec, pose: SE2, r0: int, c0: int) -> tuple[float, float, float, float, float, float]:
+def window_affine(
+    grid: GridSpec, pose: SE2, r0: int, c0: int
+) -> tuple[float, float, float, float, float, float]:
     """``(u00, v00, du_di, du_dj, dv_di, dv_dj)``: window cell (i, j) (map cell (r0 + i, c0 + j)) samples local (u, v)."""
     cs, sn, tx, ty = _pose_affine(grid, pose)
     cc = grid.n_cells / 2.0 - 0.5
@@ -143,13 +154,21 @@ class Warper:
         """Take ``local`` ``(n, n, 3)`` for the next warps; returns how many of its cells were not masses."""
         n = self.grid.n_cells
         a = np.asarray(local)
-        if a.shape != (n, n, 3) or not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):
-            raise ValueError(f"{self.name}: the local grid must be a numeric array of shape {(n, n, 3)}, got {a.dtype} {a.shape}")
+        if a.shape != (n, n, 3) or not (
+            np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)
+        ):
+            raise ValueError(
+                f"{self.name}: the local grid must be a numeric array of shape {(n, n, 3)}, got {a.dtype} {a.shape}"
+            )
         n_bad = int(_k_load(np.ascontiguousarray(a, dtype=np.float32), self._src))
         if n_bad:
             if self.n_rejected == 0:
-                logger.warning("%s: %d cell(s) of the local grid are not masses (NaN, inf, negative or not summing "
-                               "to 1); they are taken as vacuous and counted in n_rejected", self.name, n_bad)
+                logger.warning(
+                    "%s: %d cell(s) of the local grid are not masses (NaN, inf, negative or not summing "
+                    "to 1); they are taken as vacuous and counted in n_rejected",
+                    self.name,
+                    n_bad,
+                )
             self.n_rejected += n_bad
         _k_coarse(self._src, self._coarse)
         return n_bad
@@ -162,8 +181,18 @@ class Warper:
         # windows are packed at the buffers' start (row stride w) so each is one contiguous block
         spans = self._spans[:h]
         _k_warp(
-            self.source, 3 * (n + 3), self._coarse, n, *window_affine(grid, pose, r0, c0),
-            self._masses, 3 * w, self._covered, w, h, w, spans,
+            self.source,
+            3 * (n + 3),
+            self._coarse,
+            n,
+            *window_affine(grid, pose, r0, c0),
+            self._masses,
+            3 * w,
+            self._covered,
+            w,
+            h,
+            w,
+            spans,
         )
         masses = self._masses[: h * w * 3].reshape(h, w, 3)
         covered = self._covered[: h * w].reshape(h, w)
@@ -187,7 +216,12 @@ class EvidentialMap:
     saved with the map.
     """
 
-    def __init__(self, grid: GridSpec | None = None, tile_cells: int = 256, metadata: dict[str, Any] | None = None):
+    def __init__(
+        self,
+        grid: GridSpec | None = None,
+        tile_cells: int = 256,
+        metadata: dict[str, Any] | None = None,
+    ):
         self.grid = grid or GridSpec()
         if not isinstance(tile_cells, (int, np.integer)) or tile_cells < 8:
             raise ValueError(f"tile_cells must be an integer >= 8, got {tile_cells!r}")
@@ -202,7 +236,9 @@ class EvidentialMap:
     @property
     def nbytes(self) -> int:
         """Bytes held by the tiles."""
-        return sum(t.nbytes for t in self.tiles.values()) + sum(c.nbytes for c in self.covered_tiles.values())
+        return sum(t.nbytes for t in self.tiles.values()) + sum(
+            c.nbytes for c in self.covered_tiles.values()
+        )
 
     def _tile(self, key: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
         t = self.tiles.get(key)
@@ -212,7 +248,9 @@ class EvidentialMap:
             self.covered_tiles[key] = np.zeros((self.tile_cells, self.tile_cells), dtype=np.bool_)
         return t, self.covered_tiles[key]
 
-    def _pieces(self, r0: int, c0: int, h: int, w: int) -> Iterator[tuple[tuple[int, int], slice, slice, slice, slice]]:
+    def _pieces(
+        self, r0: int, c0: int, h: int, w: int
+    ) -> Iterator[tuple[tuple[int, int], slice, slice, slice, slice]]:
         """(tile key, tile rows, tile cols, window rows, window cols) for each tile the window meets."""
         ts = self.tile_cells
         for ti in range(r0 // ts, (r0 + h - 1) // ts + 1):
@@ -227,7 +265,13 @@ class EvidentialMap:
                     slice(ca - c0, cb - c0),
                 )
 
-    def apply(self, window: MapWindow, fn: Callable[..., int | None], *masses: np.ndarray, pass_spans: bool = False) -> int:
+    def apply(
+        self,
+        window: MapWindow,
+        fn: Callable[..., int | None],
+        *masses: np.ndarray,
+        pass_spans: bool = False,
+    ) -> int:
         """Call ``fn(map_view, *window_views)`` on every covered piece; ``fn`` updates ``map_view`` in place.
 
         ``masses`` are ``(h, w, 3)`` arrays aligned with ``window`` (default: ``window.masses``).
@@ -282,7 +326,12 @@ class EvidentialMap:
         ts = self.tile_cells
         ti = [k[0] for k in self.tiles]
         tj = [k[1] for k in self.tiles]
-        return min(ti) * ts, min(tj) * ts, (max(ti) - min(ti) + 1) * ts, (max(tj) - min(tj) + 1) * ts
+        return (
+            min(ti) * ts,
+            min(tj) * ts,
+            (max(ti) - min(ti) + 1) * ts,
+            (max(tj) - min(tj) + 1) * ts,
+        )
 
     def covered_bounds(self) -> tuple[int, int, int, int]:
         """``(r0, c0, h, w)`` of the smallest box holding every covered cell; zeros when none is."""
@@ -296,7 +345,12 @@ class EvidentialMap:
                 cols += [tj * ts + c[0], tj * ts + c[-1]]
         if not rows:
             return (0, 0, 0, 0)
-        return int(min(rows)), int(min(cols)), int(max(rows) - min(rows) + 1), int(max(cols) - min(cols) + 1)
+        return (
+            int(min(rows)),
+            int(min(cols)),
+            int(max(rows) - min(rows) + 1),
+            int(max(cols) - min(cols) + 1),
+        )
 
     def to_dense(self) -> tuple[np.ndarray, np.ndarray, int, int]:
         """The whole map as dense arrays: masses, coverage, and the map cell ``(r0, c0)`` of element [0, 0]."""
@@ -329,8 +383,12 @@ def save_map(m: EvidentialMap, path: str | os.PathLike) -> Path:
     arrays = {
         "header": np.frombuffer(json.dumps(header).encode(), dtype=np.uint8),
         "keys": np.array(keys, dtype=np.int64).reshape(-1, 2),
-        "tiles": np.stack([m.tiles[k] for k in keys]) if keys else np.zeros((0, ts, ts, 3), np.float32),
-        "covered": np.stack([m.covered_tiles[k] for k in keys]) if keys else np.zeros((0, ts, ts), bool),
+        "tiles": np.stack([m.tiles[k] for k in keys])
+        if keys
+        else np.zeros((0, ts, ts, 3), np.float32),
+        "covered": np.stack([m.covered_tiles[k] for k in keys])
+        if keys
+        else np.zeros((0, ts, ts), bool),
     }
     return atomic_write(path, lambda f: np.savez_compressed(f, **arrays))
 
@@ -352,12 +410,25 @@ def load_map(path: str | os.PathLike) -> EvidentialMap:
             keys, tiles, covered = z["keys"], z["tiles"], z["covered"]
     except MapFileError:
         raise
-    except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError, KeyError, UnicodeDecodeError, AttributeError) as e:
+    except (
+        zipfile.BadZipFile,
+        zlib.error,
+        EOFError,
+        OSError,
+        ValueError,
+        KeyError,
+        UnicodeDecodeError,
+        AttributeError,
+    ) as e:
         raise MapFileError(f"{path} is truncated or not an evgrid map: {e}") from e
     if not isinstance(header, dict) or header.get("format") != _FORMAT:
-        raise MapFileError(f"{path} is not an evgrid map (format {header.get('format') if isinstance(header, dict) else None!r})")
+        raise MapFileError(
+            f"{path} is not an evgrid map (format {header.get('format') if isinstance(header, dict) else None!r})"
+        )
     if header.get("version") != _FORMAT_VERSION:
-        raise MapFileError(f"{path} has map format version {header.get('version')!r}; this evgrid reads {_FORMAT_VERSION}")
+        raise MapFileError(
+            f"{path} has map format version {header.get('version')!r}; this evgrid reads {_FORMAT_VERSION}"
+        )
     ts = header.get("tile_cells")
     if isinstance(ts, bool) or not isinstance(ts, int) or ts < 8:
         raise MapFileError(f"{path}: header field 'tile_cells' must be an integer >= 8, got {ts!r}")
@@ -368,12 +439,21 @@ def load_map(path: str | os.PathLike) -> EvidentialMap:
         raise MapFileError(f"{path}: header field 'spec' or 'metadata' is invalid ({e})") from e
     if keys.shape != (len(keys), 2) or keys.dtype.kind != "i":
         raise MapFileError(f"{path} is inconsistent: tile keys {keys.shape} {keys.dtype}")
-    if tiles.shape != (len(keys), ts, ts, 3) or covered.shape != (len(keys), ts, ts) or tiles.dtype != np.float32 or covered.dtype != np.bool_:
-        raise MapFileError(f"{path} is inconsistent: {len(keys)} keys, tiles {tiles.shape} {tiles.dtype}, coverage {covered.shape} {covered.dtype}")
+    if (
+        tiles.shape != (len(keys), ts, ts, 3)
+        or covered.shape != (len(keys), ts, ts)
+        or tiles.dtype != np.float32
+        or covered.dtype != np.bool_
+    ):
+        raise MapFileError(
+            f"{path} is inconsistent: {len(keys)} keys, tiles {tiles.shape} {tiles.dtype}, coverage {covered.shape} {covered.dtype}"
+        )
     tiles = np.ascontiguousarray(tiles)
     n_bad = int(_k_count_invalid(tiles.reshape(-1), 0, 1, tiles.size // 3)) if tiles.size else 0
     if n_bad:
-        raise MapFileError(f"{path}: {n_bad} cell(s) hold no valid mass (NaN, inf, negative, or not summing to 1); the file is corrupt")
+        raise MapFileError(
+            f"{path}: {n_bad} cell(s) hold no valid mass (NaN, inf, negative, or not summing to 1); the file is corrupt"
+        )
     m = EvidentialMap(spec, ts, metadata)
     for k, t, c in zip(keys, tiles, covered):
         key = (int(k[0]), int(k[1]))

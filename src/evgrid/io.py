@@ -6,13 +6,21 @@ import json
 import math
 import os
 import tempfile
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import IO, Any, Callable, Iterator
+from typing import IO, Any
 
 import numpy as np
 
-__all__ = ["atomic_open", "atomic_write", "atomic_write_bytes", "atomic_write_text", "jsonable", "write_json"]
+__all__ = [
+    "atomic_open",
+    "atomic_write",
+    "atomic_write_bytes",
+    "atomic_write_text",
+    "jsonable",
+    "write_json",
+]
 
 
 def _umask() -> int:

@@ -19,7 +19,6 @@ checks away; the other flags (and so vectorisation and the results for valid cel
 
 from __future__ import annotations
 
-
 import math
 
 import numba
@@ -32,7 +31,9 @@ from numba.extending import intrinsic
 
 _JIT = dict(cache=True, fastmath=True, error_model="numpy")
 # fast math without nnan/ninf: comparisons keep their IEEE meaning for NaN and inf
-_CHECKED = dict(cache=True, fastmath={"nsz", "arcp", "contract", "afn", "reassoc"}, error_model="numpy")
+_CHECKED = dict(
+    cache=True, fastmath={"nsz", "arcp", "contract", "afn", "reassoc"}, error_model="numpy"
+)
 # The warp's sampling: no fused multiply-adds, no reassociation, and compiled once, not inlined,
 # so every kernel that samples (_k_warp's windows, _k_warp_update's one pass) rounds alike and
 # gives the same masses bit for bit
@@ -95,8 +96,39 @@ def _tanh_pos(y):
     # and no cancellation for small y. Absolute error < 1e-14 against math.tanh.
     y = y if y < 20.0 else 20.0
     z = y * (-2.0 / 64.0)
-    e = z * (1.0 + z * (1.0 / 2 + z * (1.0 / 6 + z * (1.0 / 24 + z * (1.0 / 120 + z * (1.0 / 720 + z * (
-        1.0 / 5040 + z * (1.0 / 40320 + z * (1.0 / 362880 + z * (1.0 / 3628800 + z * (1.0 / 39916800)))))))))))
+    e = z * (
+        1.0
+        + z
+        * (
+            1.0 / 2
+            + z
+            * (
+                1.0 / 6
+                + z
+                * (
+                    1.0 / 24
+                    + z
+                    * (
+                        1.0 / 120
+                        + z
+                        * (
+                            1.0 / 720
+                            + z
+                            * (
+                                1.0 / 5040
+                                + z
+                                * (
+                                    1.0 / 40320
+                                    + z
+                                    * (1.0 / 362880 + z * (1.0 / 3628800 + z * (1.0 / 39916800)))
+                                )
+                            )
+                        )
+                    )
+                )
+            )
+        )
+    )
     for _ in range(6):
         e = e * (2.0 + e)
     return -e / (2.0 + e)
@@ -136,15 +168,24 @@ def _deep_disc_cell(f1, o1, u1, f2, o2, u2, m_u_min, alpha):
 # A (h, w, 3) view whose rows are contiguous travels as a flat float32 buffer and a row stride
 # (elements): cell (i, j) starts at i * rs + 3 * j. See `rows()`.
 
+
 @numba.njit(**_JIT)
 def _k_dempster(a, ars, b, brs, out, ors, h, w):
     for i in range(h):
-        ra, rb, ro = a[i * ars:i * ars + 3 * w], b[i * brs:i * brs + 3 * w], out[i * ors:i * ors + 3 * w]
+        ra, rb, ro = (
+            a[i * ars : i * ars + 3 * w],
+            b[i * brs : i * brs + 3 * w],
+            out[i * ors : i * ors + 3 * w],
+        )
         for j in range(w):
             p = 3 * j
             f, o, u = _dempster_cell(
-                np.float64(ra[p]), np.float64(ra[p + 1]), np.float64(ra[p + 2]),
-                np.float64(rb[p]), np.float64(rb[p + 1]), np.float64(rb[p + 2]),
+                np.float64(ra[p]),
+                np.float64(ra[p + 1]),
+                np.float64(ra[p + 2]),
+                np.float64(rb[p]),
+                np.float64(rb[p + 1]),
+                np.float64(rb[p + 2]),
             )
             ro[p] = f
             ro[p + 1] = o
@@ -154,12 +195,20 @@ def _k_dempster(a, ars, b, brs, out, ors, h, w):
 @numba.njit(**_JIT)
 def _k_yager(a, ars, b, brs, out, ors, h, w):
     for i in range(h):
-        ra, rb, ro = a[i * ars:i * ars + 3 * w], b[i * brs:i * brs + 3 * w], out[i * ors:i * ors + 3 * w]
+        ra, rb, ro = (
+            a[i * ars : i * ars + 3 * w],
+            b[i * brs : i * brs + 3 * w],
+            out[i * ors : i * ors + 3 * w],
+        )
         for j in range(w):
             p = 3 * j
             f, o, u = _yager_cell(
-                np.float64(ra[p]), np.float64(ra[p + 1]), np.float64(ra[p + 2]),
-                np.float64(rb[p]), np.float64(rb[p + 1]), np.float64(rb[p + 2]),
+                np.float64(ra[p]),
+                np.float64(ra[p + 1]),
+                np.float64(ra[p + 2]),
+                np.float64(rb[p]),
+                np.float64(rb[p + 1]),
+                np.float64(rb[p + 2]),
             )
             ro[p] = f
             ro[p + 1] = o
@@ -169,11 +218,19 @@ def _k_yager(a, ars, b, brs, out, ors, h, w):
 @numba.njit(**_JIT)
 def _k_gamma(a, ars, b, brs, m_u_min, alpha, out, h, w):
     for i in range(h):
-        ra, rb, ro = a[i * ars:i * ars + 3 * w], b[i * brs:i * brs + 3 * w], out[i * w:(i + 1) * w]
+        ra, rb, ro = (
+            a[i * ars : i * ars + 3 * w],
+            b[i * brs : i * brs + 3 * w],
+            out[i * w : (i + 1) * w],
+        )
         for j in range(w):
             p = 3 * j
-            f1, o1, u1 = _normalise_cell(np.float64(ra[p]), np.float64(ra[p + 1]), np.float64(ra[p + 2]))
-            f2, o2, u2 = _normalise_cell(np.float64(rb[p]), np.float64(rb[p + 1]), np.float64(rb[p + 2]))
+            f1, o1, u1 = _normalise_cell(
+                np.float64(ra[p]), np.float64(ra[p + 1]), np.float64(ra[p + 2])
+            )
+            f2, o2, u2 = _normalise_cell(
+                np.float64(rb[p]), np.float64(rb[p + 1]), np.float64(rb[p + 2])
+            )
             ro[j] = _gamma_cell(f1, o1, u1, f2, o2, u2, m_u_min, alpha)
 
 
@@ -193,7 +250,7 @@ def _k_count_invalid(a, ars, h, w):
     # (A loop that only counts vectorises with the count inside it.)
     n = 0
     for i in range(h):
-        ra = a[i * ars:i * ars + 3 * w]
+        ra = a[i * ars : i * ars + 3 * w]
         for j in range(w):
             p = 3 * j
             ok = _valid_cell(np.float64(ra[p]), np.float64(ra[p + 1]), np.float64(ra[p + 2]))
@@ -206,7 +263,7 @@ def _k_vacate_invalid(a, ars, h, w):
     # Invalid cells become vacuous (no information), in place; returns how many there were.
     n = 0
     for i in range(h):
-        ra = a[i * ars:i * ars + 3 * w]
+        ra = a[i * ars : i * ars + 3 * w]
         for j in range(w):
             p = 3 * j
             ok = _valid_cell(np.float64(ra[p]), np.float64(ra[p + 1]), np.float64(ra[p + 2]))
@@ -231,7 +288,9 @@ def rows(v: np.ndarray) -> tuple[np.ndarray, int, int, int]:
     if v.strides[2] != 4 or v.strides[1] != 12 or v.strides[0] % 4 or v.strides[0] < 12 * w:
         raise ValueError(f"rows of the (h, w, 3) array must be contiguous, got strides {v.strides}")
     rs = v.strides[0] // 4 if h > 1 else 3 * w
-    flat = np.lib.stride_tricks.as_strided(v, shape=((h - 1) * rs + 3 * w,), strides=(4,), writeable=v.flags.writeable)
+    flat = np.lib.stride_tricks.as_strided(
+        v, shape=((h - 1) * rs + 3 * w,), strides=(4,), writeable=v.flags.writeable
+    )
     return flat, rs, h, w
 
 
@@ -240,6 +299,7 @@ def rows(v: np.ndarray) -> tuple[np.ndarray, int, int, int]:
 # select, not a branch, so the loops vectorise); each kernel returns the number of invalid ISM
 # cells it rejected. Only columns spans[i, 0]:spans[i, 1] of row i are visited (the cells a
 # warped window covers); ends are clamped to [0, w], so any spans are memory-safe.
+
 
 @numba.njit(inline="always", **_JIT)
 def _span(spans, i, w):
@@ -250,6 +310,7 @@ def _span(spans, i, w):
 
 # Each rule on one row of cells: map cells mp_ and ISM cells ism_ (3 floats a cell, n cells);
 # bad[j] flags invalid ISM cells; returns their number. The kernels below loop rows over them.
+
 
 @numba.njit(inline="always", **_CHECKED)
 def _dempster_row(mp_, ism_, bad, n):
@@ -337,7 +398,12 @@ def _k_dempster_into(mp, mrs, ism, irs, h, w, spans):
     bad = np.zeros(w, np.uint8)
     for i in range(h):
         lo, hi = _span(spans, i, w)
-        n_bad += _dempster_row(mp[i * mrs + 3 * lo:i * mrs + 3 * hi], ism[i * irs + 3 * lo:i * irs + 3 * hi], bad, hi - lo)
+        n_bad += _dempster_row(
+            mp[i * mrs + 3 * lo : i * mrs + 3 * hi],
+            ism[i * irs + 3 * lo : i * irs + 3 * hi],
+            bad,
+            hi - lo,
+        )
     return n_bad
 
 
@@ -347,8 +413,13 @@ def _k_deep_replace_into(mp, mrs, ism, irs, h, w, spans, m_u_min):
     bad = np.zeros(w, np.uint8)
     for i in range(h):
         lo, hi = _span(spans, i, w)
-        n_bad += _deep_replace_row(mp[i * mrs + 3 * lo:i * mrs + 3 * hi], ism[i * irs + 3 * lo:i * irs + 3 * hi],
-                                   bad, hi - lo, m_u_min)
+        n_bad += _deep_replace_row(
+            mp[i * mrs + 3 * lo : i * mrs + 3 * hi],
+            ism[i * irs + 3 * lo : i * irs + 3 * hi],
+            bad,
+            hi - lo,
+            m_u_min,
+        )
     return n_bad
 
 
@@ -358,8 +429,14 @@ def _k_deep_disc_into(mp, mrs, ism, irs, h, w, spans, m_u_min, alpha):
     bad = np.zeros(w, np.uint8)
     for i in range(h):
         lo, hi = _span(spans, i, w)
-        n_bad += _deep_disc_row(mp[i * mrs + 3 * lo:i * mrs + 3 * hi], ism[i * irs + 3 * lo:i * irs + 3 * hi],
-                                bad, hi - lo, m_u_min, alpha)
+        n_bad += _deep_disc_row(
+            mp[i * mrs + 3 * lo : i * mrs + 3 * hi],
+            ism[i * irs + 3 * lo : i * irs + 3 * hi],
+            bad,
+            hi - lo,
+            m_u_min,
+            alpha,
+        )
     return n_bad
 
 
@@ -369,8 +446,15 @@ def _k_fused_into(mp, mrs, deep, drs, irm, irs, h, w, spans, m_u_min, alpha):
     bad = np.zeros(w, np.uint8)
     for i in range(h):
         lo, hi = _span(spans, i, w)
-        n_bad += _fused_row(mp[i * mrs + 3 * lo:i * mrs + 3 * hi], deep[i * drs + 3 * lo:i * drs + 3 * hi],
-                            irm[i * irs + 3 * lo:i * irs + 3 * hi], bad, hi - lo, m_u_min, alpha)
+        n_bad += _fused_row(
+            mp[i * mrs + 3 * lo : i * mrs + 3 * hi],
+            deep[i * drs + 3 * lo : i * drs + 3 * hi],
+            irm[i * irs + 3 * lo : i * irs + 3 * hi],
+            bad,
+            hi - lo,
+            m_u_min,
+            alpha,
+        )
     return n_bad
 
 
@@ -395,6 +479,7 @@ _AHEAD = 2  # rows ahead whose source lines are prefetched (see _prefetch_span)
 @intrinsic
 def _prefetch(typingctx, arr, idx):
     """A hint to bring ``arr[idx]`` (a 1-D array) into the caches (``llvm.prefetch``: read, keep); never faults."""
+
     def codegen(context, builder, signature, args):
         ary = context.make_array(signature.args[0])(context, builder, args[0])
         ptr = builder.bitcast(builder.gep(ary.data, [args[1]]), ir.IntType(8).as_pointer())
@@ -403,6 +488,7 @@ def _prefetch(typingctx, arr, idx):
         fn = cgutils.get_or_insert_function(builder.module, fnty, "llvm.prefetch.p0i8")
         builder.call(fn, [ptr, ir.Constant(i32, 0), ir.Constant(i32, 3), ir.Constant(i32, 1)])
         return context.get_dummy_value()
+
     return types.void(arr, idx), codegen
 
 
@@ -428,7 +514,11 @@ def _k_load(local, src):
     n_bad = 0
     for r in range(local.shape[0]):
         for c in range(local.shape[1]):
-            f, o, u = np.float64(local[r, c, 0]), np.float64(local[r, c, 1]), np.float64(local[r, c, 2])
+            f, o, u = (
+                np.float64(local[r, c, 0]),
+                np.float64(local[r, c, 1]),
+                np.float64(local[r, c, 2]),
+            )
             ok = _valid_cell(f, o, u)
             n_bad += 0 if ok else 1
             src[r + 1, c + 1, 0] = local[r, c, 0] if ok else 0.0
@@ -567,7 +657,9 @@ def _gather(src, srs, m, ro, o0, idx, frac):
         q = p + srs
         o = o0 + 3 * k
         for c in range(3):
-            ro[o + c] = gu * (gv * src[p + c] + fv * src[p + 3 + c]) + fu * (gv * src[q + c] + fv * src[q + 3 + c])
+            ro[o + c] = gu * (gv * src[p + c] + fv * src[p + 3 + c]) + fu * (
+                gv * src[q + c] + fv * src[q + 3 + c]
+            )
 
 
 @numba.njit(inline="always", **_JIT)
@@ -597,14 +689,16 @@ def _prefetch_span(src, informative, srs, n, a, b, du_dj, dv_dj, j0, j2):
 
 
 @numba.njit(**_JIT)
-def _k_warp(src, srs, coarse, n, u00, v00, du_di, du_dj, dv_di, dv_dj, out, ors, covered, crs, h, w, spans):
+def _k_warp(
+    src, srs, coarse, n, u00, v00, du_di, du_dj, dv_di, dv_dj, out, ors, covered, crs, h, w, spans
+):
     # The window (h, w) written whole: sampled masses on covered cells, vacuous elsewhere.
     _k_spans(u00, v00, du_di, du_dj, dv_di, dv_dj, n, h, w, spans)
     idx = np.empty(_BLOCK, dtype=np.int64)
     frac = np.empty(2 * _BLOCK, dtype=np.float32)
     for i in range(h):
-        ro = out[i * ors:i * ors + 3 * w]
-        cv = covered[i * crs:i * crs + w]
+        ro = out[i * ors : i * ors + 3 * w]
+        cv = covered[i * crs : i * crs + w]
         lo, hi = spans[i, 0], spans[i, 1]
         _fill_vacuous(ro, 0, lo)
         _fill_vacuous(ro, 3 * hi, w - hi)
@@ -618,15 +712,34 @@ def _k_warp(src, srs, coarse, n, u00, v00, du_di, du_dj, dv_di, dv_dj, out, ors,
         i1 = min(h, bi + _BLOCK)
         for bj in range(jl[bi // _BLOCK], jh[bi // _BLOCK], _BLOCK):
             j1 = min(jh[bi // _BLOCK], bj + _BLOCK)
-            informative = _block_informative(coarse, n, u00, v00, du_di, du_dj, dv_di, dv_dj, bi, i1, bj, j1)
+            informative = _block_informative(
+                coarse, n, u00, v00, du_di, du_dj, dv_di, dv_dj, bi, i1, bj, j1
+            )
             for i in range(bi, i1):
-                ro = out[i * ors:i * ors + 3 * w]
+                ro = out[i * ors : i * ors + 3 * w]
                 j0 = max(bj, spans[i, 0])
                 j2 = min(j1, spans[i, 1])
                 if j2 <= j0:
                     continue
                 if informative:
-                    _sample_span(src, srs, n, u00, v00, du_di, du_dj, dv_di, dv_dj, i, j0, j2, ro, 3 * j0, idx, frac)
+                    _sample_span(
+                        src,
+                        srs,
+                        n,
+                        u00,
+                        v00,
+                        du_di,
+                        du_dj,
+                        dv_di,
+                        dv_dj,
+                        i,
+                        j0,
+                        j2,
+                        ro,
+                        3 * j0,
+                        idx,
+                        frac,
+                    )
                 else:
                     _fill_vacuous(ro, 3 * j0, j2 - j0)
 
@@ -640,7 +753,8 @@ def _k_informative(coarse, n, u00, v00, du_di, du_dj, dv_di, dv_dj, h, jl, jh, o
         for bj in range(jl[b], jh[b], _BLOCK):
             j1 = min(jh[b], bj + _BLOCK)
             out[b, (bj - jl[b]) // _BLOCK] = _block_informative(
-                coarse, n, u00, v00, du_di, du_dj, dv_di, dv_dj, bi, i1, bj, j1)
+                coarse, n, u00, v00, du_di, du_dj, dv_di, dv_dj, bi, i1, bj, j1
+            )
 
 
 # Rules of the one-pass update (_k_warp_update): (code, ISM index, second ISM index).
@@ -648,8 +762,34 @@ RULE_DEMPSTER, RULE_DEEP_REPLACE, RULE_DEEP_DISC, RULE_FUSED = 0, 1, 2, 3
 
 
 @numba.njit(**_CHECKED)
-def _k_warp_update(src, srs, n, informative, jl, u00, v00, du_di, du_dj, dv_di, dv_dj, spans,
-                   wa, wb, wc0, wc1, tiles, covs, ts, tr0, tc0, rules, m_u_min, alpha, bufs, rejected):
+def _k_warp_update(
+    src,
+    srs,
+    n,
+    informative,
+    jl,
+    u00,
+    v00,
+    du_di,
+    du_dj,
+    dv_di,
+    dv_dj,
+    spans,
+    wa,
+    wb,
+    wc0,
+    wc1,
+    tiles,
+    covs,
+    ts,
+    tr0,
+    tc0,
+    rules,
+    m_u_min,
+    alpha,
+    bufs,
+    rejected,
+):
     # One tile piece of a window, every map at once: window rows [wa, wb) and columns
     # [wc0, wc1) are tile cells (tr0 + i - wa, tc0 + j - wc0). Each row's covered cells are
     # sampled from each ISM (src[s], a tuple of the padded local grids, flat) exactly as _k_warp
@@ -675,19 +815,31 @@ def _k_warp_update(src, srs, n, informative, jl, u00, v00, du_di, du_dj, dv_di, 
             for s in range(len(src)):
                 if informative[s, band, k]:
                     if not located:
-                        _positions(srs, n, u00, v00, du_di, du_dj, dv_di, dv_dj, i, j, j1, idx, frac)
+                        _positions(
+                            srs, n, u00, v00, du_di, du_dj, dv_di, dv_dj, i, j, j1, idx, frac
+                        )
                         located = True
                     _gather(src[s], srs, j1 - j, bufs[s], 3 * (j - lo), idx, frac)
                 else:
                     _fill_vacuous(bufs[s], 3 * (j - lo), j1 - j)
             if located:
-                _prefetch_span(src, informative[:, band, k], srs, n, a + _AHEAD * du_di, b + _AHEAD * dv_di,
-                               du_dj, dv_dj, j, j1)
+                _prefetch_span(
+                    src,
+                    informative[:, band, k],
+                    srs,
+                    n,
+                    a + _AHEAD * du_di,
+                    b + _AHEAD * dv_di,
+                    du_dj,
+                    dv_dj,
+                    j,
+                    j1,
+                )
             j = j1
         m = hi - lo
         t = (tr0 + i - wa) * ts + tc0 + lo - wc0  # the row's first cell in the tiles
         for k in range(len(tiles)):
-            mp_ = tiles[k][3 * t:3 * (t + m)]
+            mp_ = tiles[k][3 * t : 3 * (t + m)]
             code, x, y = rules[k, 0], rules[k, 1], rules[k, 2]
             if code == RULE_DEMPSTER:
                 rejected[k] += _dempster_row(mp_, bufs[x], bad, m)
@@ -697,4 +849,4 @@ def _k_warp_update(src, srs, n, informative, jl, u00, v00, du_di, du_dj, dv_di, 
                 rejected[k] += _deep_disc_row(mp_, bufs[x], bad, m, m_u_min, alpha)
             else:
                 rejected[k] += _fused_row(mp_, bufs[x], bufs[y], bad, m, m_u_min, alpha)
-            covs[k][t:t + m] = True
+            covs[k][t : t + m] = True

@@ -11,8 +11,9 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, Mapping, Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -76,19 +77,26 @@ class OccupancyMapper:
         for s in self.extra:
             missing = set(s.required_isms) - set(self.maps.required_isms)
             if missing:
-                raise ValueError(f"extra map sets need ISMs {sorted(missing)} that the mapper's maps do not compute")
+                raise ValueError(
+                    f"extra map sets need ISMs {sorted(missing)} that the mapper's maps do not compute"
+                )
         self.observers = list(observers)
         self.buffer = RadarBuffer(max(config.radar.n_sweeps, config.image.n_sweeps))
         self.deep = deep
         if deep is None and "deep_irm" in self.maps.required_isms:
             from evgrid.ism.deep import DeepIrm
 
-            self.deep = DeepIrm(config.checkpoint, config.grid, config.image, config.threads, config.runtime)
+            self.deep = DeepIrm(
+                config.checkpoint, config.grid, config.image, config.threads, config.runtime
+            )
         if self.deep is not None:
             from evgrid.data.radar_filter import check_trained_filter
 
-            check_trained_filter(config.radar_filter, getattr(self.deep, "info", None),
-                                 str(getattr(self.deep, "checkpoint", "the checkpoint")))
+            check_trained_filter(
+                config.radar_filter,
+                getattr(self.deep, "info", None),
+                str(getattr(self.deep, "checkpoint", "the checkpoint")),
+            )
         from evgrid.ism.self_returns import SelfReturnFilter
 
         self.self_returns = SelfReturnFilter(config.self_returns)
@@ -126,7 +134,9 @@ class OccupancyMapper:
         t = time.perf_counter()
         self.maps.load(isms)  # each ISM checked and padded once
         t = self._time("warp", t)
-        if self.extra or not self.one_pass:  # warped once into whole windows that every map set reads
+        if (
+            self.extra or not self.one_pass
+        ):  # warped once into whole windows that every map set reads
             windows = self.maps.warp_loaded(pose)
             self.maps.update_windows(windows)
             for extra in self.extra:
@@ -156,12 +166,19 @@ class OccupancyMapper:
             out["ray_ilm"] = ray_ilm(lidar, grid=cfg.grid, params=cfg.lidar, threads=cfg.threads)
             t = self._time("ray_ilm", t)
         if "ray_irm" in need:
-            out["ray_irm"] = ray_irm(self.buffer.sweeps(cfg.radar.n_sweeps), frame.ego_pose, grid=cfg.grid,
-                                     params=cfg.radar, threads=cfg.threads)
+            out["ray_irm"] = ray_irm(
+                self.buffer.sweeps(cfg.radar.n_sweeps),
+                frame.ego_pose,
+                grid=cfg.grid,
+                params=cfg.radar,
+                threads=cfg.threads,
+            )
             t = self._time("ray_irm", t)
         if "deep_irm" in need:
             # the fast path: pooled input from the detections, Ev-Net, upsampled masses in one pass
-            out["deep_irm"] = self.deep.predict(self.buffer.sweeps(cfg.image.n_sweeps), frame.ego_pose, frame.timestamp)
+            out["deep_irm"] = self.deep.predict(
+                self.buffer.sweeps(cfg.image.n_sweeps), frame.ego_pose, frame.timestamp
+            )
             t = self._time("deep_irm", t)
         return out
 
@@ -219,7 +236,11 @@ class UpdateSchedule:
         if self._next_us is None:
             self._next_us = t_us + self.period_us
             return True
-        tol = min(0.5 * (t_us - last), 0.5 * self.period_us) if last is not None and t_us > last else 0.0
+        tol = (
+            min(0.5 * (t_us - last), 0.5 * self.period_us)
+            if last is not None and t_us > last
+            else 0.0
+        )
         if t_us >= self._next_us - tol:
             while self._next_us - tol <= t_us:
                 self._next_us += self.period_us
@@ -245,7 +266,9 @@ class PoseGate:
 
     def __init__(self, limits: PoseLimits = PoseLimits()):
         self.limits = limits
-        self._last: tuple[int, float, float, float] | None = None  # t_us, x, y, yaw of the last accepted frame
+        self._last: tuple[int, float, float, float] | None = (
+            None  # t_us, x, y, yaw of the last accepted frame
+        )
         self._glitch_since: int | None = None
         self.n_jumps = 0
         self.n_stale = 0
@@ -257,15 +280,20 @@ class PoseGate:
         if not np.all(np.isfinite(t)) or not np.all(np.isfinite(pose.rotation)):
             raise PoseError(f"{what}: ego pose is not finite ({t.tolist()})")
         if np.max(np.abs(t)) > self.limits.max_position_m:
-            raise PoseError(f"{what}: ego pose {t.tolist()} is more than {self.limits.max_position_m:g} m from the "
-                            "origin; no map frame is that large (check the odometry's units and frame)")
+            raise PoseError(
+                f"{what}: ego pose {t.tolist()} is more than {self.limits.max_position_m:g} m from the "
+                "origin; no map frame is that large (check the odometry's units and frame)"
+            )
 
-    def _plausible(self, dt_s: float, a: tuple[float, float, float], b: tuple[float, float, float]) -> bool:
+    def _plausible(
+        self, dt_s: float, a: tuple[float, float, float], b: tuple[float, float, float]
+    ) -> bool:
         lim = self.limits
         dist = math.hypot(b[0] - a[0], b[1] - a[1])
         dyaw = abs(math.remainder(b[2] - a[2], 2 * math.pi))
-        return (dist <= lim.max_speed_mps * dt_s + lim.slack_m
-                and dyaw <= math.radians(lim.max_yaw_rate_dps * dt_s + lim.slack_deg))
+        return dist <= lim.max_speed_mps * dt_s + lim.slack_m and dyaw <= math.radians(
+            lim.max_yaw_rate_dps * dt_s + lim.slack_deg
+        )
 
     def accept(self, frame: Frame) -> bool:
         """Whether ``frame``'s pose continues the trajectory; raises :class:`PoseError` for unusable poses."""
@@ -277,7 +305,9 @@ class PoseGate:
         dt = (now[0] - self._last[0]) * 1e-6
         if dt <= 0:
             self.n_stale += 1
-            logger.warning("%s: timestamp not after the last mapped frame's; frame skipped", _where(frame))
+            logger.warning(
+                "%s: timestamp not after the last mapped frame's; frame skipped", _where(frame)
+            )
             return False
         if self._plausible(dt, self._last[1:], now[1:]):
             self._last = now
@@ -288,12 +318,20 @@ class PoseGate:
             self._glitch_since = self._last[0]
             step = math.hypot(now[1] - self._last[1], now[2] - self._last[2])
             if len(self.jumps) < 20:
-                self.jumps.append({"index": frame.index, "timestamp": frame.timestamp, "jump_m": step, "dt_s": dt})
-            logger.warning("%s: ego pose jumped %.1f m in %.3f s, more than a vehicle can move; frame skipped",
-                           _where(frame), step, dt)
+                self.jumps.append(
+                    {"index": frame.index, "timestamp": frame.timestamp, "jump_m": step, "dt_s": dt}
+                )
+            logger.warning(
+                "%s: ego pose jumped %.1f m in %.3f s, more than a vehicle can move; frame skipped",
+                _where(frame),
+                step,
+                dt,
+            )
         if (frame.timestamp - self._glitch_since) * 1e-6 > self.limits.max_glitch_s:
-            raise PoseError(f"{_where(frame)}: the ego pose jumped at t = {self._glitch_since} us and has not come back "
-                            f"within {self.limits.max_glitch_s:g} s; split the scene there or fix the odometry")
+            raise PoseError(
+                f"{_where(frame)}: the ego pose jumped at t = {self._glitch_since} us and has not come back "
+                f"within {self.limits.max_glitch_s:g} s; split the scene there or fix the odometry"
+            )
         return False
 
     def sweep_ok(self, sweep: RadarSweep, frame: Frame) -> bool:
@@ -305,10 +343,18 @@ class PoseGate:
             ok = self._plausible(dt, _planar(frame.ego_pose), _planar(pose))
         if not ok:
             self.n_radar_dropped += 1
-            logger.warning("%s: radar sweep %s at t = %d us has an implausible ego pose; sweep dropped",
-                           _where(frame), sweep.channel, sweep.timestamp)
+            logger.warning(
+                "%s: radar sweep %s at t = %d us has an implausible ego pose; sweep dropped",
+                _where(frame),
+                sweep.channel,
+                sweep.timestamp,
+            )
         return ok
 
     def counts(self) -> dict[str, int]:
         """Frames and sweeps skipped for their poses."""
-        return {"frames_pose_jump": self.n_jumps, "frames_stale": self.n_stale, "radar_sweeps_bad_pose": self.n_radar_dropped}
+        return {
+            "frames_pose_jump": self.n_jumps,
+            "frames_stale": self.n_stale,
+            "radar_sweeps_bad_pose": self.n_radar_dropped,
+        }

@@ -54,7 +54,9 @@ def validate(m: np.ndarray, name: str = "m", atol: float = _SUM_ATOL) -> np.ndar
     """Check that ``m`` is a mass array ``(..., 3)``; raise ValueError naming the problem."""
     a = np.asarray(m)
     if a.ndim == 0 or a.shape[-1] != 3:
-        raise ValueError(f"{name}: the last axis must be [m_f, m_o, m_u] of length 3, got shape {a.shape}")
+        raise ValueError(
+            f"{name}: the last axis must be [m_f, m_o, m_u] of length 3, got shape {a.shape}"
+        )
     if not np.issubdtype(a.dtype, np.floating):
         raise ValueError(f"{name}: masses must be floating point, got dtype {a.dtype}")
     if not np.isfinite(a).all():
@@ -67,7 +69,9 @@ def validate(m: np.ndarray, name: str = "m", atol: float = _SUM_ATOL) -> np.ndar
     s = a.sum(axis=-1, dtype=np.float64)
     off = np.abs(s - 1.0)
     if (off > atol).any():
-        raise ValueError(f"{name}: masses must sum to 1 within {atol:g}, worst sum {float(s.flat[int(off.argmax())]):.6g}")
+        raise ValueError(
+            f"{name}: masses must sum to 1 within {atol:g}, worst sum {float(s.flat[int(off.argmax())]):.6g}"
+        )
     return a
 
 
@@ -75,7 +79,9 @@ def _masses32(m: np.ndarray, name: str) -> np.ndarray:
     """``m`` as a C-contiguous float32 mass array ``(..., 3)``; ValueError naming ``name`` if it is not one."""
     a = np.asarray(m)
     if a.ndim == 0 or a.shape[-1] != 3:
-        raise ValueError(f"{name}: the last axis must be [m_f, m_o, m_u] of length 3, got shape {a.shape}")
+        raise ValueError(
+            f"{name}: the last axis must be [m_f, m_o, m_u] of length 3, got shape {a.shape}"
+        )
     if not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):
         raise ValueError(f"{name}: masses must be real numbers, got dtype {a.dtype}")
     a = np.ascontiguousarray(a, dtype=np.float32)
@@ -86,12 +92,18 @@ def _masses32(m: np.ndarray, name: str) -> np.ndarray:
     return a
 
 
-def _pair3d(m1: np.ndarray, m2: np.ndarray, names: tuple[str, str] = ("m1", "m2")) -> tuple[np.ndarray, np.ndarray, tuple[int, ...]]:
+def _pair3d(
+    m1: np.ndarray, m2: np.ndarray, names: tuple[str, str] = ("m1", "m2")
+) -> tuple[np.ndarray, np.ndarray, tuple[int, ...]]:
     a = _masses32(m1, names[0])
     b = _masses32(m2, names[1])
     shape = np.broadcast_shapes(a.shape, b.shape)
-    a3 = np.ascontiguousarray(np.broadcast_to(a, shape) if a.shape != shape else a, dtype=np.float32)
-    b3 = np.ascontiguousarray(np.broadcast_to(b, shape) if b.shape != shape else b, dtype=np.float32)
+    a3 = np.ascontiguousarray(
+        np.broadcast_to(a, shape) if a.shape != shape else a, dtype=np.float32
+    )
+    b3 = np.ascontiguousarray(
+        np.broadcast_to(b, shape) if b.shape != shape else b, dtype=np.float32
+    )
     a3, b3 = a3.reshape(1, -1, 3), b3.reshape(1, -1, 3)
     return a3, b3, shape
 
@@ -102,7 +114,9 @@ def _combine(kernel, m1: np.ndarray, m2: np.ndarray, out: np.ndarray | None) -> 
         res = np.empty(shape, dtype=np.float32)
     else:
         if out.shape != shape or out.dtype != np.float32 or not out.flags.c_contiguous:
-            raise ValueError(f"out must be a C-contiguous float32 array of shape {shape}, got {out.shape} {out.dtype}")
+            raise ValueError(
+                f"out must be a C-contiguous float32 array of shape {shape}, got {out.shape} {out.dtype}"
+            )
         res = out
     fa, ars, h, w = rows(a)
     fb, brs, _, _ = rows(b)

@@ -7,19 +7,27 @@ with how long the vehicle has driven.
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
 from evgrid.classes import FREE, OCCUPIED
-from evgrid.evaluate import iou_from_confusion, tile_confusions_vs_map, tile_confusions_vs_truth, tile_keys
+from evgrid.evaluate import (
+    iou_from_confusion,
+    tile_confusions_vs_map,
+    tile_confusions_vs_truth,
+    tile_keys,
+)
 from evgrid.geometry import GridSpec
 from evgrid.grid import EvidentialMap, MapWindow, Warper
 from evgrid.mapper import MapUpdate
 
 __all__ = ["TruthTracker", "TileScores", "SceneScores", "GifRecorder"]
 
-_TRUTH_MASSES = np.array([[1, 0, 0], [0, 1, 0], [0, 1, 0]], dtype=np.float32)  # free, static, dynamic
+_TRUTH_MASSES = np.array(
+    [[1, 0, 0], [0, 1, 0], [0, 1, 0]], dtype=np.float32
+)  # free, static, dynamic
 
 
 def _replace_where_informed(cell: np.ndarray, m: np.ndarray) -> None:
@@ -78,7 +86,9 @@ class TileScores:
 
     def iou(self, skip: tuple[str, ...] = ()) -> dict[str, dict[str, float]]:
         """Per-map, per-class IoU of the current counts (after :meth:`refresh`)."""
-        return {n: iou_from_confusion(self.total[i]) for i, n in enumerate(self.names) if n not in skip}
+        return {
+            n: iou_from_confusion(self.total[i]) for i, n in enumerate(self.names) if n not in skip
+        }
 
 
 class SceneScores:
@@ -88,20 +98,35 @@ class SceneScores:
     recounts only those, so tracking convergence costs the same in the first and the tenth minute.
     """
 
-    def __init__(self, maps: dict[str, EvidentialMap], truth: TruthTracker | None, track: bool = True,
-                 reference: str = "ray_ilm"):
+    def __init__(
+        self,
+        maps: dict[str, EvidentialMap],
+        truth: TruthTracker | None,
+        track: bool = True,
+        reference: str = "ray_ilm",
+    ):
         self.maps = maps
         self.truth = truth
         self.track = track
         self.reference = reference if reference in maps else None
         names = self.names = tuple(maps)
         truth_ref = self.reference or names[0]
-        self.vs_ref = TileScores(names, lambda k: tile_confusions_vs_map(maps, self.reference, k)) if self.reference else None
-        self.vs_truth = (TileScores(names, lambda k: tile_confusions_vs_truth(maps, truth.map, truth_ref, k))
-                         if truth is not None else None)
+        self.vs_ref = (
+            TileScores(names, lambda k: tile_confusions_vs_map(maps, self.reference, k))
+            if self.reference
+            else None
+        )
+        self.vs_truth = (
+            TileScores(names, lambda k: tile_confusions_vs_truth(maps, truth.map, truth_ref, k))
+            if truth is not None
+            else None
+        )
         # the same against every true cell, not only those the lidar covered: the perception field
-        self.field = (TileScores(names, lambda k: tile_confusions_vs_truth(maps, truth.map, None, k))
-                      if truth is not None else None)
+        self.field = (
+            TileScores(names, lambda k: tile_confusions_vs_truth(maps, truth.map, None, k))
+            if truth is not None
+            else None
+        )
         res = next(iter(maps.values())).grid.resolution
         self._cell_m2 = res * res
         self.keyframes: list[dict[str, Any]] = []
@@ -123,7 +148,10 @@ class SceneScores:
                 rec["iou"] = self.vs_ref.iou(skip=(self.reference,))
             if self.vs_truth is not None and self.truth.map.tiles:
                 self.vs_truth.refresh()
-                rec["iou_truth"] = {n: {c: v for c, v in d.items() if c != "unknown"} for n, d in self.vs_truth.iou().items()}
+                rec["iou_truth"] = {
+                    n: {c: v for c, v in d.items() if c != "unknown"}
+                    for n, d in self.vs_truth.iou().items()
+                }
                 self.field.refresh()
                 rec["field"] = self.perception_field()
         self.keyframes.append(rec)
@@ -134,8 +162,11 @@ class SceneScores:
         out = {}
         for i, (n, d) in enumerate(self.field.iou().items()):
             c = self.field.total[i]
-            out[n] = {"free": d["free"], "occupied": d["occupied"],
-                      "area_m2": float(c[FREE, FREE] + c[OCCUPIED, OCCUPIED]) * self._cell_m2}
+            out[n] = {
+                "free": d["free"],
+                "occupied": d["occupied"],
+                "area_m2": float(c[FREE, FREE] + c[OCCUPIED, OCCUPIED]) * self._cell_m2,
+            }
         return out
 
     def final(self) -> dict[str, Any]:
@@ -146,13 +177,19 @@ class SceneScores:
         if self.vs_ref is not None:
             self.vs_ref.refresh()
             out["vs_ray_ilm"] = self.vs_ref.iou(skip=(self.reference,))
-            out["confusion_vs_ray_ilm"] = {n: self.vs_ref.total[i].tolist() for i, n in enumerate(self.names)
-                                           if n != self.reference}
+            out["confusion_vs_ray_ilm"] = {
+                n: self.vs_ref.total[i].tolist()
+                for i, n in enumerate(self.names)
+                if n != self.reference
+            }
         if self.vs_truth is not None and self.truth.map.tiles:
             self.vs_truth.dirty |= self.truth.changed
             self.truth.changed = set()
             self.vs_truth.refresh()
-            out["vs_truth"] = {n: {c: v for c, v in d.items() if c != "unknown"} for n, d in self.vs_truth.iou().items()}
+            out["vs_truth"] = {
+                n: {c: v for c, v in d.items() if c != "unknown"}
+                for n, d in self.vs_truth.iou().items()
+            }
         return out
 
 
@@ -164,7 +201,14 @@ class GifRecorder:
     whenever that many are held, so memory stays bounded on any drive.
     """
 
-    def __init__(self, grid: GridSpec, window_m: float = 80.0, step: int = 8, max_frames: int = 240, cols: int = 3):
+    def __init__(
+        self,
+        grid: GridSpec,
+        window_m: float = 80.0,
+        step: int = 8,
+        max_frames: int = 240,
+        cols: int = 3,
+    ):
         self.grid = grid
         self.step = step
         self.cells = int(round(window_m / grid.resolution))
@@ -185,7 +229,10 @@ class GifRecorder:
 
         rc, cc = self.grid.map_xy_to_cell(update.pose.x, update.pose.y)
         r0, c0 = int(rc) - self.cells // 2, int(cc) - self.cells // 2
-        pics = [masses_to_rgb(sample_map(m, r0, c0, self.cells, self.cells, self.step)[0]) for m in update.maps.maps.values()]
+        pics = [
+            masses_to_rgb(sample_map(m, r0, c0, self.cells, self.cells, self.step)[0])
+            for m in update.maps.maps.values()
+        ]
         self.frames.append(mosaic(pics, self.cols))
         if len(self.frames) >= self.max_frames:
             self.frames = self.frames[::2]

@@ -7,8 +7,8 @@ evgrid stays light.
 from __future__ import annotations
 
 import os
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Mapping, Sequence
 
 import numpy as np
 
@@ -67,7 +67,9 @@ def _save(fig, path: str | os.PathLike, title: str = "") -> Path:
         fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     buf = io.BytesIO()
-    fig.savefig(buf, format=Path(path).suffix.lstrip(".") or "png", dpi=fig.dpi, bbox_inches="tight")
+    fig.savefig(
+        buf, format=Path(path).suffix.lstrip(".") or "png", dpi=fig.dpi, bbox_inches="tight"
+    )
     plt.close(fig)
     return atomic_write(path, lambda f: f.write(buf.getvalue()))
 
@@ -112,7 +114,10 @@ def plot_panels(
 
 
 def plot_convergence(
-    curves: Mapping[str, Sequence[Mapping[str, float]]], path: str | os.PathLike, times_s: Sequence[float] | None = None, title: str = ""
+    curves: Mapping[str, Sequence[Mapping[str, float]]],
+    path: str | os.PathLike,
+    times_s: Sequence[float] | None = None,
+    title: str = "",
 ) -> Path:
     """IoU over time of each map, one subplot per class (paper: faster convergence with the deep prior)."""
     plt = _pyplot()
@@ -139,16 +144,30 @@ def plot_perception_field(conv: Mapping, path: str | os.PathLike, title: str = "
 
     t = np.asarray(conv["t_s"], dtype=float)
     fig, axes = plt.subplots(1, 3, figsize=(12, 3.4), dpi=110)
-    panels = (("free", 1.0, "free IoU vs truth"), ("occupied", 1.0, "occupied IoU vs truth"),
-              ("area_m2", 1e-3, "classified correctly [1000 m²]"))
+    panels = (
+        ("free", 1.0, "free IoU vs truth"),
+        ("occupied", 1.0, "occupied IoU vs truth"),
+        ("area_m2", 1e-3, "classified correctly [1000 m²]"),
+    )
     for k, (name, q) in enumerate(conv["maps"].items()):
-        dx = (k - (len(conv["maps"]) - 1) / 2) * 0.08  # side by side, so the intervals stay readable
+        dx = (
+            k - (len(conv["maps"]) - 1) / 2
+        ) * 0.08  # side by side, so the intervals stay readable
         for ax, (key, scale, label) in zip(axes, panels):
             cis = q[key]
             y = np.array([c["mean"] for c in cis], dtype=float) * scale
             lo = np.array([c["lo"] for c in cis], dtype=float) * scale
             hi = np.array([c["hi"] for c in cis], dtype=float) * scale
-            ax.errorbar(t * np.exp(dx), y, yerr=[y - lo, hi - y], label=name, lw=1.2, capsize=2, marker="o", ms=3)
+            ax.errorbar(
+                t * np.exp(dx),
+                y,
+                yerr=[y - lo, hi - y],
+                label=name,
+                lw=1.2,
+                capsize=2,
+                marker="o",
+                ms=3,
+            )
             ax.set_title(label, fontsize=9)
     for ax in axes:
         ax.set_xscale("log")
@@ -157,7 +176,9 @@ def plot_perception_field(conv: Mapping, path: str | os.PathLike, title: str = "
         ax.grid(alpha=0.3)
         ax.tick_params(labelsize=7)
     axes[0].legend(fontsize=7)
-    return _save(fig, path, title or "perception field over time (mean over scenes, 95% bootstrap interval)")
+    return _save(
+        fig, path, title or "perception field over time (mean over scenes, 95% bootstrap interval)"
+    )
 
 
 def write_gif(frames: Sequence[np.ndarray], path: str | os.PathLike, fps: float = 4.0) -> Path:
@@ -170,7 +191,9 @@ def write_gif(frames: Sequence[np.ndarray], path: str | os.PathLike, fps: float 
         raise ValueError("no frames to write")
     images = [Image.fromarray(np.asarray(f, dtype=np.uint8)) for f in frames]
     buf = io.BytesIO()
-    images[0].save(buf, format="GIF", save_all=True, append_images=images[1:], duration=int(1000 / fps), loop=0)
+    images[0].save(
+        buf, format="GIF", save_all=True, append_images=images[1:], duration=int(1000 / fps), loop=0
+    )
     return atomic_write(path, lambda f: f.write(buf.getvalue()))
 
 
@@ -189,14 +212,22 @@ def sample_map(m, r0: int, c0: int, h: int, w: int, step: int = 1) -> tuple[np.n
     costs the same anywhere on a long drive, and a picture of a whole map grows with its area.
     """
     if step < 1 or h < 0 or w < 0:
-        raise ValueError(f"sample_map needs step >= 1 and a non-negative box, got step {step}, box {h} x {w}")
+        raise ValueError(
+            f"sample_map needs step >= 1 and a non-negative box, got step {step}, box {h} x {w}"
+        )
     hh, ww = -(-h // step), -(-w // step)
     out = vacuous((hh, ww))
     cov = np.zeros((hh, ww), dtype=np.bool_)
     ts = m.tile_cells
-    n_box = ((r0 + h - 1) // ts - r0 // ts + 1) * ((c0 + w - 1) // ts - c0 // ts + 1) if h and w else 0
+    n_box = (
+        ((r0 + h - 1) // ts - r0 // ts + 1) * ((c0 + w - 1) // ts - c0 // ts + 1) if h and w else 0
+    )
     if n_box <= len(m.tiles):
-        keys = [(ti, tj) for ti in range(r0 // ts, (r0 + h - 1) // ts + 1) for tj in range(c0 // ts, (c0 + w - 1) // ts + 1)]
+        keys = [
+            (ti, tj)
+            for ti in range(r0 // ts, (r0 + h - 1) // ts + 1)
+            for tj in range(c0 // ts, (c0 + w - 1) // ts + 1)
+        ]
     else:
         keys = list(m.tiles)
     for ti, tj in keys:
@@ -225,7 +256,9 @@ def mosaic(pics: Sequence[np.ndarray], cols: int = 3) -> np.ndarray:
         raise ValueError("no pictures to tile")
     h, w = pics[0].shape[:2]
     tiles = list(pics) + [np.zeros((h, w, 3), np.uint8)] * (-len(pics) % cols)
-    return np.concatenate([np.concatenate(tiles[i : i + cols], axis=1) for i in range(0, len(tiles), cols)], axis=0)
+    return np.concatenate(
+        [np.concatenate(tiles[i : i + cols], axis=1) for i in range(0, len(tiles), cols)], axis=0
+    )
 
 
 #: Longest side, in map cells read, of the whole-map figure (a figure has a few hundred pixels a panel).
@@ -248,23 +281,49 @@ def write_scene_figures(
     step = max(1, -(-max(h, w) // _FIGURE_CELLS))
     res = ref.grid.resolution
     panels = {n: sample_map(m, r0, c0, h, w, step)[0] for n, m in maps.items()}
-    track = trajectory_cells(np.array([(x, y) for x, y, _ in trajectory]).reshape(-1, 2), res * step, r0 / step, c0 / step)
-    files["maps"] = str(plot_panels(panels, out / "maps.png", title=f"{name}: the maps (first pose's frame, x up)",
-                                    tracks={n: track for n in panels}))
+    track = trajectory_cells(
+        np.array([(x, y) for x, y, _ in trajectory]).reshape(-1, 2),
+        res * step,
+        r0 / step,
+        c0 / step,
+    )
+    files["maps"] = str(
+        plot_panels(
+            panels,
+            out / "maps.png",
+            title=f"{name}: the maps (first pose's frame, x up)",
+            tracks={n: track for n in panels},
+        )
+    )
     if last_isms:
-        files["isms"] = str(plot_panels(last_isms, out / "isms.png", gamma=0.4,
-                                        title=f"{name}: ISMs of the last update (local grid, colour gamma 0.4)"))
+        files["isms"] = str(
+            plot_panels(
+                last_isms,
+                out / "isms.png",
+                gamma=0.4,
+                title=f"{name}: ISMs of the last update (local grid, colour gamma 0.4)",
+            )
+        )
     if keyframes and "iou" in keyframes[0]:
         curves = {n: [k["iou"].get(n, {}) for k in keyframes] for n in maps if n != "ray_ilm"}
         t0 = keyframes[0]["timestamp"]
         times = [(k["timestamp"] - t0) * 1e-6 for k in keyframes]
-        files["convergence"] = str(plot_convergence(curves, out / "convergence.png", times, title=f"{name}: IoU against ray_ilm"))
+        files["convergence"] = str(
+            plot_convergence(
+                curves, out / "convergence.png", times, title=f"{name}: IoU against ray_ilm"
+            )
+        )
     if gif_frames:
         files["gif"] = str(write_gif(gif_frames, out / "maps.gif"))
     return files
 
 
-def plot_m_u_min_sweep(rows: Sequence[Mapping], names: Sequence[str], path: str | os.PathLike, chosen: float | None = None) -> Path:
+def plot_m_u_min_sweep(
+    rows: Sequence[Mapping],
+    names: Sequence[str],
+    path: str | os.PathLike,
+    chosen: float | None = None,
+) -> Path:
     """mIoU of the swept maps against m_u_min, per class and averaged, with the chosen value marked."""
     plt = _pyplot()
 
@@ -272,9 +331,13 @@ def plot_m_u_min_sweep(rows: Sequence[Mapping], names: Sequence[str], path: str 
     fig, axes = plt.subplots(1, 4, figsize=(15, 3.4), dpi=110)
     for ax, cls in zip(axes, (*CLASSES, "mean")):
         for name in names:
-            ys = [r["mean_of_classes"][name] if cls == "mean" else r["miou"][name][cls] for r in rows]
+            ys = [
+                r["mean_of_classes"][name] if cls == "mean" else r["miou"][name][cls] for r in rows
+            ]
             ax.plot(xs, ys, marker="o", label=name)
-        ax.set_title(f"{cls} mIoU vs ray_ilm" if cls != "mean" else "mean of the three classes", fontsize=9)
+        ax.set_title(
+            f"{cls} mIoU vs ray_ilm" if cls != "mean" else "mean of the three classes", fontsize=9
+        )
         ax.set_xlabel("m_u_min", fontsize=8)
         ax.grid(alpha=0.3)
         if chosen is not None:

@@ -14,8 +14,9 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -66,7 +67,9 @@ def require(module: str, extra: str = "ros") -> Any:
     try:
         return importlib.import_module(module)
     except ImportError as e:
-        raise ImportError(f"{module} is needed for this (pip install 'evgrid[{extra}]'): {e}") from None
+        raise ImportError(
+            f"{module} is needed for this (pip install 'evgrid[{extra}]'): {e}"
+        ) from None
 
 
 @functools.lru_cache(maxsize=2)
@@ -86,7 +89,9 @@ def new_typestore(ros_version: int = 2) -> Any:
     store = get_typestore(Stores.ROS2_HUMBLE if ros_version == 2 else Stores.ROS1_NOETIC)
     types: dict = {}
     extra = dict(EXTRA_MSGS)
-    extra.setdefault("tf2_msgs/msg/TFMessage", "geometry_msgs/TransformStamped[] transforms\n")  # not in Noetic's store
+    extra.setdefault(
+        "tf2_msgs/msg/TFMessage", "geometry_msgs/TransformStamped[] transforms\n"
+    )  # not in Noetic's store
     for name, text in extra.items():
         if name not in store.fielddefs:
             types.update(get_types_from_msg(text, name))
@@ -111,7 +116,16 @@ def us_to_stamp(us: int) -> tuple[int, int]:
 # --- point clouds ---------------------------------------------------------------------------
 
 #: sensor_msgs/PointField datatype -> numpy type (little-endian; big-endian clouds are swapped).
-POINTFIELD_DTYPES: dict[int, str] = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
+POINTFIELD_DTYPES: dict[int, str] = {
+    1: "i1",
+    2: "u1",
+    3: "i2",
+    4: "u2",
+    5: "i4",
+    6: "u4",
+    7: "f4",
+    8: "f8",
+}
 
 
 def cloud_fields(msg: Any) -> tuple[str, ...]:
@@ -136,8 +150,14 @@ def cloud_to_columns(msg: Any, names: Sequence[str]) -> np.ndarray:
             raise KeyError(f"field {n!r} has unknown PointField datatype {f.datatype}")
         fmt[n] = (np.dtype(order + POINTFIELD_DTYPES[f.datatype]), int(f.offset))
     step = int(msg.point_step)
-    dtype = np.dtype({"names": list(fmt), "formats": [v[0] for v in fmt.values()],
-                      "offsets": [v[1] for v in fmt.values()], "itemsize": step})
+    dtype = np.dtype(
+        {
+            "names": list(fmt),
+            "formats": [v[0] for v in fmt.values()],
+            "offsets": [v[1] for v in fmt.values()],
+            "itemsize": step,
+        }
+    )
     height, width = int(msg.height), int(msg.width)
     data = np.asarray(msg.data, dtype=np.uint8)
     row = int(msg.row_step)
@@ -153,18 +173,34 @@ def cloud_to_columns(msg: Any, names: Sequence[str]) -> np.ndarray:
     return out
 
 
-def columns_to_cloud(points: np.ndarray, names: Sequence[str], sec: int, nanosec: int, frame_id: str,
-                     store: Any = None) -> Any:
+def columns_to_cloud(
+    points: np.ndarray,
+    names: Sequence[str],
+    sec: int,
+    nanosec: int,
+    frame_id: str,
+    store: Any = None,
+) -> Any:
     """A dense ``sensor_msgs/PointCloud2`` of float32 fields ``names`` from an ``(n, k)`` array."""
     store = store or typestore(2)
     t = store.types
     p = np.ascontiguousarray(points, dtype="<f4")
     if p.ndim != 2 or p.shape[1] != len(names):
         raise ValueError(f"points must have shape (n, {len(names)}), got {p.shape}")
-    fields = [t["sensor_msgs/msg/PointField"](name=n, offset=4 * i, datatype=7, count=1) for i, n in enumerate(names)]
+    fields = [
+        t["sensor_msgs/msg/PointField"](name=n, offset=4 * i, datatype=7, count=1)
+        for i, n in enumerate(names)
+    ]
     return t["sensor_msgs/msg/PointCloud2"](
-        header=header(sec, nanosec, frame_id, store), height=1, width=len(p), fields=fields, is_bigendian=False,
-        point_step=4 * len(names), row_step=4 * len(names) * len(p), data=p.reshape(-1).view(np.uint8), is_dense=True,
+        header=header(sec, nanosec, frame_id, store),
+        height=1,
+        width=len(p),
+        fields=fields,
+        is_bigendian=False,
+        point_step=4 * len(names),
+        row_step=4 * len(names) * len(p),
+        data=p.reshape(-1).view(np.uint8),
+        is_dense=True,
     )
 
 
@@ -183,7 +219,9 @@ def header(sec: int, nanosec: int, frame_id: str, store: Any = None) -> Any:
 
 
 def _is_planar(r: np.ndarray) -> bool:
-    return bool(r[2, 2] == 1.0 and r[0, 2] == 0.0 and r[1, 2] == 0.0 and r[2, 0] == 0.0 and r[2, 1] == 0.0)
+    return bool(
+        r[2, 2] == 1.0 and r[0, 2] == 0.0 and r[1, 2] == 0.0 and r[2, 0] == 0.0 and r[2, 1] == 0.0
+    )
 
 
 def _yaw_of(qz: float, qw: float) -> float:
@@ -210,7 +248,9 @@ def _planar_quaternion(c: float, s: float) -> tuple[float, float] | None:
     return None
 
 
-def se3_to_transform(pose: SE3) -> tuple[tuple[float, float, float], tuple[float, float, float, float]]:
+def se3_to_transform(
+    pose: SE3,
+) -> tuple[tuple[float, float, float], tuple[float, float, float, float]]:
     """A pose as ROS ``(translation xyz, rotation xyzw)``; planar rotations read back exactly."""
     r = pose.rotation
     t = tuple(float(v) for v in pose.translation)
@@ -228,7 +268,9 @@ def transform_to_se3(t: Sequence[float], q_xyzw: Sequence[float]) -> SE3:
     if x == 0.0 and y == 0.0 and (z != 0.0 or w != 0.0):
         yaw = _yaw_of(z, w)
         c, s = math.cos(yaw), math.sin(yaw)
-        return SE3(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]), np.asarray(t, dtype=np.float64))
+        return SE3(
+            np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]), np.asarray(t, dtype=np.float64)
+        )
     return SE3(quaternion_to_matrix([w, x, y, z]), np.asarray(t, dtype=np.float64))
 
 
@@ -266,7 +308,8 @@ class RecordingWriter:
             self._w = Writer1(self.path)
             self._w.open()
         else:
-            from rosbags.rosbag2 import StoragePlugin, Writer as Writer2
+            from rosbags.rosbag2 import StoragePlugin
+            from rosbags.rosbag2 import Writer as Writer2
 
             plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
             self._w = Writer2(self.path, version=9, storage_plugin=plugin)
@@ -303,7 +346,7 @@ class RecordingWriter:
         else:
             self._w.close()
 
-    def __enter__(self) -> "RecordingWriter":
+    def __enter__(self) -> RecordingWriter:
         return self
 
     def __exit__(self, *exc: Any) -> None:
@@ -316,10 +359,12 @@ def transform_msg(parent: str, child: str, t_us: int, pose: SE3, store: Any) -> 
     (tx, tyy, tz), (qx, qy, qz, qw) = se3_to_transform(pose)
     sec, ns = us_to_stamp(t_us)
     return ty["geometry_msgs/msg/TransformStamped"](
-        header=header(sec, ns, parent, store), child_frame_id=child,
+        header=header(sec, ns, parent, store),
+        child_frame_id=child,
         transform=ty["geometry_msgs/msg/Transform"](
             translation=ty["geometry_msgs/msg/Vector3"](x=tx, y=tyy, z=tz),
-            rotation=ty["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw)),
+            rotation=ty["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw),
+        ),
     )
 
 

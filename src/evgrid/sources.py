@@ -12,14 +12,25 @@ import dataclasses
 import functools
 import json
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol, Sequence
+from typing import Protocol
 
 from evgrid.data.frame import Scene
 from evgrid.data.radar_variants import RadarRanges, RadarVariant
 
-__all__ = ["SceneSource", "SimSource", "SimFilesSource", "NuScenesSource", "BagSource", "SceneIndexError", "sim_split", "source_to_dict", "source_from_dict"]
+__all__ = [
+    "SceneSource",
+    "SimSource",
+    "SimFilesSource",
+    "NuScenesSource",
+    "BagSource",
+    "SceneIndexError",
+    "sim_split",
+    "source_to_dict",
+    "source_from_dict",
+]
 
 
 def sim_split(seed: int) -> str:
@@ -53,8 +64,15 @@ class SimSource:
             raise ValueError("SimSource takes radar or radar_ranges, not both")
 
     @classmethod
-    def split(cls, split: str, n: int, first_seed: int = 0, duration_s: float = 20.0, radar: RadarVariant | None = None,
-              radar_ranges: RadarRanges | None = None) -> "SimSource":
+    def split(
+        cls,
+        split: str,
+        n: int,
+        first_seed: int = 0,
+        duration_s: float = 20.0,
+        radar: RadarVariant | None = None,
+        radar_ranges: RadarRanges | None = None,
+    ) -> SimSource:
         """The first ``n`` seeds from ``first_seed`` on that belong to ``split`` (``train`` or ``val``)."""
         if split not in ("train", "val"):
             raise ValueError(f"split must be 'train' or 'val', got {split!r}")
@@ -101,14 +119,22 @@ class SimFilesSource:
     def _index(self) -> list[dict]:
         path = Path(self.folder) / "index.json"
         if not path.is_file():
-            raise FileNotFoundError(f"{path} not found: write scenes with `evgrid simulate --out {self.folder}` first")
+            raise FileNotFoundError(
+                f"{path} not found: write scenes with `evgrid simulate --out {self.folder}` first"
+            )
         try:
             entries = json.loads(path.read_text())["scenes"]
-            ok = isinstance(entries, list) and all(isinstance(e, dict) and {"name", "file"} <= set(e) for e in entries)
+            ok = isinstance(entries, list) and all(
+                isinstance(e, dict) and {"name", "file"} <= set(e) for e in entries
+            )
         except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError) as e:
-            raise SceneIndexError(f"{path}: not a scene index of `evgrid simulate` ({type(e).__name__}: {e})") from None
+            raise SceneIndexError(
+                f"{path}: not a scene index of `evgrid simulate` ({type(e).__name__}: {e})"
+            ) from None
         if not ok:
-            raise SceneIndexError(f"{path}: 'scenes' must be a list of {{name, file, split}} entries")
+            raise SceneIndexError(
+                f"{path}: 'scenes' must be a list of {{name, file, split}} entries"
+            )
         return [e for e in entries if self.split is None or e.get("split") == self.split]
 
     def names(self) -> list[str]:
@@ -120,14 +146,20 @@ class SimFilesSource:
         for e in self._index():
             if e["name"] == name:
                 return load_sim_scene(Path(self.folder) / e["file"])
-        raise SceneIndexError(f"no scene {name!r} in {self.folder}/index.json; it has {self.names()}")
+        raise SceneIndexError(
+            f"no scene {name!r} in {self.folder}/index.json; it has {self.names()}"
+        )
 
 
 @functools.lru_cache(maxsize=2)
-def _nuscenes_scenes(dataroot: str, version: str, split: str | None, names: tuple[str, ...] | None) -> dict:
+def _nuscenes_scenes(
+    dataroot: str, version: str, split: str | None, names: tuple[str, ...] | None
+) -> dict:
     from evgrid.data.nuscenes import load_nuscenes
 
-    scenes = load_nuscenes(dataroot, version, split=split, scene_names=list(names) if names else None)
+    scenes = load_nuscenes(
+        dataroot, version, split=split, scene_names=list(names) if names else None
+    )
     return {s.name: s for s in scenes}
 
 
@@ -195,19 +227,32 @@ def scenes_of(source: SceneSource, names: Sequence[str] | None = None) -> list[s
         return known
     missing = [n for n in names if n not in known]
     if missing:
-        raise KeyError(f"unknown scene(s) {missing}; available: {known[:10]}{' ...' if len(known) > 10 else ''}")
+        raise KeyError(
+            f"unknown scene(s) {missing}; available: {known[:10]}{' ...' if len(known) > 10 else ''}"
+        )
     return list(names)
 
 
 def _kinds() -> dict[str, type]:
-    return {"sim": SimSource, "sim_files": SimFilesSource, "nuscenes": NuScenesSource, "bag": BagSource}
+    return {
+        "sim": SimSource,
+        "sim_files": SimFilesSource,
+        "nuscenes": NuScenesSource,
+        "bag": BagSource,
+    }
 
 
 def source_to_dict(source: SceneSource) -> dict | None:
     """A source as plain JSON (``{"kind": ..., fields}``) for a run's config.json; None for sources of other kinds."""
     for kind, cls in _kinds().items():
         if type(source) is cls:
-            return {"kind": kind, **{k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(source).items()}}
+            return {
+                "kind": kind,
+                **{
+                    k: (list(v) if isinstance(v, tuple) else v)
+                    for k, v in dataclasses.asdict(source).items()
+                },
+            }
     return None
 
 
@@ -217,6 +262,8 @@ def source_from_dict(d: dict) -> SceneSource:
 
     kinds = _kinds()
     if not isinstance(d, dict) or d.get("kind") not in kinds:
-        raise ConfigError(f"config source: 'kind' must be one of {sorted(kinds)}, got {d.get('kind') if isinstance(d, dict) else d!r}")
+        raise ConfigError(
+            f"config source: 'kind' must be one of {sorted(kinds)}, got {d.get('kind') if isinstance(d, dict) else d!r}"
+        )
     fields = {k: v for k, v in d.items() if k != "kind"}
     return from_dict(kinds[d["kind"]], fields, f"config source ({d['kind']})")

@@ -25,7 +25,9 @@ def _value(owner: Any, name: str, value: Any) -> Any:
 _MISSING = object()
 
 
-def check_int(owner: Any, name: str, value: Any = _MISSING, *, min: int | None = None, max: int | None = None) -> int:
+def check_int(
+    owner: Any, name: str, value: Any = _MISSING, *, min: int | None = None, max: int | None = None
+) -> int:
     """An integer (not a bool) within ``[min, max]``; returns it as ``int``."""
     v = _value(owner, name, value)
     if isinstance(v, bool) or not isinstance(v, numbers.Integral):
@@ -52,9 +54,13 @@ def check_number(
     if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v):
         raise ValueError(f"{_label(owner, name)} must be a finite number, got {v!r}")
     if min is not None and (v <= min if min_open else v < min):
-        raise ValueError(f"{_label(owner, name)} must be {'>' if min_open else '>='} {min}, got {v!r}")
+        raise ValueError(
+            f"{_label(owner, name)} must be {'>' if min_open else '>='} {min}, got {v!r}"
+        )
     if max is not None and (v >= max if max_open else v > max):
-        raise ValueError(f"{_label(owner, name)} must be {'<' if max_open else '<='} {max}, got {v!r}")
+        raise ValueError(
+            f"{_label(owner, name)} must be {'<' if max_open else '<='} {max}, got {v!r}"
+        )
     return float(v)
 
 

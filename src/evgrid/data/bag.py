@@ -22,17 +22,35 @@ from __future__ import annotations
 import bisect
 import logging
 import math
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator, Mapping
+from typing import Any
 
 import numpy as np
 
-from evgrid.data.frame import LIDAR_CHANNEL, LIDAR_COLUMNS, RADAR_COLUMNS, Frame, LidarSweep, RadarSweep
+from evgrid.data.frame import (
+    LIDAR_CHANNEL,
+    LIDAR_COLUMNS,
+    RADAR_COLUMNS,
+    Frame,
+    LidarSweep,
+    RadarSweep,
+)
 from evgrid.geometry import SE3
 
-__all__ = ["BagError", "RigError", "RigConfig", "LidarTopic", "RadarTopic", "load_rig", "load_bag", "BagScene",
-           "TransformBuffer", "bag_kind"]
+__all__ = [
+    "BagError",
+    "RigError",
+    "RigConfig",
+    "LidarTopic",
+    "RadarTopic",
+    "load_rig",
+    "load_bag",
+    "BagScene",
+    "TransformBuffer",
+    "bag_kind",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -90,7 +108,9 @@ class RadarTopic:
     channel: str
     frame: str | None = None
     fields: Mapping[str, str] = field(default_factory=dict)
-    compensated: bool = True  # False: raw Doppler, compensated here with the ego motion of the poses
+    compensated: bool = (
+        True  # False: raw Doppler, compensated here with the ego motion of the poses
+    )
 
     def field_name(self, column: str) -> str:
         return self.fields.get(column, column)
@@ -107,20 +127,34 @@ class RigConfig:
     odometry_topic: str | None = None  # None: ego poses from tf_topic
     tf_topic: str = "/tf"
     tf_static_topic: str = "/tf_static"
-    extrinsics: Mapping[str, SE3] = field(default_factory=dict)  # frame -> sensor_to_ego, beats /tf_static
+    extrinsics: Mapping[str, SE3] = field(
+        default_factory=dict
+    )  # frame -> sensor_to_ego, beats /tf_static
     keyframe_every: int | None = 10  # every N-th lidar frame from the first ...
-    keyframe_rate_hz: float | None = None  # ... or the first frame at or after each tick of this rate
+    keyframe_rate_hz: float | None = (
+        None  # ... or the first frame at or after each tick of this rate
+    )
     sync_tolerance_s: float = 0.5  # how late (in bag time) a radar sweep may arrive after its frame
-    max_pose_gap_s: float = 0.1  # how far beyond the pose track a sweep may lie and still get a pose
+    max_pose_gap_s: float = (
+        0.1  # how far beyond the pose track a sweep may lie and still get a pose
+    )
     scene: str | None = None  # scene name; default: the recording's file name
 
     def __post_init__(self) -> None:
         if (self.keyframe_every is None) == (self.keyframe_rate_hz is None):
             raise RigError("rig: give exactly one of keyframes.every and keyframes.rate_hz")
-        if self.keyframe_every is not None and (not isinstance(self.keyframe_every, int) or self.keyframe_every < 1):
-            raise RigError(f"rig: keyframes.every must be an integer >= 1, got {self.keyframe_every!r}")
-        if self.keyframe_rate_hz is not None and not (self.keyframe_rate_hz > 0 and math.isfinite(self.keyframe_rate_hz)):
-            raise RigError(f"rig: keyframes.rate_hz must be positive, got {self.keyframe_rate_hz!r}")
+        if self.keyframe_every is not None and (
+            not isinstance(self.keyframe_every, int) or self.keyframe_every < 1
+        ):
+            raise RigError(
+                f"rig: keyframes.every must be an integer >= 1, got {self.keyframe_every!r}"
+            )
+        if self.keyframe_rate_hz is not None and not (
+            self.keyframe_rate_hz > 0 and math.isfinite(self.keyframe_rate_hz)
+        ):
+            raise RigError(
+                f"rig: keyframes.rate_hz must be positive, got {self.keyframe_rate_hz!r}"
+            )
         for name in ("sync_tolerance_s", "max_pose_gap_s"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and v >= 0 and math.isfinite(v)):
@@ -131,19 +165,33 @@ class RigConfig:
             raise RigError(f"rig: radar channel(s) {dup} named twice")
 
     @classmethod
-    def from_dict(cls, d: Mapping[str, Any], where: str = "rig") -> "RigConfig":
+    def from_dict(cls, d: Mapping[str, Any], where: str = "rig") -> RigConfig:
         """From the parsed YAML; raises :class:`RigError` naming the bad key."""
         if not isinstance(d, Mapping):
             raise RigError(f"{where}: must be a mapping, got {type(d).__name__}")
-        known = {"scene", "world_frame", "base_frame", "poses", "lidar", "radars", "keyframes", "extrinsics",
-                 "sync_tolerance_s", "max_pose_gap_s"}
+        known = {
+            "scene",
+            "world_frame",
+            "base_frame",
+            "poses",
+            "lidar",
+            "radars",
+            "keyframes",
+            "extrinsics",
+            "sync_tolerance_s",
+            "max_pose_gap_s",
+        }
         bad = sorted(set(d) - known)
         if bad:
             raise RigError(f"{where}: unknown key(s) {bad}; keys are {sorted(known)}")
         lid = d.get("lidar")
         if not isinstance(lid, Mapping) or not isinstance(lid.get("topic"), str):
             raise RigError(f"{where}: 'lidar' must give at least a 'topic'")
-        lidar = LidarTopic(lid["topic"], lid.get("frame"), _fields(lid.get("fields"), LIDAR_COLUMNS, f"{where} lidar"))
+        lidar = LidarTopic(
+            lid["topic"],
+            lid.get("frame"),
+            _fields(lid.get("fields"), LIDAR_COLUMNS, f"{where} lidar"),
+        )
         radars = []
         for i, r in enumerate(d.get("radars") or ()):
             w = f"{where} radars[{i}]"
@@ -153,8 +201,15 @@ class RigConfig:
             comp = r.get("compensated", True)
             if not isinstance(comp, bool):
                 raise RigError(f"{w}: compensated must be true or false, got {comp!r}")
-            radars.append(RadarTopic(r["topic"], str(ch), r.get("frame"),
-                                     _fields(r.get("fields"), RADAR_COLUMNS + (_RADIAL,), w), comp))
+            radars.append(
+                RadarTopic(
+                    r["topic"],
+                    str(ch),
+                    r.get("frame"),
+                    _fields(r.get("fields"), RADAR_COLUMNS + (_RADIAL,), w),
+                    comp,
+                )
+            )
         poses = d.get("poses") or {}
         if not isinstance(poses, Mapping):
             raise RigError(f"{where}: 'poses' must be a mapping")
@@ -170,12 +225,18 @@ class RigConfig:
         for frame, e in (d.get("extrinsics") or {}).items():
             ext[str(frame)] = _extrinsic(e, f"{where} extrinsics.{frame}")
         return cls(
-            lidar=lidar, radars=tuple(radars),
-            world_frame=str(d.get("world_frame", "odom")), base_frame=str(d.get("base_frame", "base_link")),
+            lidar=lidar,
+            radars=tuple(radars),
+            world_frame=str(d.get("world_frame", "odom")),
+            base_frame=str(d.get("base_frame", "base_link")),
             odometry_topic=poses.get("topic") if source == "odometry" else None,
-            tf_topic=str(poses.get("tf_topic", "/tf")), tf_static_topic=str(poses.get("tf_static_topic", "/tf_static")),
-            extrinsics=ext, keyframe_every=kf.get("every"), keyframe_rate_hz=kf.get("rate_hz"),
-            sync_tolerance_s=d.get("sync_tolerance_s", 0.5), max_pose_gap_s=d.get("max_pose_gap_s", 0.1),
+            tf_topic=str(poses.get("tf_topic", "/tf")),
+            tf_static_topic=str(poses.get("tf_static_topic", "/tf_static")),
+            extrinsics=ext,
+            keyframe_every=kf.get("every"),
+            keyframe_rate_hz=kf.get("rate_hz"),
+            sync_tolerance_s=d.get("sync_tolerance_s", 0.5),
+            max_pose_gap_s=d.get("max_pose_gap_s", 0.1),
             scene=d.get("scene"),
         )
 
@@ -184,23 +245,48 @@ class RigConfig:
         from evgrid.geometry import matrix_to_quaternion
 
         out: dict[str, Any] = {
-            "world_frame": self.world_frame, "base_frame": self.base_frame,
-            "poses": ({"source": "odometry", "topic": self.odometry_topic} if self.odometry_topic
-                      else {"source": "tf", "tf_topic": self.tf_topic, "tf_static_topic": self.tf_static_topic}),
-            "lidar": {"topic": self.lidar.topic, **({"frame": self.lidar.frame} if self.lidar.frame else {}),
-                      **({"fields": dict(self.lidar.fields)} if self.lidar.fields else {})},
-            "radars": [{"topic": r.topic, "channel": r.channel, **({"frame": r.frame} if r.frame else {}),
-                        **({"fields": dict(r.fields)} if r.fields else {}),
-                        **({} if r.compensated else {"compensated": False})} for r in self.radars],
-            "keyframes": {"every": self.keyframe_every} if self.keyframe_every else {"rate_hz": self.keyframe_rate_hz},
-            "sync_tolerance_s": self.sync_tolerance_s, "max_pose_gap_s": self.max_pose_gap_s,
+            "world_frame": self.world_frame,
+            "base_frame": self.base_frame,
+            "poses": (
+                {"source": "odometry", "topic": self.odometry_topic}
+                if self.odometry_topic
+                else {
+                    "source": "tf",
+                    "tf_topic": self.tf_topic,
+                    "tf_static_topic": self.tf_static_topic,
+                }
+            ),
+            "lidar": {
+                "topic": self.lidar.topic,
+                **({"frame": self.lidar.frame} if self.lidar.frame else {}),
+                **({"fields": dict(self.lidar.fields)} if self.lidar.fields else {}),
+            },
+            "radars": [
+                {
+                    "topic": r.topic,
+                    "channel": r.channel,
+                    **({"frame": r.frame} if r.frame else {}),
+                    **({"fields": dict(r.fields)} if r.fields else {}),
+                    **({} if r.compensated else {"compensated": False}),
+                }
+                for r in self.radars
+            ],
+            "keyframes": {"every": self.keyframe_every}
+            if self.keyframe_every
+            else {"rate_hz": self.keyframe_rate_hz},
+            "sync_tolerance_s": self.sync_tolerance_s,
+            "max_pose_gap_s": self.max_pose_gap_s,
         }
         if self.scene:
             out["scene"] = self.scene
         if self.extrinsics:
-            out["extrinsics"] = {k: {"translation": [float(v) for v in p.translation],
-                                     "rotation_wxyz": [float(v) for v in matrix_to_quaternion(p.rotation)]}
-                                 for k, p in self.extrinsics.items()}
+            out["extrinsics"] = {
+                k: {
+                    "translation": [float(v) for v in p.translation],
+                    "rotation_wxyz": [float(v) for v in matrix_to_quaternion(p.rotation)],
+                }
+                for k, p in self.extrinsics.items()
+            }
         return out
 
 
@@ -215,7 +301,9 @@ def _extrinsic(e: Any, where: str) -> SE3:
             return SE3.from_quaternion(e["rotation_wxyz"], t)
         yaw = math.radians(float(e.get("yaw_deg", 0.0)))
         c, s = math.cos(yaw), math.sin(yaw)
-        return SE3(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]), np.asarray(t, dtype=np.float64))
+        return SE3(
+            np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]), np.asarray(t, dtype=np.float64)
+        )
     except (TypeError, ValueError) as err:
         raise RigError(f"{where}: {err}") from None
 
@@ -258,7 +346,9 @@ def bag_kind(path: str | Path) -> str:
         return "mcap"
     if p.suffix == ".db3":
         return "ros2-sqlite3"
-    raise BagError(f"{p}: unknown recording type (expected a .bag or .mcap file or a ROS 2 bag folder)")
+    raise BagError(
+        f"{p}: unknown recording type (expected a .bag or .mcap file or a ROS 2 bag folder)"
+    )
 
 
 class _Recording:
@@ -281,7 +371,9 @@ class _Recording:
             raise BagError(f"{self.path}: ROS 2 bag with MCAP storage but no .mcap file in it")
         return files
 
-    def messages(self, topics: set[str], count_only: set[str] = frozenset()) -> Iterator[tuple[str, int, Any]]:
+    def messages(
+        self, topics: set[str], count_only: set[str] = frozenset()
+    ) -> Iterator[tuple[str, int, Any]]:
         """(topic, bag time ns, message) for ``topics``; ``count_only`` topics yield ``None`` messages."""
         self.stopped = None
         if self.kind in ("mcap", "ros2-mcap"):
@@ -292,7 +384,9 @@ class _Recording:
         else:
             yield from self._rosbags_messages(topics, count_only)
 
-    def _mcap_messages(self, path: Path, topics: set[str], count_only: set[str]) -> Iterator[tuple[str, int, Any]]:
+    def _mcap_messages(
+        self, path: Path, topics: set[str], count_only: set[str]
+    ) -> Iterator[tuple[str, int, Any]]:
         from evgrid.ros import new_typestore, require
 
         require("mcap")
@@ -313,7 +407,11 @@ class _Recording:
                     elif isinstance(rec, Channel):
                         sch = schemas.get(rec.schema_id)
                         name = sch.name if sch else ""
-                        if sch is not None and name not in store.fielddefs and sch.encoding == "ros2msg":
+                        if (
+                            sch is not None
+                            and name not in store.fielddefs
+                            and sch.encoding == "ros2msg"
+                        ):
                             store.register(get_types_from_msg(sch.data.decode(), name))
                         channels[rec.id] = (rec.topic, name)
                         self.topics[rec.topic] = name
@@ -325,11 +423,15 @@ class _Recording:
                         elif topic in topics:
                             yield topic, rec.log_time, store.deserialize_cdr(rec.data, typ)
             except Exception as e:  # noqa: BLE001 - any damage ends the readable part
-                self.stopped = (f"{path} is damaged or truncated at byte {fh.tell()}"
-                                f"{f' after bag time {last_t} ns' if last_t is not None else ''}: "
-                                f"{type(e).__name__} {e}".rstrip())
+                self.stopped = (
+                    f"{path} is damaged or truncated at byte {fh.tell()}"
+                    f"{f' after bag time {last_t} ns' if last_t is not None else ''}: "
+                    f"{type(e).__name__} {e}".rstrip()
+                )
 
-    def _rosbags_messages(self, topics: set[str], count_only: set[str]) -> Iterator[tuple[str, int, Any]]:
+    def _rosbags_messages(
+        self, topics: set[str], count_only: set[str]
+    ) -> Iterator[tuple[str, int, Any]]:
         from rosbags.highlevel import AnyReader
 
         from evgrid.ros import typestore
@@ -339,10 +441,14 @@ class _Recording:
             reader = AnyReader(paths, default_typestore=typestore(2 if self.kind != "ros1" else 1))
             reader.open()
         except Exception as e:  # noqa: BLE001 - rosbags raises several types for damaged files
-            if self.kind == "ros1":  # a bag whose recording was cut has no index: read it record by record
+            if (
+                self.kind == "ros1"
+            ):  # a bag whose recording was cut has no index: read it record by record
                 yield from self._ros1_scan(topics, count_only)
                 return
-            raise BagError(f"{self.path}: cannot read the recording: {type(e).__name__} {e}") from None
+            raise BagError(
+                f"{self.path}: cannot read the recording: {type(e).__name__} {e}"
+            ) from None
         last_t = None
         try:
             self.topics.update({c.topic: c.msgtype for c in reader.connections})
@@ -371,35 +477,44 @@ class _Recording:
                 raise BagError(f"{self.path} is not a ROS 1 bag (format 2.0)")
             try:
                 for op, hdr, data in _ros1_records(fh):
-                    for op2, hdr2, data2 in (_ros1_chunk(hdr, data) if op == 0x05 else [(op, hdr, data)]):
+                    for op2, hdr2, data2 in (
+                        _ros1_chunk(hdr, data) if op == 0x05 else [(op, hdr, data)]
+                    ):
                         if op2 == 0x07:  # connection: topic, type and message definition
                             ch = _ros1_header(data2)
                             typ = normalize_msgtype(ch["type"].decode())
                             if typ not in store.fielddefs:
-                                store.register(get_types_from_msg(ch["message_definition"].decode(), typ))
+                                store.register(
+                                    get_types_from_msg(ch["message_definition"].decode(), typ)
+                                )
                             topic = hdr2["topic"].decode()
                             conns[int.from_bytes(hdr2["conn"], "little")] = (topic, typ)
                             self.topics[topic] = typ
                         elif op2 == 0x02:  # message data
                             topic, typ = conns[int.from_bytes(hdr2["conn"], "little")]
-                            sec, nsec = int.from_bytes(hdr2["time"][:4], "little"), int.from_bytes(hdr2["time"][4:], "little")
+                            sec, nsec = (
+                                int.from_bytes(hdr2["time"][:4], "little"),
+                                int.from_bytes(hdr2["time"][4:], "little"),
+                            )
                             last_t = sec * 1_000_000_000 + nsec
                             if topic in count_only:
                                 yield topic, last_t, None
                             elif topic in topics:
                                 yield topic, last_t, store.deserialize_ros1(data2, typ)
             except Exception as e:  # noqa: BLE001 - any damage ends the readable part
-                self.stopped = (f"{self.path} is damaged or truncated at byte {fh.tell()}"
-                                f"{f' after bag time {last_t} ns' if last_t is not None else ''}: "
-                                f"{type(e).__name__} {e}".rstrip())
+                self.stopped = (
+                    f"{self.path} is damaged or truncated at byte {fh.tell()}"
+                    f"{f' after bag time {last_t} ns' if last_t is not None else ''}: "
+                    f"{type(e).__name__} {e}".rstrip()
+                )
 
 
 def _ros1_header(buf: bytes) -> dict[str, bytes]:
     """Fields ``name=value`` of a ROS 1 record header (each prefixed by its uint32 length)."""
     out, i = {}, 0
     while i < len(buf):
-        n = int.from_bytes(buf[i:i + 4], "little")
-        name, _, value = buf[i + 4:i + 4 + n].partition(b"=")
+        n = int.from_bytes(buf[i : i + 4], "little")
+        name, _, value = buf[i + 4 : i + 4 + n].partition(b"=")
         out[name.decode()] = value
         i += 4 + n
     return out
@@ -425,7 +540,9 @@ def _ros1_records(fh: Any) -> Iterator[tuple[int, dict[str, bytes], bytes]]:
         yield hdr["op"][0], hdr, parts[1]
 
 
-def _ros1_chunk(hdr: dict[str, bytes], data: bytes) -> Iterator[tuple[int, dict[str, bytes], bytes]]:
+def _ros1_chunk(
+    hdr: dict[str, bytes], data: bytes
+) -> Iterator[tuple[int, dict[str, bytes], bytes]]:
     import io
 
     comp = hdr.get("compression", b"none").decode()
@@ -458,7 +575,15 @@ class TransformBuffer:
         self._static: dict[str, tuple[str, SE3]] = {}
         self._arrays: dict[str, tuple[str, np.ndarray, np.ndarray, np.ndarray]] = {}
 
-    def add(self, parent: str, child: str, t_us: int, translation: tuple, q_xyzw: tuple, static: bool = False) -> None:
+    def add(
+        self,
+        parent: str,
+        child: str,
+        t_us: int,
+        translation: tuple,
+        q_xyzw: tuple,
+        static: bool = False,
+    ) -> None:
         """One transform: the pose of ``child`` in ``parent``."""
         parent, child = parent.lstrip("/"), child.lstrip("/")
         if static:
@@ -507,7 +632,9 @@ class TransformBuffer:
         if i == 0:
             return transform_to_se3(trans[0], quat[0]) if ts[0] - t_us <= self.max_gap_us else None
         if i == len(ts):
-            return transform_to_se3(trans[-1], quat[-1]) if t_us - ts[-1] <= self.max_gap_us else None
+            return (
+                transform_to_se3(trans[-1], quat[-1]) if t_us - ts[-1] <= self.max_gap_us else None
+            )
         f = (t_us - ts[i - 1]) / (ts[i] - ts[i - 1])
         tr = (1 - f) * trans[i - 1] + f * trans[i]
         return transform_to_se3(tr, _slerp(quat[i - 1], quat[i], f))
@@ -584,7 +711,9 @@ def _lidar_points(msg: Any, lidar: LidarTopic, where: str) -> np.ndarray:
         if name in have:
             names.append(name)
         elif col in ("x", "y", "z") or col in lidar.fields:
-            raise BagError(f"{where}: lidar field {name!r} (column {col}) not in the cloud; it has {sorted(have)}")
+            raise BagError(
+                f"{where}: lidar field {name!r} (column {col}) not in the cloud; it has {sorted(have)}"
+            )
         else:
             fill.append(col)  # intensity / ring: optional
     pts = cloud_to_columns(msg, names)
@@ -604,23 +733,31 @@ def _radar_cloud_points(msg: Any, radar: RadarTopic, where: str) -> np.ndarray:
     take = {c: radar.field_name(c) for c in RADAR_COLUMNS if radar.field_name(c) in have}
     for col in radar.fields:
         if col != _RADIAL and col not in take:
-            raise BagError(f"{where}: radar field {radar.fields[col]!r} (column {col}) not in the cloud; it has {sorted(have)}")
+            raise BagError(
+                f"{where}: radar field {radar.fields[col]!r} (column {col}) not in the cloud; it has {sorted(have)}"
+            )
     missing = [radar.field_name(c) for c in RADAR_REQUIRED if c not in take]
     if missing:
-        raise BagError(f"{where}: radar field(s) {missing} not in the cloud; it has {sorted(have)} (map them under fields:)")
+        raise BagError(
+            f"{where}: radar field(s) {missing} not in the cloud; it has {sorted(have)} (map them under fields:)"
+        )
     if take:
         vals = cloud_to_columns(msg, list(take.values()))
         for i, col in enumerate(take):
             out[:, RADAR_COLUMNS.index(col)] = vals[:, i]
     if "vx_comp" not in take or "vy_comp" not in take:
-        if "vx" in take and "vy" in take:  # a velocity vector (compensated below if the rig says it is raw)
+        if (
+            "vx" in take and "vy" in take
+        ):  # a velocity vector (compensated below if the rig says it is raw)
             out[:, RADAR_COLUMNS.index("vx_comp")] = out[:, RADAR_COLUMNS.index("vx")]
             out[:, RADAR_COLUMNS.index("vy_comp")] = out[:, RADAR_COLUMNS.index("vy")]
         else:
             radial = radar.field_name(_RADIAL)
             if radial not in have:
-                raise BagError(f"{where}: radar needs velocity fields (vx_comp and vy_comp, or vx and vy) or a radial "
-                               f"velocity field {radial!r}; the cloud has {sorted(have)}")
+                raise BagError(
+                    f"{where}: radar needs velocity fields (vx_comp and vy_comp, or vx and vy) or a radial "
+                    f"velocity field {radial!r}; the cloud has {sorted(have)}"
+                )
             _set_radial(out, cloud_to_columns(msg, [radial])[:, 0])
     for raw, comp in (("vx", "vx_comp"), ("vy", "vy_comp")):
         if raw not in take:
@@ -664,7 +801,10 @@ def _radar_scan_points(msg: Any) -> np.ndarray:
     out = np.zeros((len(ret), len(RADAR_COLUMNS)), dtype=np.float32)
     if not len(ret):
         return out
-    a = np.array([(r.range, r.azimuth, r.elevation, r.doppler_velocity, r.amplitude) for r in ret], dtype=np.float64)
+    a = np.array(
+        [(r.range, r.azimuth, r.elevation, r.doppler_velocity, r.amplitude) for r in ret],
+        dtype=np.float64,
+    )
     ce = np.cos(a[:, 2])
     out[:, 0] = a[:, 0] * ce * np.cos(a[:, 1])
     out[:, 1] = a[:, 0] * ce * np.sin(a[:, 1])
@@ -720,7 +860,11 @@ class BagScene:
 
     def _pose_types(self) -> dict[str, str]:
         rig = self.rig
-        out = {rig.odometry_topic: "nav_msgs/msg/Odometry"} if rig.odometry_topic else {rig.tf_topic: "tf2_msgs/msg/TFMessage"}
+        out = (
+            {rig.odometry_topic: "nav_msgs/msg/Odometry"}
+            if rig.odometry_topic
+            else {rig.tf_topic: "tf2_msgs/msg/TFMessage"}
+        )
         out[rig.tf_static_topic] = "tf2_msgs/msg/TFMessage"
         return out
 
@@ -738,17 +882,29 @@ class BagScene:
             if msg is None:
                 continue
             if self._rec.topics[topic] != types[topic]:
-                raise BagError(f"{self.path}: pose topic {topic} is {self._rec.topics[topic]}, not {types[topic]}")
+                raise BagError(
+                    f"{self.path}: pose topic {topic} is {self._rec.topics[topic]}, not {types[topic]}"
+                )
             if topic == rig.odometry_topic:
                 p = msg.pose.pose
-                tf.add(msg.header.frame_id, msg.child_frame_id, stamp_to_us(msg.header.stamp),
-                       (p.position.x, p.position.y, p.position.z),
-                       (p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w))
+                tf.add(
+                    msg.header.frame_id,
+                    msg.child_frame_id,
+                    stamp_to_us(msg.header.stamp),
+                    (p.position.x, p.position.y, p.position.z),
+                    (p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w),
+                )
             else:
                 for tr in msg.transforms:
                     tt, q = tr.transform.translation, tr.transform.rotation
-                    tf.add(tr.header.frame_id, tr.child_frame_id, stamp_to_us(tr.header.stamp), (tt.x, tt.y, tt.z),
-                           (q.x, q.y, q.z, q.w), static=topic == rig.tf_static_topic)
+                    tf.add(
+                        tr.header.frame_id,
+                        tr.child_frame_id,
+                        stamp_to_us(tr.header.stamp),
+                        (tt.x, tt.y, tt.z),
+                        (q.x, q.y, q.z, q.w),
+                        static=topic == rig.tf_static_topic,
+                    )
         self.stopped = self._rec.stopped
         if self.stopped:
             logger.warning("%s; mapping what was read before", self.stopped)
@@ -763,15 +919,21 @@ class BagScene:
         need.append(rig.odometry_topic or rig.tf_topic)
         missing = [t for t in need if t not in have]
         if missing:
-            raise BagError(f"{self.path}: topic(s) {missing} not in the recording; it has {sorted(have)}")
+            raise BagError(
+                f"{self.path}: topic(s) {missing} not in the recording; it has {sorted(have)}"
+            )
         for r in rig.radars:
             typ = have[r.topic]
             if typ not in ("sensor_msgs/msg/PointCloud2", "radar_msgs/msg/RadarScan"):
-                raise BagError(f"{self.path}: radar topic {r.topic} is {typ}; evgrid reads sensor_msgs/PointCloud2 "
-                               "or radar_msgs/RadarScan")
+                raise BagError(
+                    f"{self.path}: radar topic {r.topic} is {typ}; evgrid reads sensor_msgs/PointCloud2 "
+                    "or radar_msgs/RadarScan"
+                )
         if have[rig.lidar.topic] != "sensor_msgs/msg/PointCloud2":
-            raise BagError(f"{self.path}: lidar topic {rig.lidar.topic} is {have[rig.lidar.topic]}, "
-                           "not sensor_msgs/PointCloud2")
+            raise BagError(
+                f"{self.path}: lidar topic {rig.lidar.topic} is {have[rig.lidar.topic]}, "
+                "not sensor_msgs/PointCloud2"
+            )
         for topic, typ in self._pose_types().items():
             if topic in have and have[topic] != typ:
                 raise BagError(f"{self.path}: pose topic {topic} is {have[topic]}, not {typ}")
@@ -779,7 +941,9 @@ class BagScene:
         missing = [f for f in (rig.world_frame, rig.base_frame) if f not in frames]
         if missing:
             src = rig.odometry_topic or rig.tf_topic
-            raise BagError(f"{self.path}: frame(s) {missing} not in {src}; its frames are {sorted(frames)}")
+            raise BagError(
+                f"{self.path}: frame(s) {missing} not in {src}; its frames are {sorted(frames)}"
+            )
 
     def _extrinsic(self, frame: str, where: str) -> SE3:
         frame = frame.lstrip("/")
@@ -788,10 +952,16 @@ class BagScene:
             e = self.rig.extrinsics.get(frame)
             if e is None:
                 # a sensor hangs off the base through static transforms only
-                e = self._tf.lookup(self.rig.base_frame, frame, 0) if self._static_chain(frame) else None
+                e = (
+                    self._tf.lookup(self.rig.base_frame, frame, 0)
+                    if self._static_chain(frame)
+                    else None
+                )
             if e is None:
-                raise BagError(f"{where}: no extrinsics for frame {frame!r}: not in {self.rig.tf_static_topic} "
-                               f"below {self.rig.base_frame!r} nor under extrinsics: in the rig file")
+                raise BagError(
+                    f"{where}: no extrinsics for frame {frame!r}: not in {self.rig.tf_static_topic} "
+                    f"below {self.rig.base_frame!r} nor under extrinsics: in the rig file"
+                )
             self._extrinsics[frame] = e
         return e
 
@@ -807,7 +977,9 @@ class BagScene:
     def __len__(self) -> int:
         return self._n_lidar
 
-    def _sensor_velocity(self, t_us: int, sensor_to_ego: SE3, dt_us: int = 50_000) -> np.ndarray | None:
+    def _sensor_velocity(
+        self, t_us: int, sensor_to_ego: SE3, dt_us: int = 50_000
+    ) -> np.ndarray | None:
         """Velocity (m/s) of a sensor's origin in its own frame at ``t_us``: poses differenced over ``t_us +- dt_us``
         (one-sided at the ends of the pose track)."""
         span = self._tf.span(self.rig.world_frame, self.rig.base_frame)
@@ -841,8 +1013,16 @@ class BagScene:
         tol_ns = int(rig.sync_tolerance_s * 1e9)
         lidar_q: list[tuple[int, np.ndarray, str]] = []
         radar_q: list[RadarSweep] = []
-        counts = dict.fromkeys(("frames_no_pose", "lidar_sweeps_late", "radar_sweeps_late", "radar_sweeps_no_pose",
-                                "radar_sweeps_after_end"), 0)
+        counts = dict.fromkeys(
+            (
+                "frames_no_pose",
+                "lidar_sweeps_late",
+                "radar_sweeps_late",
+                "radar_sweeps_no_pose",
+                "radar_sweeps_after_end",
+            ),
+            0,
+        )
         state: dict = {"index": 0, "last_t": None, "kf": {}}
 
         def emit(upto_ns: int | None) -> Iterator[Frame]:
@@ -851,39 +1031,75 @@ class BagScene:
                 ego = self._poses.ego(t)
                 if ego is None:
                     counts["frames_no_pose"] += 1
-                    logger.warning("%s: no ego pose at lidar stamp %d us (%s -> %s); frame skipped",
-                                   self.path, t, rig.world_frame, rig.base_frame)
+                    logger.warning(
+                        "%s: no ego pose at lidar stamp %d us (%s -> %s); frame skipped",
+                        self.path,
+                        t,
+                        rig.world_frame,
+                        rig.base_frame,
+                    )
                     continue
                 last = state["last_t"]
-                mine = [s for s in radar_q if s.timestamp <= t and (last is None or s.timestamp > last)]
+                mine = [
+                    s for s in radar_q if s.timestamp <= t and (last is None or s.timestamp > last)
+                ]
                 radar_q[:] = [s for s in radar_q if s.timestamp > t]
-                radar = {r.channel: tuple(sorted((s for s in mine if s.channel == r.channel), key=lambda s: s.timestamp))
-                         for r in rig.radars}
+                radar = {
+                    r.channel: tuple(
+                        sorted(
+                            (s for s in mine if s.channel == r.channel), key=lambda s: s.timestamp
+                        )
+                    )
+                    for r in rig.radars
+                }
                 i = state["index"]
                 kf = self._is_keyframe(i, t, state["kf"])
                 s2e = self._extrinsic(frame_id, f"{self.path} lidar {rig.lidar.topic}")
                 lidar = LidarSweep(pts, s2e, ego, t, LIDAR_CHANNEL)
                 state["index"] = i + 1
                 state["last_t"] = t
-                yield Frame(scene=self.name, index=i, timestamp=t, ego_pose=ego, is_keyframe=kf, lidar=lidar, radar=radar)
+                yield Frame(
+                    scene=self.name,
+                    index=i,
+                    timestamp=t,
+                    ego_pose=ego,
+                    is_keyframe=kf,
+                    lidar=lidar,
+                    radar=radar,
+                )
 
         topics = {rig.lidar.topic, *radar_by_topic}
         for topic, bag_t, msg in self._rec.messages(topics):
             where = f"{self.path} {topic}"
             t = stamp_to_us(msg.header.stamp)
             if topic == rig.lidar.topic:
-                if (state["last_t"] is not None and t <= state["last_t"]) or any(q[0] == t for q in lidar_q):
-                    counts["lidar_sweeps_late"] += 1  # recorded after its frame was made, or a duplicate
+                if (state["last_t"] is not None and t <= state["last_t"]) or any(
+                    q[0] == t for q in lidar_q
+                ):
+                    counts["lidar_sweeps_late"] += (
+                        1  # recorded after its frame was made, or a duplicate
+                    )
                     continue
                 # recorded out of order within the tolerance: put it in its place
-                bisect.insort(lidar_q, (t, _lidar_points(msg, rig.lidar, where), rig.lidar.frame or msg.header.frame_id),
-                              key=lambda q: q[0])
+                bisect.insort(
+                    lidar_q,
+                    (
+                        t,
+                        _lidar_points(msg, rig.lidar, where),
+                        rig.lidar.frame or msg.header.frame_id,
+                    ),
+                    key=lambda q: q[0],
+                )
             else:
                 r = radar_by_topic[topic]
                 if state["last_t"] is not None and t <= state["last_t"]:
                     counts["radar_sweeps_late"] += 1
                     continue
-                pts = _radar_scan_points(msg) if hasattr(msg, "returns") else _radar_cloud_points(msg, r, where)
+                pts = (
+                    _radar_scan_points(msg)
+                    if hasattr(msg, "returns")
+                    else _radar_cloud_points(msg, r, where)
+                )
                 ego = self._poses.ego(t)
                 if ego is None:
                     counts["radar_sweeps_no_pose"] += 1

@@ -15,12 +15,12 @@ radars are point clouds.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from pathlib import Path
-from typing import Iterable
 
 import numpy as np
 
-from evgrid.data.bag import RigConfig, LidarTopic, RadarTopic
+from evgrid.data.bag import LidarTopic, RadarTopic, RigConfig
 from evgrid.data.frame import LIDAR_COLUMNS, RADAR_COLUMNS, Frame, RadarSweep
 
 __all__ = ["write_bag", "write_rig", "topic_of"]
@@ -46,14 +46,30 @@ def _radar_scan(sweep: RadarSweep, store) -> object:
     with np.errstate(invalid="ignore", divide="ignore"):
         vr = np.where(r > 0, (p[:, 6] * x + p[:, 7] * y) / r, 0.0)
     ret = store.types["radar_msgs/msg/RadarReturn"]
-    returns = [ret(range=float(a), azimuth=float(b), elevation=float(c), doppler_velocity=float(d), amplitude=float(e))
-               for a, b, c, d, e in zip(r, az, el, vr, p[:, 3])]
+    returns = [
+        ret(
+            range=float(a),
+            azimuth=float(b),
+            elevation=float(c),
+            doppler_velocity=float(d),
+            amplitude=float(e),
+        )
+        for a, b, c, d, e in zip(r, az, el, vr, p[:, 3])
+    ]
     sec, ns = us_to_stamp(sweep.timestamp)
-    return store.types["radar_msgs/msg/RadarScan"](header=header(sec, ns, sweep.channel, store), returns=returns)
+    return store.types["radar_msgs/msg/RadarScan"](
+        header=header(sec, ns, sweep.channel, store), returns=returns
+    )
 
 
-def write_bag(frames: Iterable[Frame], path: str | Path, storage: str = "mcap", radar_format: str = "pointcloud2",
-              rig_path: str | Path | None = None, scene_name: str | None = None) -> tuple[Path, Path]:
+def write_bag(
+    frames: Iterable[Frame],
+    path: str | Path,
+    storage: str = "mcap",
+    radar_format: str = "pointcloud2",
+    rig_path: str | Path | None = None,
+    scene_name: str | None = None,
+) -> tuple[Path, Path]:
     """Write ``frames`` as a recording at ``path`` and its rig file; returns (recording, rig file).
 
     ``storage``: ``mcap`` or ``sqlite3`` (a ROS 2 bag folder), ``ros1`` (a ``.bag`` file) or
@@ -66,7 +82,9 @@ def write_bag(frames: Iterable[Frame], path: str | Path, storage: str = "mcap", 
     if radar_format not in ("pointcloud2", "radarscan"):
         raise ValueError(f"radar_format must be 'pointcloud2' or 'radarscan', got {radar_format!r}")
     if radar_format == "radarscan" and storage == "ros1":
-        raise ValueError("radar_msgs/RadarScan is a ROS 2 message; write ROS 1 bags with radar_format='pointcloud2'")
+        raise ValueError(
+            "radar_msgs/RadarScan is a ROS 2 message; write ROS 1 bags with radar_format='pointcloud2'"
+        )
     path = Path(path)
     if path.exists():
         raise FileExistsError(f"{path} exists; evgrid does not overwrite recordings")
@@ -84,45 +102,82 @@ def write_bag(frames: Iterable[Frame], path: str | Path, storage: str = "mcap", 
             lidar_channel = f.lidar.channel
             if f.is_keyframe:
                 keyframes.append(f.index)
-            sweeps = [(s.timestamp, 1, s) for s in f.radar_sweeps()] + [(f.lidar.timestamp, 0, f.lidar)]
+            sweeps = [(s.timestamp, 1, s) for s in f.radar_sweeps()] + [
+                (f.lidar.timestamp, 0, f.lidar)
+            ]
             sweeps.sort(key=lambda x: (x[0], x[1]))
             if not statics_done:
                 t0 = sweeps[0][0]
                 mounts = {f.lidar.channel: f.lidar.sensor_to_ego}
                 # radars that are silent in the first frame get their mount when they first speak
                 mounts.update({s.channel: s.sensor_to_ego for s in f.radar_sweeps()})
-                w.write("/tf_static", "tf2_msgs/msg/TFMessage", t0 * 1000,
-                        tf_message([transform_msg(BASE_FRAME, ch, t0, p, store) for ch, p in mounts.items()], store))
+                w.write(
+                    "/tf_static",
+                    "tf2_msgs/msg/TFMessage",
+                    t0 * 1000,
+                    tf_message(
+                        [transform_msg(BASE_FRAME, ch, t0, p, store) for ch, p in mounts.items()],
+                        store,
+                    ),
+                )
                 statics_done = True
                 static_channels = set(mounts)
             for t, _, s in sweeps:
                 if s.channel not in static_channels:
-                    w.write("/tf_static", "tf2_msgs/msg/TFMessage", t * 1000,
-                            tf_message([transform_msg(BASE_FRAME, s.channel, t, s.sensor_to_ego, store)], store))
+                    w.write(
+                        "/tf_static",
+                        "tf2_msgs/msg/TFMessage",
+                        t * 1000,
+                        tf_message(
+                            [transform_msg(BASE_FRAME, s.channel, t, s.sensor_to_ego, store)], store
+                        ),
+                    )
                     static_channels.add(s.channel)
                 if t != last_pose_t:
-                    w.write("/tf", "tf2_msgs/msg/TFMessage", t * 1000,
-                            tf_message([transform_msg(WORLD_FRAME, BASE_FRAME, t, s.ego_pose, store)], store))
+                    w.write(
+                        "/tf",
+                        "tf2_msgs/msg/TFMessage",
+                        t * 1000,
+                        tf_message(
+                            [transform_msg(WORLD_FRAME, BASE_FRAME, t, s.ego_pose, store)], store
+                        ),
+                    )
                     last_pose_t = t
                 sec, ns = us_to_stamp(t)
                 if isinstance(s, RadarSweep):
                     if s.channel not in radar_channels:
                         radar_channels.append(s.channel)
                     if radar_format == "radarscan":
-                        w.write(topic_of(s.channel), "radar_msgs/msg/RadarScan", t * 1000, _radar_scan(s, store))
+                        w.write(
+                            topic_of(s.channel),
+                            "radar_msgs/msg/RadarScan",
+                            t * 1000,
+                            _radar_scan(s, store),
+                        )
                     else:
-                        w.write(topic_of(s.channel), "sensor_msgs/msg/PointCloud2", t * 1000,
-                                columns_to_cloud(s.points, RADAR_COLUMNS, sec, ns, s.channel, store))
+                        w.write(
+                            topic_of(s.channel),
+                            "sensor_msgs/msg/PointCloud2",
+                            t * 1000,
+                            columns_to_cloud(s.points, RADAR_COLUMNS, sec, ns, s.channel, store),
+                        )
                 else:
-                    w.write(topic_of(s.channel), "sensor_msgs/msg/PointCloud2", t * 1000,
-                            columns_to_cloud(s.points, LIDAR_COLUMNS, sec, ns, s.channel, store))
+                    w.write(
+                        topic_of(s.channel),
+                        "sensor_msgs/msg/PointCloud2",
+                        t * 1000,
+                        columns_to_cloud(s.points, LIDAR_COLUMNS, sec, ns, s.channel, store),
+                    )
     if lidar_channel is None:
         raise ValueError("write_bag got no frames")
     every = _keyframe_every(keyframes)
     rig = RigConfig(
         lidar=LidarTopic(topic_of(lidar_channel)),
         radars=tuple(RadarTopic(topic_of(ch), ch) for ch in radar_channels),
-        world_frame=WORLD_FRAME, base_frame=BASE_FRAME, keyframe_every=every, scene=name,
+        world_frame=WORLD_FRAME,
+        base_frame=BASE_FRAME,
+        keyframe_every=every,
+        scene=name,
     )
     write_rig(rig, rig_path)
     return path, rig_path
@@ -134,7 +189,9 @@ def _keyframe_every(indices: list[int]) -> int:
         return 10
     steps = set(np.diff(indices).tolist())
     if indices[0] != 0 or len(steps) != 1:
-        raise ValueError(f"keyframes {indices[:5]}... are not every N-th frame from frame 0; a rig file cannot say so")
+        raise ValueError(
+            f"keyframes {indices[:5]}... are not every N-th frame from frame 0; a rig file cannot say so"
+        )
     return int(steps.pop())
 
 
@@ -143,7 +200,8 @@ def write_rig(rig: RigConfig, path: str | Path) -> Path:
     import yaml
 
     path = Path(path)
-    path.write_text("# evgrid rig file: what the recording's topics and frames mean (docs/ros.md)\n"
-                    + yaml.safe_dump(rig.to_dict(), sort_keys=False))
+    path.write_text(
+        "# evgrid rig file: what the recording's topics and frames mean (docs/ros.md)\n"
+        + yaml.safe_dump(rig.to_dict(), sort_keys=False)
+    )
     return path
-

@@ -15,8 +15,9 @@ stores them. Units: metres, seconds as integer microseconds, m/s, dBsm.
 
 from __future__ import annotations
 
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
-from typing import Iterator, Mapping, Protocol
+from typing import Protocol
 
 import numpy as np
 
@@ -78,7 +79,10 @@ def radar_column(name: str) -> int:
 def _check_points(points: np.ndarray, n_cols: int, what: str) -> np.ndarray:
     p = np.asarray(points)
     if p.ndim != 2 or p.shape[1] != n_cols:
-        raise ValueError(f"{what}.points must have shape (n, {n_cols}), got {p.shape}" + (" (transposed? pass points.T)" if p.ndim == 2 and p.shape[0] < p.shape[1] else ""))
+        raise ValueError(
+            f"{what}.points must have shape (n, {n_cols}), got {p.shape}"
+            + (" (transposed? pass points.T)" if p.ndim == 2 and p.shape[0] < p.shape[1] else "")
+        )
     return np.ascontiguousarray(p, dtype=np.float32)
 
 
@@ -93,7 +97,9 @@ class LidarSweep:
     channel: str = LIDAR_CHANNEL
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "points", _check_points(self.points, len(LIDAR_COLUMNS), "LidarSweep"))
+        object.__setattr__(
+            self, "points", _check_points(self.points, len(LIDAR_COLUMNS), "LidarSweep")
+        )
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -107,7 +113,9 @@ class RadarSweep:
     channel: str
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "points", _check_points(self.points, len(RADAR_COLUMNS), "RadarSweep"))
+        object.__setattr__(
+            self, "points", _check_points(self.points, len(RADAR_COLUMNS), "RadarSweep")
+        )
         if not isinstance(self.channel, str) or not self.channel:
             raise ValueError(f"RadarSweep.channel must be a non-empty name, got {self.channel!r}")
 
@@ -146,4 +154,3 @@ class Scene(Protocol):
     def __iter__(self) -> Iterator[Frame]: ...
 
     def __len__(self) -> int: ...
-

@@ -38,7 +38,10 @@ class SensorMount:
     def sensor_to_ego(self) -> SE3:
         """The extrinsics as an :class:`SE3` (sensor -> ego)."""
         c, s = math.cos(self.yaw), math.sin(self.yaw)
-        return SE3(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]), np.array([self.x, self.y, self.z]))
+        return SE3(
+            np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]),
+            np.array([self.x, self.y, self.z]),
+        )
 
 
 LIDAR_MOUNT = SensorMount(LIDAR_CHANNEL, 0.943713, 0.0, 1.84023, -90.0)
@@ -53,5 +56,7 @@ RADAR_MOUNTS: dict[str, SensorMount] = {
     )
 }
 if tuple(RADAR_MOUNTS) != RADAR_CHANNELS:  # same order as the frame contract
-    raise ImportError(f"RADAR_MOUNTS {tuple(RADAR_MOUNTS)} disagree with frame.RADAR_CHANNELS {RADAR_CHANNELS}")
+    raise ImportError(
+        f"RADAR_MOUNTS {tuple(RADAR_MOUNTS)} disagree with frame.RADAR_CHANNELS {RADAR_CHANNELS}"
+    )
 SENSOR_MOUNTS: dict[str, SensorMount] = {LIDAR_CHANNEL: LIDAR_MOUNT, **RADAR_MOUNTS}

@@ -29,17 +29,28 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import Any, Iterator, Sequence
+from typing import Any
 
 import numpy as np
 
 from evgrid.data.frame import LIDAR_CHANNEL, Frame, LidarSweep, RadarSweep
+from evgrid.data.nuscenes_format import (
+    radar_pcd_to_columns,
+    read_lidar_bin,
+    read_radar_pcd_with_stats,
+)
 from evgrid.data.sweeps import GapCounter, channel_order
-from evgrid.data.nuscenes_format import radar_pcd_to_columns, read_lidar_bin, read_radar_pcd_with_stats
 from evgrid.geometry import SE3
 
-__all__ = ["load_nuscenes", "nuscenes_splits", "NuScenesScene", "NuScenesError", "NUSCENES_DOWNLOAD_URL"]
+__all__ = [
+    "load_nuscenes",
+    "nuscenes_splits",
+    "NuScenesScene",
+    "NuScenesError",
+    "NUSCENES_DOWNLOAD_URL",
+]
 
 NUSCENES_DOWNLOAD_URL = "https://www.nuscenes.org/download"
 
@@ -67,7 +78,9 @@ def _check_layout(dataroot: Path, version: str) -> None:
     if not dataroot.is_dir():
         raise FileNotFoundError(f"nuScenes dataroot {str(dataroot)!r} does not exist: {hint}")
     if not (dataroot / version).is_dir():
-        present = sorted(p.name for p in dataroot.iterdir() if p.is_dir() and p.name.startswith("v1.0"))
+        present = sorted(
+            p.name for p in dataroot.iterdir() if p.is_dir() and p.name.startswith("v1.0")
+        )
         raise FileNotFoundError(
             f"nuScenes version folder {str(dataroot / version)!r} does not exist"
             + (f" (found {present})" if present else "")
@@ -85,7 +98,9 @@ def nuscenes_splits(dataroot: str | os.PathLike, version: str) -> dict[str, list
 
         splits.update({k: list(v) for k, v in create_splits_scenes().items()})
     except ImportError as e:
-        raise NuScenesError(f"reading nuScenes splits needs the devkit: pip install 'evgrid[nuscenes]' ({e})") from e
+        raise NuScenesError(
+            f"reading nuScenes splits needs the devkit: pip install 'evgrid[nuscenes]' ({e})"
+        ) from e
     custom = Path(dataroot) / version / "splits.json"
     if custom.is_file():
         with open(custom, encoding="utf-8") as f:
@@ -106,17 +121,27 @@ class NuScenesScene:
         self.token: str = scene_record["token"]
         first = nusc.get("sample", scene_record["first_sample_token"])
         self.lidar_tokens = self._chain(first["data"][LIDAR_CHANNEL])
-        self.lidar_timestamps = np.array([nusc.get("sample_data", t)["timestamp"] for t in self.lidar_tokens], dtype=np.int64)
+        self.lidar_timestamps = np.array(
+            [nusc.get("sample_data", t)["timestamp"] for t in self.lidar_tokens], dtype=np.int64
+        )
         # Radar sweep tokens per frame, per channel, in the chain's order.
         n = len(self.lidar_tokens)
         #: The scene's radar channels (nuScenes' order, then by name).
         heads = self._radar_heads(first)
         self.radar_channels: tuple[str, ...] = tuple(sorted(heads, key=channel_order))
-        self._radar: list[dict[str, list[str]]] = [{c: [] for c in self.radar_channels} for _ in range(n)]
+        self._radar: list[dict[str, list[str]]] = [
+            {c: [] for c in self.radar_channels} for _ in range(n)
+        ]
         #: What the recording got wrong, summed over sensors (see the module docstring).
-        self.stats: dict[str, int] = {"lidar_sweeps": n, "lidar_sweeps_missing": 0, "radar_sweeps": 0,
-                                      "radar_sweeps_missing": 0, "radar_sweeps_duplicate": 0,
-                                      "radar_sweeps_out_of_order": 0, "radar_sweeps_after_end": 0}
+        self.stats: dict[str, int] = {
+            "lidar_sweeps": n,
+            "lidar_sweeps_missing": 0,
+            "radar_sweeps": 0,
+            "radar_sweeps_missing": 0,
+            "radar_sweeps_duplicate": 0,
+            "radar_sweeps_out_of_order": 0,
+            "radar_sweeps_after_end": 0,
+        }
         lidar_gaps = GapCounter()
         for t in self.lidar_timestamps:
             lidar_gaps.add(int(t))
@@ -147,7 +172,10 @@ class NuScenesScene:
         sample = first
         while True:
             for ch, tok in sample["data"].items():
-                if ch not in heads and self.nusc.get("sample_data", tok)["sensor_modality"] == "radar":
+                if (
+                    ch not in heads
+                    and self.nusc.get("sample_data", tok)["sensor_modality"] == "radar"
+                ):
                     heads[ch] = tok
             if not sample["next"]:
                 return heads
@@ -181,7 +209,9 @@ class NuScenesScene:
     def _poses(self, sd: dict) -> tuple[SE3, SE3]:
         cs = self.nusc.get("calibrated_sensor", sd["calibrated_sensor_token"])
         ep = self.nusc.get("ego_pose", sd["ego_pose_token"])
-        return SE3.from_quaternion(cs["rotation"], cs["translation"]), SE3.from_quaternion(ep["rotation"], ep["translation"])
+        return SE3.from_quaternion(cs["rotation"], cs["translation"]), SE3.from_quaternion(
+            ep["rotation"], ep["translation"]
+        )
 
     def ego_translations(self) -> np.ndarray:
         """Ego positions (m, global) of every lidar sample_data, ``(n, 3)``."""
@@ -212,8 +242,12 @@ class NuScenesScene:
                 rsd = nusc.get("sample_data", tok)
                 rs2e, rpose = self._poses(rsd)
                 rec, n_bad = read_radar_pcd_with_stats(os.path.join(nusc.dataroot, rsd["filename"]))
-                self.stats["radar_records_dropped"] = self.stats.get("radar_records_dropped", 0) + n_bad
-                sweeps.append(RadarSweep(radar_pcd_to_columns(rec), rs2e, rpose, int(rsd["timestamp"]), ch))
+                self.stats["radar_records_dropped"] = (
+                    self.stats.get("radar_records_dropped", 0) + n_bad
+                )
+                sweeps.append(
+                    RadarSweep(radar_pcd_to_columns(rec), rs2e, rpose, int(rsd["timestamp"]), ch)
+                )
             radar[ch] = tuple(sweeps)
         return Frame(
             scene=self.name,
@@ -238,7 +272,9 @@ def load_nuscenes(
     """The scenes of a split (or the named scenes; ``split=None`` and no names: all scenes) whose
     ego travels at least ``min_travel_m`` metres, in the tables' order."""
     if not (min_travel_m >= 0.0):
-        raise ValueError(f"min_travel_m must be a non-negative distance in metres, got {min_travel_m!r}")
+        raise ValueError(
+            f"min_travel_m must be a non-negative distance in metres, got {min_travel_m!r}"
+        )
     root = Path(dataroot)
     _check_layout(root, version)
     NuScenes = _devkit()

@@ -22,8 +22,8 @@ import hashlib
 import json
 import logging
 import os
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
-from typing import Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
@@ -68,31 +68,78 @@ RADAR_PCD_FIELDS: tuple[tuple[str, int, str], ...] = (
     ("vx_rms", 1, "I"),
     ("vy_rms", 1, "I"),
 )
-_NP_TYPE = {("F", 4): "<f4", ("F", 8): "<f8", ("I", 1): "i1", ("I", 2): "<i2", ("I", 4): "<i4", ("U", 1): "u1", ("U", 2): "<u2", ("U", 4): "<u4"}
+_NP_TYPE = {
+    ("F", 4): "<f4",
+    ("F", 8): "<f8",
+    ("I", 1): "i1",
+    ("I", 2): "<i2",
+    ("I", 4): "<i4",
+    ("U", 1): "u1",
+    ("U", 2): "<u2",
+    ("U", 4): "<u4",
+}
 #: Packed (unaligned) record dtype of the radar ``.pcd`` binary data.
 RADAR_PCD_DTYPE = np.dtype([(n, _NP_TYPE[(t, s)]) for n, s, t in RADAR_PCD_FIELDS])
 
 NUSCENES_TABLES: tuple[str, ...] = (
-    "category", "attribute", "visibility", "instance", "sensor", "calibrated_sensor",
-    "ego_pose", "log", "scene", "sample", "sample_data", "sample_annotation", "map",
+    "category",
+    "attribute",
+    "visibility",
+    "instance",
+    "sensor",
+    "calibrated_sensor",
+    "ego_pose",
+    "log",
+    "scene",
+    "sample",
+    "sample_data",
+    "sample_annotation",
+    "map",
 )
 #: Version folder name for simulated data.
 DEFAULT_SIM_VERSION = "v1.0-sim"
 
 _CATEGORIES = (
-    "human.pedestrian.adult", "human.pedestrian.child", "human.pedestrian.wheelchair", "human.pedestrian.stroller",
-    "human.pedestrian.personal_mobility", "human.pedestrian.police_officer", "human.pedestrian.construction_worker",
-    "animal", "vehicle.car", "vehicle.motorcycle", "vehicle.bicycle", "vehicle.bus.bendy", "vehicle.bus.rigid",
-    "vehicle.truck", "vehicle.construction", "vehicle.emergency.ambulance", "vehicle.emergency.police",
-    "vehicle.trailer", "movable_object.barrier", "movable_object.trafficcone", "movable_object.pushable_pullable",
-    "movable_object.debris", "static_object.bicycle_rack",
+    "human.pedestrian.adult",
+    "human.pedestrian.child",
+    "human.pedestrian.wheelchair",
+    "human.pedestrian.stroller",
+    "human.pedestrian.personal_mobility",
+    "human.pedestrian.police_officer",
+    "human.pedestrian.construction_worker",
+    "animal",
+    "vehicle.car",
+    "vehicle.motorcycle",
+    "vehicle.bicycle",
+    "vehicle.bus.bendy",
+    "vehicle.bus.rigid",
+    "vehicle.truck",
+    "vehicle.construction",
+    "vehicle.emergency.ambulance",
+    "vehicle.emergency.police",
+    "vehicle.trailer",
+    "movable_object.barrier",
+    "movable_object.trafficcone",
+    "movable_object.pushable_pullable",
+    "movable_object.debris",
+    "static_object.bicycle_rack",
 )
 _ATTRIBUTES = (
-    "vehicle.moving", "vehicle.stopped", "vehicle.parked", "cycle.with_rider", "cycle.without_rider",
-    "pedestrian.sitting_lying_down", "pedestrian.standing", "pedestrian.moving",
+    "vehicle.moving",
+    "vehicle.stopped",
+    "vehicle.parked",
+    "cycle.with_rider",
+    "cycle.without_rider",
+    "pedestrian.sitting_lying_down",
+    "pedestrian.standing",
+    "pedestrian.moving",
 )
-_VISIBILITY = (("v0-40", "visibility of whole object is between 0 and 40%"), ("v40-60", "visibility of whole object is between 40 and 60%"),
-               ("v60-80", "visibility of whole object is between 60 and 80%"), ("v80-100", "visibility of whole object is between 80 and 100%"))
+_VISIBILITY = (
+    ("v0-40", "visibility of whole object is between 0 and 40%"),
+    ("v40-60", "visibility of whole object is between 40 and 60%"),
+    ("v60-80", "visibility of whole object is between 60 and 80%"),
+    ("v80-100", "visibility of whole object is between 80 and 100%"),
+)
 
 
 # --- point-cloud files ----------------------------------------------------------------------
@@ -108,8 +155,10 @@ def read_lidar_bin(path: str | os.PathLike) -> np.ndarray:
     """Read a nuScenes lidar ``.pcd.bin`` -> ``(n, 5)`` float32 (x, y, z, intensity, ring)."""
     size = os.path.getsize(path)
     if size % 20:  # 5 little-endian float32 a point: a cut file must not pass as fewer points
-        raise ValueError(f"{str(path)!r} holds {size} bytes, not a multiple of 20 (5 float32 a point: x, y, z, "
-                         "intensity, ring); the file is cut or not a nuScenes lidar sweep")
+        raise ValueError(
+            f"{str(path)!r} holds {size} bytes, not a multiple of 20 (5 float32 a point: x, y, z, "
+            "intensity, ring); the file is cut or not a nuScenes lidar sweep"
+        )
     raw = np.fromfile(path, dtype="<f4")
     return raw.reshape(-1, 5).astype(np.float32, copy=False)
 
@@ -135,7 +184,9 @@ def write_radar_pcd(path: str | os.PathLike, points: np.ndarray) -> None:
                 rec[name] = p[:, k]
         rec["id"] = np.arange(n, dtype=np.int16)
         rec["is_quality_valid"] = 1
-        rng_m = np.nan_to_num(np.hypot(p[:, 0], p[:, 1]), nan=0.0, posinf=620.0)  # rms codes only; a NaN point stays NaN
+        rng_m = np.nan_to_num(
+            np.hypot(p[:, 0], p[:, 1]), nan=0.0, posinf=620.0
+        )  # rms codes only; a NaN point stays NaN
         code = np.clip(3 + (rng_m // 20).astype(np.int64), 0, 31).astype(np.int8)
         rec["x_rms"] = code
         rec["y_rms"] = code
@@ -189,21 +240,32 @@ def _read_pcd_records(path: str | os.PathLike) -> np.ndarray:
         if key not in header:
             raise ValueError(f"{str(path)!r}: PCD header lacks {key}")
     if header["DATA"][0] != "binary":
-        raise ValueError(f"{str(path)!r}: only binary PCD data is supported, got DATA {header['DATA'][0]!r}")
+        raise ValueError(
+            f"{str(path)!r}: only binary PCD data is supported, got DATA {header['DATA'][0]!r}"
+        )
     counts = header.get("COUNT", ["1"] * len(header["FIELDS"]))
     if any(c != "1" for c in counts):
         raise ValueError(f"{str(path)!r}: PCD fields with COUNT != 1 are not supported")
     try:
-        dtype = np.dtype([(n, _NP_TYPE[(t, int(s))]) for n, s, t in zip(header["FIELDS"], header["SIZE"], header["TYPE"])])
+        dtype = np.dtype(
+            [
+                (n, _NP_TYPE[(t, int(s))])
+                for n, s, t in zip(header["FIELDS"], header["SIZE"], header["TYPE"])
+            ]
+        )
     except KeyError as e:
         raise ValueError(f"{str(path)!r}: unsupported PCD field type/size {e}") from None
     n = int(header["WIDTH"][0]) * int(header["HEIGHT"][0])
     need = n * dtype.itemsize
     if len(blob) - pos < need:
-        raise ValueError(f"{str(path)!r}: header declares {n} points ({need} bytes) but {len(blob) - pos} bytes follow")
+        raise ValueError(
+            f"{str(path)!r}: header declares {n} points ({need} bytes) but {len(blob) - pos} bytes follow"
+        )
     rec = np.frombuffer(blob, dtype=dtype, count=n, offset=pos)
-    if blob[pos + need:].strip(b" \r\n"):  # a trailing newline is harmless; more data is not
-        raise ValueError(f"{str(path)!r}: header declares {n} points ({need} bytes) but {len(blob) - pos} bytes follow")
+    if blob[pos + need :].strip(b" \r\n"):  # a trailing newline is harmless; more data is not
+        raise ValueError(
+            f"{str(path)!r}: header declares {n} points ({need} bytes) but {len(blob) - pos} bytes follow"
+        )
     return rec
 
 
@@ -222,8 +284,12 @@ def _drop_nonfinite(rec: np.ndarray, path: str | os.PathLike) -> tuple[np.ndarra
     if n_bad and len(rec) == 1:
         return rec[:0], 0  # the devkit's empty cloud
     if n_bad:
-        logger.warning("%s: %d of %d radar records have a non-finite position; those records are dropped",
-                       path, n_bad, len(rec))
+        logger.warning(
+            "%s: %d of %d radar records have a non-finite position; those records are dropped",
+            path,
+            n_bad,
+            len(rec),
+        )
     return (rec[ok] if n_bad else rec), n_bad
 
 
@@ -254,7 +320,12 @@ def _placeholder_map_png() -> bytes:
         return len(data).to_bytes(4, "big") + tag + data + zlib.crc32(tag + data).to_bytes(4, "big")
 
     ihdr = w.to_bytes(4, "big") + h.to_bytes(4, "big") + bytes([8, 0, 0, 0, 0])
-    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(raw)) + chunk(b"IEND", b"")
+    return (
+        b"\x89PNG\r\n\x1a\n"
+        + chunk(b"IHDR", ihdr)
+        + chunk(b"IDAT", zlib.compress(raw))
+        + chunk(b"IEND", b"")
+    )
 
 
 def _pose_record(token: str, ts: int, pose) -> dict:
@@ -298,9 +369,13 @@ def write_nuscenes(
         )
     tables: dict[str, list[dict]] = {t: [] for t in NUSCENES_TABLES}
     for name in _CATEGORIES:
-        tables["category"].append({"token": _token("category", name), "name": name, "description": name})
+        tables["category"].append(
+            {"token": _token("category", name), "name": name, "description": name}
+        )
     for name in _ATTRIBUTES:
-        tables["attribute"].append({"token": _token("attribute", name), "name": name, "description": name})
+        tables["attribute"].append(
+            {"token": _token("attribute", name), "name": name, "description": name}
+        )
     for k, (level, desc) in enumerate(_VISIBILITY):
         tables["visibility"].append({"token": str(k + 1), "level": level, "description": desc})
     radar_channels: set[str] = set()
@@ -315,7 +390,13 @@ def write_nuscenes(
         names_seen.add(name)
         log_token = _token(name, "log")
         tables["log"].append(
-            {"token": log_token, "logfile": name, "vehicle": "evgrid-sim", "date_captured": "2018-08-01", "location": "evgrid-sim"}
+            {
+                "token": log_token,
+                "logfile": name,
+                "vehicle": "evgrid-sim",
+                "date_captured": "2018-08-01",
+                "location": "evgrid-sim",
+            }
         )
         cs_token: dict[str, str] = {}
         lidar_sd: list[dict] = []
@@ -361,7 +442,13 @@ def write_nuscenes(
                 }
             )
             if frame.is_keyframe:
-                samples.append({"token": _token(name, "sample", len(samples)), "timestamp": ts, "scene_token": _token(name, "scene")})
+                samples.append(
+                    {
+                        "token": _token(name, "sample", len(samples)),
+                        "timestamp": ts,
+                        "scene_token": _token(name, "scene"),
+                    }
+                )
             for sweep in frame.radar_sweeps():
                 ch = sweep.channel
                 radar_channels.add(ch)
@@ -387,7 +474,9 @@ def write_nuscenes(
             if on_frame is not None:
                 on_frame(name, i)
         if not samples:
-            raise ValueError(f"scene {name!r} has no keyframe; nuScenes needs at least one sample a scene")
+            raise ValueError(
+                f"scene {name!r} has no keyframe; nuScenes needs at least one sample a scene"
+            )
         sample_ts = np.array([s["timestamp"] for s in samples], dtype=np.int64)
 
         def following_sample(ts: int) -> str:
@@ -397,7 +486,9 @@ def write_nuscenes(
         for rec in lidar_sd:
             rec["sample_token"] = following_sample(rec["timestamp"])
             if rec["is_key_frame"]:
-                rec["sample_token"] = samples[int(np.searchsorted(sample_ts, rec["timestamp"]))]["token"]
+                rec["sample_token"] = samples[int(np.searchsorted(sample_ts, rec["timestamp"]))][
+                    "token"
+                ]
         for ch in sorted(radar_sd, key=channel_order):
             recs = radar_sd[ch]
             if recs:
@@ -420,7 +511,11 @@ def write_nuscenes(
         tables["sample_data"].extend(lidar_sd)
         _link(samples)
         tables["sample"].extend(samples)
-        desc = (descriptions or {}).get(name) or str(getattr(scene, "description", "")) or f"evgrid scene {name}"
+        desc = (
+            (descriptions or {}).get(name)
+            or str(getattr(scene, "description", ""))
+            or f"evgrid scene {name}"
+        )
         tables["scene"].append(
             {
                 "token": _token(name, "scene"),
@@ -432,10 +527,17 @@ def write_nuscenes(
                 "description": desc,
             }
         )
-    for ch, mod in [(LIDAR_CHANNEL, "lidar")] + [(c, "radar") for c in sorted(radar_channels, key=channel_order)]:
+    for ch, mod in [(LIDAR_CHANNEL, "lidar")] + [
+        (c, "radar") for c in sorted(radar_channels, key=channel_order)
+    ]:
         tables["sensor"].append({"token": _token("sensor", ch), "channel": ch, "modality": mod})
     tables["map"].append(
-        {"token": map_token, "log_tokens": [r["token"] for r in tables["log"]], "category": "semantic_prior", "filename": map_file}
+        {
+            "token": map_token,
+            "log_tokens": [r["token"] for r in tables["log"]],
+            "category": "semantic_prior",
+            "filename": map_file,
+        }
     )
     table_root.mkdir(parents=True, exist_ok=True)
     for t, recs in tables.items():

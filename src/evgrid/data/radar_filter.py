@@ -43,16 +43,22 @@ class RadarFilter:
 
     def __post_init__(self) -> None:
         if self.mode not in RADAR_FILTER_MODES:
-            raise ValueError(f"RadarFilter.mode must be one of {RADAR_FILTER_MODES}, got {self.mode!r}")
+            raise ValueError(
+                f"RadarFilter.mode must be one of {RADAR_FILTER_MODES}, got {self.mode!r}"
+            )
         for name in _NUSCENES:
             v = getattr(self, name)
             if v is None:
                 continue
-            if not isinstance(v, tuple) or not all(isinstance(x, int) and not isinstance(x, bool) for x in v):
-                raise ValueError(f"RadarFilter.{name} must be a tuple of integers or None, got {v!r}")
+            if not isinstance(v, tuple) or not all(
+                isinstance(x, int) and not isinstance(x, bool) for x in v
+            ):
+                raise ValueError(
+                    f"RadarFilter.{name} must be a tuple of integers or None, got {v!r}"
+                )
 
     @classmethod
-    def named(cls, name: str) -> "RadarFilter":
+    def named(cls, name: str) -> RadarFilter:
         """``"none"`` or ``"nuscenes"`` (the command line's choices)."""
         if name not in ("none", "nuscenes"):
             raise ValueError(f"radar filter must be 'none' or 'nuscenes', got {name!r}")
@@ -94,7 +100,9 @@ class RadarFilter:
         n = int(len(ok) - ok.sum())
         if n == 0:
             return sweep, 0
-        return RadarSweep(sweep.points[ok], sweep.sensor_to_ego, sweep.ego_pose, sweep.timestamp, sweep.channel), n
+        return RadarSweep(
+            sweep.points[ok], sweep.sensor_to_ego, sweep.ego_pose, sweep.timestamp, sweep.channel
+        ), n
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON (lists for the sets), as stored in checkpoints."""
@@ -102,18 +110,27 @@ class RadarFilter:
         return {"mode": self.mode, **{k: None if v is None else list(v) for k, v in sets.items()}}
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> "RadarFilter":
+    def from_dict(cls, d: dict[str, Any]) -> RadarFilter:
         """Inverse of :meth:`to_dict`."""
-        return cls(d.get("mode", "none"), *(None if d.get(k) is None else tuple(d[k]) for k in _NUSCENES))
+        return cls(
+            d.get("mode", "none"), *(None if d.get(k) is None else tuple(d[k]) for k in _NUSCENES)
+        )
 
 
-def check_trained_filter(used: RadarFilter, extra: dict[str, Any] | None, checkpoint: str = "the checkpoint") -> bool:
+def check_trained_filter(
+    used: RadarFilter, extra: dict[str, Any] | None, checkpoint: str = "the checkpoint"
+) -> bool:
     """Warn (and return False) if ``used`` differs from the filter a checkpoint's metadata says it
     was trained with; a checkpoint that records none was trained unfiltered."""
     rec = (extra or {}).get("radar_filter")
     trained = RadarFilter.from_dict(rec) if isinstance(rec, dict) else RadarFilter()
     if trained.sets() == used.sets():
         return True
-    logger.warning("radar filter %r differs from the one %s was trained with (%r); the deep IRM sees other detections "
-                   "than in training", used.describe(), checkpoint, trained.describe())
+    logger.warning(
+        "radar filter %r differs from the one %s was trained with (%r); the deep IRM sees other detections "
+        "than in training",
+        used.describe(),
+        checkpoint,
+        trained.describe(),
+    )
     return False

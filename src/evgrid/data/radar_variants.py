@@ -54,7 +54,9 @@ class RadarVariant:
 
         ch = tuple(self.channels)
         if not ch or len(set(ch)) != len(ch) or not set(ch) <= set(RADAR_MOUNTS):
-            raise ValueError(f"RadarVariant.channels must be distinct radar mounts among {tuple(RADAR_MOUNTS)}, got {ch!r}")
+            raise ValueError(
+                f"RadarVariant.channels must be distinct radar mounts among {tuple(RADAR_MOUNTS)}, got {ch!r}"
+            )
 
     def apply(self, config: SimConfig) -> SimConfig:
         """``config`` with this radar."""
@@ -75,8 +77,12 @@ class RadarVariant:
             multipath_loss_db=max(r.multipath_loss_db - self.ghost_db, 0.0),
             rate_hz=self.rate_hz if self.rate_hz is not None else r.rate_hz,
         )
-        rig = replace(config.rig, radar_channels=tuple(self.channels), radar_mounts=(),
-                      radar_rates_hz=(self.rate_hz,) if self.rate_hz is not None else ())
+        rig = replace(
+            config.rig,
+            radar_channels=tuple(self.channels),
+            radar_mounts=(),
+            radar_rates_hz=(self.rate_hz,) if self.rate_hz is not None else (),
+        )
         return replace(config, radar=radar, rig=rig)
 
     def to_dict(self) -> dict[str, Any]:
@@ -101,14 +107,27 @@ class RadarRanges:
     rate_hz: tuple[float, float] = (9.0, 17.0)
 
     def __post_init__(self) -> None:
-        for name in ("sensitivity_db", "noise_scale", "clutter_scale", "ghost_db", "rate_hz", "n_radars"):
+        for name in (
+            "sensitivity_db",
+            "noise_scale",
+            "clutter_scale",
+            "ghost_db",
+            "rate_hz",
+            "n_radars",
+        ):
             lo, hi = getattr(self, name)
             if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi):
-                raise ValueError(f"RadarRanges.{name} must be (low, high) with low <= high, got {getattr(self, name)!r}")
+                raise ValueError(
+                    f"RadarRanges.{name} must be (low, high) with low <= high, got {getattr(self, name)!r}"
+                )
         if not (1 <= self.n_radars[0] and self.n_radars[1] <= len(RADAR_CHANNELS)):
-            raise ValueError(f"RadarRanges.n_radars must lie in [1, {len(RADAR_CHANNELS)}], got {self.n_radars!r}")
+            raise ValueError(
+                f"RadarRanges.n_radars must lie in [1, {len(RADAR_CHANNELS)}], got {self.n_radars!r}"
+            )
         if self.noise_scale[0] < 0 or self.clutter_scale[0] < 0 or self.rate_hz[0] <= 0:
-            raise ValueError("RadarRanges: noise_scale and clutter_scale must be >= 0 and rate_hz > 0")
+            raise ValueError(
+                "RadarRanges: noise_scale and clutter_scale must be >= 0 and rate_hz > 0"
+            )
 
     def draw(self, seed: int) -> RadarVariant:
         """The radar of scene ``seed`` (its own generator: the scene's world does not change)."""
@@ -118,15 +137,25 @@ class RadarRanges:
         others = [c for c in RADAR_CHANNELS if c != _FRONT]
         chosen = {_FRONT, *rng.choice(others, size=n - 1, replace=False).tolist()}
         return RadarVariant(
-            sensitivity_db=u(self.sensitivity_db), noise_scale=u(self.noise_scale), clutter_scale=u(self.clutter_scale),
-            ghost_db=u(self.ghost_db), channels=tuple(c for c in RADAR_CHANNELS if c in chosen), rate_hz=u(self.rate_hz),
+            sensitivity_db=u(self.sensitivity_db),
+            noise_scale=u(self.noise_scale),
+            clutter_scale=u(self.clutter_scale),
+            ghost_db=u(self.ghost_db),
+            channels=tuple(c for c in RADAR_CHANNELS if c in chosen),
+            rate_hz=u(self.rate_hz),
         )
 
     def outside(self, v: RadarVariant) -> list[str]:
         """The parameters of ``v`` that lie outside these ranges (empty: ``v`` could be drawn)."""
-        out = [name for name in ("sensitivity_db", "noise_scale", "clutter_scale", "ghost_db")
-               if not self._in(name, getattr(v, name))]
-        if not (self.n_radars[0] <= len(v.channels) <= self.n_radars[1]) or _FRONT not in v.channels:
+        out = [
+            name
+            for name in ("sensitivity_db", "noise_scale", "clutter_scale", "ghost_db")
+            if not self._in(name, getattr(v, name))
+        ]
+        if (
+            not (self.n_radars[0] <= len(v.channels) <= self.n_radars[1])
+            or _FRONT not in v.channels
+        ):
             out.append("channels")
         from evgrid.data.sim.config import RadarConfig
 
@@ -142,7 +171,7 @@ class RadarRanges:
         return {k: list(v) for k, v in asdict(self).items()}
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> "RadarRanges":
+    def from_dict(cls, d: dict[str, Any]) -> RadarRanges:
         bad = set(d) - set(asdict(cls()))
         if bad:
             raise ValueError(f"unknown RadarRanges field(s) {sorted(bad)!r}")
@@ -159,11 +188,21 @@ OUT_OF_RANGE: dict[str, RadarVariant] = {
     "noisy (noise x3)": RadarVariant(noise_scale=3.0, rate_hz=13.0),
     "cluttered (clutter x6)": RadarVariant(clutter_scale=6.0, rate_hz=13.0),
     "ghostly (bounce loss -9 dB)": RadarVariant(ghost_db=9.0, rate_hz=13.0),
-    "no front radar (4 corners)": RadarVariant(channels=tuple(c for c in RADAR_CHANNELS if c != _FRONT), rate_hz=13.0),
-    "two radars (front, back left)": RadarVariant(channels=(_FRONT, "RADAR_BACK_LEFT"), rate_hz=13.0),
+    "no front radar (4 corners)": RadarVariant(
+        channels=tuple(c for c in RADAR_CHANNELS if c != _FRONT), rate_hz=13.0
+    ),
+    "two radars (front, back left)": RadarVariant(
+        channels=(_FRONT, "RADAR_BACK_LEFT"), rate_hz=13.0
+    ),
     "slow (5 Hz)": RadarVariant(rate_hz=5.0),
-    "all at once": RadarVariant(sensitivity_db=-7.0, noise_scale=2.5, clutter_scale=4.0, ghost_db=7.0,
-                                channels=(_FRONT, "RADAR_BACK_LEFT"), rate_hz=6.0),
+    "all at once": RadarVariant(
+        sensitivity_db=-7.0,
+        noise_scale=2.5,
+        clutter_scale=4.0,
+        ghost_db=7.0,
+        channels=(_FRONT, "RADAR_BACK_LEFT"),
+        rate_hz=6.0,
+    ),
 }
 
 

@@ -10,7 +10,7 @@ re-sorted into the past. :func:`last_sweeps` applies the same rule to any list o
 from __future__ import annotations
 
 from collections import deque
-from typing import Iterable, Iterator
+from collections.abc import Iterable, Iterator
 
 from evgrid.data.frame import RADAR_CHANNELS, Frame, RadarSweep
 
@@ -85,7 +85,9 @@ class RadarBuffer:
     def __init__(self, n_sweeps: int = 10) -> None:
         self.n_sweeps = _check_n(n_sweeps, "RadarBuffer.n_sweeps")
         self._buf: dict[str, deque[RadarSweep]] = {}
-        self._newest: dict[str, int] = {}  # survives clear(): a late sweep after a reset is still late
+        self._newest: dict[
+            str, int
+        ] = {}  # survives clear(): a late sweep after a reset is still late
         self.n_duplicate = 0
         self.n_out_of_order = 0
         self._gaps: dict[str, GapCounter] = {}
@@ -101,7 +103,9 @@ class RadarBuffer:
             raise TypeError(f"RadarBuffer.push needs a RadarSweep, got {type(sweep).__name__}")
         newest = self._newest.get(sweep.channel)
         if newest is not None and sweep.timestamp <= newest:
-            if sweep.timestamp == newest or any(s.timestamp == sweep.timestamp for s in self._buf.get(sweep.channel, ())):
+            if sweep.timestamp == newest or any(
+                s.timestamp == sweep.timestamp for s in self._buf.get(sweep.channel, ())
+            ):
                 self.n_duplicate += 1
             else:
                 self.n_out_of_order += 1

@@ -20,7 +20,9 @@ FORMATS = ("nav2", "mcap", "rerun")
 _SUFFIX = {"mcap": ".mcap", "rerun": ".rrd"}
 
 
-def export_map(m: EvidentialMap, path: str | os.PathLike, format: str, name: str | None = None) -> list[Path]:
+def export_map(
+    m: EvidentialMap, path: str | os.PathLike, format: str, name: str | None = None
+) -> list[Path]:
     """Write one map as ``format`` (``nav2``, ``mcap`` or ``rerun``) at ``path``; returns the files written.
 
     ``path`` is a file stem for nav2 (``.pgm`` and ``.yaml`` are added) and a file otherwise

@@ -16,12 +16,13 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
-from evgrid.export.nav2 import Nav2Thresholds, UNKNOWN, classify, map_to_occupancy
+from evgrid.export.nav2 import UNKNOWN, Nav2Thresholds, classify, map_to_occupancy
 from evgrid.geometry import SE2, SE3
 from evgrid.grid import EvidentialMap
 
@@ -32,12 +33,23 @@ LAYERS = ("m_free", "m_occupied", "m_unknown")
 
 def _pose_msg(store: Any, x: float, y: float) -> Any:
     t = store.types
-    return t["geometry_msgs/msg/Pose"](position=t["geometry_msgs/msg/Point"](x=float(x), y=float(y), z=0.0),
-                                       orientation=t["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0))
+    return t["geometry_msgs/msg/Pose"](
+        position=t["geometry_msgs/msg/Point"](x=float(x), y=float(y), z=0.0),
+        orientation=t["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
+    )
 
 
-def occupancy_grid_msg(masses: np.ndarray, covered: np.ndarray, r0: int, c0: int, resolution: float, t_us: int,
-                       frame_id: str, store: Any, th: Nav2Thresholds = Nav2Thresholds()) -> Any:
+def occupancy_grid_msg(
+    masses: np.ndarray,
+    covered: np.ndarray,
+    r0: int,
+    c0: int,
+    resolution: float,
+    t_us: int,
+    frame_id: str,
+    store: Any,
+    th: Nav2Thresholds = Nav2Thresholds(),
+) -> Any:
     """``nav_msgs/OccupancyGrid`` of map cells ``[r0:r0+h, c0:c0+w]`` (masses ``(h, w, 3)``)."""
     from evgrid.ros import header, us_to_stamp
 
@@ -48,29 +60,53 @@ def occupancy_grid_msg(masses: np.ndarray, covered: np.ndarray, r0: int, c0: int
     sec, ns = us_to_stamp(t_us)
     t = store.types
     info = t["nav_msgs/msg/MapMetaData"](
-        map_load_time=t["builtin_interfaces/msg/Time"](sec=sec, nanosec=ns), resolution=float(resolution),
-        width=int(data.shape[1]), height=int(data.shape[0]), origin=_pose_msg(store, ox, oy))
-    return t["nav_msgs/msg/OccupancyGrid"](header=header(sec, ns, frame_id, store), info=info, data=data.reshape(-1))
+        map_load_time=t["builtin_interfaces/msg/Time"](sec=sec, nanosec=ns),
+        resolution=float(resolution),
+        width=int(data.shape[1]),
+        height=int(data.shape[0]),
+        origin=_pose_msg(store, ox, oy),
+    )
+    return t["nav_msgs/msg/OccupancyGrid"](
+        header=header(sec, ns, frame_id, store), info=info, data=data.reshape(-1)
+    )
 
 
-def grid_map_msg(masses: np.ndarray, r0: int, c0: int, resolution: float, t_us: int, frame_id: str, store: Any) -> Any:
+def grid_map_msg(
+    masses: np.ndarray, r0: int, c0: int, resolution: float, t_us: int, frame_id: str, store: Any
+) -> Any:
     """``grid_map_msgs/GridMap`` (layers m_free, m_occupied, m_unknown) of map cells ``[r0:r0+h, c0:c0+w]``."""
     from evgrid.ros import header, us_to_stamp
 
     m = np.asarray(masses, dtype=np.float32)
     h, w = m.shape[:2]
     t = store.types
-    dims = [t["std_msgs/msg/MultiArrayDimension"](label="column_index", size=w, stride=h * w),
-            t["std_msgs/msg/MultiArrayDimension"](label="row_index", size=h, stride=h)]
+    dims = [
+        t["std_msgs/msg/MultiArrayDimension"](label="column_index", size=w, stride=h * w),
+        t["std_msgs/msg/MultiArrayDimension"](label="row_index", size=h, stride=h),
+    ]
     layout = t["std_msgs/msg/MultiArrayLayout"](dim=dims, data_offset=0)
-    data = [t["std_msgs/msg/Float32MultiArray"](layout=layout, data=np.ascontiguousarray(m[..., k].ravel(order="F")))
-            for k in range(3)]
+    data = [
+        t["std_msgs/msg/Float32MultiArray"](
+            layout=layout, data=np.ascontiguousarray(m[..., k].ravel(order="F"))
+        )
+        for k in range(3)
+    ]
     info = t["grid_map_msgs/msg/GridMapInfo"](
-        resolution=float(resolution), length_x=h * resolution, length_y=w * resolution,
-        pose=_pose_msg(store, -(r0 + h / 2) * resolution, -(c0 + w / 2) * resolution))
+        resolution=float(resolution),
+        length_x=h * resolution,
+        length_y=w * resolution,
+        pose=_pose_msg(store, -(r0 + h / 2) * resolution, -(c0 + w / 2) * resolution),
+    )
     sec, ns = us_to_stamp(t_us)
-    return t["grid_map_msgs/msg/GridMap"](header=header(sec, ns, frame_id, store), info=info, layers=list(LAYERS),
-                                          basic_layers=[], data=data, outer_start_index=0, inner_start_index=0)
+    return t["grid_map_msgs/msg/GridMap"](
+        header=header(sec, ns, frame_id, store),
+        info=info,
+        layers=list(LAYERS),
+        basic_layers=[],
+        data=data,
+        outer_start_index=0,
+        inner_start_index=0,
+    )
 
 
 class McapExporter:
@@ -82,9 +118,16 @@ class McapExporter:
     maps are written whole at :meth:`close`.
     """
 
-    def __init__(self, path: str | os.PathLike, maps: Sequence[str] | None = None, keyframes_only: bool = True,
-                 window_m: float | None = None, frame_id: str = "map", base_frame: str = "base_link",
-                 thresholds: Nav2Thresholds = Nav2Thresholds()):
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        maps: Sequence[str] | None = None,
+        keyframes_only: bool = True,
+        window_m: float | None = None,
+        frame_id: str = "map",
+        base_frame: str = "base_link",
+        thresholds: Nav2Thresholds = Nav2Thresholds(),
+    ):
         from evgrid.ros import RecordingWriter
 
         self.path = Path(path)
@@ -101,7 +144,9 @@ class McapExporter:
         self.n_messages = 0
         self._last: tuple[int, dict[str, EvidentialMap]] | None = None
 
-    def _write_maps(self, maps: dict[str, EvidentialMap], t_us: int, box: tuple[int, int, int, int] | None) -> None:
+    def _write_maps(
+        self, maps: dict[str, EvidentialMap], t_us: int, box: tuple[int, int, int, int] | None
+    ) -> None:
         store = self.writer.store
         for name, m in maps.items():
             if self.maps is not None and name not in self.maps:
@@ -111,10 +156,20 @@ class McapExporter:
                 continue
             masses, cov = m.read(r0, c0, h, w)
             res = m.grid.resolution
-            self.writer.write(f"/evgrid/{name}/occupancy", "nav_msgs/msg/OccupancyGrid", t_us * 1000,
-                              occupancy_grid_msg(masses, cov, r0, c0, res, t_us, self.frame_id, store, self.thresholds))
-            self.writer.write(f"/evgrid/{name}/grid_map", "grid_map_msgs/msg/GridMap", t_us * 1000,
-                              grid_map_msg(masses, r0, c0, res, t_us, self.frame_id, store))
+            self.writer.write(
+                f"/evgrid/{name}/occupancy",
+                "nav_msgs/msg/OccupancyGrid",
+                t_us * 1000,
+                occupancy_grid_msg(
+                    masses, cov, r0, c0, res, t_us, self.frame_id, store, self.thresholds
+                ),
+            )
+            self.writer.write(
+                f"/evgrid/{name}/grid_map",
+                "grid_map_msgs/msg/GridMap",
+                t_us * 1000,
+                grid_map_msg(masses, r0, c0, res, t_us, self.frame_id, store),
+            )
             self.n_messages += 2
 
     def on_update(self, update: Any) -> None:
@@ -123,8 +178,15 @@ class McapExporter:
         t_us = update.frame.timestamp
         store = self.writer.store
         pose: SE2 = update.pose
-        self.writer.write("/tf", "tf2_msgs/msg/TFMessage", t_us * 1000,
-                          tf_message([transform_msg(self.frame_id, self.base_frame, t_us, SE3.from_se2(pose), store)], store))
+        self.writer.write(
+            "/tf",
+            "tf2_msgs/msg/TFMessage",
+            t_us * 1000,
+            tf_message(
+                [transform_msg(self.frame_id, self.base_frame, t_us, SE3.from_se2(pose), store)],
+                store,
+            ),
+        )
         self.n_messages += 1
         self._last = (t_us, update.maps.maps)
         if self.keyframes_only and not update.frame.is_keyframe:
@@ -146,8 +208,13 @@ class McapExporter:
         return self.path
 
 
-def write_map_mcap(m: EvidentialMap, path: str | os.PathLike, name: str | None = None, frame_id: str = "map",
-                   thresholds: Nav2Thresholds = Nav2Thresholds()) -> Path:
+def write_map_mcap(
+    m: EvidentialMap,
+    path: str | os.PathLike,
+    name: str | None = None,
+    frame_id: str = "map",
+    thresholds: Nav2Thresholds = Nav2Thresholds(),
+) -> Path:
     """One saved map as an MCAP file (one OccupancyGrid and one GridMap, stamped 0)."""
     exp = McapExporter(path, frame_id=frame_id, thresholds=thresholds)
     exp._write_maps({name or str(m.metadata.get("rule", "map")): m}, 0, None)

@@ -29,8 +29,18 @@ import numpy as np
 from evgrid.grid import EvidentialMap
 from evgrid.validation import check_number
 
-__all__ = ["Nav2Thresholds", "classify", "map_to_occupancy", "write_nav2", "read_nav2", "FREE", "OCCUPIED", "UNKNOWN",
-           "PIXEL", "Nav2Exporter"]
+__all__ = [
+    "Nav2Thresholds",
+    "classify",
+    "map_to_occupancy",
+    "write_nav2",
+    "read_nav2",
+    "FREE",
+    "OCCUPIED",
+    "UNKNOWN",
+    "PIXEL",
+    "Nav2Exporter",
+]
 
 #: Classes (the values of nav_msgs/OccupancyGrid for a trinary map).
 FREE, OCCUPIED, UNKNOWN = 0, 100, -1
@@ -51,11 +61,15 @@ class Nav2Thresholds:
         check_number(self, "free_thresh", min=0.0, max=1.0)
         check_number(self, "unknown_mass", min=0.0, max=1.0)
         if not self.free_thresh < self.occupied_thresh:
-            raise ValueError(f"Nav2Thresholds: free_thresh {self.free_thresh} must be below occupied_thresh "
-                             f"{self.occupied_thresh}")
+            raise ValueError(
+                f"Nav2Thresholds: free_thresh {self.free_thresh} must be below occupied_thresh "
+                f"{self.occupied_thresh}"
+            )
 
 
-def classify(masses: np.ndarray, covered: np.ndarray | None = None, th: Nav2Thresholds = Nav2Thresholds()) -> np.ndarray:
+def classify(
+    masses: np.ndarray, covered: np.ndarray | None = None, th: Nav2Thresholds = Nav2Thresholds()
+) -> np.ndarray:
     """Masses ``(..., 3)`` -> int8 classes FREE / OCCUPIED / UNKNOWN (see the module's docstring)."""
     m = np.asarray(masses, dtype=np.float32)
     p = m[..., 1] + 0.5 * m[..., 2]  # pignistic P(occ), eq. (13)
@@ -68,7 +82,9 @@ def classify(masses: np.ndarray, covered: np.ndarray | None = None, th: Nav2Thre
     return out
 
 
-def map_to_occupancy(masses: np.ndarray, r0: int, c0: int, resolution: float) -> tuple[np.ndarray, tuple[float, float]]:
+def map_to_occupancy(
+    masses: np.ndarray, r0: int, c0: int, resolution: float
+) -> tuple[np.ndarray, tuple[float, float]]:
     """Re-index map-grid arrays ``a[R - r0, C - c0]`` in ROS order: ``out[j, i]`` with i along +x, j along +y.
 
     Returns the array and the map-frame (x, y) of the outer corner of its cell [0, 0]. evgrid's
@@ -98,13 +114,17 @@ def _read_pgm(path: Path) -> np.ndarray:
         tokens.append(m.group(2))
         pos = m.end()
     if tokens[0] != b"P5" or int(tokens[3]) > 255:
-        raise ValueError(f"{path}: only 8-bit binary PGM (P5) is read, got {tokens[0]!r} maxval {tokens[3]!r}")
+        raise ValueError(
+            f"{path}: only 8-bit binary PGM (P5) is read, got {tokens[0]!r} maxval {tokens[3]!r}"
+        )
     w, h = int(tokens[1]), int(tokens[2])
     pos += 1  # one whitespace byte ends the header
-    return np.frombuffer(data[pos:pos + w * h], dtype=np.uint8).reshape(h, w)
+    return np.frombuffer(data[pos : pos + w * h], dtype=np.uint8).reshape(h, w)
 
 
-def write_nav2(m: EvidentialMap, path: str | os.PathLike, th: Nav2Thresholds = Nav2Thresholds()) -> tuple[Path, Path]:
+def write_nav2(
+    m: EvidentialMap, path: str | os.PathLike, th: Nav2Thresholds = Nav2Thresholds()
+) -> tuple[Path, Path]:
     """Write ``<path>.pgm`` and ``<path>.yaml`` (map_server's format) of the map's observed area."""
     path = Path(path)
     stem = path.with_suffix("") if path.suffix in (".yaml", ".pgm") else path
@@ -160,8 +180,12 @@ def read_nav2(yaml_path: str | os.PathLike) -> tuple[np.ndarray, float, tuple[fl
 class Nav2Exporter:
     """Observer that writes each final map as ``<folder>/<NAME>.pgm`` + ``.yaml`` at :meth:`close`."""
 
-    def __init__(self, folder: str | os.PathLike, maps: tuple[str, ...] | None = None,
-                 thresholds: Nav2Thresholds = Nav2Thresholds()):
+    def __init__(
+        self,
+        folder: str | os.PathLike,
+        maps: tuple[str, ...] | None = None,
+        thresholds: Nav2Thresholds = Nav2Thresholds(),
+    ):
         self.folder = Path(folder)
         self.names = maps
         self.thresholds = thresholds

@@ -43,8 +43,14 @@ class RerunRecorder:
     pictures (cells read: ``(window_m / res / step)^2``, ISMs at every ``step``-th cell).
     """
 
-    def __init__(self, path: str | os.PathLike | None = None, window_m: float = 80.0, step: int = 2,
-                 keyframes_only: bool = True, isms: bool = True):
+    def __init__(
+        self,
+        path: str | os.PathLike | None = None,
+        window_m: float = 80.0,
+        step: int = 2,
+        keyframes_only: bool = True,
+        isms: bool = True,
+    ):
         rr = _rr()
         self.rr = rr
         self.rec = rr.RecordingStream("evgrid")
@@ -81,7 +87,9 @@ class RerunRecorder:
         for name, m in update.maps.maps.items():
             n = int(round(self.window_m / m.grid.resolution))
             rc, cc = m.grid.map_xy_to_cell(update.pose.x, update.pose.y)
-            pic = masses_to_rgb(sample_map(m, int(rc) - n // 2, int(cc) - n // 2, n, n, self.step)[0])
+            pic = masses_to_rgb(
+                sample_map(m, int(rc) - n // 2, int(cc) - n // 2, n, n, self.step)[0]
+            )
             rec.log(f"maps/{name}", rr.Image(pic))
 
     def close(self) -> Path | None:

@@ -5,13 +5,15 @@ from __future__ import annotations
 import contextlib
 import logging
 import threading
+from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Iterator
 
 import numba
 import numpy as np
 
-from evgrid.classes import FREE as _FREE, OCCUPIED as _OCCUPIED, UNKNOWN as _UNKNOWN
+from evgrid.classes import FREE as _FREE
+from evgrid.classes import OCCUPIED as _OCCUPIED
+from evgrid.classes import UNKNOWN as _UNKNOWN
 from evgrid.geometry import GridSpec
 
 __all__ = ["IsmResult"]
@@ -81,7 +83,8 @@ def _k_labels_to_masses_par(labels, lut, out):
 def mass_lut(m_free: float, m_occupied: float) -> np.ndarray:
     """Masses of the three labels, indexed by label: FREE [m_f, 0, 1 - m_f], OCCUPIED [0, m_o, 1 - m_o], UNKNOWN [0, 0, 1]."""
     return np.array(
-        [[m_free, 0.0, 1.0 - m_free], [0.0, m_occupied, 1.0 - m_occupied], [0.0, 0.0, 1.0]], dtype=np.float32
+        [[m_free, 0.0, 1.0 - m_free], [0.0, m_occupied, 1.0 - m_occupied], [0.0, 0.0, 1.0]],
+        dtype=np.float32,
     )
 
 
@@ -90,12 +93,22 @@ def check_out(out: np.ndarray | None, grid: GridSpec) -> None:
     if out is None:
         return
     shape = grid.shape + (3,)
-    if not isinstance(out, np.ndarray) or out.shape != shape or out.dtype != np.float32 or not out.flags.c_contiguous or not out.flags.writeable:
+    if (
+        not isinstance(out, np.ndarray)
+        or out.shape != shape
+        or out.dtype != np.float32
+        or not out.flags.c_contiguous
+        or not out.flags.writeable
+    ):
         got = f"{out.shape} {out.dtype}" if isinstance(out, np.ndarray) else type(out).__name__
-        raise ValueError(f"out must be a writeable C-contiguous float32 array of shape {shape}, got {got}")
+        raise ValueError(
+            f"out must be a writeable C-contiguous float32 array of shape {shape}, got {got}"
+        )
 
 
-def labels_to_masses(labels: np.ndarray, lut: np.ndarray, out: np.ndarray | None, threads: int) -> np.ndarray:
+def labels_to_masses(
+    labels: np.ndarray, lut: np.ndarray, out: np.ndarray | None, threads: int
+) -> np.ndarray:
     """Expand a uint8 label grid to float32 masses ``(n, n, 3)``, into ``out`` when given."""
     if out is None:
         out = np.empty(labels.shape + (3,), dtype=np.float32)
@@ -160,7 +173,9 @@ def as_points(points: object, min_cols: int, what: str, max_cols: int | None = N
             f"stores them); pass one row per point, shape (n, {min_cols if cols == min_cols else f'{min_cols}..{cols}'}), e.g. points.T"
         )
     if a.ndim != 2 or a.shape[1] < min_cols:
-        raise ValueError(f"{what}: points must have shape (n, {min_cols}) or more columns, got shape {a.shape}")
+        raise ValueError(
+            f"{what}: points must have shape (n, {min_cols}) or more columns, got shape {a.shape}"
+        )
     if not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):
         raise ValueError(f"{what}: points must be real numbers, got dtype {a.dtype}")
     if a.dtype != np.float32 and a.dtype != np.float64:
@@ -171,4 +186,6 @@ def as_points(points: object, min_cols: int, what: str, max_cols: int | None = N
 def log_dropped(logger: logging.Logger, what: str, n_dropped: int, n_points: int) -> None:
     """One warning per call when non-finite points were dropped."""
     if n_dropped:
-        logger.warning("%s: dropped %d of %d points with NaN or inf coordinates", what, n_dropped, n_points)
+        logger.warning(
+            "%s: dropped %d of %d points with NaN or inf coordinates", what, n_dropped, n_points
+        )

@@ -32,9 +32,9 @@ import collections
 import functools
 import logging
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
 
 import numba
 import numpy as np
@@ -91,17 +91,30 @@ _PLAIN_LOG = _SweepLog()
 
 def _log_drops(sweep: RadarSweep, n_nonfinite: int, n_range: int, n_points: int) -> None:
     if n_nonfinite or n_range:
-        logger.warning("deep_irm: %s sweep at t = %d us: dropped %d of %d detections (%d NaN/inf, %d outside the "
-                       "sensor's range: RCS in [%g, %g] dBsm, |v| <= %g m/s)", sweep.channel, sweep.timestamp,
-                       n_nonfinite + n_range, n_points, n_nonfinite, n_range, *RCS_RANGE_DBSM, MAX_SPEED_MPS)
+        logger.warning(
+            "deep_irm: %s sweep at t = %d us: dropped %d of %d detections (%d NaN/inf, %d outside the "
+            "sensor's range: RCS in [%g, %g] dBsm, |v| <= %g m/s)",
+            sweep.channel,
+            sweep.timestamp,
+            n_nonfinite + n_range,
+            n_points,
+            n_nonfinite,
+            n_range,
+            *RCS_RANGE_DBSM,
+            MAX_SPEED_MPS,
+        )
 
 
 def _valid_detections(p: np.ndarray) -> tuple[np.ndarray, int, int]:
     """Mask of the usable rows of a sweep's points, and the numbers dropped as non-finite and out of range."""
     finite = np.isfinite(p[:, [_X, _Y, 2, _RCS, _VX, _VY]]).all(axis=1)
     with np.errstate(invalid="ignore"):
-        in_range = ((p[:, _RCS] >= RCS_RANGE_DBSM[0]) & (p[:, _RCS] <= RCS_RANGE_DBSM[1])
-                    & (np.abs(p[:, _VX]) <= MAX_SPEED_MPS) & (np.abs(p[:, _VY]) <= MAX_SPEED_MPS))
+        in_range = (
+            (p[:, _RCS] >= RCS_RANGE_DBSM[0])
+            & (p[:, _RCS] <= RCS_RANGE_DBSM[1])
+            & (np.abs(p[:, _VX]) <= MAX_SPEED_MPS)
+            & (np.abs(p[:, _VY]) <= MAX_SPEED_MPS)
+        )
     ok = finite & in_range
     return ok, int((~finite).sum()), int((finite & ~in_range).sum())
 
@@ -187,12 +200,16 @@ def detections_to_image(det: np.ndarray, grid: GridSpec = GridSpec()) -> np.ndar
     """The Ev-Net input ``(len(CHANNELS), n, n)`` float32 from a detection table of :func:`radar_detections`."""
     det = np.asarray(det)
     if det.ndim != 2 or det.shape[1] != len(DETECTION_COLUMNS):
-        raise ValueError(f"detections must have shape (k, {len(DETECTION_COLUMNS)}), got {det.shape}")
+        raise ValueError(
+            f"detections must have shape (k, {len(DETECTION_COLUMNS)}), got {det.shape}"
+        )
     n = grid.n_cells
     img = np.zeros((len(CHANNELS), n, n), dtype=np.float32)
     count = np.zeros((n, n), dtype=np.float32)
     if len(det):
-        _k_accumulate(np.ascontiguousarray(det, dtype=np.float64), n / 2.0, 1.0 / grid.resolution, img, count)
+        _k_accumulate(
+            np.ascontiguousarray(det, dtype=np.float64), n / 2.0, 1.0 / grid.resolution, img, count
+        )
         hit = count > 0
         for ch in (1, 2, 3):
             img[ch][hit] /= count[hit]
@@ -217,6 +234,7 @@ def radar_image(
 
 # --- the fast path: pooled input straight from the detections, upsample fused with eq. (9)-(14) ---
 
+
 @numba.njit(cache=True)
 def _k_sweep_rows(p, rot, trans, recency, rcs_lo, rcs_hi, v_max, out, start, drops):
     """Append a sweep's usable detections as rows of ``DETECTION_COLUMNS`` to ``out`` from ``start``.
@@ -228,8 +246,14 @@ def _k_sweep_rows(p, rot, trans, recency, rcs_lo, rcs_hi, v_max, out, start, dro
     for i in range(p.shape[0]):
         x, y, z = np.float64(p[i, _X]), np.float64(p[i, _Y]), np.float64(p[i, 2])
         rcs, vx, vy = np.float64(p[i, _RCS]), np.float64(p[i, _VX]), np.float64(p[i, _VY])
-        if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z) and np.isfinite(rcs)
-                and np.isfinite(vx) and np.isfinite(vy)):
+        if not (
+            np.isfinite(x)
+            and np.isfinite(y)
+            and np.isfinite(z)
+            and np.isfinite(rcs)
+            and np.isfinite(vx)
+            and np.isfinite(vy)
+        ):
             drops[0] += 1
             continue
         if rcs < rcs_lo or rcs > rcs_hi or abs(vx) > v_max or abs(vy) > v_max:
@@ -246,7 +270,9 @@ def _k_sweep_rows(p, rot, trans, recency, rcs_lo, rcs_hi, v_max, out, start, dro
 
 
 @numba.njit(cache=True)
-def _k_pooled_image(det, half, inv_res, pool, log1p_table, acc, count, fine_idx, pmax, occ, pooled_idx, out):
+def _k_pooled_image(
+    det, half, inv_res, pool, log1p_table, acc, count, fine_idx, pmax, occ, pooled_idx, out
+):
     """Ev-Net's max-pooled input ``out`` ``(C, n/pool, n/pool)`` from detections, without the full image.
 
     Each touched fine cell gets the value :func:`detections_to_image` gives it (the same float32
@@ -337,11 +363,11 @@ def _k_upsample_masses(ef, eo, out):
         src = max(sw * (np.float32(j) + half) - half, np.float32(0.0))
         a = int(src)
         b = a + 1 if a < w - 1 else a
-        l = src - np.float32(a)
-        k = one - l
+        fr = src - np.float32(a)
+        k = one - fr
         for r in range(h):
-            cf[r, j] = k * ef[r, a] + l * ef[r, b]
-            co[r, j] = k * eo[r, a] + l * eo[r, b]
+            cf[r, j] = k * ef[r, a] + fr * ef[r, b]
+            co[r, j] = k * eo[r, a] + fr * eo[r, b]
     bad = 0
     for i in range(oh):
         src = max(sh * (np.float32(i) + half) - half, np.float32(0.0))
@@ -388,11 +414,14 @@ class _PooledInput:
         self.det = np.empty((0, len(DETECTION_COLUMNS)), np.float32)
         self.log1p = np.log1p(np.arange(4096, dtype=np.float32))
 
-    def detections(self, sweeps: Sequence[RadarSweep], ego_pose: SE3, now: int, horizon_s: float,
-                   report) -> np.ndarray:
+    def detections(
+        self, sweeps: Sequence[RadarSweep], ego_pose: SE3, now: int, horizon_s: float, report
+    ) -> np.ndarray:
         total = sum(len(s.points) for s in sweeps)
         if self.det.shape[0] < total:
-            self.det = np.empty((max(total, 2 * self.det.shape[0]), len(DETECTION_COLUMNS)), np.float32)
+            self.det = np.empty(
+                (max(total, 2 * self.det.shape[0]), len(DETECTION_COLUMNS)), np.float32
+            )
         to_ego = ego_pose.inverse()
         drops = np.zeros(2, np.int64)
         k = 0
@@ -402,8 +431,18 @@ class _PooledInput:
             t = to_ego @ s.ego_pose @ s.sensor_to_ego
             age = (now - s.timestamp) * 1e-6
             drops[:] = 0
-            k = _k_sweep_rows(s.points, t.rotation, t.translation, max(0.0, 1.0 - age / horizon_s),
-                              RCS_RANGE_DBSM[0], RCS_RANGE_DBSM[1], MAX_SPEED_MPS, self.det, k, drops)
+            k = _k_sweep_rows(
+                s.points,
+                t.rotation,
+                t.translation,
+                max(0.0, 1.0 - age / horizon_s),
+                RCS_RANGE_DBSM[0],
+                RCS_RANGE_DBSM[1],
+                MAX_SPEED_MPS,
+                self.det,
+                k,
+                drops,
+            )
             report(s, int(drops[0]), int(drops[1]))
         return self.det[:k]
 
@@ -415,8 +454,20 @@ class _PooledInput:
             if self.fine_idx.shape[0] < len(det):
                 self.fine_idx = np.empty(max(len(det), 2 * self.fine_idx.shape[0]), np.int64)
             g = self.grid
-            _k_pooled_image(det, g.n_cells / 2.0, 1.0 / g.resolution, self.pool, self.log1p, self.acc, self.count,
-                            self.fine_idx, self.pmax, self.occ, self.pooled_idx, out)
+            _k_pooled_image(
+                det,
+                g.n_cells / 2.0,
+                1.0 / g.resolution,
+                self.pool,
+                self.log1p,
+                self.acc,
+                self.count,
+                self.fine_idx,
+                self.pmax,
+                self.occ,
+                self.pooled_idx,
+                out,
+            )
         return self.out
 
 
@@ -467,9 +518,13 @@ class DeepIrm:
         loaded = load_checkpoint(path)
         trained_spec = loaded.extra.get("grid")
         if trained_spec is not None and GridSpec.from_dict(trained_spec) != grid:
-            raise CheckpointError(f"{path}: trained on grid {trained_spec}, but the grid is {grid.to_dict()}")
+            raise CheckpointError(
+                f"{path}: trained on grid {trained_spec}, but the grid is {grid.to_dict()}"
+            )
         if loaded.model.config.in_channels != len(CHANNELS):
-            raise CheckpointError(f"{path}: model takes {loaded.model.config.in_channels} channels, inputs have {len(CHANNELS)}")
+            raise CheckpointError(
+                f"{path}: model takes {loaded.model.config.in_channels} channels, inputs have {len(CHANNELS)}"
+            )
         self.grid = grid
         self.params = params
         self.threads = threads
@@ -492,7 +547,9 @@ class DeepIrm:
             from evgrid.ism.runtime import make_runtime
 
             m = self.grid.n_cells // self.pool
-            self._runtime = make_runtime(self.model, (len(CHANNELS), m, m), self.runtime_name, self.threads)
+            self._runtime = make_runtime(
+                self.model, (len(CHANNELS), m, m), self.runtime_name, self.threads
+            )
         return self._runtime
 
     def predict_image(self, image: np.ndarray) -> np.ndarray:
@@ -501,13 +558,17 @@ class DeepIrm:
 
         torch = self._torch
         if image.shape != (len(CHANNELS), self.grid.n_cells, self.grid.n_cells):
-            raise ValueError(f"input image must be {(len(CHANNELS),) + self.grid.shape}, got {image.shape}")
+            raise ValueError(
+                f"input image must be {(len(CHANNELS),) + self.grid.shape}, got {image.shape}"
+            )
         x = torch.from_numpy(np.ascontiguousarray(image, dtype=np.float32))[None]
         with torch.inference_mode():
             e = self.model(x.to(memory_format=torch.channels_last))[0]
         return from_evidence(e.permute(1, 2, 0).numpy())
 
-    def pooled_input(self, sweeps: Sequence[RadarSweep], ego_pose: SE3, now_us: int | None = None) -> np.ndarray:
+    def pooled_input(
+        self, sweeps: Sequence[RadarSweep], ego_pose: SE3, now_us: int | None = None
+    ) -> np.ndarray:
         """Ev-Net's max-pooled input ``(1, C, n/pool, n/pool)``, built straight from the detections.
 
         Equals max-pooling :func:`radar_image`; the array is reused by the next call.
@@ -525,7 +586,9 @@ class DeepIrm:
             self.n_dropped += n_nonfinite + n_range
             _log_drops(sweep, n_nonfinite, n_range, len(sweep.points))
 
-    def predict(self, sweeps: Sequence[RadarSweep], ego_pose: SE3, now_us: int | None = None) -> np.ndarray:
+    def predict(
+        self, sweeps: Sequence[RadarSweep], ego_pose: SE3, now_us: int | None = None
+    ) -> np.ndarray:
         """Local mass grid ``(n, n, 3)`` float32 from radar sweeps, in the ego frame at ``ego_pose``: the fast path.
 
         The same masses as ``predict_image(radar_image(...))`` within float rounding (2e-6 on
@@ -534,6 +597,8 @@ class DeepIrm:
         evidence = self.runtime(self.pooled_input(sweeps, ego_pose, now_us))
         return evidence_to_masses(evidence, self.grid)
 
-    def __call__(self, sweeps: Sequence[RadarSweep], ego_pose: SE3, now_us: int | None = None) -> np.ndarray:
+    def __call__(
+        self, sweeps: Sequence[RadarSweep], ego_pose: SE3, now_us: int | None = None
+    ) -> np.ndarray:
         """Local mass grid from radar sweeps, in the ego frame at ``ego_pose`` (:meth:`predict`)."""
         return self.predict(sweeps, ego_pose, now_us)

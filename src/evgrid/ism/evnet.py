@@ -28,11 +28,19 @@ from typing import Any
 import torch
 from torch import nn
 from torch.nn import functional as F
+
 from evgrid.validation import check_int
 
 # Targets: classes of the ray ILM's cells (docs/decisions.md#ev-net-targets-and-loss).
 
-__all__ = ["EvNetConfig", "EvNet", "save_checkpoint", "load_checkpoint", "upgrade_checkpoint", "CheckpointError"]
+__all__ = [
+    "EvNetConfig",
+    "EvNet",
+    "save_checkpoint",
+    "load_checkpoint",
+    "upgrade_checkpoint",
+    "CheckpointError",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -138,11 +146,15 @@ def _parse_header(prefix: bytes, size: int, path: Path) -> tuple[dict[str, Any],
         raise CheckpointError(f"{path}: not a safetensors checkpoint ({size} bytes)")
     (n,) = struct.unpack("<Q", prefix[:8])
     if n > min(_MAX_HEADER_BYTES, size - 8) or len(prefix) < 8 + n:
-        raise CheckpointError(f"{path}: not a safetensors checkpoint, or truncated (header of {n} bytes in a file of {size})")
+        raise CheckpointError(
+            f"{path}: not a safetensors checkpoint, or truncated (header of {n} bytes in a file of {size})"
+        )
     try:
         header = json.loads(prefix[8 : 8 + n].decode("utf-8"))
     except (UnicodeDecodeError, ValueError) as e:
-        raise CheckpointError(f"{path}: not a safetensors checkpoint (unreadable header: {e})") from e
+        raise CheckpointError(
+            f"{path}: not a safetensors checkpoint (unreadable header: {e})"
+        ) from e
     if not isinstance(header, dict):
         raise CheckpointError(f"{path}: not a safetensors checkpoint (header is not a JSON object)")
     return header, 8 + n
@@ -164,7 +176,9 @@ def _read_header(path: Path) -> tuple[dict[str, Any], int, int]:
     return header, start, size
 
 
-def _entries(header: dict[str, Any], path: Path) -> dict[str, tuple[str, tuple[int, ...], int, int]]:
+def _entries(
+    header: dict[str, Any], path: Path
+) -> dict[str, tuple[str, tuple[int, ...], int, int]]:
     """Tensor entries of a header: name -> (dtype code, shape, begin, end) within the data section."""
     out = {}
     for name, e in header.items():
@@ -172,11 +186,17 @@ def _entries(header: dict[str, Any], path: Path) -> dict[str, tuple[str, tuple[i
             continue
         try:
             dtype, shape, (begin, end) = e["dtype"], tuple(e["shape"]), e["data_offsets"]
-            if not (isinstance(dtype, str) and all(isinstance(d, int) and d >= 0 for d in shape)
-                    and isinstance(begin, int) and isinstance(end, int)):
+            if not (
+                isinstance(dtype, str)
+                and all(isinstance(d, int) and d >= 0 for d in shape)
+                and isinstance(begin, int)
+                and isinstance(end, int)
+            ):
                 raise TypeError
         except (KeyError, TypeError, ValueError):
-            raise CheckpointError(f"{path}: broken entry for tensor {name!r} in the header") from None
+            raise CheckpointError(
+                f"{path}: broken entry for tensor {name!r} in the header"
+            ) from None
         out[name] = (dtype, shape, begin, end)
     return out
 
@@ -203,16 +223,24 @@ def _config_from(meta: dict[str, str], path: Path) -> EvNetConfig:
     try:
         cfg = json.loads(_metadata_field(meta, "config", path))
     except ValueError as e:
-        raise CheckpointError(f"{path}: checkpoint metadata field 'config' is not JSON ({e})") from e
+        raise CheckpointError(
+            f"{path}: checkpoint metadata field 'config' is not JSON ({e})"
+        ) from e
     if not isinstance(cfg, dict):
-        raise CheckpointError(f"{path}: checkpoint metadata field 'config' must be a JSON object, got {cfg!r:.80}")
+        raise CheckpointError(
+            f"{path}: checkpoint metadata field 'config' must be a JSON object, got {cfg!r:.80}"
+        )
     unknown = sorted(set(cfg) - set(_CONFIG_MAX))
     if unknown:
-        raise CheckpointError(f"{path}: checkpoint metadata field 'config' has unknown key(s) {unknown}")
+        raise CheckpointError(
+            f"{path}: checkpoint metadata field 'config' has unknown key(s) {unknown}"
+        )
     for key, hi in _CONFIG_MAX.items():
         v = cfg.get(key)
         if v is not None and (isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= hi):
-            raise CheckpointError(f"{path}: checkpoint metadata field 'config.{key}' must be an integer in [1, {hi}], got {v!r:.80}")
+            raise CheckpointError(
+                f"{path}: checkpoint metadata field 'config.{key}' must be an integer in [1, {hi}], got {v!r:.80}"
+            )
     try:
         return EvNetConfig(**cfg)
     except (TypeError, ValueError) as e:
@@ -225,7 +253,9 @@ def _expected(config: EvNetConfig, path: Path) -> dict[str, tuple[str, tuple[int
         sd = EvNet(config).state_dict()
     n = sum(v.numel() for v in sd.values())
     if n > _MAX_PARAMS:
-        raise CheckpointError(f"{path}: checkpoint metadata field 'config' describes {n:,} parameters, more than the {_MAX_PARAMS:,} allowed")
+        raise CheckpointError(
+            f"{path}: checkpoint metadata field 'config' describes {n:,} parameters, more than the {_MAX_PARAMS:,} allowed"
+        )
     return {k: (_DTYPE_CODES.get(v.dtype, str(v.dtype)), tuple(v.shape)) for k, v in sd.items()}
 
 
@@ -251,7 +281,9 @@ def _serialise(model: EvNet, extra: dict[str, Any] | None) -> bytes:
     return save(tensors, metadata=meta)
 
 
-def save_checkpoint(model: EvNet, path: str | os.PathLike, extra: dict[str, Any] | None = None) -> Path:
+def save_checkpoint(
+    model: EvNet, path: str | os.PathLike, extra: dict[str, Any] | None = None
+) -> Path:
     """Write the model's weights and config as a safetensors file (format 2), atomically; ``extra`` goes in its metadata."""
     from evgrid.io import atomic_write
 
@@ -286,24 +318,32 @@ def load_checkpoint(path: str | os.PathLike, config: EvNetConfig | None = None) 
     if not isinstance(meta, dict):
         raise CheckpointError(f"{path}: checkpoint metadata is not a JSON object")
     if meta.get("format") != _FORMAT:
-        raise CheckpointError(f"{path}: not an evgrid Ev-Net checkpoint (metadata field 'format' is {meta.get('format')!r})")
+        raise CheckpointError(
+            f"{path}: not an evgrid Ev-Net checkpoint (metadata field 'format' is {meta.get('format')!r})"
+        )
     version = meta.get("version")
     if version not in _READABLE_VERSIONS:
-        raise CheckpointError(f"{path}: checkpoint format version {version!r} (metadata field 'version'), this evgrid reads {', '.join(_READABLE_VERSIONS)}")
+        raise CheckpointError(
+            f"{path}: checkpoint format version {version!r} (metadata field 'version'), this evgrid reads {', '.join(_READABLE_VERSIONS)}"
+        )
     saved = _config_from(meta, path)
     try:
         extra = json.loads(meta.get("extra", "{}"))
     except (TypeError, ValueError) as e:
         raise CheckpointError(f"{path}: checkpoint metadata field 'extra' is not JSON ({e})") from e
     if not isinstance(extra, dict):
-        raise CheckpointError(f"{path}: checkpoint metadata field 'extra' must be a JSON object, got {type(extra).__name__}")
+        raise CheckpointError(
+            f"{path}: checkpoint metadata field 'extra' must be a JSON object, got {type(extra).__name__}"
+        )
     if "grid" in extra:  # the grid it was trained on, which DeepIrm compares with its own
         from evgrid.geometry import GridSpec
 
         try:
             GridSpec.from_dict(extra["grid"])
         except (AttributeError, KeyError, TypeError, ValueError) as e:
-            raise CheckpointError(f"{path}: checkpoint metadata field 'extra.grid' is not a grid ({e})") from e
+            raise CheckpointError(
+                f"{path}: checkpoint metadata field 'extra.grid' is not a grid ({e})"
+            ) from e
     if config is not None and config != saved:
         raise CheckpointError(f"{path}: checkpoint is for {saved}, but {config} was asked for")
 
@@ -313,7 +353,9 @@ def load_checkpoint(path: str | os.PathLike, config: EvNetConfig | None = None) 
     missing = sorted(set(expected) - set(entries))
     unexpected = sorted(set(entries) - set(expected))
     if missing or unexpected:
-        raise CheckpointError(f"{path}: weights do not match {saved}: missing {missing[:3]}, unexpected {unexpected[:3]}")
+        raise CheckpointError(
+            f"{path}: weights do not match {saved}: missing {missing[:3]}, unexpected {unexpected[:3]}"
+        )
     n_data = size - start
     for k, (dtype, shape, begin, end) in entries.items():
         want_dtype, want_shape = expected[k]
@@ -322,9 +364,13 @@ def load_checkpoint(path: str | os.PathLike, config: EvNetConfig | None = None) 
         if dtype != want_dtype:
             raise CheckpointError(f"{path}: weight {k} has dtype {dtype}, expected {want_dtype}")
         if not (0 <= begin <= end <= n_data) or end - begin != _tensor_bytes(dtype, shape):
-            raise CheckpointError(f"{path}: weight {k} has data offsets [{begin}, {end}) that do not fit the file; it is truncated or corrupt")
+            raise CheckpointError(
+                f"{path}: weight {k} has data offsets [{begin}, {end}) that do not fit the file; it is truncated or corrupt"
+            )
     if n_data != sum(_tensor_bytes(d, sh) for d, sh, _, _ in entries.values()):
-        raise CheckpointError(f"{path}: {n_data} bytes of tensor data where the header describes {sum(_tensor_bytes(d, sh) for d, sh, _, _ in entries.values())}")
+        raise CheckpointError(
+            f"{path}: {n_data} bytes of tensor data where the header describes {sum(_tensor_bytes(d, sh) for d, sh, _, _ in entries.values())}"
+        )
     try:
         buf = path.read_bytes()  # now known to be the size of the architecture's weights
     except OSError as e:
@@ -333,12 +379,17 @@ def load_checkpoint(path: str | os.PathLike, config: EvNetConfig | None = None) 
     if len(data) != n_data:
         raise CheckpointError(f"{path}: the file changed while it was read")
     if version == "1":
-        logger.warning("%s: checkpoint format 1 has no checksum of its weights; upgrade it with "
-                       "evgrid.ism.evnet.upgrade_checkpoint(src, dst) (evgrid upgrade-checkpoint SRC DST)", path)
+        logger.warning(
+            "%s: checkpoint format 1 has no checksum of its weights; upgrade it with "
+            "evgrid.ism.evnet.upgrade_checkpoint(src, dst) (evgrid upgrade-checkpoint SRC DST)",
+            path,
+        )
     else:
         digest = _metadata_field(meta, _DIGEST_KEY, path)
         if _digest(entries, data) != digest:
-            raise CheckpointError(f"{path}: the weights do not match the checksum in the metadata (field {_DIGEST_KEY!r}); the file is corrupt")
+            raise CheckpointError(
+                f"{path}: the weights do not match the checksum in the metadata (field {_DIGEST_KEY!r}); the file is corrupt"
+            )
     try:
         tensors = load(buf)
     except (SafetensorError, ValueError, RuntimeError) as e:

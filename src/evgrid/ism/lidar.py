@@ -97,6 +97,7 @@ _DEFAULT_PARAMS = RayIlmParams()
 
 # --- kernels ------------------------------------------------------------------------------------
 
+
 @numba.njit(cache=True)
 def _k_ilm_points(pts, se, eg, z_min, z_max, min_range, half, inv_res, labels):
     """Mark detection cells; returns (n_dropped, n_used). ``se``: sensor->ego 3x4, ``eg``: ego->grid 2x4."""
@@ -223,18 +224,23 @@ def _k_ilm_rays_par(labels, u0, v0, n_rays, t_end):
 
 # --- public API ---------------------------------------------------------------------------------
 
+
 def _resolve_inputs(
     sweep: LidarSweep | np.ndarray, sensor_to_ego: SE3 | None, ego_pose: SE3 | None
 ) -> tuple[np.ndarray, SE3, SE3 | None]:
     if isinstance(sweep, LidarSweep):
         if sensor_to_ego is not None or ego_pose is not None:
-            raise ValueError("ray_ilm: pass either a LidarSweep or raw points with sensor_to_ego/ego_pose, not both")
+            raise ValueError(
+                "ray_ilm: pass either a LidarSweep or raw points with sensor_to_ego/ego_pose, not both"
+            )
         return sweep.points, sweep.sensor_to_ego, sweep.ego_pose
     pts = as_points(sweep, 3, "ray_ilm", max_cols=len(LIDAR_COLUMNS))
     if sensor_to_ego is None:
         sensor_to_ego = SE3.identity()
     elif not isinstance(sensor_to_ego, SE3):
-        raise TypeError(f"ray_ilm: sensor_to_ego must be an SE3, got {type(sensor_to_ego).__name__}")
+        raise TypeError(
+            f"ray_ilm: sensor_to_ego must be an SE3, got {type(sensor_to_ego).__name__}"
+        )
     if ego_pose is not None and not isinstance(ego_pose, SE3):
         raise TypeError(f"ray_ilm: ego_pose must be an SE3, got {type(ego_pose).__name__}")
     return pts, sensor_to_ego, ego_pose
@@ -283,7 +289,15 @@ def ray_ilm_with_stats(
     inv_res = 1.0 / grid.resolution
     labels = label_scratch(grid, "ilm")
     n_dropped, n_used = _k_ilm_points(
-        pts, se, eg, float(params.z_min_m), float(params.z_max_m), float(params.min_range_m), n / 2.0, inv_res, labels
+        pts,
+        se,
+        eg,
+        float(params.z_min_m),
+        float(params.z_max_m),
+        float(params.min_range_m),
+        n / 2.0,
+        inv_res,
+        labels,
     )
     n_points = int(pts.shape[0])
     log_dropped(logger, "ray_ilm", int(n_dropped), n_points)
@@ -319,6 +333,12 @@ def ray_ilm(
 ) -> np.ndarray:
     """Ray ILM (paper sec. V-A): masses ``(n, n, 3)`` float32 [m_f, m_o, m_u] on ``grid`` (metres); see :func:`ray_ilm_with_stats`."""
     return ray_ilm_with_stats(
-        sweep, sensor_to_ego, ego_pose, reference_pose=reference_pose, grid=grid, params=params,
-        threads=threads, out=out,
+        sweep,
+        sensor_to_ego,
+        ego_pose,
+        reference_pose=reference_pose,
+        grid=grid,
+        params=params,
+        threads=threads,
+        out=out,
     ).masses

@@ -40,8 +40,8 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Iterable
 
 import numba
 import numpy as np
@@ -54,9 +54,9 @@ from evgrid.ism._common import (
     OCCUPIED,
     IsmResult,
     as_points,
+    bit_scratch,
     check_out,
     check_threads,
-    bit_scratch,
     label_scratch,
     labels_to_masses,
     log_dropped,
@@ -96,6 +96,7 @@ _EPS_SLOPE = 1e-12
 # --- kernels ------------------------------------------------------------------------------------
 # Coordinates inside the kernels are continuous cell coordinates (u, v): u = n/2 - x/res,
 # v = n/2 - y/res (geometry.py), so cell (r, c) is the square [r, r+1) x [c, c+1).
+
 
 @numba.njit(cache=True)
 def _k_transform(pts, sweep_of, mats, half, inv_res, det_uv, ok):
@@ -169,7 +170,9 @@ def _mark_cap(barrier, brow, bcol, au, av, du, dv, cos_h, sin_h, buf):
     r2 = du * du + dv * dv
     r = math.sqrt(r2)
     if r < 1e-9 or not r < 1e12:
-        return buf  # no cap at the apex; a cap 1e12 cells away cannot touch the grid (or is inf/NaN)
+        return (
+            buf  # no cap at the apex; a cap 1e12 cells away cannot touch the grid (or is inf/NaN)
+        )
     eu = du / r
     ev = dv / r
     pu = -ev
@@ -258,7 +261,9 @@ def _k_caps(det_uv, ok, det_apex, apex_uv, h, barrier, brow, bcol):
         a = det_apex[i]
         au = apex_uv[a, 0]
         av = apex_uv[a, 1]
-        buf = _mark_cap(barrier, brow, bcol, au, av, det_uv[i, 0] - au, det_uv[i, 1] - av, cos_h, sin_h, buf)
+        buf = _mark_cap(
+            barrier, brow, bcol, au, av, det_uv[i, 0] - au, det_uv[i, 1] - av, cos_h, sin_h, buf
+        )
 
 
 @numba.njit(cache=True, inline="always")
@@ -569,13 +574,24 @@ def _k_cast(barrier, brow, bcol, frow, fcol, apex_uv, t_apex, t_oct, t_start, iv
         s0 = t_start[t]
         s1 = t_start[t + 1]
         _k_cast_task(
-            barrier, brow, bcol, frow[0], fcol[0], apex_uv[a, 0], apex_uv[a, 1], t_oct[t],
-            iv_lo[s0:s1], iv_hi[s0:s1], iv_r[s0:s1],
+            barrier,
+            brow,
+            bcol,
+            frow[0],
+            fcol[0],
+            apex_uv[a, 0],
+            apex_uv[a, 1],
+            t_oct[t],
+            iv_lo[s0:s1],
+            iv_hi[s0:s1],
+            iv_r[s0:s1],
         )
 
 
 @numba.njit(cache=True, parallel=True)
-def _k_cast_par(barrier, brow, bcol, frow, fcol, apex_uv, t_apex, t_oct, t_start, iv_lo, iv_hi, iv_r):
+def _k_cast_par(
+    barrier, brow, bcol, frow, fcol, apex_uv, t_apex, t_oct, t_start, iv_lo, iv_hi, iv_r
+):
     # Worker w takes tasks w, w + W, w + 2W, ... and owns free bitmaps frow[w], fcol[w]
     # (bit OR into shared words would race); they are OR-ed together afterwards.
     n_w = frow.shape[0]
@@ -585,8 +601,17 @@ def _k_cast_par(barrier, brow, bcol, frow, fcol, apex_uv, t_apex, t_oct, t_start
             s0 = t_start[t]
             s1 = t_start[t + 1]
             _k_cast_task(
-                barrier, brow, bcol, frow[w], fcol[w], apex_uv[a, 0], apex_uv[a, 1], t_oct[t],
-                iv_lo[s0:s1], iv_hi[s0:s1], iv_r[s0:s1],
+                barrier,
+                brow,
+                bcol,
+                frow[w],
+                fcol[w],
+                apex_uv[a, 0],
+                apex_uv[a, 1],
+                t_oct[t],
+                iv_lo[s0:s1],
+                iv_hi[s0:s1],
+                iv_r[s0:s1],
             )
 
 
@@ -627,6 +652,7 @@ def _k_mark_detections(det_uv, ok, labels):
 
 # --- the model on prepared detections ---------------------------------------------------------
 
+
 def _irm_core(
     det_uv: np.ndarray,
     ok: np.ndarray,
@@ -662,7 +688,9 @@ def _irm_core(
     return masses, n_used
 
 
-def _check_common(grid: GridSpec, params: RayIrmParams, threads: int, out: np.ndarray | None) -> int:
+def _check_common(
+    grid: GridSpec, params: RayIrmParams, threads: int, out: np.ndarray | None
+) -> int:
     if not isinstance(grid, GridSpec):
         raise TypeError(f"ray_irm: grid must be a GridSpec, got {type(grid).__name__}")
     if not isinstance(params, RayIrmParams):
@@ -710,7 +738,9 @@ def ray_irm_with_stats(
     sweep_of = np.repeat(np.arange(len(used), dtype=np.int64), counts)
     det_uv = np.empty((pts.shape[0], 2), dtype=np.float64)
     ok = np.empty(pts.shape[0], dtype=np.bool_)
-    n_dropped = int(_k_transform(pts, sweep_of, mats, half, inv_res, det_uv, ok)) if pts.shape[0] else 0
+    n_dropped = (
+        int(_k_transform(pts, sweep_of, mats, half, inv_res, det_uv, ok)) if pts.shape[0] else 0
+    )
     # Sweeps from the very same position (a standing vehicle) share one apex.
     if len(used):
         uniq, inverse = np.unique(apex_xy, axis=0, return_inverse=True)
@@ -718,7 +748,9 @@ def ray_irm_with_stats(
     else:
         uniq = np.empty((0, 2))
         det_apex = np.empty(0, dtype=np.int64)
-    apex_uv = np.ascontiguousarray(np.stack([half - uniq[:, 0] * inv_res, half - uniq[:, 1] * inv_res], axis=1))
+    apex_uv = np.ascontiguousarray(
+        np.stack([half - uniq[:, 0] * inv_res, half - uniq[:, 1] * inv_res], axis=1)
+    )
     n_points = int(pts.shape[0])
     log_dropped(logger, "ray_irm", n_dropped, n_points)
     masses, n_used = _irm_core(det_uv, ok, det_apex, apex_uv, grid, params, threads, out)
@@ -735,7 +767,9 @@ def ray_irm(
     out: np.ndarray | None = None,
 ) -> np.ndarray:
     """Ray IRM (paper sec. V-B): masses ``(n, n, 3)`` float32 [m_f, m_o, m_u] in the frame of ``ego_pose``; see :func:`ray_irm_with_stats`."""
-    return ray_irm_with_stats(sweeps, ego_pose, grid=grid, params=params, threads=threads, out=out).masses
+    return ray_irm_with_stats(
+        sweeps, ego_pose, grid=grid, params=params, threads=threads, out=out
+    ).masses
 
 
 def ray_irm_xy(
@@ -759,7 +793,9 @@ def ray_irm_xy(
     if org.shape == (2,):
         org = np.broadcast_to(org, det.shape)
     if org.shape != det.shape:
-        raise ValueError(f"ray_irm_xy: origins_xy must have shape (2,) or {det.shape}, got {org.shape}")
+        raise ValueError(
+            f"ray_irm_xy: origins_xy must have shape (2,) or {det.shape}, got {org.shape}"
+        )
     if not np.isfinite(org).all():
         raise ValueError("ray_irm_xy: origins_xy must be finite")
     n = grid.n_cells
@@ -776,6 +812,13 @@ def ray_irm_xy(
     apex_uv = np.ascontiguousarray(half - uniq * inv_res)
     log_dropped(logger, "ray_irm_xy", n_dropped, int(det.shape[0]))
     masses, n_used = _irm_core(
-        det_uv, ok, np.ascontiguousarray(inverse.reshape(-1).astype(np.int64)), apex_uv, grid, params, threads, out
+        det_uv,
+        ok,
+        np.ascontiguousarray(inverse.reshape(-1).astype(np.int64)),
+        apex_uv,
+        grid,
+        params,
+        threads,
+        out,
     )
     return IsmResult(masses, int(det.shape[0]), n_dropped, n_used)

@@ -20,7 +20,16 @@ from typing import Protocol
 
 import numpy as np
 
-__all__ = ["RUNTIMES", "EvNetRuntime", "TorchRuntime", "OrtRuntime", "evnet_trunk", "make_runtime", "trunk_onnx", "ort_available"]
+__all__ = [
+    "RUNTIMES",
+    "EvNetRuntime",
+    "TorchRuntime",
+    "OrtRuntime",
+    "evnet_trunk",
+    "make_runtime",
+    "trunk_onnx",
+    "ort_available",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -66,8 +75,15 @@ def trunk_onnx(model, in_shape: tuple[int, int, int]) -> bytes:
     x = torch.zeros((1, *in_shape), dtype=torch.float32)
     with warnings.catch_warnings(), torch.inference_mode(False), torch.no_grad():
         warnings.simplefilter("ignore")  # the TorchScript exporter's deprecation notices
-        torch.onnx.export(evnet_trunk(model), (x,), buf, dynamo=False, opset_version=17,
-                          input_names=["pooled"], output_names=["evidence"])
+        torch.onnx.export(
+            evnet_trunk(model),
+            (x,),
+            buf,
+            dynamo=False,
+            opset_version=17,
+            input_names=["pooled"],
+            output_names=["evidence"],
+        )
     return buf.getvalue()
 
 
@@ -114,7 +130,9 @@ class OrtRuntime:
         self._open(trunk_onnx(model, in_shape), in_shape, threads)
 
     @classmethod
-    def from_graph(cls, graph: bytes, in_shape: tuple[int, int, int], threads: int = 1) -> "OrtRuntime":
+    def from_graph(
+        cls, graph: bytes, in_shape: tuple[int, int, int], threads: int = 1
+    ) -> OrtRuntime:
         """The runtime on an ONNX graph of the trunk: :func:`trunk_onnx`'s, or one converted from it (fp16, int8)."""
         runtime = cls.__new__(cls)
         runtime._open(graph, in_shape, threads)
@@ -136,19 +154,25 @@ class OrtRuntime:
         return self._session.run(None, {"pooled": pooled})[0][0]
 
 
-def make_runtime(model, in_shape: tuple[int, int, int], runtime: str = "auto", threads: int = 1) -> EvNetRuntime:
+def make_runtime(
+    model, in_shape: tuple[int, int, int], runtime: str = "auto", threads: int = 1
+) -> EvNetRuntime:
     """The runtime named ``runtime`` (see :data:`RUNTIMES`) for ``model``'s trunk on inputs ``in_shape`` ``(C, h, w)``."""
     global _warned_fallback
     if runtime not in RUNTIMES:
         raise ValueError(f"runtime must be one of {RUNTIMES}, got {runtime!r}")
     if runtime == "onnxruntime" and not ort_available():
-        raise ImportError("the onnxruntime runtime needs onnx and onnxruntime: pip install 'evgrid[fast]'")
+        raise ImportError(
+            "the onnxruntime runtime needs onnx and onnxruntime: pip install 'evgrid[fast]'"
+        )
     if runtime == "auto":
         runtime = "onnxruntime" if ort_available() else "torch"
         if runtime == "torch" and not _warned_fallback:
             _warned_fallback = True
-            logger.info("onnxruntime is not installed: Ev-Net runs on torch, about 25%% slower "
-                        "(pip install 'evgrid[fast]')")
+            logger.info(
+                "onnxruntime is not installed: Ev-Net runs on torch, about 25%% slower "
+                "(pip install 'evgrid[fast]')"
+            )
     if runtime == "onnxruntime":
         return OrtRuntime(model, in_shape, threads)
     return TorchRuntime(model, threads)

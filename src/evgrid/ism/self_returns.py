@@ -34,7 +34,14 @@ import numpy as np
 from evgrid.data.frame import LidarSweep
 from evgrid.validation import check_choice, check_number
 
-__all__ = ["BodyBox", "NUSCENES_BODY", "SELF_RETURN_MODES", "SelfReturnParams", "SelfReturnFilter", "parse_body_box"]
+__all__ = [
+    "BodyBox",
+    "NUSCENES_BODY",
+    "SELF_RETURN_MODES",
+    "SelfReturnParams",
+    "SelfReturnFilter",
+    "parse_body_box",
+]
 
 SELF_RETURN_MODES: tuple[str, ...] = ("auto", "box", "off")
 
@@ -79,7 +86,9 @@ def parse_body_box(text: str) -> BodyBox:
     except ValueError:
         raise ValueError(f"body box {text!r}: expected six numbers x0,y0,z0,x1,y1,z1 (m)") from None
     if len(vals) != 6:
-        raise ValueError(f"body box {text!r}: expected six numbers x0,y0,z0,x1,y1,z1 (m), got {len(vals)}")
+        raise ValueError(
+            f"body box {text!r}: expected six numbers x0,y0,z0,x1,y1,z1 (m), got {len(vals)}"
+        )
     return BodyBox(*vals)
 
 
@@ -110,7 +119,9 @@ class SelfReturnParams:
         check_number(self, "margin_m", min=0.0)
         check_number(self, "hit_fraction", min=0.0, max=1.0, min_open=True)
         if self.step_m >= self.min_travel_m:
-            raise ValueError(f"SelfReturnParams.step_m ({self.step_m}) must be below min_travel_m ({self.min_travel_m})")
+            raise ValueError(
+                f"SelfReturnParams.step_m ({self.step_m}) must be below min_travel_m ({self.min_travel_m})"
+            )
         for name in ("body", "prior"):
             v = getattr(self, name)
             if v is not None and not isinstance(v, BodyBox):
@@ -166,11 +177,17 @@ class SelfReturnFilter:
         if n == 0:
             return sweep
         self.n_removed += n
-        return LidarSweep(sweep.points[~drop], sweep.sensor_to_ego, sweep.ego_pose, sweep.timestamp, sweep.channel)
+        return LidarSweep(
+            sweep.points[~drop], sweep.sensor_to_ego, sweep.ego_pose, sweep.timestamp, sweep.channel
+        )
 
-    def _auto(self, sweep: LidarSweep, xyz: np.ndarray, near: np.ndarray, keys: np.ndarray) -> np.ndarray:
+    def _auto(
+        self, sweep: LidarSweep, xyz: np.ndarray, near: np.ndarray, keys: np.ndarray
+    ) -> np.ndarray:
         near_keys = keys[near]
-        self._learn(np.unique(near_keys), np.asarray(sweep.ego_pose.translation[:2], dtype=np.float64))
+        self._learn(
+            np.unique(near_keys), np.asarray(sweep.ego_pose.translation[:2], dtype=np.float64)
+        )
         box = self.learnt_box if self.learnt_box is not None else self.params.prior
         drop = box.contains(xyz) if box is not None else np.zeros(len(xyz), dtype=bool)
         if len(self._learnt):
@@ -190,11 +207,15 @@ class SelfReturnFilter:
         allk = np.concatenate([self._window_keys, keys])
         counts = np.concatenate([self._window_counts, np.ones(len(keys), dtype=np.int64)])
         self._window_keys, inv = np.unique(allk, return_inverse=True)
-        self._window_counts = np.bincount(inv, weights=counts, minlength=len(self._window_keys)).astype(np.int64)
+        self._window_counts = np.bincount(
+            inv, weights=counts, minlength=len(self._window_keys)
+        ).astype(np.int64)
         self._window_sweeps += 1
         if self._travel < p.min_travel_m:
             return
-        fixed = self._window_keys[self._window_counts >= math.ceil(p.hit_fraction * self._window_sweeps)]
+        fixed = self._window_keys[
+            self._window_counts >= math.ceil(p.hit_fraction * self._window_sweeps)
+        ]
         self._window_keys = np.zeros(0, dtype=np.int64)
         self._window_counts = np.zeros(0, dtype=np.int64)
         self._window_sweeps = 0
@@ -204,11 +225,16 @@ class SelfReturnFilter:
             self._learnt = new
             lo, hi = _voxel_bounds(new, p.voxel_m)
             m = p.margin_m
-            self.learnt_box = BodyBox(lo[0] - m, lo[1] - m, lo[2] - m, hi[0] + m, hi[1] + m, hi[2] + m)
+            self.learnt_box = BodyBox(
+                lo[0] - m, lo[1] - m, lo[2] - m, hi[0] + m, hi[1] + m, hi[2] + m
+            )
 
     def counts(self) -> dict[str, int]:
         """For metrics.json."""
-        return {"lidar_self_returns_removed": self.n_removed, "lidar_self_return_voxels": int(len(self._learnt))}
+        return {
+            "lidar_self_returns_removed": self.n_removed,
+            "lidar_self_return_voxels": int(len(self._learnt)),
+        }
 
 
 _OFF = 1 << 20  # voxel indices are offset to be non-negative, 21 bits each
@@ -243,18 +269,34 @@ def _k_inside(xyz, x0, y0, z0, x1, y1, z1, out):
         out[i] = x0 <= x <= x1 and y0 <= y <= y1 and z0 <= z <= z1
 
 
-def _ego_points(sweep: LidarSweep, p: SelfReturnParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _ego_points(
+    sweep: LidarSweep, p: SelfReturnParams
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The sweep's points in the ego frame ``(n, 3)``, which are near the sensor, and their voxel keys (-1: not near)."""
     n = len(sweep.points)
     xyz = np.empty((n, 3), dtype=np.float64)
     near = np.empty(n, dtype=np.bool_)
     keys = np.empty(n, dtype=np.int64)
     m = sweep.sensor_to_ego
-    _k_ego_points(sweep.points, np.asarray(m.rotation, dtype=np.float64), np.asarray(m.translation, dtype=np.float64),
-                  float(p.max_radius_m), float(p.min_height_m), float(p.voxel_m), xyz, near, keys)
+    _k_ego_points(
+        sweep.points,
+        np.asarray(m.rotation, dtype=np.float64),
+        np.asarray(m.translation, dtype=np.float64),
+        float(p.max_radius_m),
+        float(p.min_height_m),
+        float(p.voxel_m),
+        xyz,
+        near,
+        keys,
+    )
     return xyz, near, keys
 
 
 def _voxel_bounds(keys: np.ndarray, voxel_m: float) -> tuple[np.ndarray, np.ndarray]:
-    ijk = np.stack([(keys >> 42) & (2**21 - 1), (keys >> 21) & (2**21 - 1), keys & (2**21 - 1)], axis=1) - _OFF
+    ijk = (
+        np.stack(
+            [(keys >> 42) & (2**21 - 1), (keys >> 21) & (2**21 - 1), keys & (2**21 - 1)], axis=1
+        )
+        - _OFF
+    )
     return ijk.min(axis=0) * voxel_m, (ijk.max(axis=0) + 1) * voxel_m

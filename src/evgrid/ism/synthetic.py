@@ -61,7 +61,9 @@ def street_boxes(seed: int = 0) -> np.ndarray:
     return np.asarray(boxes, dtype=np.float64)
 
 
-def _ray_boxes(origins: np.ndarray, dirs: np.ndarray, boxes: np.ndarray, max_range: float) -> np.ndarray:
+def _ray_boxes(
+    origins: np.ndarray, dirs: np.ndarray, boxes: np.ndarray, max_range: float
+) -> np.ndarray:
     """Range (m) of the first hit of rays ``origins + t dirs`` (2-D or 3-D) with boxes ``[lo, hi]`` (and the ground z = 0 in 3-D); inf: none."""
     best = np.full(len(dirs), np.inf)
     if origins.shape[1] == 3:
@@ -100,7 +102,9 @@ def cast_lidar(
     az = np.arange(n_azimuth) * (2 * math.pi / n_azimuth) + rng.uniform(0, 2 * math.pi / n_azimuth)
     ring, a = np.meshgrid(np.arange(len(el)), az, indexing="ij")
     e = el[ring]
-    d_sensor = np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], axis=-1).reshape(-1, 3)
+    d_sensor = np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], axis=-1).reshape(
+        -1, 3
+    )
     d_world = d_sensor @ sensor_to_global.rotation.T
     o = np.broadcast_to(sensor_to_global.translation, d_world.shape)
     rng_m = _ray_boxes(np.ascontiguousarray(o), d_world, boxes, max_range)
@@ -114,7 +118,9 @@ def cast_lidar(
     return out
 
 
-def street_lidar_sweep(ego_pose: SE3 | None = None, seed: int = 0, timestamp: int = 0) -> LidarSweep:
+def street_lidar_sweep(
+    ego_pose: SE3 | None = None, seed: int = 0, timestamp: int = 0
+) -> LidarSweep:
     """A ~34,000-point 32-beam lidar sweep of :func:`street_boxes` from ``ego_pose`` (default identity)."""
     ego_pose = SE3.identity() if ego_pose is None else ego_pose
     pts = cast_lidar(ego_pose @ LIDAR_TOP_EXTRINSICS, street_boxes(seed), seed=seed)
@@ -150,13 +156,22 @@ def street_radar_sweeps(
             s2g = ego @ s2e
             o = s2g.translation[:2]
             n_clutter = n_detections // 10
-            az = rng.uniform(-math.radians(fov_deg) / 2, math.radians(fov_deg) / 2, 4 * n_detections)
+            az = rng.uniform(
+                -math.radians(fov_deg) / 2, math.radians(fov_deg) / 2, 4 * n_detections
+            )
             ga = az + yaw0
             dirs = np.stack([np.cos(ga), np.sin(ga)], axis=1)
             r = _ray_boxes(np.broadcast_to(o, dirs.shape).copy(), dirs, b2, max_range)
             ok = np.flatnonzero(np.isfinite(r))[: n_detections - n_clutter]
-            r_det = np.concatenate([r[ok] + rng.normal(0, 0.15, len(ok)), rng.uniform(2.0, max_range, n_clutter)])
-            az_det = np.concatenate([az[ok], rng.uniform(-math.radians(fov_deg) / 2, math.radians(fov_deg) / 2, n_clutter)])
+            r_det = np.concatenate(
+                [r[ok] + rng.normal(0, 0.15, len(ok)), rng.uniform(2.0, max_range, n_clutter)]
+            )
+            az_det = np.concatenate(
+                [
+                    az[ok],
+                    rng.uniform(-math.radians(fov_deg) / 2, math.radians(fov_deg) / 2, n_clutter),
+                ]
+            )
             az_det = az_det + rng.normal(0, math.radians(0.3), len(az_det))
             pts = np.zeros((len(r_det), len(RADAR_COLUMNS)), dtype=np.float32)
             pts[:, 0] = r_det * np.cos(az_det)

@@ -10,7 +10,9 @@ from evgrid.classes import FREE, OCCUPIED, UNKNOWN
 __all__ = ["evidential_loss"]
 
 
-def evidential_loss(evidence: torch.Tensor, target: torch.Tensor, valid: torch.Tensor | None = None) -> torch.Tensor:
+def evidential_loss(
+    evidence: torch.Tensor, target: torch.Tensor, valid: torch.Tensor | None = None
+) -> torch.Tensor:
     """Ev-Net loss (paper eqs. (36)-(37)): per-class expectations of the per-cell losses, summed.
 
     ``evidence`` ``(B, 2, H, W)`` = ``[e_f, e_o]`` >= 0; ``target`` ``(B, H, W)`` int with
@@ -22,7 +24,9 @@ def evidential_loss(evidence: torch.Tensor, target: torch.Tensor, valid: torch.T
     if evidence.ndim != 4 or evidence.shape[1] != 2:
         raise ValueError(f"evidence must be (B, 2, H, W), got {tuple(evidence.shape)}")
     if target.shape != evidence.shape[:1] + evidence.shape[2:]:
-        raise ValueError(f"target must be (B, H, W) = {tuple(evidence.shape[:1] + evidence.shape[2:])}, got {tuple(target.shape)}")
+        raise ValueError(
+            f"target must be (B, H, W) = {tuple(evidence.shape[:1] + evidence.shape[2:])}, got {tuple(target.shape)}"
+        )
     alpha = evidence + 1.0
     s = alpha.sum(dim=1)
     p = alpha / s.unsqueeze(1)

@@ -24,9 +24,9 @@ import math
 import os
 import random
 import time
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 import torch
@@ -56,7 +56,6 @@ __all__ = [
 ]
 
 
-
 @dataclass(frozen=True)
 class TrainConfig:
     """Everything that decides a training run; saved beside its results as ``config.json``."""
@@ -74,7 +73,9 @@ class TrainConfig:
     model: EvNetConfig = field(default_factory=lambda: EvNetConfig(in_channels=len(CHANNELS)))
     image: RadarImageParams = field(default_factory=RadarImageParams)
     radar_filter: RadarFilter = field(default_factory=RadarFilter)  # as in mapping
-    self_returns: SelfReturnParams = field(default_factory=SelfReturnParams)  # the targets' ray ILM, as in mapping
+    self_returns: SelfReturnParams = field(
+        default_factory=SelfReturnParams
+    )  # the targets' ray ILM, as in mapping
     #: Simulated data only: a radar drawn per scene from these ranges (None: the calibrated radar).
     radar_ranges: RadarRanges | None = None
 
@@ -84,7 +85,9 @@ class TrainConfig:
         check_int(self, "workers", min=0)
         check_number(self, "lr", min=0.0, min_open=True)
         if self.model.in_channels != len(CHANNELS):
-            raise ValueError(f"the model must take {len(CHANNELS)} input channels ({CHANNELS}), got {self.model.in_channels}")
+            raise ValueError(
+                f"the model must take {len(CHANNELS)} input channels ({CHANNELS}), got {self.model.in_channels}"
+            )
 
     def to_dict(self) -> dict:
         """Plain-JSON form."""
@@ -95,14 +98,22 @@ class TrainConfig:
     def data_key(self) -> str:
         """Hash of the settings that decide the cached samples."""
         key = json.dumps(
-            {"grid": self.grid.to_dict(), "image": asdict(self.image), "stride": self.frame_stride, "v": 2,
-             "radar_filter": self.radar_filter.to_dict(), "self_returns": asdict(self.self_returns),
-             "radar_ranges": self.radar_ranges.to_dict() if self.radar_ranges else None}, sort_keys=True
+            {
+                "grid": self.grid.to_dict(),
+                "image": asdict(self.image),
+                "stride": self.frame_stride,
+                "v": 2,
+                "radar_filter": self.radar_filter.to_dict(),
+                "self_returns": asdict(self.self_returns),
+                "radar_ranges": self.radar_ranges.to_dict() if self.radar_ranges else None,
+            },
+            sort_keys=True,
         )
         return hashlib.sha1(key.encode()).hexdigest()[:12]
 
 
 # --- samples ------------------------------------------------------------------------------------
+
 
 def ilm_classes(masses: np.ndarray) -> np.ndarray:
     """Target classes from ray ILM masses: m_o > 0 OCCUPIED, else m_f > 0 FREE, else UNKNOWN.
@@ -138,11 +149,16 @@ def scene_samples(
 
 
 def _scene_files(root: Path, name: str) -> dict[str, Path]:
-    return {k: root / f"{name}.{k}.npy" for k in ("det", "offsets", "target", "irm")} | {"done": root / f"{name}.done.json"}
+    return {k: root / f"{name}.{k}.npy" for k in ("det", "offsets", "target", "irm")} | {
+        "done": root / f"{name}.done.json"
+    }
 
 
 def build_cache(
-    scenes: Iterable, root: str | os.PathLike, config: TrainConfig, with_irm: bool = False,
+    scenes: Iterable,
+    root: str | os.PathLike,
+    config: TrainConfig,
+    with_irm: bool = False,
     progress: Callable[[str], None] | None = None,
 ) -> list[str]:
     """Write the samples of each scene (an iterable of Frames with a ``name``) under ``root``; skip cached scenes.
@@ -170,7 +186,11 @@ def build_cache(
         if not dets:
             raise ValueError(f"scene {name!r} gave no samples (is it empty?)")
         offsets = np.cumsum([0] + [len(d) for d in dets]).astype(np.int64)
-        arrays = {"det": np.concatenate(dets).astype(np.float32), "offsets": offsets, "target": np.stack(targets)}
+        arrays = {
+            "det": np.concatenate(dets).astype(np.float32),
+            "offsets": offsets,
+            "target": np.stack(targets),
+        }
         if with_irm:
             arrays["irm"] = np.stack(irms)
         for key, arr in arrays.items():
@@ -184,7 +204,14 @@ def build_cache(
 class RadarDataset(Dataset):
     """Cached samples of some scenes: ``(input (C, n, n) float32, target (n, n) int64)`` pairs."""
 
-    def __init__(self, root: str | os.PathLike, scenes: Sequence[str], grid: GridSpec, flip: bool = False, with_irm: bool = False):
+    def __init__(
+        self,
+        root: str | os.PathLike,
+        scenes: Sequence[str],
+        grid: GridSpec,
+        flip: bool = False,
+        with_irm: bool = False,
+    ):
         self.root = Path(root)
         self.grid = grid
         self.flip = flip
@@ -194,9 +221,16 @@ class RadarDataset(Dataset):
         for si, name in enumerate(scenes):
             files = _scene_files(self.root, name)
             if not files["done"].exists():
-                raise FileNotFoundError(f"scene {name!r} is not cached under {self.root} (run build_cache first)")
+                raise FileNotFoundError(
+                    f"scene {name!r} is not cached under {self.root} (run build_cache first)"
+                )
             offsets = np.load(files["offsets"])
-            entry = {"det": files["det"], "offsets": offsets, "target": files["target"], "irm": files["irm"]}
+            entry = {
+                "det": files["det"],
+                "offsets": offsets,
+                "target": files["target"],
+                "irm": files["irm"],
+            }
             self._scenes.append(entry)
             self._index += [(si, k) for k in range(len(offsets) - 1)]
         self._open: dict[int, dict[str, np.ndarray]] = {}
@@ -208,7 +242,10 @@ class RadarDataset(Dataset):
         # memory-mapped lazily in each worker process
         if si not in self._open:
             e = self._scenes[si]
-            d = {"det": np.load(e["det"], mmap_mode="r"), "target": np.load(e["target"], mmap_mode="r")}
+            d = {
+                "det": np.load(e["det"], mmap_mode="r"),
+                "target": np.load(e["target"], mmap_mode="r"),
+            }
             if self.with_irm:
                 d["irm"] = np.load(e["irm"], mmap_mode="r")
             self._open[si] = d
@@ -234,6 +271,7 @@ class RadarDataset(Dataset):
 
 
 # --- training -----------------------------------------------------------------------------------
+
 
 @dataclass
 class TrainResult:
@@ -271,7 +309,9 @@ def _dist() -> tuple[int, int, int]:
 
 
 @torch.no_grad()
-def evaluate_model(model: torch.nn.Module, loader: DataLoader, device: torch.device) -> tuple[dict[str, float], dict[str, float], float]:
+def evaluate_model(
+    model: torch.nn.Module, loader: DataLoader, device: torch.device
+) -> tuple[dict[str, float], dict[str, float], float]:
     """Per-class IoU of the model's cell classes and of the ray IRM's, against the ray ILM targets; mean loss."""
     from evgrid.evaluate import classify
     from evgrid.mass import from_evidence
@@ -289,7 +329,13 @@ def evaluate_model(model: torch.nn.Module, loader: DataLoader, device: torch.dev
             for k in range(3):
                 inter[key][k] += np.count_nonzero((p == k) & (ref == k))
                 union[key][k] += np.count_nonzero((p == k) | (ref == k))
-    out = {key: {c: (inter[key][k] / union[key][k] if union[key][k] else math.nan) for k, c in enumerate(CLASSES)} for key in inter}
+    out = {
+        key: {
+            c: (inter[key][k] / union[key][k] if union[key][k] else math.nan)
+            for k, c in enumerate(CLASSES)
+        }
+        for key in inter
+    }
     return out["deep"], out["irm"], float(np.mean(losses)) if losses else math.nan
 
 
@@ -312,7 +358,9 @@ def train(
     out = Path(out_dir)
     if rank == 0:
         out.mkdir(parents=True, exist_ok=True)
-        atomic_write(out / "config.json", lambda f: f.write(json.dumps(config.to_dict(), indent=2).encode()))
+        atomic_write(
+            out / "config.json", lambda f: f.write(json.dumps(config.to_dict(), indent=2).encode())
+        )
     _seed_all(config.seed + rank)
     if config.threads:
         torch.set_num_threads(config.threads)
@@ -324,15 +372,28 @@ def train(
     if world > 1:
         from torch.utils.data.distributed import DistributedSampler
 
-        sampler = DistributedSampler(train_ds, num_replicas=world, rank=rank, seed=config.seed, shuffle=True)
+        sampler = DistributedSampler(
+            train_ds, num_replicas=world, rank=rank, seed=config.seed, shuffle=True
+        )
     g = torch.Generator()
     g.manual_seed(config.seed)
     loader = DataLoader(
-        train_ds, batch_size=config.batch_size, shuffle=sampler is None, sampler=sampler, num_workers=config.workers,
-        worker_init_fn=_worker_init, generator=g, drop_last=len(train_ds) >= config.batch_size,
+        train_ds,
+        batch_size=config.batch_size,
+        shuffle=sampler is None,
+        sampler=sampler,
+        num_workers=config.workers,
+        worker_init_fn=_worker_init,
+        generator=g,
+        drop_last=len(train_ds) >= config.batch_size,
         persistent_workers=config.workers > 0,
     )
-    val_loader = DataLoader(val_ds, batch_size=config.batch_size, num_workers=config.workers, worker_init_fn=_worker_init)
+    val_loader = DataLoader(
+        val_ds,
+        batch_size=config.batch_size,
+        num_workers=config.workers,
+        worker_init_fn=_worker_init,
+    )
 
     model = EvNet(config.model).to(device)
     opt = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
@@ -354,13 +415,19 @@ def train(
         model.load_state_dict(st["model"])
         opt.load_state_dict(st["optimizer"])
         sched.load_state_dict(st["scheduler"])
-        start_epoch, best_score, best_epoch = int(st["epoch"]) + 1, float(st["best_score"]), int(st["best_epoch"])
+        start_epoch, best_score, best_epoch = (
+            int(st["epoch"]) + 1,
+            float(st["best_score"]),
+            int(st["best_epoch"]),
+        )
         best = json.loads(st["best"])
         baseline = json.loads(st["baseline"])
         torch.set_rng_state(st["rng"])
     net = model
     if world > 1:
-        net = torch.nn.parallel.DistributedDataParallel(model, device_ids=[local_rank] if device.type == "cuda" else None)
+        net = torch.nn.parallel.DistributedDataParallel(
+            model, device_ids=[local_rank] if device.type == "cuda" else None
+        )
 
     writer = None
     if rank == 0:
@@ -371,7 +438,12 @@ def train(
         except Exception:  # tensorboard is optional; the CSV log always exists
             writer = None
     csv_path = out / "metrics.csv"
-    fields = ["epoch", "train_loss", "val_loss"] + [f"val_{c}" for c in CLASSES] + [f"ray_irm_{c}" for c in CLASSES] + ["lr", "seconds"]
+    fields = (
+        ["epoch", "train_loss", "val_loss"]
+        + [f"val_{c}" for c in CLASSES]
+        + [f"ray_irm_{c}" for c in CLASSES]
+        + ["lr", "seconds"]
+    )
     epoch_times = []
     for epoch in range(start_epoch, config.epochs):
         if sampler is not None:
@@ -399,9 +471,15 @@ def train(
             continue
         val, irm, val_loss = evaluate_model(model, val_loader, device)
         baseline = irm
-        row = {"epoch": epoch, "train_loss": float(np.mean(losses)) if losses else math.nan, "val_loss": val_loss,
-               **{f"val_{c}": val[c] for c in CLASSES}, **{f"ray_irm_{c}": irm[c] for c in CLASSES},
-               "lr": sched.get_last_lr()[0], "seconds": seconds}
+        row = {
+            "epoch": epoch,
+            "train_loss": float(np.mean(losses)) if losses else math.nan,
+            "val_loss": val_loss,
+            **{f"val_{c}": val[c] for c in CLASSES},
+            **{f"ray_irm_{c}": irm[c] for c in CLASSES},
+            "lr": sched.get_last_lr()[0],
+            "seconds": seconds,
+        }
         new = not csv_path.exists() or epoch == 0
         with open(csv_path, "w" if new else "a", newline="") as f:
             w = csv.DictWriter(f, fieldnames=fields)
@@ -413,15 +491,29 @@ def train(
                 if k != "epoch":
                     writer.add_scalar(k, v, epoch)
         score = float(np.nanmean([val[c] for c in CLASSES]))
-        extra = {"epoch": epoch, "val_iou": val, "ray_irm_iou": irm, "grid": config.grid.to_dict(), "config": config.to_dict(),
-                 "radar_filter": config.radar_filter.to_dict()}
+        extra = {
+            "epoch": epoch,
+            "val_iou": val,
+            "ray_irm_iou": irm,
+            "grid": config.grid.to_dict(),
+            "config": config.to_dict(),
+            "radar_filter": config.radar_filter.to_dict(),
+        }
         save_checkpoint(model, out / "last.safetensors", extra)
         if score > best_score:
             best_score, best_epoch, best = score, epoch, val
             save_checkpoint(model, out / "best.safetensors", extra)
-        st = {"model": model.state_dict(), "optimizer": opt.state_dict(), "scheduler": sched.state_dict(), "epoch": epoch,
-              "best_score": best_score, "best_epoch": best_epoch, "best": json.dumps(best), "baseline": json.dumps(baseline),
-              "rng": torch.get_rng_state()}
+        st = {
+            "model": model.state_dict(),
+            "optimizer": opt.state_dict(),
+            "scheduler": sched.state_dict(),
+            "epoch": epoch,
+            "best_score": best_score,
+            "best_epoch": best_epoch,
+            "best": json.dumps(best),
+            "baseline": json.dumps(baseline),
+            "rng": torch.get_rng_state(),
+        }
         import io
 
         buf = io.BytesIO()
@@ -436,5 +528,6 @@ def train(
 
         dist.barrier()
         dist.destroy_process_group()
-    return TrainResult(out, best_epoch, best, baseline, float(np.mean(epoch_times)) if epoch_times else math.nan)
-
+    return TrainResult(
+        out, best_epoch, best, baseline, float(np.mean(epoch_times)) if epoch_times else math.nan
+    )

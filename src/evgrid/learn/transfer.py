@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import os
 import re
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
-from typing import Callable
 
 import torch
 from torch.utils.data import DataLoader
@@ -30,10 +30,15 @@ IN_RANGE = "in range (drawn per scene)"
 CALIBRATED = "calibrated radar"
 
 
-def transfer_sources(n_scenes: int, first_seed: int, duration_s: float, ranges: RadarRanges = TRAINING_RANGES) -> dict[str, SimSource]:
+def transfer_sources(
+    n_scenes: int, first_seed: int, duration_s: float, ranges: RadarRanges = TRAINING_RANGES
+) -> dict[str, SimSource]:
     """The held-out (``val``) scenes seen through radars in ``ranges``, the calibrated radar, and every out-of-range radar."""
     seeds = SimSource.split("val", n_scenes, first_seed, duration_s).seeds
-    sets = {IN_RANGE: SimSource(seeds, duration_s, radar_ranges=ranges), CALIBRATED: SimSource(seeds, duration_s, radar=NOMINAL)}
+    sets = {
+        IN_RANGE: SimSource(seeds, duration_s, radar_ranges=ranges),
+        CALIBRATED: SimSource(seeds, duration_s, radar=NOMINAL),
+    }
     sets.update({name: SimSource(seeds, duration_s, radar=v) for name, v in OUT_OF_RANGE.items()})
     return sets
 
@@ -43,8 +48,11 @@ def _slug(name: str) -> str:
 
 
 def measure_transfer(
-    checkpoint: str | os.PathLike, sources: dict[str, SimSource], cache_root: str | os.PathLike,
-    ranges: RadarRanges = TRAINING_RANGES, progress: Callable[[str], None] | None = None,
+    checkpoint: str | os.PathLike,
+    sources: dict[str, SimSource],
+    cache_root: str | os.PathLike,
+    ranges: RadarRanges = TRAINING_RANGES,
+    progress: Callable[[str], None] | None = None,
 ) -> dict[str, dict]:
     """Per radar set: the deep IRM's and the ray IRM's single-frame IoU per class, the samples
     scored, and which parameters lie outside ``ranges``."""
@@ -54,7 +62,11 @@ def measure_transfer(
     # self-return filter); the radar of each set is its source's, not the training's ranges
     saved = ck.extra.get("config")
     if saved is not None:
-        config = replace(from_dict(TrainConfig, saved, f"{checkpoint}: training config"), workers=0, radar_ranges=None)
+        config = replace(
+            from_dict(TrainConfig, saved, f"{checkpoint}: training config"),
+            workers=0,
+            radar_ranges=None,
+        )
     else:  # checkpoints written before the whole training config was saved
         config = TrainConfig(workers=0)
         if "radar_filter" in ck.extra:
@@ -67,8 +79,14 @@ def measure_transfer(
         deep, irm, _ = evaluate_model(model, DataLoader(ds, batch_size=4), torch.device("cpu"))
         variant = src.radar
         outside = ranges.outside(variant) if variant is not None else []
-        results[name] = {"deep_irm": deep, "ray_irm": irm, "samples": len(ds), "scenes": len(names),
-                         "outside_training": outside, "radar": variant.to_dict() if variant is not None else ranges.to_dict()}
+        results[name] = {
+            "deep_irm": deep,
+            "ray_irm": irm,
+            "samples": len(ds),
+            "scenes": len(names),
+            "outside_training": outside,
+            "radar": variant.to_dict() if variant is not None else ranges.to_dict(),
+        }
         if progress:
             progress(name)
     return results
@@ -77,10 +95,14 @@ def measure_transfer(
 def transfer_markdown(results: dict[str, dict]) -> str:
     """The results of :func:`measure_transfer` as a Markdown table (IoU in %)."""
     pct = lambda x: "-" if x != x else f"{100 * x:.1f}"  # noqa: E731  (NaN: a class absent)
-    lines = ["| radar | outside training | deep IRM free | occupied | unknown | ray IRM free | occupied | unknown | samples |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "| radar | outside training | deep IRM free | occupied | unknown | ray IRM free | occupied | unknown | samples |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
     for name, r in results.items():
         d, i = r["deep_irm"], r["ray_irm"]
-        lines.append(f"| {name} | {', '.join(r['outside_training']) or '-'} | {pct(d['free'])} | {pct(d['occupied'])} | "
-                     f"{pct(d['unknown'])} | {pct(i['free'])} | {pct(i['occupied'])} | {pct(i['unknown'])} | {r['samples']} |")
+        lines.append(
+            f"| {name} | {', '.join(r['outside_training']) or '-'} | {pct(d['free'])} | {pct(d['occupied'])} | "
+            f"{pct(d['unknown'])} | {pct(i['free'])} | {pct(i['occupied'])} | {pct(i['unknown'])} | {r['samples']} |"
+        )
     return "\n".join(lines) + "\n"

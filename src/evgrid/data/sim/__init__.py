@@ -5,10 +5,17 @@
 >>> frame = next(iter(scene))   # a Frame: lidar sweep, radar sweeps, ego pose, true occupancy
 """
 
+from evgrid.data.mounts import LIDAR_MOUNT, RADAR_MOUNTS, SENSOR_MOUNTS, SensorMount
 from evgrid.data.sim.config import EgoConfig, LidarConfig, RadarConfig, SimConfig, WorldConfig
 from evgrid.data.sim.radar import RADAR_CLUTTER, RADAR_GHOST, RADAR_LABEL_NAMES, RADAR_REAL
-from evgrid.data.sim.scene import OCC_DYNAMIC, OCC_FREE, OCC_STATIC, SimScene, scene_name, simulate_scene
-from evgrid.data.mounts import LIDAR_MOUNT, RADAR_MOUNTS, SENSOR_MOUNTS, SensorMount
+from evgrid.data.sim.scene import (
+    OCC_DYNAMIC,
+    OCC_FREE,
+    OCC_STATIC,
+    SimScene,
+    scene_name,
+    simulate_scene,
+)
 from evgrid.data.sim.world import World
 
 __all__ = [

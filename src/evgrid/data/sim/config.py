@@ -10,7 +10,16 @@ from evgrid.data.frame import RADAR_CHANNELS
 from evgrid.geometry import GridSpec
 from evgrid.validation import check_choice, check_int, check_number
 
-__all__ = ["LidarConfig", "RadarConfig", "EgoConfig", "WorldConfig", "SweepFaults", "RigConfig", "SimConfig", "ENVIRONMENTS"]
+__all__ = [
+    "LidarConfig",
+    "RadarConfig",
+    "EgoConfig",
+    "WorldConfig",
+    "SweepFaults",
+    "RigConfig",
+    "SimConfig",
+    "ENVIRONMENTS",
+]
 
 #: Procedural environments; ``"mixed"`` picks urban or suburban from the seed.
 ENVIRONMENTS: tuple[str, ...] = ("urban", "suburban", "mixed")
@@ -63,7 +72,9 @@ class LidarConfig:
         _positive(o, "max_range_m", self.max_range_m)
         _positive(o, "min_range_m", self.min_range_m, allow_zero=True)
         if self.min_range_m >= self.max_range_m:
-            raise ValueError(f"{o}.min_range_m ({self.min_range_m!r}) must be below max_range_m ({self.max_range_m!r})")
+            raise ValueError(
+                f"{o}.min_range_m ({self.min_range_m!r}) must be below max_range_m ({self.max_range_m!r})"
+            )
         _positive(o, "range_noise_m", self.range_noise_m, allow_zero=True)
         _fraction(o, "dropout", self.dropout)
         _positive(o, "power_threshold", self.power_threshold)
@@ -183,11 +194,17 @@ class RadarConfig:
         if not isinstance(self.swerling, bool):
             raise ValueError(f"{o}.swerling must be True or False, got {self.swerling!r}")
         if self.fov_deg > 90.0 or self.far_fov_deg > self.fov_deg:
-            raise ValueError(f"{o} needs far_fov_deg <= fov_deg <= 90, got {self.far_fov_deg!r}, {self.fov_deg!r}")
+            raise ValueError(
+                f"{o} needs far_fov_deg <= fov_deg <= 90, got {self.far_fov_deg!r}, {self.fov_deg!r}"
+            )
         if self.edge_range_m > self.max_range_m:
-            raise ValueError(f"{o}.edge_range_m ({self.edge_range_m!r}) must not exceed max_range_m ({self.max_range_m!r})")
+            raise ValueError(
+                f"{o}.edge_range_m ({self.edge_range_m!r}) must not exceed max_range_m ({self.max_range_m!r})"
+            )
         if self.far_min_range_m >= self.far_range_m:
-            raise ValueError(f"{o}.far_min_range_m ({self.far_min_range_m!r}) must be below far_range_m ({self.far_range_m!r})")
+            raise ValueError(
+                f"{o}.far_min_range_m ({self.far_min_range_m!r}) must be below far_range_m ({self.far_range_m!r})"
+            )
         check_int(o, "max_detections", self.max_detections, min=1)
 
 
@@ -216,15 +233,21 @@ class EgoConfig:
         o = "EgoConfig"
         lo, hi = self.cruise_speed_mps
         if not (math.isfinite(lo) and math.isfinite(hi) and 0 < lo <= hi <= 30):
-            raise ValueError(f"{o}.cruise_speed_mps must be (lo, hi) with 0 < lo <= hi <= 30, got {self.cruise_speed_mps!r}")
+            raise ValueError(
+                f"{o}.cruise_speed_mps must be (lo, hi) with 0 < lo <= hi <= 30, got {self.cruise_speed_mps!r}"
+            )
         for name in ("max_accel_mps2", "max_decel_mps2", "max_lateral_accel_mps2"):
             _positive(o, name, getattr(self, name))
         for name in ("stop_probability", "start_at_rest_probability", "turn_probability"):
             _fraction(o, name, getattr(self, name))
         a, b = self.stop_duration_s
         if not (math.isfinite(a) and math.isfinite(b) and 0 <= a <= b):
-            raise ValueError(f"{o}.stop_duration_s must be (lo, hi) with 0 <= lo <= hi, got {self.stop_duration_s!r}")
-        _positive(o, "odometry_yaw_bias_std_deg_s", self.odometry_yaw_bias_std_deg_s, allow_zero=True)
+            raise ValueError(
+                f"{o}.stop_duration_s must be (lo, hi) with 0 <= lo <= hi, got {self.stop_duration_s!r}"
+            )
+        _positive(
+            o, "odometry_yaw_bias_std_deg_s", self.odometry_yaw_bias_std_deg_s, allow_zero=True
+        )
         _positive(o, "odometry_scale_std", self.odometry_scale_std, allow_zero=True)
 
 
@@ -243,7 +266,9 @@ class WorldConfig:
 
     def __post_init__(self) -> None:
         if self.environment not in ENVIRONMENTS:
-            raise ValueError(f"WorldConfig.environment must be one of {ENVIRONMENTS}, got {self.environment!r}")
+            raise ValueError(
+                f"WorldConfig.environment must be one of {ENVIRONMENTS}, got {self.environment!r}"
+            )
         _positive("WorldConfig", "traffic_density", self.traffic_density, allow_zero=True)
         check_choice("WorldConfig", "layout", self.layout, choices=LAYOUTS)
 
@@ -296,12 +321,18 @@ class RigConfig:
         if not all(isinstance(c, str) and c for c in chans) or len(set(chans)) != len(chans):
             raise ValueError(f"{o}.radar_channels must be distinct non-empty names, got {chans!r}")
         if self.radar_mounts and len(self.radar_mounts) != len(chans):
-            raise ValueError(f"{o}.radar_mounts must name one mount per channel ({len(chans)}), got {self.radar_mounts!r}")
+            raise ValueError(
+                f"{o}.radar_mounts must name one mount per channel ({len(chans)}), got {self.radar_mounts!r}"
+            )
         for m in self.mounts():
             if m not in RADAR_MOUNTS:
-                raise ValueError(f"{o}: no radar mount {m!r}; mounts are {tuple(RADAR_MOUNTS)} (set radar_mounts)")
+                raise ValueError(
+                    f"{o}: no radar mount {m!r}; mounts are {tuple(RADAR_MOUNTS)} (set radar_mounts)"
+                )
         if len(self.radar_rates_hz) not in (0, 1, len(chans)):
-            raise ValueError(f"{o}.radar_rates_hz must give one rate or one per channel, got {self.radar_rates_hz!r}")
+            raise ValueError(
+                f"{o}.radar_rates_hz must give one rate or one per channel, got {self.radar_rates_hz!r}"
+            )
         for r in self.radar_rates_hz:
             _positive(o, "radar_rates_hz", r)
         if not isinstance(self.faults, SweepFaults):
@@ -342,20 +373,33 @@ class SimConfig:
         o = "SimConfig"
         if not (math.isfinite(self.duration_s) and 0.0 < self.duration_s <= 600.0):
             raise ValueError(f"{o}.duration_s must be in (0, 600] seconds, got {self.duration_s!r}")
-        if self.keyframe_every is not None and (not isinstance(self.keyframe_every, int) or self.keyframe_every < 1):
-            raise ValueError(f"{o}.keyframe_every must be a positive integer, got {self.keyframe_every!r}")
+        if self.keyframe_every is not None and (
+            not isinstance(self.keyframe_every, int) or self.keyframe_every < 1
+        ):
+            raise ValueError(
+                f"{o}.keyframe_every must be a positive integer, got {self.keyframe_every!r}"
+            )
         if not isinstance(self.start_time_us, int) or self.start_time_us < 0:
-            raise ValueError(f"{o}.start_time_us must be a non-negative integer, got {self.start_time_us!r}")
+            raise ValueError(
+                f"{o}.start_time_us must be a non-negative integer, got {self.start_time_us!r}"
+            )
         if not isinstance(self.grid, GridSpec):
             raise ValueError(f"{o}.grid must be a GridSpec, got {type(self.grid).__name__}")
         if not (0.0 <= self.occupancy_z_min_m < self.occupancy_z_max_m):
             raise ValueError(
                 f"{o} needs 0 <= occupancy_z_min_m < occupancy_z_max_m, got {self.occupancy_z_min_m!r}, {self.occupancy_z_max_m!r}"
             )
-        for name, typ in (("lidar", LidarConfig), ("radar", RadarConfig), ("ego", EgoConfig), ("world", WorldConfig),
-                          ("rig", RigConfig)):
+        for name, typ in (
+            ("lidar", LidarConfig),
+            ("radar", RadarConfig),
+            ("ego", EgoConfig),
+            ("world", WorldConfig),
+            ("rig", RigConfig),
+        ):
             if not isinstance(getattr(self, name), typ):
-                raise ValueError(f"{o}.{name} must be a {typ.__name__}, got {type(getattr(self, name)).__name__}")
+                raise ValueError(
+                    f"{o}.{name} must be a {typ.__name__}, got {type(getattr(self, name)).__name__}"
+                )
 
     @property
     def keyframe_step(self) -> int:
@@ -376,7 +420,7 @@ class SimConfig:
         return d
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> "SimConfig":
+    def from_dict(cls, d: dict[str, Any]) -> SimConfig:
         """Inverse of :meth:`to_dict`; unknown keys raise ``ValueError`` naming them."""
         subs = {"lidar": LidarConfig, "radar": RadarConfig, "ego": EgoConfig, "world": WorldConfig}
         kwargs: dict[str, Any] = {}

@@ -22,10 +22,10 @@ import math
 import numba
 import numpy as np
 
+from evgrid.data.mounts import LIDAR_MOUNT, SensorMount
 from evgrid.data.sim import materials as M
 from evgrid.data.sim.config import LidarConfig
 from evgrid.data.sim.raycast import HIT_NONE, lidar_cast
-from evgrid.data.mounts import LIDAR_MOUNT, SensorMount
 from evgrid.data.sim.world import World
 
 __all__ = ["LidarModel", "EGO_BODY_BOXES", "EGO_HIT"]
@@ -41,7 +41,14 @@ EGO_BODY_BOXES: np.ndarray = np.array(
     [
         (-0.70, -0.88, 0.20, 3.45, 0.88, 1.00),  # body up to the bonnet and boot lid
         (0.10, -0.80, 1.00, 2.30, 0.80, 1.20),  # cabin up to the window line
-        (0.10, -0.58, 1.20, 2.30, 0.58, 1.48),  # upper cabin and roof (narrower: the windows lean in)
+        (
+            0.10,
+            -0.58,
+            1.20,
+            2.30,
+            0.58,
+            1.48,
+        ),  # upper cabin and roof (narrower: the windows lean in)
         (1.94, -0.78, 1.64, 2.45, 0.78, 1.74),  # sensor rack, front bar: 0.1 m below the lidar
         (-0.55, -0.78, 1.64, -0.06, 0.78, 1.74),  # sensor rack, rear bar
         (2.00, 0.88, 0.85, 2.20, 1.05, 1.10),  # left mirror
@@ -74,13 +81,21 @@ def _k_body_hits(origin, dirs, boxes, best, cos):  # pragma: no cover - compiled
                 cos[i] = abs(dirs[i, axis])
 
 
-def body_hits(origin: np.ndarray, dirs: np.ndarray, boxes: np.ndarray = EGO_BODY_BOXES) -> tuple[np.ndarray, np.ndarray]:
+def body_hits(
+    origin: np.ndarray, dirs: np.ndarray, boxes: np.ndarray = EGO_BODY_BOXES
+) -> tuple[np.ndarray, np.ndarray]:
     """First hit of rays on axis-aligned boxes (slab test): (distance along the unit ``dirs``,
     inf where none; |cosine| between the ray and the face it enters)."""
     flat = np.ascontiguousarray(dirs, dtype=np.float64).reshape(-1, 3)
     best = np.full(flat.shape[0], np.inf)
     cos = np.zeros(flat.shape[0])
-    _k_body_hits(np.asarray(origin, dtype=np.float64), flat, np.ascontiguousarray(boxes, dtype=np.float64), best, cos)
+    _k_body_hits(
+        np.asarray(origin, dtype=np.float64),
+        flat,
+        np.ascontiguousarray(boxes, dtype=np.float64),
+        best,
+        cos,
+    )
     return best.reshape(dirs.shape[:-1]), cos.reshape(dirs.shape[:-1])
 
 
@@ -117,7 +132,9 @@ class LidarModel:
         oz = self.mount.z
         syaw = eyaw + self.mount.yaw
         n_az = cfg.n_azimuth
-        az_s = (rng.uniform(0.0, 2 * math.pi / n_az) + np.arange(n_az) * (2 * math.pi / n_az)).astype(np.float64)
+        az_s = (
+            rng.uniform(0.0, 2 * math.pi / n_az) + np.arange(n_az) * (2 * math.pi / n_az)
+        ).astype(np.float64)
         az_s = np.mod(az_s + math.pi, 2 * math.pi) - math.pi
         seed = np.uint64(rng.integers(0, 2**63 - 1))
         nb = cfg.n_beams
@@ -126,10 +143,29 @@ class LidarModel:
         out_cos = np.empty((n_az, nb))
         idx = world.index
         lidar_cast(
-            ox, oy, oz, az_s + syaw, self.slopes, self.max_h,
-            world.boxes, world.classes, idx.start, idx.items, idx.x0, idx.y0, idx.cell, idx.nx, idx.ny,
-            dyn_boxes, dyn_classes.astype(np.int32), M.LIDAR_DENSITY, M.LIDAR_PASS, seed,
-            out_t, out_id, out_cos,
+            ox,
+            oy,
+            oz,
+            az_s + syaw,
+            self.slopes,
+            self.max_h,
+            world.boxes,
+            world.classes,
+            idx.start,
+            idx.items,
+            idx.x0,
+            idx.y0,
+            idx.cell,
+            idx.nx,
+            idx.ny,
+            dyn_boxes,
+            dyn_classes.astype(np.int32),
+            M.LIDAR_DENSITY,
+            M.LIDAR_PASS,
+            seed,
+            out_t,
+            out_id,
+            out_cos,
         )
         if cfg.self_returns:
             self._add_body(az_s, out_t, out_id, out_cos)
@@ -138,8 +174,21 @@ class LidarModel:
         hit = out_id != HIT_NONE
         rng3 = out_t / self.cos_e[None, :]
         # One reflectivity table: static boxes, then moving objects, then the ground.
-        refl_all = np.concatenate([world.reflectivity, dyn_reflectivity, [M.LIDAR_REFLECTIVITY[M.GROUND]], [_EGO_REFLECTIVITY]])
-        refl = refl_all[np.where(out_id >= 0, out_id, np.where(out_id == EGO_HIT, len(refl_all) - 1, len(refl_all) - 2))]
+        refl_all = np.concatenate(
+            [
+                world.reflectivity,
+                dyn_reflectivity,
+                [M.LIDAR_REFLECTIVITY[M.GROUND]],
+                [_EGO_REFLECTIVITY],
+            ]
+        )
+        refl = refl_all[
+            np.where(
+                out_id >= 0,
+                out_id,
+                np.where(out_id == EGO_HIT, len(refl_all) - 1, len(refl_all) - 2),
+            )
+        ]
         cosv = np.maximum(out_cos, 0.02)
         power = refl * cosv / np.maximum(rng3, 0.1) ** 2
         p_det = (1.0 - cfg.dropout) * (1.0 - np.exp(-power / cfg.power_threshold))
@@ -157,11 +206,18 @@ class LidarModel:
         pts[:, 4] = beams
         return pts, out_id[keep]
 
-    def _add_body(self, az_s: np.ndarray, out_t: np.ndarray, out_id: np.ndarray, out_cos: np.ndarray) -> None:
+    def _add_body(
+        self, az_s: np.ndarray, out_t: np.ndarray, out_id: np.ndarray, out_cos: np.ndarray
+    ) -> None:
         """Let the ego body stop the beams that meet it before the world (in place)."""
         m = self.mount
         az = az_s[:, None] + m.yaw  # beam azimuths in the ego frame
-        dirs = np.stack(np.broadcast_arrays(np.cos(az) * self.cos_e, np.sin(az) * self.cos_e, self.sin_e[None, :]), axis=-1)
+        dirs = np.stack(
+            np.broadcast_arrays(
+                np.cos(az) * self.cos_e, np.sin(az) * self.cos_e, self.sin_e[None, :]
+            ),
+            axis=-1,
+        )
         t3, cos = body_hits(np.array([m.x, m.y, m.z]), dirs)
         t = t3 * self.cos_e[None, :]  # horizontal distance, as out_t
         closer = np.isfinite(t) & ((out_id == HIT_NONE) | (t < out_t))

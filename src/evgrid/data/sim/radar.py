@@ -38,10 +38,10 @@ import math
 
 import numpy as np
 
+from evgrid.data.mounts import SensorMount
 from evgrid.data.sim import materials as M
 from evgrid.data.sim.config import RadarConfig
 from evgrid.data.sim.raycast import radar_cast
-from evgrid.data.mounts import SensorMount
 from evgrid.data.sim.world import World
 
 __all__ = ["RadarModel", "RADAR_REAL", "RADAR_CLUTTER", "RADAR_GHOST", "RADAR_LABEL_NAMES"]
@@ -55,8 +55,12 @@ RADAR_LABEL_NAMES: tuple[str, ...] = ("real", "clutter", "ghost")
 _K_HITS = 4
 
 
-def _choice(rng: np.random.Generator, values: tuple[int, ...], probs: tuple[float, ...], n: int) -> np.ndarray:
-    return np.asarray(values, dtype=np.float64)[rng.choice(len(values), size=n, p=np.asarray(probs) / sum(probs))]
+def _choice(
+    rng: np.random.Generator, values: tuple[int, ...], probs: tuple[float, ...], n: int
+) -> np.ndarray:
+    return np.asarray(values, dtype=np.float64)[
+        rng.choice(len(values), size=n, p=np.asarray(probs) / sum(probs))
+    ]
 
 
 class RadarModel:
@@ -74,15 +78,26 @@ class RadarModel:
         cfg = self.cfg
         a = np.abs(np.degrees(az))
         frac = np.clip((a - 45.0) / max(cfg.fov_deg - 45.0, 1e-6), 0.0, 1.0)
-        return np.where(a <= 45.0, cfg.max_range_m, cfg.max_range_m + frac * (cfg.edge_range_m - cfg.max_range_m))
+        return np.where(
+            a <= 45.0,
+            cfg.max_range_m,
+            cfg.max_range_m + frac * (cfg.edge_range_m - cfg.max_range_m),
+        )
 
-    def _snr(self, rcs_db: np.ndarray, rng_m: np.ndarray, az: np.ndarray, far: np.ndarray) -> np.ndarray:
+    def _snr(
+        self, rcs_db: np.ndarray, rng_m: np.ndarray, az: np.ndarray, far: np.ndarray
+    ) -> np.ndarray:
         cfg = self.cfg
         gain = -10.0 * (np.degrees(az) / cfg.fov_deg) ** 2 + np.where(far, cfg.far_gain_db, 0.0)
         return rcs_db + gain - 40.0 * np.log10(np.maximum(rng_m, 0.5) / cfg.reference_range_m)
 
     def _centre_probability(
-        self, kk: np.ndarray, rng_m: np.ndarray, far: np.ndarray, cos_inc: np.ndarray, size_m: np.ndarray | None = None
+        self,
+        kk: np.ndarray,
+        rng_m: np.ndarray,
+        far: np.ndarray,
+        cos_inc: np.ndarray,
+        size_m: np.ndarray | None = None,
     ) -> np.ndarray:
         """Chance that a simulated beam's hit on class ``kk`` at range ``rng_m`` (m), incidence
         cosine ``cos_inc``, on an object ``size_m`` (m) wide holds a scattering centre.
@@ -106,7 +121,9 @@ class RadarModel:
         cfg = self.cfg
         a = np.abs(np.degrees(az))
         near_az = np.interp(
-            a, [0.0, 45.0, max(cfg.fov_deg, 45.0 + 1e-6)], [cfg.azimuth_noise_deg, cfg.azimuth_noise_mid_deg, cfg.azimuth_noise_edge_deg]
+            a,
+            [0.0, 45.0, max(cfg.fov_deg, 45.0 + 1e-6)],
+            [cfg.azimuth_noise_deg, cfg.azimuth_noise_mid_deg, cfg.azimuth_noise_edge_deg],
         )
         sig_az = np.radians(np.where(far, cfg.far_azimuth_noise_deg, near_az))
         sig_r = np.where(far, cfg.far_range_noise_m, cfg.range_noise_m)
@@ -166,15 +183,39 @@ class RadarModel:
         reach = np.where(far, cfg.far_range_m, self.max_range(az))
         n_rays = len(az)
         gdx, gdy = np.cos(az + syaw), np.sin(az + syaw)
-        out = [np.empty((n_rays, _K_HITS)) for _ in range(3)] + [np.empty((n_rays, _K_HITS), np.int64)]
+        out = [np.empty((n_rays, _K_HITS)) for _ in range(3)] + [
+            np.empty((n_rays, _K_HITS), np.int64)
+        ]
         out_t, out_cos, out_nx, out_id = out
         out_ny = np.empty((n_rays, _K_HITS))
         idx = world.index
         dcls = dyn_classes.astype(np.int32)
         radar_cast(
-            np.full(n_rays, sx), np.full(n_rays, sy), np.full(n_rays, mt.z), gdx, gdy, reach, np.full(n_rays, -1, np.int64),
-            self.tan_beta, world.boxes, world.classes, idx.start, idx.items, idx.x0, idx.y0, idx.cell, idx.nx, idx.ny,
-            dyn_boxes, dcls, M.RADAR_OPAQUE, out_t, out_id, out_cos, out_nx, out_ny,
+            np.full(n_rays, sx),
+            np.full(n_rays, sy),
+            np.full(n_rays, mt.z),
+            gdx,
+            gdy,
+            reach,
+            np.full(n_rays, -1, np.int64),
+            self.tan_beta,
+            world.boxes,
+            world.classes,
+            idx.start,
+            idx.items,
+            idx.x0,
+            idx.y0,
+            idx.cell,
+            idx.nx,
+            idx.ny,
+            dyn_boxes,
+            dcls,
+            M.RADAR_OPAQUE,
+            out_t,
+            out_id,
+            out_cos,
+            out_nx,
+            out_ny,
         )
         n_static = world.n_static
         cls_all = np.concatenate([world.classes, dcls, [0]]).astype(np.int64)
@@ -182,7 +223,9 @@ class RadarModel:
         vel_all = np.concatenate([np.zeros((n_static, 2)), dyn_vel, np.zeros((1, 2))])
         box_all = np.concatenate([world.boxes, dyn_boxes, np.zeros((1, 8))])
 
-        def corner_gain(li: np.ndarray, kk: np.ndarray, px: np.ndarray, py: np.ndarray) -> np.ndarray:
+        def corner_gain(
+            li: np.ndarray, kk: np.ndarray, px: np.ndarray, py: np.ndarray
+        ) -> np.ndarray:
             # Vertical edges of flat-faced objects (building corners, vehicle corners) are the
             # strongest radar scatterers: dihedral returns and edge diffraction.
             b = box_all[li]
@@ -190,7 +233,9 @@ class RadarModel:
             lx = b[:, 2] * qx + b[:, 3] * qy
             ly = -b[:, 3] * qx + b[:, 2] * qy
             d = np.hypot(b[:, 4] - np.abs(lx), b[:, 5] - np.abs(ly))
-            return np.where(M.RADAR_SPECULAR[kk] > 0, cfg.corner_gain_db * np.exp(-((d / 0.6) ** 2)), 0.0)
+            return np.where(
+                M.RADAR_SPECULAR[kk] > 0, cfg.corner_gain_db * np.exp(-((d / 0.6) ** 2)), 0.0
+            )
 
         def lookup(ids: np.ndarray) -> np.ndarray:
             return np.where(ids >= 0, ids, len(cls_all) - 1)
@@ -210,17 +255,32 @@ class RadarModel:
             kk = cls_all[li]
             t = out_t[:, k]
             rcs = (
-                M.RADAR_RCS_DB[kk] + off_all[li]
+                M.RADAR_RCS_DB[kk]
+                + off_all[li]
                 + M.RADAR_SPECULAR[kk] * 20.0 * np.log10(np.maximum(out_cos[:, k], 0.05))
-                + corner_gain(li, kk, sx + gdx * np.where(valid, t, 0.0), sy + gdy * np.where(valid, t, 0.0))
+                + corner_gain(
+                    li, kk, sx + gdx * np.where(valid, t, 0.0), sy + gdy * np.where(valid, t, 0.0)
+                )
                 + self._fluctuation(rng, n_rays)
             )
             in_band = np.where(far, t >= cfg.far_min_range_m, t <= near_reach)
             size = 2.0 * np.maximum(box_all[li, 4], box_all[li, 5])
-            hit = valid & in_band & (rng.random(n_rays) < self._centre_probability(kk, t, far, out_cos[:, k], size))
+            hit = (
+                valid
+                & in_band
+                & (rng.random(n_rays) < self._centre_probability(kk, t, far, out_cos[:, k], size))
+            )
             if hit.any():
                 vt = vel_all[li[hit]]
-                sc.add(t[hit], az[hit], rcs[hit], far[hit], vt, RADAR_REAL, np.hypot(vt[:, 0], vt[:, 1]) > 0.2)
+                sc.add(
+                    t[hit],
+                    az[hit],
+                    rcs[hit],
+                    far[hit],
+                    vt,
+                    RADAR_REAL,
+                    np.hypot(vt[:, 0], vt[:, 1]) > 0.2,
+                )
             alive = valid & (rng.random(n_rays) < M.RADAR_TRANSMIT[kk])
 
         # Multipath ghosts: bounce the first hit on a mirroring surface once, specularly.
@@ -242,28 +302,64 @@ class RadarModel:
                 gnx = np.empty((len(g), 1))
                 gny = np.empty((len(g), 1))
                 radar_cast(
-                    wx, wy, np.full(len(g), mt.z), rdx, rdy, rem, first_ids[g], self.tan_beta,
-                    world.boxes, world.classes, idx.start, idx.items, idx.x0, idx.y0, idx.cell, idx.nx, idx.ny,
-                    dyn_boxes, dcls, M.RADAR_OPAQUE, gt, gid, gcos, gnx, gny,
+                    wx,
+                    wy,
+                    np.full(len(g), mt.z),
+                    rdx,
+                    rdy,
+                    rem,
+                    first_ids[g],
+                    self.tan_beta,
+                    world.boxes,
+                    world.classes,
+                    idx.start,
+                    idx.items,
+                    idx.x0,
+                    idx.y0,
+                    idx.cell,
+                    idx.nx,
+                    idx.ny,
+                    dyn_boxes,
+                    dcls,
+                    M.RADAR_OPAQUE,
+                    gt,
+                    gid,
+                    gcos,
+                    gnx,
+                    gny,
                 )
                 hitg = gid[:, 0] >= 0
                 li = lookup(gid[:, 0])
                 kk = cls_all[li]
                 total = first_t[g] + gt[:, 0]
                 rcs = (
-                    M.RADAR_RCS_DB[kk] + off_all[li]
+                    M.RADAR_RCS_DB[kk]
+                    + off_all[li]
                     + M.RADAR_SPECULAR[kk] * 20.0 * np.log10(np.maximum(gcos[:, 0], 0.05))
                     + self._fluctuation(rng, len(g))
                     - cfg.multipath_loss_db
                 )
-                p = M.RADAR_MIRROR[fk[g]] * cfg.multipath_probability * M.RADAR_SCATTER[kk] * cfg.scatter_probability
+                p = (
+                    M.RADAR_MIRROR[fk[g]]
+                    * cfg.multipath_probability
+                    * M.RADAR_SCATTER[kk]
+                    * cfg.scatter_probability
+                )
                 det = hitg & (total <= near_reach[g]) & (rng.random(len(g)) < p)
                 if det.any():
                     # The mirror image of the target moves with the mirrored velocity.
                     vt = vel_all[li[det]]
                     vn = vt[:, 0] * nx[det] + vt[:, 1] * ny[det]
                     vg = np.stack([vt[:, 0] - 2 * vn * nx[det], vt[:, 1] - 2 * vn * ny[det]], 1)
-                    sc.add(total[det], az[g][det], rcs[det], far[g][det], vg, RADAR_GHOST, np.hypot(vg[:, 0], vg[:, 1]) > 0.2)
+                    sc.add(
+                        total[det],
+                        az[g][det],
+                        rcs[det],
+                        far[g][det],
+                        vg,
+                        RADAR_GHOST,
+                        np.hypot(vg[:, 0], vg[:, 1]) > 0.2,
+                    )
 
         # False alarms: noise over the threshold, uniform over the range-azimuth cells, mostly
         # without ground speed (CFAR on a static scene), some with a random Doppler.
@@ -274,19 +370,39 @@ class RadarModel:
             moving = rng.random(n_c) < 0.2
             u = np.stack([np.cos(caz + syaw), np.sin(caz + syaw)], 1)
             vrad = np.where(moving, rng.normal(0.0, 3.0, n_c), 0.0)
-            sc.add(cr, caz, rng.normal(-8.0, 4.0, n_c), np.zeros(n_c, bool), u * vrad[:, None], RADAR_CLUTTER, moving, forced=True)
+            sc.add(
+                cr,
+                caz,
+                rng.normal(-8.0, 4.0, n_c),
+                np.zeros(n_c, bool),
+                u * vrad[:, None],
+                RADAR_CLUTTER,
+                moving,
+                forced=True,
+            )
         # Road clutter: returns of the road surface, kerbs, drain covers and debris in the free
         # space in front of the first obstacle; static, strongest near the sensor (grazing angle).
         n_g = int(rng.poisson(cfg.road_clutter_rate)) if n_near else 0
         if n_g:
             gi = rng.integers(0, n_near, n_g)
-            rmax = np.minimum(np.where(first_valid[gi], first_t[gi], near_reach[gi]), near_reach[gi])
+            rmax = np.minimum(
+                np.where(first_valid[gi], first_t[gi], near_reach[gi]), near_reach[gi]
+            )
             gr = 1.0 + (rmax - 1.0) * rng.random(n_g) ** 2
             ok = rmax > 1.5
             if ok.any():
                 m = int(ok.sum())
-                sc.add(gr[ok], az[gi][ok], rng.normal(-10.0, 3.0, m), np.zeros(m, bool), np.zeros((m, 2)), RADAR_CLUTTER,
-                       np.zeros(m, bool), forced=True, real_flags=True)
+                sc.add(
+                    gr[ok],
+                    az[gi][ok],
+                    rng.normal(-10.0, 3.0, m),
+                    np.zeros(m, bool),
+                    np.zeros((m, 2)),
+                    RADAR_CLUTTER,
+                    np.zeros(m, bool),
+                    forced=True,
+                    real_flags=True,
+                )
 
         self.last_truth = np.zeros((0, 3))
         if not sc:
@@ -297,7 +413,14 @@ class RadarModel:
         if len(r) > cfg.max_detections:
             keep = np.argsort(-snr, kind="stable")[: cfg.max_detections]
             r, a, rcs, vt, lab, is_mover, real_flags, truth = (
-                r[keep], a[keep], rcs[keep], vt[keep], lab[keep], is_mover[keep], real_flags[keep], truth[keep]
+                r[keep],
+                a[keep],
+                rcs[keep],
+                vt[keep],
+                lab[keep],
+                is_mover[keep],
+                real_flags[keep],
+                truth[keep],
             )
         n = len(r)
         # Radial velocities along the line of sight to the cluster.
@@ -327,12 +450,16 @@ class RadarModel:
         pts[:, 6] = v_comp * ca
         pts[:, 7] = v_comp * sa
         # Road clutter is a real reflection to the sensor: flagged like real detections.
-        pts[:, 8:12] = self._flags(rng, np.where(real_flags, RADAR_REAL, lab).astype(np.uint8), v_comp, is_mover, rcs_q, rm)
+        pts[:, 8:12] = self._flags(
+            rng, np.where(real_flags, RADAR_REAL, lab).astype(np.uint8), v_comp, is_mover, rcs_q, rm
+        )
         order = np.argsort(rm, kind="stable")
         self.last_truth = truth[order]
         return pts[order], lab[order]
 
-    def _merge(self, sc: dict[str, np.ndarray], syaw: float, vs: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, ...]:
+    def _merge(
+        self, sc: dict[str, np.ndarray], syaw: float, vs: np.ndarray, rng: np.random.Generator
+    ) -> tuple[np.ndarray, ...]:
         """Merge the scatterers of one resolution cell (range bin x azimuth bin x Doppler bin, per
         scan) into one cluster and detect it: position = power-weighted mean, RCS = summed power,
         label, velocity and truth of its strongest scatterer; detected with probability
@@ -342,13 +469,20 @@ class RadarModel:
         snr = self._snr(rcs, r, a, far)
         p = 10.0 ** (snr / 10.0)
         # Radial velocity relative to the sensor: the Doppler the cell is binned by.
-        vrad = (sc["vel"][:, 0] - vs[0]) * np.cos(a + syaw) + (sc["vel"][:, 1] - vs[1]) * np.sin(a + syaw)
+        vrad = (sc["vel"][:, 0] - vs[0]) * np.cos(a + syaw) + (sc["vel"][:, 1] - vs[1]) * np.sin(
+            a + syaw
+        )
         res_r = np.where(far, cfg.far_range_resolution_m, cfg.range_resolution_m)
         # Beams of a digital beamformer are evenly spaced in sin(azimuth): cells widen off boresight.
-        res_u = np.radians(np.where(far, cfg.far_azimuth_resolution_deg, cfg.azimuth_resolution_deg))
+        res_u = np.radians(
+            np.where(far, cfg.far_azimuth_resolution_deg, cfg.azimuth_resolution_deg)
+        )
         rb = np.clip(np.floor(r / res_r), 0, 8191).astype(np.int64)
         ub = np.clip(np.floor(np.sin(a) / res_u), -2047, 2047).astype(np.int64) + 2048
-        db = np.clip(np.floor(vrad / cfg.doppler_resolution_mps), -32767, 32767).astype(np.int64) + 32768
+        db = (
+            np.clip(np.floor(vrad / cfg.doppler_resolution_mps), -32767, 32767).astype(np.int64)
+            + 32768
+        )
         key = ((far.astype(np.int64) * 8192 + rb) * 4096 + ub) * 65536 + db
         _, inv = np.unique(key, return_inverse=True)
         inv = inv.ravel()
@@ -362,14 +496,33 @@ class RadarModel:
         top = order[first]  # the strongest scatterer of each cell, cells in order
         forced = np.bincount(inv, sc["forced"].astype(np.float64), n_cells) > 0
         snr_c = 10.0 * np.log10(psum)
-        det = forced | (rng.random(n_cells) < 1.0 / (1.0 + np.exp(-snr_c / cfg.detection_softness_db)))
+        det = forced | (
+            rng.random(n_cells) < 1.0 / (1.0 + np.exp(-snr_c / cfg.detection_softness_db))
+        )
         rcs_c = 10.0 * np.log10(np.bincount(inv, 10.0 ** (rcs / 10.0), n_cells))
         truth = np.stack([r[top], a[top], far[top].astype(np.float64)], 1)
         t = top[det]
-        return (rc[det], ac[det], rcs_c[det], snr_c[det], sc["vel"][t], sc["lab"][t], sc["mover"][t], sc["real_flags"][t], truth[det])
+        return (
+            rc[det],
+            ac[det],
+            rcs_c[det],
+            snr_c[det],
+            sc["vel"][t],
+            sc["lab"][t],
+            sc["mover"][t],
+            sc["real_flags"][t],
+            truth[det],
+        )
 
     @staticmethod
-    def _flags(rng: np.random.Generator, lab: np.ndarray, v_comp: np.ndarray, mover: np.ndarray, rcs: np.ndarray, r: np.ndarray) -> np.ndarray:
+    def _flags(
+        rng: np.random.Generator,
+        lab: np.ndarray,
+        v_comp: np.ndarray,
+        mover: np.ndarray,
+        rcs: np.ndarray,
+        r: np.ndarray,
+    ) -> np.ndarray:
         """dyn_prop, ambig_state, invalid_state, pdh0 of each detection (ARS 408 codes)."""
         n = len(lab)
         out = np.zeros((n, 4))
@@ -378,12 +531,18 @@ class RadarModel:
         stopped = _choice(rng, (7, 1), (0.5, 0.5), n)
         dyn = np.where(moving_meas, np.where(v_comp > 0, 0, 2), np.where(mover, 6, stat))
         # A moving object standing still right now (waiting pedestrian): "stopped" or stationary.
-        dyn = np.where(~moving_meas & mover & (lab == RADAR_REAL) & (np.abs(v_comp) < 0.1), stopped, dyn)
+        dyn = np.where(
+            ~moving_meas & mover & (lab == RADAR_REAL) & (np.abs(v_comp) < 0.1), stopped, dyn
+        )
         out[:, 0] = dyn
         real = lab == RADAR_REAL
         ghost = lab == RADAR_GHOST
         clutter = lab == RADAR_CLUTTER
-        out[:, 1] = np.where(clutter, _choice(rng, (3, 1, 2, 4), (0.7, 0.15, 0.05, 0.1), n), _choice(rng, (3, 4, 1), (0.93, 0.04, 0.03), n))
+        out[:, 1] = np.where(
+            clutter,
+            _choice(rng, (3, 1, 2, 4), (0.7, 0.15, 0.05, 0.1), n),
+            _choice(rng, (3, 4, 1), (0.93, 0.04, 0.03), n),
+        )
         inv_real = np.where(
             rcs < -3.0,
             _choice(rng, (4, 0), (0.5, 0.5), n),
@@ -391,13 +550,19 @@ class RadarModel:
         )
         inv_ghost = _choice(rng, (0, 6, 12), (0.65, 0.25, 0.10), n)
         inv_clutter = np.where(
-            r < 3.0, _choice(rng, (0, 2, 1), (0.5, 0.3, 0.2), n), _choice(rng, (0, 1, 14, 12), (0.6, 0.2, 0.05, 0.15), n)
+            r < 3.0,
+            _choice(rng, (0, 2, 1), (0.5, 0.3, 0.2), n),
+            _choice(rng, (0, 1, 14, 12), (0.6, 0.2, 0.05, 0.15), n),
         )
         out[:, 2] = np.where(real, inv_real, np.where(ghost, inv_ghost, inv_clutter))
         out[:, 3] = np.where(
             real,
             _choice(rng, (1, 2, 3), (0.9, 0.07, 0.03), n),
-            np.where(ghost, _choice(rng, (1, 2, 3, 4), (0.6, 0.2, 0.1, 0.1), n), _choice(rng, (1, 2, 3, 4, 5), (0.5, 0.2, 0.15, 0.1, 0.05), n)),
+            np.where(
+                ghost,
+                _choice(rng, (1, 2, 3, 4), (0.6, 0.2, 0.1, 0.1), n),
+                _choice(rng, (1, 2, 3, 4, 5), (0.5, 0.2, 0.15, 0.1, 0.05), n),
+            ),
         )
         return out
 
@@ -414,11 +579,33 @@ class _Scatterers:
         """Whether any returns were added."""
         return bool(self._parts["r"])
 
-    def add(self, r: np.ndarray, a: np.ndarray, rcs: np.ndarray, far: np.ndarray, vel: np.ndarray, label: int,
-            mover: np.ndarray, forced: bool = False, real_flags: bool = False) -> None:
+    def add(
+        self,
+        r: np.ndarray,
+        a: np.ndarray,
+        rcs: np.ndarray,
+        far: np.ndarray,
+        vel: np.ndarray,
+        label: int,
+        mover: np.ndarray,
+        forced: bool = False,
+        real_flags: bool = False,
+    ) -> None:
         n = len(r)
-        for f, v in zip(self._FIELDS, (r, a, rcs, far, vel, np.full(n, label, np.uint8), mover, np.full(n, forced),
-                                       np.full(n, real_flags or label == RADAR_REAL))):
+        for f, v in zip(
+            self._FIELDS,
+            (
+                r,
+                a,
+                rcs,
+                far,
+                vel,
+                np.full(n, label, np.uint8),
+                mover,
+                np.full(n, forced),
+                np.full(n, real_flags or label == RADAR_REAL),
+            ),
+        ):
             self._parts[f].append(np.asarray(v))
 
     def arrays(self) -> dict[str, np.ndarray]:

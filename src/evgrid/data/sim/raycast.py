@@ -33,7 +33,16 @@ __all__ = [
 ]
 
 #: Columns of a packed box array.
-BOX_COLUMNS: tuple[str, ...] = ("cx", "cy", "cos_yaw", "sin_yaw", "half_length", "half_width", "z_min", "z_max")
+BOX_COLUMNS: tuple[str, ...] = (
+    "cx",
+    "cy",
+    "cos_yaw",
+    "sin_yaw",
+    "half_length",
+    "half_width",
+    "z_min",
+    "z_max",
+)
 
 #: Ray ids written by the kernels besides box indices.
 HIT_GROUND = -1
@@ -50,7 +59,15 @@ _S31 = np.uint64(31)
 _S11 = np.uint64(11)
 
 
-def pack_boxes(cx: np.ndarray, cy: np.ndarray, yaw: np.ndarray, hl: np.ndarray, hw: np.ndarray, zmin: np.ndarray, zmax: np.ndarray) -> np.ndarray:
+def pack_boxes(
+    cx: np.ndarray,
+    cy: np.ndarray,
+    yaw: np.ndarray,
+    hl: np.ndarray,
+    hw: np.ndarray,
+    zmin: np.ndarray,
+    zmax: np.ndarray,
+) -> np.ndarray:
     """Pack box parameters (m, rad) into the ``(n, 8)`` float64 layout of ``BOX_COLUMNS``."""
     out = np.empty((len(np.atleast_1d(cx)), 8), dtype=np.float64)
     out[:, 0] = cx
@@ -101,12 +118,22 @@ class GridIndex:
         self.y0 = float(ymin.min()) - cell
         self.nx = int(math.ceil((xmax.max() - self.x0) / cell)) + 2
         self.ny = int(math.ceil((ymax.max() - self.y0) / cell)) + 2
-        self.start, self.items = build_index(xmin, ymin, xmax, ymax, self.x0, self.y0, self.cell, self.nx, self.ny)
+        self.start, self.items = build_index(
+            xmin, ymin, xmax, ymax, self.x0, self.y0, self.cell, self.nx, self.ny
+        )
 
 
 @numba.njit(cache=True)
 def build_index(
-    xmin: np.ndarray, ymin: np.ndarray, xmax: np.ndarray, ymax: np.ndarray, x0: float, y0: float, cell: float, nx: int, ny: int
+    xmin: np.ndarray,
+    ymin: np.ndarray,
+    xmax: np.ndarray,
+    ymax: np.ndarray,
+    x0: float,
+    y0: float,
+    cell: float,
+    nx: int,
+    ny: int,
 ) -> tuple[np.ndarray, np.ndarray]:
     """CSR lists of the boxes whose bounding rectangles touch each grid cell (cell = ix * ny + iy)."""
     n = xmin.shape[0]
@@ -146,7 +173,9 @@ def _slab(p: float, d: float, half: float) -> tuple[bool, float, float]:
 
 
 @numba.njit(cache=True)
-def _slab2d(ox: float, oy: float, dx: float, dy: float, box: np.ndarray) -> tuple[float, float, int, float, float]:
+def _slab2d(
+    ox: float, oy: float, dx: float, dy: float, box: np.ndarray
+) -> tuple[float, float, int, float, float]:
     """Footprint entry/exit distances of a 2-D ray (unit direction), the entered face's axis
     (0: the box's length axis, 1: width axis) and the ray direction in box coordinates."""
     c = box[2]
@@ -372,13 +401,33 @@ def lidar_cast(
             rad = dboxes[k, 4] + dboxes[k, 5]
             if qx * dx + qy * dy < -rad or abs(qy * dx - qx * dy) > rad:
                 continue
-            _lidar_box(ox, oy, oz, dx, dy, dboxes[k], dclasses[k], n + k, density, pass_prob, seed, col,
-                       slopes, cos_e, sin_abs_e, best_t, best_id, best_c)
+            _lidar_box(
+                ox,
+                oy,
+                oz,
+                dx,
+                dy,
+                dboxes[k],
+                dclasses[k],
+                n + k,
+                density,
+                pass_prob,
+                seed,
+                col,
+                slopes,
+                cos_e,
+                sin_abs_e,
+                best_t,
+                best_id,
+                best_c,
+            )
         tlim = 0.0
         for j in range(nb):
             tlim = max(tlim, best_t[j])
         # Clip the ray to the index rectangle, then walk its cells (Amanatides & Woo).
-        t0, t1, ix, iy, stepx, stepy, tmx, tmy, tdx, tdy = _dda_start(ox, oy, dx, dy, tlim, gx0, gy0, gx1, gy1, cell, gnx, gny)
+        t0, t1, ix, iy, stepx, stepy, tmx, tmy, tdx, tdy = _dda_start(
+            ox, oy, dx, dy, tlim, gx0, gy0, gx1, gy1, cell, gnx, gny
+        )
         if t0 <= t1:
             tcur = t0
             while tcur <= tlim:
@@ -388,8 +437,26 @@ def lidar_cast(
                     if stamp[b] == col:
                         continue
                     stamp[b] = col
-                    _lidar_box(ox, oy, oz, dx, dy, boxes[b], classes[b], b, density, pass_prob, seed, col,
-                               slopes, cos_e, sin_abs_e, best_t, best_id, best_c)
+                    _lidar_box(
+                        ox,
+                        oy,
+                        oz,
+                        dx,
+                        dy,
+                        boxes[b],
+                        classes[b],
+                        b,
+                        density,
+                        pass_prob,
+                        seed,
+                        col,
+                        slopes,
+                        cos_e,
+                        sin_abs_e,
+                        best_t,
+                        best_id,
+                        best_c,
+                    )
                 tlim = 0.0
                 for j in range(nb):
                     tlim = max(tlim, best_t[j])
@@ -524,7 +591,23 @@ def radar_cast(
             rad = dboxes[k, 4] + dboxes[k, 5]
             if qx * ddx + qy * ddy < -rad or abs(qy * ddx - qx * ddy) > rad:
                 continue
-            _radar_box(px0, py0, pz0, ddx, ddy, tmax[r], tan_beta, dboxes[k], n + k, r, out_t, out_id, out_cos, out_nx, out_ny)
+            _radar_box(
+                px0,
+                py0,
+                pz0,
+                ddx,
+                ddy,
+                tmax[r],
+                tan_beta,
+                dboxes[k],
+                n + k,
+                r,
+                out_t,
+                out_id,
+                out_cos,
+                out_nx,
+                out_ny,
+            )
         t0, t1, ix, iy, stepx, stepy, tmx, tmy, tdx, tdy = _dda_start(
             px0, py0, ddx, ddy, tmax[r], gx0, gy0, gx1, gy1, cell, gnx, gny
         )
@@ -538,7 +621,23 @@ def radar_cast(
                 if stamp[b] == r or b == exclude[r]:
                     continue
                 stamp[b] = r
-                _radar_box(px0, py0, pz0, ddx, ddy, tmax[r], tan_beta, boxes[b], b, r, out_t, out_id, out_cos, out_nx, out_ny)
+                _radar_box(
+                    px0,
+                    py0,
+                    pz0,
+                    ddx,
+                    ddy,
+                    tmax[r],
+                    tan_beta,
+                    boxes[b],
+                    b,
+                    r,
+                    out_t,
+                    out_id,
+                    out_cos,
+                    out_nx,
+                    out_ny,
+                )
             # Nothing beyond the first opaque hit, or beyond a full buffer, can matter.
             lim = out_t[r, K - 1]
             for k in range(K):
@@ -579,7 +678,9 @@ def radar_cast(
 
 
 @numba.njit(cache=True)
-def rasterize_boxes(boxes: np.ndarray, labels: np.ndarray, n: int, res: float, out: np.ndarray) -> None:
+def rasterize_boxes(
+    boxes: np.ndarray, labels: np.ndarray, n: int, res: float, out: np.ndarray
+) -> None:
     """Mark the cells of an ``(n, n)`` ego-centred grid whose centres lie in each box footprint.
 
     ``boxes`` are in the ego frame (packed layout). A footprint thinner than a cell counts as

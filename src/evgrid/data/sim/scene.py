@@ -7,17 +7,17 @@ sweep index), so any frame can be produced alone, in any order, with the same by
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Iterator
 
 import numpy as np
 
 from evgrid.data.frame import LIDAR_CHANNEL, RADAR_CHANNELS, Frame, LidarSweep, RadarSweep
+from evgrid.data.mounts import LIDAR_MOUNT, RADAR_MOUNTS
 from evgrid.data.sim.config import SimConfig
 from evgrid.data.sim.lidar import LidarModel
 from evgrid.data.sim.radar import RadarModel
 from evgrid.data.sim.raycast import pack_boxes, rasterize_boxes
-from evgrid.data.mounts import LIDAR_MOUNT, RADAR_MOUNTS
 from evgrid.data.sim.trajectory import Trajectory
 from evgrid.data.sim.world import World, generate_world
 from evgrid.geometry import SE2, SE3
@@ -111,7 +111,9 @@ class SimScene:
         self._odo = self._make_odometry(rng)
         self._lidar = LidarModel(config.lidar, LIDAR_MOUNT)
         self._mounts = {ch: RADAR_MOUNTS[m] for ch, m in zip(self.radar_channels, rig.mounts())}
-        self._radars = {ch: RadarModel(config.radar, self._mounts[ch]) for ch in self.radar_channels}
+        self._radars = {
+            ch: RadarModel(config.radar, self._mounts[ch]) for ch in self.radar_channels
+        }
         self._labels: dict[tuple[str, int], np.ndarray] = {}
 
     # --- Scene protocol ---------------------------------------------------------------------
@@ -147,7 +149,11 @@ class SimScene:
     def _make_odometry(self, rng: np.random.Generator) -> _Odometry | None:
         eg = self.config.ego
         scale = float(rng.normal(0.0, eg.odometry_scale_std)) if eg.odometry_scale_std > 0 else 0.0
-        bias = float(np.radians(rng.normal(0.0, eg.odometry_yaw_bias_std_deg_s))) if eg.odometry_yaw_bias_std_deg_s > 0 else 0.0
+        bias = (
+            float(np.radians(rng.normal(0.0, eg.odometry_yaw_bias_std_deg_s)))
+            if eg.odometry_yaw_bias_std_deg_s > 0
+            else 0.0
+        )
         if scale == 0.0 and bias == 0.0:
             return None
         dt = 0.005
@@ -175,7 +181,11 @@ class SimScene:
         t = self.seconds(timestamp_us)
         o = self._odo
         yaw = float(np.interp(t, o.t, o.yaw))
-        return SE2(float(np.interp(t, o.t, o.x)), float(np.interp(t, o.t, o.y)), math.remainder(yaw, 2 * math.pi))
+        return SE2(
+            float(np.interp(t, o.t, o.x)),
+            float(np.interp(t, o.t, o.y)),
+            math.remainder(yaw, 2 * math.pi),
+        )
 
     def _ego_se3(self, timestamp_us: int) -> SE3:
         return SE3.from_se2(self.odometry_pose(timestamp_us), 0.0)
@@ -190,7 +200,12 @@ class SimScene:
         x, y, yaw = self.trajectory.pose_at(t)
         rng = np.random.default_rng([self.seed, 1, int(self.lidar_sweep_ids[i])])
         pts, hit = self._lidar.sweep(
-            self.world, boxes, self.world.movers.classes, self.world.mover_reflectivity, (float(x), float(y), float(yaw)), rng
+            self.world,
+            boxes,
+            self.world.movers.classes,
+            self.world.mover_reflectivity,
+            (float(x), float(y), float(yaw)),
+            rng,
         )
         sweep = LidarSweep(pts, LIDAR_MOUNT.sensor_to_ego(), self._ego_se3(ts), ts, LIDAR_CHANNEL)
         return sweep, hit
@@ -198,7 +213,9 @@ class SimScene:
     def radar_sweep(self, channel: str, j: int) -> tuple[RadarSweep, np.ndarray]:
         """Sweep ``j`` of a radar channel and its ground-truth labels (0 real, 1 clutter, 2 ghost)."""
         if channel not in self._radars:
-            raise ValueError(f"unknown radar channel {channel!r}; channels are {self.radar_channels}")
+            raise ValueError(
+                f"unknown radar channel {channel!r}; channels are {self.radar_channels}"
+            )
         ts = int(self.radar_timestamps[channel][j])
         t = self.seconds(ts)
         w = self.world
@@ -214,20 +231,35 @@ class SimScene:
         ci = RADAR_CHANNELS.index(channel) if channel in RADAR_CHANNELS else len(RADAR_CHANNELS) + k
         rng = np.random.default_rng([self.seed, 2, ci, j])
         pts, labels = self._radars[channel].sweep(
-            w, boxes, w.movers.classes, vel, w.mover_rcs_offset_db, (float(x), float(y), float(yaw)), (v, float(yr)), odo, rng
+            w,
+            boxes,
+            w.movers.classes,
+            vel,
+            w.mover_rcs_offset_db,
+            (float(x), float(y), float(yaw)),
+            (v, float(yr)),
+            odo,
+            rng,
         )
         self._labels[(channel, j)] = labels
-        return RadarSweep(pts, self._mounts[channel].sensor_to_ego(), self._ego_se3(ts), ts, channel), labels
+        return RadarSweep(
+            pts, self._mounts[channel].sensor_to_ego(), self._ego_se3(ts), ts, channel
+        ), labels
 
     def radar_sweep_indices(self, i: int) -> dict[str, np.ndarray]:
         """For frame ``i``, the indices of each channel's sweeps delivered with it (oldest first, unless
         the rig's faults repeat or delay some)."""
-        return {ch: np.array([j for f, j in d if f == i], dtype=np.int64) for ch, d in self._delivery.items()}
+        return {
+            ch: np.array([j for f, j in d if f == i], dtype=np.int64)
+            for ch, d in self._delivery.items()
+        }
 
     def radar_labels(self, channel: str, timestamp_us: int) -> np.ndarray:
         """Ground-truth labels (0 real, 1 clutter, 2 ghost) of the radar sweep at a timestamp."""
         if channel not in self.radar_timestamps:
-            raise ValueError(f"unknown radar channel {channel!r}; channels are {self.radar_channels}")
+            raise ValueError(
+                f"unknown radar channel {channel!r}; channels are {self.radar_channels}"
+            )
         hits = np.nonzero(self.radar_timestamps[channel] == int(timestamp_us))[0]
         if len(hits) == 0:
             raise KeyError(f"no {channel} sweep at timestamp {timestamp_us}")
@@ -253,8 +285,10 @@ class SimScene:
                 continue
             rad = boxes[:, 4] + boxes[:, 5]
             dxy = boxes[:, :2] - np.array([pose.x, pose.y])
-            sel = (np.hypot(dxy[:, 0], dxy[:, 1]) <= reach + rad) & (boxes[:, 6] < cfg.occupancy_z_max_m) & (
-                boxes[:, 7] > cfg.occupancy_z_min_m
+            sel = (
+                (np.hypot(dxy[:, 0], dxy[:, 1]) <= reach + rad)
+                & (boxes[:, 6] < cfg.occupancy_z_max_m)
+                & (boxes[:, 7] > cfg.occupancy_z_min_m)
             )
             if not sel.any():
                 continue
@@ -263,7 +297,9 @@ class SimScene:
             ly = -s * dxy[sel, 0] + c * dxy[sel, 1]
             b = boxes[sel]
             local = pack_boxes(lx, ly, yaw[sel] - pose.yaw, b[:, 4], b[:, 5], b[:, 6], b[:, 7])
-            rasterize_boxes(local, np.full(len(local), label, np.uint8), grid.n_cells, grid.resolution, out)
+            rasterize_boxes(
+                local, np.full(len(local), label, np.uint8), grid.n_cells, grid.resolution, out
+            )
         return out
 
     def frame(self, i: int) -> Frame:

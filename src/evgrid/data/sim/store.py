@@ -34,16 +34,24 @@ import json
 import os
 import zipfile
 import zlib
+from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Callable, Iterator
 
 import numpy as np
 
-from evgrid.data.frame import LIDAR_CHANNEL, LIDAR_COLUMNS, RADAR_CHANNELS, RADAR_COLUMNS, Frame, LidarSweep, RadarSweep
-from evgrid.io import atomic_open
+from evgrid.data.frame import (
+    LIDAR_CHANNEL,
+    LIDAR_COLUMNS,
+    RADAR_CHANNELS,
+    RADAR_COLUMNS,
+    Frame,
+    LidarSweep,
+    RadarSweep,
+)
 from evgrid.data.sim.materials import CLASS_NAMES
 from evgrid.data.sim.scene import SimScene
 from evgrid.geometry import SE3
+from evgrid.io import atomic_open
 
 __all__ = ["save_sim_scene", "load_sim_scene", "StoredScene", "SceneFileError", "SIM_NPZ_FORMAT"]
 
@@ -51,7 +59,9 @@ SIM_NPZ_FORMAT = "evgrid-sim-npz"
 _VERSION = 1
 
 
-def save_sim_scene(scene: SimScene, path: str | os.PathLike, on_frame: Callable[[int], None] | None = None) -> Path:
+def save_sim_scene(
+    scene: SimScene, path: str | os.PathLike, on_frame: Callable[[int], None] | None = None
+) -> Path:
     """Simulate every frame of ``scene`` and write it to ``path`` (``.npz``, atomically); returns the path."""
     if not isinstance(scene, SimScene):
         raise TypeError(f"save_sim_scene needs a SimScene, got {type(scene).__name__}")
@@ -64,7 +74,9 @@ def save_sim_scene(scene: SimScene, path: str | os.PathLike, on_frame: Callable[
     kf = np.zeros(n, dtype=bool)
     occ: list[np.ndarray] = []
     channels = tuple(scene.radar_channels)
-    radar: dict[str, dict[str, list]] = {c: {"ts": [], "poses": [], "pts": [], "labels": [], "frame": []} for c in channels}
+    radar: dict[str, dict[str, list]] = {
+        c: {"ts": [], "poses": [], "pts": [], "labels": [], "frame": []} for c in channels
+    }
     lidar_s2e = None
     radar_s2e: dict[str, np.ndarray] = {}
     for i, f in enumerate(scene):
@@ -119,9 +131,13 @@ def save_sim_scene(scene: SimScene, path: str | os.PathLike, on_frame: Callable[
     for ch, r in radar.items():
         arrays[f"radar_{ch}_timestamps"] = np.asarray(r["ts"], dtype=np.int64)
         arrays[f"radar_{ch}_ego_poses"] = np.asarray(r["poses"], dtype=np.float64).reshape(-1, 4, 4)
-        arrays[f"radar_{ch}_points"] = np.concatenate(r["pts"]) if r["pts"] else np.zeros((0, 12), np.float32)
+        arrays[f"radar_{ch}_points"] = (
+            np.concatenate(r["pts"]) if r["pts"] else np.zeros((0, 12), np.float32)
+        )
         arrays[f"radar_{ch}_offsets"] = offsets(r["pts"])
-        arrays[f"radar_{ch}_labels"] = np.concatenate(r["labels"]) if r["labels"] else np.zeros(0, np.uint8)
+        arrays[f"radar_{ch}_labels"] = (
+            np.concatenate(r["labels"]) if r["labels"] else np.zeros(0, np.uint8)
+        )
         arrays[f"radar_{ch}_frame"] = np.asarray(r["frame"], dtype=np.int64)
         arrays[f"radar_{ch}_sensor_to_ego"] = radar_s2e.get(ch, np.eye(4))
     with atomic_open(path, "wb") as fobj:
@@ -135,7 +151,9 @@ def _write_npz(fobj, arrays: dict[str, np.ndarray], stored: set[str]) -> None:
     with zipfile.ZipFile(fobj, "w", allowZip64=True) as zf:
         for name, arr in arrays.items():
             method = zipfile.ZIP_STORED if name in stored else zipfile.ZIP_DEFLATED
-            info = zipfile.ZipInfo(name + ".npy", date_time=(1980, 1, 1, 0, 0, 0))  # fixed: same seed, same bytes
+            info = zipfile.ZipInfo(
+                name + ".npy", date_time=(1980, 1, 1, 0, 0, 0)
+            )  # fixed: same seed, same bytes
             info.compress_type = method
             with zf.open(info, "w", force_zip64=True) as f:
                 np.lib.format.write_array(f, np.asanyarray(arr), allow_pickle=False)
@@ -200,7 +218,9 @@ class StoredScene:
     def radar_labels(self, channel: str, timestamp_us: int) -> np.ndarray:
         """Ground-truth labels (0 real, 1 clutter, 2 ghost) of the radar sweep at a timestamp."""
         if channel not in self.radar_channels:
-            raise ValueError(f"unknown radar channel {channel!r}; channels are {self.radar_channels}")
+            raise ValueError(
+                f"unknown radar channel {channel!r}; channels are {self.radar_channels}"
+            )
         d = self._d
         hits = np.nonzero(d[f"radar_{channel}_timestamps"] == int(timestamp_us))[0]
         if len(hits) == 0:
@@ -218,9 +238,16 @@ class StoredScene:
         off = d["lidar_offsets"]
         pose = SE3.from_matrix(d["ego_poses"][i])
         lidar = LidarSweep(
-            d["lidar_points"][off[i] : off[i + 1]], SE3.from_matrix(d["lidar_sensor_to_ego"]), pose, int(d["timestamps"][i]), LIDAR_CHANNEL
+            d["lidar_points"][off[i] : off[i + 1]],
+            SE3.from_matrix(d["lidar_sensor_to_ego"]),
+            pose,
+            int(d["timestamps"][i]),
+            LIDAR_CHANNEL,
         )
-        radar = {ch: tuple(self._radar(ch, j) for j in self._radar_by_frame[ch][i]) for ch in self.radar_channels}
+        radar = {
+            ch: tuple(self._radar(ch, j) for j in self._radar_by_frame[ch][i])
+            for ch in self.radar_channels
+        }
         kf = bool(d["is_keyframe"][i])
         return Frame(
             scene=self.name,
@@ -241,11 +268,15 @@ class SceneFileError(ValueError):
 def _read_arrays(path: Path) -> dict[str, np.ndarray]:
     """Every array of an ``.npz``; SceneFileError naming the file (and the array) for anything unreadable."""
     if path.stat().st_size == 0:
-        raise SceneFileError(f"{path}: the scene file is empty (0 bytes); simulate it again with `evgrid simulate`")
+        raise SceneFileError(
+            f"{path}: the scene file is empty (0 bytes); simulate it again with `evgrid simulate`"
+        )
     try:
         z = np.load(path, allow_pickle=False)
     except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError) as e:
-        raise SceneFileError(f"{path}: not a readable .npz scene file, truncated or corrupt ({e})") from e
+        raise SceneFileError(
+            f"{path}: not a readable .npz scene file, truncated or corrupt ({e})"
+        ) from e
     if not isinstance(z, np.lib.npyio.NpzFile):
         z_shape = getattr(z, "shape", None)
         raise SceneFileError(f"{path}: a single .npy array {z_shape}, not an .npz scene file")
@@ -259,20 +290,36 @@ def _read_arrays(path: Path) -> dict[str, np.ndarray]:
     return data
 
 
-def _require(path: Path, d: dict[str, np.ndarray], name: str, shape: tuple, kind: str) -> np.ndarray:
+def _require(
+    path: Path, d: dict[str, np.ndarray], name: str, shape: tuple, kind: str
+) -> np.ndarray:
     """Array ``name`` with ``shape`` (None for any length) of numpy kind ``kind``; SceneFileError otherwise."""
     a = d.get(name)
     if a is None:
-        raise SceneFileError(f"{path}: array {name!r} is missing; the file is not a complete evgrid scene")
-    if a.ndim != len(shape) or any(want is not None and got != want for got, want in zip(a.shape, shape)) or a.dtype.kind not in kind:
+        raise SceneFileError(
+            f"{path}: array {name!r} is missing; the file is not a complete evgrid scene"
+        )
+    if (
+        a.ndim != len(shape)
+        or any(want is not None and got != want for got, want in zip(a.shape, shape))
+        or a.dtype.kind not in kind
+    ):
         want = "(" + ", ".join("n" if w is None else str(w) for w in shape) + ")"
-        raise SceneFileError(f"{path}: array {name!r} has shape {a.shape} dtype {a.dtype}, expected {want} of kind {kind!r}")
+        raise SceneFileError(
+            f"{path}: array {name!r} has shape {a.shape} dtype {a.dtype}, expected {want} of kind {kind!r}"
+        )
     return a
 
 
 def _check_offsets(path: Path, name: str, off: np.ndarray, n_items: int, total: int) -> None:
-    if len(off) != n_items + 1 or (len(off) and (off[0] != 0 or off[-1] != total)) or (np.diff(off) < 0).any():
-        raise SceneFileError(f"{path}: array {name!r} does not index its {total} points in {n_items} pieces; the file is corrupt")
+    if (
+        len(off) != n_items + 1
+        or (len(off) and (off[0] != 0 or off[-1] != total))
+        or (np.diff(off) < 0).any()
+    ):
+        raise SceneFileError(
+            f"{path}: array {name!r} does not index its {total} points in {n_items} pieces; the file is corrupt"
+        )
 
 
 def _check_scene_arrays(path: Path, d: dict[str, np.ndarray]) -> None:
@@ -282,16 +329,26 @@ def _check_scene_arrays(path: Path, d: dict[str, np.ndarray]) -> None:
     _require(path, d, "true_poses", (n, 3), "f")
     kf = _require(path, d, "is_keyframe", (n,), "b")
     pts = _require(path, d, "lidar_points", (None, len(LIDAR_COLUMNS)), "f")
-    _check_offsets(path, "lidar_offsets", _require(path, d, "lidar_offsets", (None,), "i"), n, len(pts))
+    _check_offsets(
+        path, "lidar_offsets", _require(path, d, "lidar_offsets", (None,), "i"), n, len(pts)
+    )
     _require(path, d, "lidar_sensor_to_ego", (4, 4), "f")
     occ = _require(path, d, "occupancy", (None, None, None), "u")
     if len(occ) != int(kf.sum()):
-        raise SceneFileError(f"{path}: array 'occupancy' holds {len(occ)} keyframes, 'is_keyframe' marks {int(kf.sum())}")
+        raise SceneFileError(
+            f"{path}: array 'occupancy' holds {len(occ)} keyframes, 'is_keyframe' marks {int(kf.sum())}"
+        )
     for ch in RADAR_CHANNELS:
         m = len(_require(path, d, f"radar_{ch}_timestamps", (None,), "i"))
         _require(path, d, f"radar_{ch}_ego_poses", (m, 4, 4), "f")
         rp = _require(path, d, f"radar_{ch}_points", (None, len(RADAR_COLUMNS)), "f")
-        _check_offsets(path, f"radar_{ch}_offsets", _require(path, d, f"radar_{ch}_offsets", (None,), "i"), m, len(rp))
+        _check_offsets(
+            path,
+            f"radar_{ch}_offsets",
+            _require(path, d, f"radar_{ch}_offsets", (None,), "i"),
+            m,
+            len(rp),
+        )
         _require(path, d, f"radar_{ch}_labels", (len(rp),), "u")
         fr = _require(path, d, f"radar_{ch}_frame", (m,), "i")
         if m and (fr.min() < 0 or fr.max() >= n):
@@ -308,7 +365,9 @@ def load_sim_scene(path: str | os.PathLike) -> StoredScene:
     """
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"no simulated scene file at {str(path)!r} (write one with `evgrid simulate --out DIR`)")
+        raise FileNotFoundError(
+            f"no simulated scene file at {str(path)!r} (write one with `evgrid simulate --out DIR`)"
+        )
     data = _read_arrays(path)
     if "meta" not in data:
         raise SceneFileError(f"{path}: not an evgrid simulated scene (no 'meta' array)")
@@ -321,8 +380,16 @@ def load_sim_scene(path: str | os.PathLike) -> StoredScene:
     if meta.get("format") != SIM_NPZ_FORMAT:
         raise SceneFileError(f"{path}: format {meta.get('format')!r}, expected {SIM_NPZ_FORMAT!r}")
     if meta.get("version") != _VERSION:
-        raise SceneFileError(f"{path}: version {meta.get('version')!r} of the format; this evgrid reads version {_VERSION}")
-    if not isinstance(meta.get("name"), str) or isinstance(meta.get("seed"), bool) or not isinstance(meta.get("seed"), int):
-        raise SceneFileError(f"{path}: meta fields 'name' (text) and 'seed' (integer) are missing or invalid")
+        raise SceneFileError(
+            f"{path}: version {meta.get('version')!r} of the format; this evgrid reads version {_VERSION}"
+        )
+    if (
+        not isinstance(meta.get("name"), str)
+        or isinstance(meta.get("seed"), bool)
+        or not isinstance(meta.get("seed"), int)
+    ):
+        raise SceneFileError(
+            f"{path}: meta fields 'name' (text) and 'seed' (integer) are missing or invalid"
+        )
     _check_scene_arrays(path, data)
     return StoredScene(path, data, meta)

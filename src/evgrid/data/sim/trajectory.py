@@ -18,7 +18,16 @@ import numpy as np
 from evgrid.data.sim.config import EgoConfig
 from evgrid.geometry import SE2
 
-__all__ = ["StreetGrid", "Route", "Trajectory", "Warp", "make_street_grid", "plan_route", "build_trajectory", "LANE_OFFSET_M"]
+__all__ = [
+    "StreetGrid",
+    "Route",
+    "Trajectory",
+    "Warp",
+    "make_street_grid",
+    "plan_route",
+    "build_trajectory",
+    "LANE_OFFSET_M",
+]
 
 #: Distance of the right lane's centre line from the street's centre line, metres.
 LANE_OFFSET_M = 1.65
@@ -67,7 +76,7 @@ class Warp:
     MAX_SLOPE = 0.25
 
     @staticmethod
-    def draw(rng: np.random.Generator) -> "Warp":
+    def draw(rng: np.random.Generator) -> Warp:
         """Amplitudes up to 20 m and wavelengths 250-600 m, with slopes <= MAX_SLOPE."""
         out = []
         for _ in range(2):
@@ -80,13 +89,19 @@ class Warp:
 
     def apply(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Warped coordinates of city-frame points (m)."""
-        return x + self.ax * np.sin(self.kx * y + self.px), y + self.ay * np.sin(self.ky * x + self.py)
+        return x + self.ax * np.sin(self.kx * y + self.px), y + self.ay * np.sin(
+            self.ky * x + self.py
+        )
 
     def jacobian(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Off-diagonal terms (d wx / dy, d wy / dx) of the Jacobian; the diagonal is 1."""
-        return self.ax * self.kx * np.cos(self.kx * y + self.px), self.ay * self.ky * np.cos(self.ky * x + self.py)
+        return self.ax * self.kx * np.cos(self.kx * y + self.px), self.ay * self.ky * np.cos(
+            self.ky * x + self.py
+        )
 
-    def direction(self, x: np.ndarray, y: np.ndarray, yaw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def direction(
+        self, x: np.ndarray, y: np.ndarray, yaw: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Warped heading (rad, unwrapped next to ``yaw``) and stretch of a unit vector at ``yaw``."""
         a, b = self.jacobian(x, y)
         c, s = np.cos(yaw), np.sin(yaw)
@@ -125,7 +140,9 @@ class Route:
     start: np.ndarray
 
 
-def make_street_grid(rng: np.random.Generator, environment: str, extent_m: float, irregular: bool = False) -> StreetGrid:
+def make_street_grid(
+    rng: np.random.Generator, environment: str, extent_m: float, irregular: bool = False
+) -> StreetGrid:
     """Random street positions and widths covering ``[-extent_m, extent_m]^2`` (metres).
 
     ``irregular``: widths vary more from street to street (half widths 0.2 m narrower to 0.5 m wider, a fifth of the
@@ -149,7 +166,11 @@ def make_street_grid(rng: np.random.Generator, environment: str, extent_m: float
         hw = hw_lane + np.where(parking, park_w, shoulder)
         sidewalk = rng.uniform(*sw, size=len(c))
         if irregular:
-            hw = hw + rng.uniform(-0.2, 0.5, size=len(c)) + np.where(rng.random(len(c)) < 0.2, 3.3, 0.0)
+            hw = (
+                hw
+                + rng.uniform(-0.2, 0.5, size=len(c))
+                + np.where(rng.random(len(c)) < 0.2, 3.3, 0.0)
+            )
             sidewalk = sidewalk + rng.uniform(0.0, 2.0, size=len(c))
         return c, hw, sidewalk, parking
 
@@ -163,7 +184,9 @@ def _lane_coord(street_c: float, axis: int, d: int) -> float:
     return street_c - d * LANE_OFFSET_M if axis == 0 else street_c + d * LANE_OFFSET_M
 
 
-def plan_route(rng: np.random.Generator, grid: StreetGrid, length_m: float, cfg: EgoConfig) -> Route:
+def plan_route(
+    rng: np.random.Generator, grid: StreetGrid, length_m: float, cfg: EgoConfig
+) -> Route:
     """A random drive through the grid of at least ``length_m`` metres (city frame)."""
     axis = int(rng.integers(2))  # 0: along x on a street of ys; 1: along y on a street of xs
     d = 1 if rng.random() < 0.5 else -1
@@ -191,7 +214,9 @@ def plan_route(rng: np.random.Generator, grid: StreetGrid, length_m: float, cfg:
         # Skip the street just turned from (its centre is a lane offset away from pos).
         idx = np.nonzero(cross > pos + 5.0)[0] if d > 0 else np.nonzero(cross < pos - 5.0)[0]
         if len(idx) == 0:
-            raise RuntimeError("street grid too small for the route; this is a bug in the simulator")
+            raise RuntimeError(
+                "street grid too small for the route; this is a bug in the simulator"
+            )
         i = int(idx[0]) if d > 0 else int(idx[-1])
         c = float(cross[i])
         # The stop line: before the crosswalk that lines the cross street.
@@ -226,7 +251,9 @@ def plan_route(rng: np.random.Generator, grid: StreetGrid, length_m: float, cfg:
     return Route(points, radii, stop_points, stop_dwell, start)
 
 
-def _dense_path(points: list[np.ndarray], radii: list[float], ds: float = 0.25) -> tuple[np.ndarray, ...]:
+def _dense_path(
+    points: list[np.ndarray], radii: list[float], ds: float = 0.25
+) -> tuple[np.ndarray, ...]:
     """Polyline through ``points`` with circular fillets -> (s, x, y, yaw, kappa) samples."""
     pts = [np.asarray(p, dtype=np.float64) for p in points]
     xs: list[np.ndarray] = []
@@ -303,11 +330,13 @@ class Trajectory:
         #: The transform that took the city frame to this trajectory's frame.
         self.frame = frame
 
-    def transformed(self, tf: SE2) -> "Trajectory":
+    def transformed(self, tf: SE2) -> Trajectory:
         """The same trajectory with its path moved by ``tf`` (city -> global)."""
         xy = tf.apply(np.stack([self.path_x, self.path_y], axis=1))
         path = (self.path_s, xy[:, 0], xy[:, 1], self.path_yaw + tf.yaw, self.path_kappa)
-        return Trajectory(path, self.profile_t, self.profile_s, self.profile_v, self.s0, self.v0, tf @ self.frame)
+        return Trajectory(
+            path, self.profile_t, self.profile_s, self.profile_v, self.s0, self.v0, tf @ self.frame
+        )
 
     def s_at(self, t: np.ndarray | float) -> np.ndarray:
         """Arc length (m) along the path at time(s) ``t`` (s); linear before t = 0."""
@@ -356,7 +385,12 @@ class Trajectory:
 
 
 def build_trajectory(
-    rng: np.random.Generator, route: Route, cfg: EgoConfig, cruise: float, duration_s: float, warp: Warp | None = None
+    rng: np.random.Generator,
+    route: Route,
+    cfg: EgoConfig,
+    cruise: float,
+    duration_s: float,
+    warp: Warp | None = None,
 ) -> Trajectory:
     """Speed profile along the route: cruise speed, curve limits, stops, acceleration limits.
 
@@ -417,4 +451,6 @@ def build_trajectory(
             break
     if t_list[-1] < duration_s + 1.0:
         raise RuntimeError("route too short for the scene duration; this is a bug in the simulator")
-    return Trajectory(path, np.asarray(t_list), np.asarray(s_list), np.asarray(v_list), float(s[0]), float(v[0]))
+    return Trajectory(
+        path, np.asarray(t_list), np.asarray(s_list), np.asarray(v_list), float(s[0]), float(v[0])
+    )

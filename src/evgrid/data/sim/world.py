@@ -29,7 +29,16 @@ from evgrid.data.sim.trajectory import (
 )
 from evgrid.geometry import SE2
 
-__all__ = ["World", "Movers", "TownLayout", "generate_world", "plan_drive", "EGO_LENGTH_M", "EGO_WIDTH_M", "EGO_REAR_OVERHANG_M"]
+__all__ = [
+    "World",
+    "Movers",
+    "TownLayout",
+    "generate_world",
+    "plan_drive",
+    "EGO_LENGTH_M",
+    "EGO_WIDTH_M",
+    "EGO_REAR_OVERHANG_M",
+]
 
 #: Ego vehicle footprint (a compact car; the pose is the rear axle centre, as in nuScenes).
 EGO_LENGTH_M = 4.1
@@ -80,10 +89,12 @@ class Movers:
         return int(self.classes.shape[0])
 
     @staticmethod
-    def empty() -> "Movers":
+    def empty() -> Movers:
         """No moving objects."""
         z = np.zeros(0)
-        return Movers(np.zeros(0, np.int32), z, z, z, z, np.zeros((0, 2)), z, z, z, z, np.zeros(0, bool), z, z)
+        return Movers(
+            np.zeros(0, np.int32), z, z, z, z, np.zeros((0, 2)), z, z, z, z, np.zeros(0, bool), z, z
+        )
 
     def state_at(self, t: float, traj: Trajectory) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Packed boxes (m, 8), velocities (m, 2) in m/s, and yaw (m,) of all movers at ``t`` seconds."""
@@ -116,20 +127,48 @@ class Movers:
             v = traj.speed_at(tf)
             fvx, fvy = v * np.cos(fyaw), v * np.sin(fyaw)
             vx[f], vy[f] = fvx, fvy
-        boxes = pack_boxes(x, y, yaw, self.half_length, self.half_width, self.z_min, self.z_max) if m else np.zeros((0, 8))
+        boxes = (
+            pack_boxes(x, y, yaw, self.half_length, self.half_width, self.z_min, self.z_max)
+            if m
+            else np.zeros((0, 8))
+        )
         return boxes, np.stack([vx, vy], axis=1) if m else np.zeros((0, 2)), yaw
 
-    def transformed(self, tf: SE2) -> "Movers":
+    def transformed(self, tf: SE2) -> Movers:
         """The same movers in the frame ``tf`` maps to."""
         if self.warp is not None:
             return Movers(
-                self.classes, self.half_length, self.half_width, self.z_min, self.z_max, self.p0, self.heading, self.speed,
-                self.t_begin, self.t_end, self.follow, self.follow_gap, self.follow_lead_s, self.warp, tf @ self.frame,
+                self.classes,
+                self.half_length,
+                self.half_width,
+                self.z_min,
+                self.z_max,
+                self.p0,
+                self.heading,
+                self.speed,
+                self.t_begin,
+                self.t_end,
+                self.follow,
+                self.follow_gap,
+                self.follow_lead_s,
+                self.warp,
+                tf @ self.frame,
             )
         p0 = tf.apply(self.p0) if len(self) else self.p0
         return Movers(
-            self.classes, self.half_length, self.half_width, self.z_min, self.z_max, p0, self.heading + tf.yaw,
-            self.speed, self.t_begin, self.t_end, self.follow, self.follow_gap, self.follow_lead_s,
+            self.classes,
+            self.half_length,
+            self.half_width,
+            self.z_min,
+            self.z_max,
+            p0,
+            self.heading + tf.yaw,
+            self.speed,
+            self.t_begin,
+            self.t_end,
+            self.follow,
+            self.follow_gap,
+            self.follow_lead_s,
         )
 
 
@@ -149,7 +188,10 @@ class TownLayout:
 
     def counts(self) -> dict[str, int]:
         """Number of each feature."""
-        return {k: len(getattr(self, k)) for k in ("avenues", "squares", "parking_lots", "parks", "roundabouts")}
+        return {
+            k: len(getattr(self, k))
+            for k in ("avenues", "squares", "parking_lots", "parks", "roundabouts")
+        }
 
 
 @dataclass(frozen=True, eq=False)
@@ -172,7 +214,7 @@ class World:
     #: city frame -> global frame
     city_to_global: SE2
     #: What the town holds (irregular layouts; None for the plain grid).
-    layout: "TownLayout | None" = None
+    layout: TownLayout | None = None
     index: GridIndex = field(init=False)
 
     def __post_init__(self) -> None:
@@ -203,7 +245,17 @@ class _Builder:
     def __init__(self) -> None:
         self.rows: list[tuple[float, float, float, float, float, float, float, int]] = []
 
-    def add(self, cx: float, cy: float, yaw: float, hl: float, hw: float, z0: float, z1: float, klass: int) -> None:
+    def add(
+        self,
+        cx: float,
+        cy: float,
+        yaw: float,
+        hl: float,
+        hw: float,
+        z0: float,
+        z1: float,
+        klass: int,
+    ) -> None:
         if hl > 0.01 and hw > 0.01 and z1 > z0:
             self.rows.append((cx, cy, yaw, hl, hw, z0, z1, klass))
 
@@ -229,9 +281,29 @@ class _Side:
     def point(self, u: float, v: float) -> np.ndarray:
         return self.origin + u * self.t + v * self.n
 
-    def box(self, b: _Builder, u0: float, u1: float, v0: float, v1: float, z0: float, z1: float, klass: int, dyaw: float = 0.0) -> None:
+    def box(
+        self,
+        b: _Builder,
+        u0: float,
+        u1: float,
+        v0: float,
+        v1: float,
+        z0: float,
+        z1: float,
+        klass: int,
+        dyaw: float = 0.0,
+    ) -> None:
         p = self.point(0.5 * (u0 + u1), 0.5 * (v0 + v1))
-        b.add(float(p[0]), float(p[1]), self.yaw + dyaw, 0.5 * abs(u1 - u0), 0.5 * abs(v1 - v0), z0, z1, klass)
+        b.add(
+            float(p[0]),
+            float(p[1]),
+            self.yaw + dyaw,
+            0.5 * abs(u1 - u0),
+            0.5 * abs(v1 - v0),
+            z0,
+            z1,
+            klass,
+        )
 
 
 def _vehicle_dims(rng: np.random.Generator, moving: bool) -> tuple[int, float, float, float, float]:
@@ -244,13 +316,33 @@ def _vehicle_dims(rng: np.random.Generator, moving: bool) -> tuple[int, float, f
     return M.TRUCK, rng.uniform(10.5, 12.0), 2.5, 0.35, 3.2
 
 
-def _tree(b: _Builder, rng: np.random.Generator, p: np.ndarray, street: bool, big: bool = False) -> None:
+def _tree(
+    b: _Builder, rng: np.random.Generator, p: np.ndarray, street: bool, big: bool = False
+) -> None:
     trunk = rng.uniform(0.25, 0.45)
     base = rng.uniform(3.0, 4.2) if street else rng.uniform(1.8, 3.2)
     top = base + rng.uniform(3.0, 6.0 if big else 4.5)
     side = rng.uniform(3.0, 6.5 if big else 5.0)
-    b.add(float(p[0]), float(p[1]), rng.uniform(0, np.pi), 0.5 * trunk, 0.5 * trunk, 0.0, base + 0.5, M.TRUNK)
-    b.add(float(p[0]), float(p[1]), rng.uniform(0, np.pi), 0.5 * side, 0.5 * side * rng.uniform(0.8, 1.0), base, top, M.CANOPY)
+    b.add(
+        float(p[0]),
+        float(p[1]),
+        rng.uniform(0, np.pi),
+        0.5 * trunk,
+        0.5 * trunk,
+        0.0,
+        base + 0.5,
+        M.TRUNK,
+    )
+    b.add(
+        float(p[0]),
+        float(p[1]),
+        rng.uniform(0, np.pi),
+        0.5 * side,
+        0.5 * side * rng.uniform(0.8, 1.0),
+        base,
+        top,
+        M.CANOPY,
+    )
 
 
 def _parked_cars(b: _Builder, rng: np.random.Generator, side: _Side, empty_p: float) -> None:
@@ -264,11 +356,15 @@ def _parked_cars(b: _Builder, rng: np.random.Generator, side: _Side, empty_p: fl
         if u + length > side.length - 7.0:
             break
         v = v_c + rng.uniform(-0.15, 0.15)
-        side.box(b, u, u + length, v - width / 2, v + width / 2, z0, z1, k, dyaw=rng.normal(0, 0.03))
+        side.box(
+            b, u, u + length, v - width / 2, v + width / 2, z0, z1, k, dyaw=rng.normal(0, 0.03)
+        )
         u += length + rng.uniform(0.6, 2.5)
 
 
-def _street_furniture(b: _Builder, rng: np.random.Generator, side: _Side, urban: bool, density: float) -> None:
+def _street_furniture(
+    b: _Builder, rng: np.random.Generator, side: _Side, urban: bool, density: float
+) -> None:
     sw, L = side.sidewalk, side.length
     # Street lights at the curb.
     u = rng.uniform(5.0, 15.0)
@@ -291,15 +387,28 @@ def _street_furniture(b: _Builder, rng: np.random.Generator, side: _Side, urban:
         for _ in range(rng.poisson(L / 45.0)):
             u = rng.uniform(4.0, max(L - 4.0, 4.5))
             s = rng.uniform(0.2, 0.7)
-            side.box(b, u - s / 2, u + s / 2, -sw + 0.3, -sw + 0.3 + s, 0.0, rng.uniform(0.8, 1.2), M.BARRIER)
+            side.box(
+                b,
+                u - s / 2,
+                u + s / 2,
+                -sw + 0.3,
+                -sw + 0.3 + s,
+                0.0,
+                rng.uniform(0.8, 1.2),
+                M.BARRIER,
+            )
         # People standing at the curb (static).
         for _ in range(rng.poisson(density * L / 70.0)):
             u = rng.uniform(4.0, max(L - 4.0, 4.5))
             v = -sw + rng.uniform(1.2, 1.5)
-            side.box(b, u - 0.25, u + 0.25, v - 0.3, v + 0.3, 0.0, rng.uniform(1.5, 1.9), M.PEDESTRIAN)
+            side.box(
+                b, u - 0.25, u + 0.25, v - 0.3, v + 0.3, 0.0, rng.uniform(1.5, 1.9), M.PEDESTRIAN
+            )
 
 
-def _urban_side(b: _Builder, rng: np.random.Generator, side: _Side, density: float, irregular: bool = False) -> None:
+def _urban_side(
+    b: _Builder, rng: np.random.Generator, side: _Side, density: float, irregular: bool = False
+) -> None:
     L = side.length
     max_depth = max(side.depth / 2.0 - 1.0, 8.0)
     if rng.random() < 0.12:
@@ -310,7 +419,13 @@ def _urban_side(b: _Builder, rng: np.random.Generator, side: _Side, density: flo
             side.box(b, u, min(u + seg, L), 0.1, 0.4, 0.0, rng.uniform(0.8, 1.4), M.WALL)
             u += seg + rng.uniform(3.0, 6.0)
         for _ in range(rng.integers(2, 7)):
-            _tree(b, rng, side.point(rng.uniform(3.0, L - 3.0), rng.uniform(3.0, min(max_depth, 20.0))), street=False, big=True)
+            _tree(
+                b,
+                rng,
+                side.point(rng.uniform(3.0, L - 3.0), rng.uniform(3.0, min(max_depth, 20.0))),
+                street=False,
+                big=True,
+            )
         v_row = rng.uniform(6.0, 10.0)
         u = 5.0
         while u < L - 5.0:
@@ -319,7 +434,16 @@ def _urban_side(b: _Builder, rng: np.random.Generator, side: _Side, density: flo
                 side.box(b, u, u + width, v_row, v_row + length, z0, z1, k)
             u += rng.uniform(2.5, 3.2)
         if max_depth > 25.0:
-            side.box(b, 0.0, L, 22.0, min(22.0 + rng.uniform(10.0, 20.0), max_depth), 0.0, rng.uniform(8.0, 30.0), M.BUILDING)
+            side.box(
+                b,
+                0.0,
+                L,
+                22.0,
+                min(22.0 + rng.uniform(10.0, 20.0), max_depth),
+                0.0,
+                rng.uniform(8.0, 30.0),
+                M.BUILDING,
+            )
     else:
         u = 0.0
         while u < L - 2.0:
@@ -328,11 +452,17 @@ def _urban_side(b: _Builder, rng: np.random.Generator, side: _Side, density: flo
                 if rng.random() < 0.5:
                     klass = M.WALL if rng.random() < 0.5 else M.FENCE
                     thick = 0.25 if klass == M.WALL else 0.06
-                    side.box(b, u, min(u + gap, L), 0.05, 0.05 + thick, 0.0, rng.uniform(1.8, 3.0), klass)
+                    side.box(
+                        b, u, min(u + gap, L), 0.05, 0.05 + thick, 0.0, rng.uniform(1.8, 3.0), klass
+                    )
                 u += gap
                 continue
             w = rng.uniform(8.0, 30.0)
-            setback = 0.0 if rng.random() < (0.45 if irregular else 0.7) else rng.uniform(0.5, 4.5 if irregular else 3.0)
+            setback = (
+                0.0
+                if rng.random() < (0.45 if irregular else 0.7)
+                else rng.uniform(0.5, 4.5 if irregular else 3.0)
+            )
             depth = min(rng.uniform(12.0, 28.0), max_depth - setback)
             h = float(np.clip(rng.lognormal(math.log(14.0), 0.5), 5.0, 60.0))
             if irregular:
@@ -345,8 +475,16 @@ def _urban_side(b: _Builder, rng: np.random.Generator, side: _Side, density: flo
         _parked_cars(b, rng, side, empty_p=0.22 / max(density, 0.2))
 
 
-def _irregular_building(b: _Builder, rng: np.random.Generator, side: _Side, u0: float, u1: float, v0: float, depth: float,
-                        h: float) -> None:
+def _irregular_building(
+    b: _Builder,
+    rng: np.random.Generator,
+    side: _Side,
+    u0: float,
+    u1: float,
+    v0: float,
+    depth: float,
+    h: float,
+) -> None:
     """A building that is not one box: a courtyard block, a stepped facade, or a slightly skewed box."""
     w = u1 - u0
     r = rng.random()
@@ -356,13 +494,31 @@ def _irregular_building(b: _Builder, rng: np.random.Generator, side: _Side, u0: 
         side.box(b, u0, u1, v0, v0 + front, 0.0, h, M.BUILDING)
         side.box(b, u0, u0 + wing, v0 + front, v0 + depth, 0.0, h, M.BUILDING)
         side.box(b, u1 - wing, u1, v0 + front, v0 + depth, 0.0, h, M.BUILDING)
-        side.box(b, u0 + wing, u1 - wing, v0 + depth - wing, v0 + depth, 0.0, h * rng.uniform(0.6, 1.0), M.BUILDING)
+        side.box(
+            b,
+            u0 + wing,
+            u1 - wing,
+            v0 + depth - wing,
+            v0 + depth,
+            0.0,
+            h * rng.uniform(0.6, 1.0),
+            M.BUILDING,
+        )
     elif r < 0.55 and w > 10.0:
         # Stepped: two parts of different setback, depth and height.
         cut = u0 + w * rng.uniform(0.35, 0.65)
         for a, c in ((u0, cut), (cut, u1)):
             v = v0 + rng.uniform(0.0, 2.5)
-            side.box(b, a, c, v, v + depth * rng.uniform(0.6, 1.0), 0.0, h * rng.uniform(0.6, 1.3), M.BUILDING)
+            side.box(
+                b,
+                a,
+                c,
+                v,
+                v + depth * rng.uniform(0.6, 1.0),
+                0.0,
+                h * rng.uniform(0.6, 1.3),
+                M.BUILDING,
+            )
     else:
         # A box a little off the street's direction (kept behind the property line).
         dyaw = float(rng.normal(0.0, 0.04))
@@ -370,7 +526,9 @@ def _irregular_building(b: _Builder, rng: np.random.Generator, side: _Side, u0: 
         side.box(b, u0, u1, v0 + lift, v0 + lift + depth, 0.0, h, M.BUILDING, dyaw=dyaw)
 
 
-def _suburban_side(b: _Builder, rng: np.random.Generator, side: _Side, density: float, irregular: bool = False) -> None:
+def _suburban_side(
+    b: _Builder, rng: np.random.Generator, side: _Side, density: float, irregular: bool = False
+) -> None:
     L = side.length
     u = rng.uniform(0.0, 5.0)
     while u < L - 10.0:
@@ -386,7 +544,16 @@ def _suburban_side(b: _Builder, rng: np.random.Generator, side: _Side, density: 
             if rng.random() < 0.3:  # garage
                 g0 = uc + hw_ + 0.5
                 if g0 + 4.0 < end:
-                    side.box(b, g0, min(g0 + 6.0, end - 0.5), setback + 1.0, setback + 7.0, 0.0, 3.0, M.BUILDING)
+                    side.box(
+                        b,
+                        g0,
+                        min(g0 + 6.0, end - 0.5),
+                        setback + 1.0,
+                        setback + 7.0,
+                        0.0,
+                        3.0,
+                        M.BUILDING,
+                    )
         drive = u + rng.uniform(1.0, max(lot - 5.0, 1.5))
         r = rng.random()
         if r < 0.7:
@@ -398,25 +565,59 @@ def _suburban_side(b: _Builder, rng: np.random.Generator, side: _Side, density: 
                 if c - a > 0.5:
                     side.box(b, a, c, 0.1, 0.1 + thick, 0.0, height, klass)
         if rng.random() < 0.4:
-            side.box(b, end - 0.06, end, 0.2, setback + hd + rng.uniform(3.0, 10.0), 0.0, rng.uniform(1.5, 1.9), M.FENCE)
+            side.box(
+                b,
+                end - 0.06,
+                end,
+                0.2,
+                setback + hd + rng.uniform(3.0, 10.0),
+                0.0,
+                rng.uniform(1.5, 1.9),
+                M.FENCE,
+            )
         if setback > 6.0 and rng.random() < 0.45 * min(density, 1.5):
             k, length, width, z0, z1 = _vehicle_dims(rng, moving=False)
             length = min(length, setback - 1.5)
             v0 = rng.uniform(0.8, setback - length - 0.5) if setback - length - 0.5 > 0.8 else 0.8
-            side.box(b, drive + 1.75 - width / 2, drive + 1.75 + width / 2, v0, v0 + length, z0, z1, k)
+            side.box(
+                b, drive + 1.75 - width / 2, drive + 1.75 + width / 2, v0, v0 + length, z0, z1, k
+            )
         for _ in range(rng.poisson(1.2)):
-            _tree(b, rng, side.point(rng.uniform(u + 2.0, end - 2.0), rng.uniform(1.5, max(setback - 1.0, 1.6))), street=False, big=True)
+            _tree(
+                b,
+                rng,
+                side.point(
+                    rng.uniform(u + 2.0, end - 2.0), rng.uniform(1.5, max(setback - 1.0, 1.6))
+                ),
+                street=False,
+                big=True,
+            )
         for _ in range(rng.poisson(1.5)):
             s = rng.uniform(0.8, 2.0)
             bu = rng.uniform(uc, uc + max(hw_, 1.0))
             bv = setback - rng.uniform(0.6, 1.6)
-            side.box(b, bu - s / 2, bu + s / 2, bv - s / 2, bv + s / 2, 0.0, rng.uniform(0.6, 1.5), M.BUSH)
+            side.box(
+                b,
+                bu - s / 2,
+                bu + s / 2,
+                bv - s / 2,
+                bv + s / 2,
+                0.0,
+                rng.uniform(0.6, 1.5),
+                M.BUSH,
+            )
         if irregular and rng.random() < 0.35 and lot > 8.0:
             # A cluster of trees in the back garden.
             v_back = setback + max(hd, 0.0) + rng.uniform(2.0, 6.0)
             if v_back < side.depth / 2.0 - 3.0:
                 for _ in range(rng.integers(2, 6)):
-                    _tree(b, rng, side.point(rng.uniform(u + 2.0, end - 2.0), v_back + rng.uniform(0.0, 5.0)), street=False, big=True)
+                    _tree(
+                        b,
+                        rng,
+                        side.point(rng.uniform(u + 2.0, end - 2.0), v_back + rng.uniform(0.0, 5.0)),
+                        street=False,
+                        big=True,
+                    )
         u = end
     _street_furniture(b, rng, side, urban=False, density=density)
     if side.parking:
@@ -427,15 +628,44 @@ def _rect_frame(rect: tuple[float, float, float, float]) -> _Side:
     """A block rectangle as a side along its longer edge (u along, v across, both from 0)."""
     x0, y0, x1, y1 = rect
     if x1 - x0 >= y1 - y0:
-        return _Side(np.array([x0, y0]), np.array([1.0, 0.0]), np.array([0.0, 1.0]), x1 - x0, y1 - y0, 0.0, 0.0, False)
-    return _Side(np.array([x1, y0]), np.array([0.0, 1.0]), np.array([-1.0, 0.0]), y1 - y0, x1 - x0, 0.0, 0.0, False)
+        return _Side(
+            np.array([x0, y0]),
+            np.array([1.0, 0.0]),
+            np.array([0.0, 1.0]),
+            x1 - x0,
+            y1 - y0,
+            0.0,
+            0.0,
+            False,
+        )
+    return _Side(
+        np.array([x1, y0]),
+        np.array([0.0, 1.0]),
+        np.array([-1.0, 0.0]),
+        y1 - y0,
+        x1 - x0,
+        0.0,
+        0.0,
+        False,
+    )
 
 
-def _edge_line(b: _Builder, rng: np.random.Generator, f: _Side, klass: int, thick: float, z1: tuple[float, float],
-               inset: float = 0.3) -> None:
+def _edge_line(
+    b: _Builder,
+    rng: np.random.Generator,
+    f: _Side,
+    klass: int,
+    thick: float,
+    z1: tuple[float, float],
+    inset: float = 0.3,
+) -> None:
     """Hedge, wall or fence pieces around a rectangle, with a few openings."""
-    for u0, u1, v0, v1, along_u in ((0.0, f.length, 0.0, 0.0, True), (0.0, f.length, f.depth, f.depth, True),
-                                    (0.0, 0.0, 0.0, f.depth, False), (f.length, f.length, 0.0, f.depth, False)):
+    for u0, u1, v0, v1, along_u in (
+        (0.0, f.length, 0.0, 0.0, True),
+        (0.0, f.length, f.depth, f.depth, True),
+        (0.0, 0.0, 0.0, f.depth, False),
+        (f.length, f.length, 0.0, f.depth, False),
+    ):
         n = (u1 - u0) if along_u else (v1 - v0)
         a = 0.0
         while a < n - 2.0:
@@ -451,7 +681,9 @@ def _edge_line(b: _Builder, rng: np.random.Generator, f: _Side, klass: int, thic
             a = c + float(rng.uniform(2.5, 5.0))
 
 
-def _open_square(b: _Builder, rng: np.random.Generator, rect: tuple[float, float, float, float]) -> None:
+def _open_square(
+    b: _Builder, rng: np.random.Generator, rect: tuple[float, float, float, float]
+) -> None:
     """A paved square: lamps and bollards at its edge, trees, benches, and a fountain, statue or kiosk."""
     f = _rect_frame(rect)
     L, D = f.length, f.depth
@@ -464,7 +696,9 @@ def _open_square(b: _Builder, rng: np.random.Generator, rect: tuple[float, float
         u = 1.0
         while u < L - 1.0:
             if rng.random() < 0.7:
-                f.box(b, u - 0.12, u + 0.12, v - 0.12, v + 0.12, 0.0, rng.uniform(0.8, 1.1), M.BARRIER)
+                f.box(
+                    b, u - 0.12, u + 0.12, v - 0.12, v + 0.12, 0.0, rng.uniform(0.8, 1.1), M.BARRIER
+                )
             u += rng.uniform(2.0, 4.0)
     if rng.random() < 0.5:
         # An avenue of trees along the two long edges.
@@ -475,10 +709,26 @@ def _open_square(b: _Builder, rng: np.random.Generator, rect: tuple[float, float
                 u += rng.uniform(8.0, 11.0)
     else:
         for _ in range(rng.integers(3, 11)):
-            _tree(b, rng, f.point(rng.uniform(4.0, L - 4.0), rng.uniform(4.0, D - 4.0)), street=False, big=True)
+            _tree(
+                b,
+                rng,
+                f.point(rng.uniform(4.0, L - 4.0), rng.uniform(4.0, D - 4.0)),
+                street=False,
+                big=True,
+            )
     for _ in range(rng.integers(4, 13)):
         u, v = rng.uniform(3.0, L - 3.0), rng.uniform(3.0, D - 3.0)
-        f.box(b, u - 0.9, u + 0.9, v - 0.25, v + 0.25, 0.0, 0.5, M.BARRIER, dyaw=float(rng.choice([0.0, math.pi / 2])))
+        f.box(
+            b,
+            u - 0.9,
+            u + 0.9,
+            v - 0.25,
+            v + 0.25,
+            0.0,
+            0.5,
+            M.BARRIER,
+            dyaw=float(rng.choice([0.0, math.pi / 2])),
+        )
     c = f.point(L / 2, D / 2)
     r = rng.random()
     if r < 0.45:
@@ -487,15 +737,43 @@ def _open_square(b: _Builder, rng: np.random.Generator, rect: tuple[float, float
         n = max(int(2 * math.pi * rad / 1.5), 8)
         for k in range(n):
             a = 2 * math.pi * k / n
-            b.add(float(c[0] + rad * math.cos(a)), float(c[1] + rad * math.sin(a)), a + math.pi / 2,
-                  math.pi * rad / n + 0.05, 0.2, 0.0, rng.uniform(0.5, 0.8), M.WALL)
+            b.add(
+                float(c[0] + rad * math.cos(a)),
+                float(c[1] + rad * math.sin(a)),
+                a + math.pi / 2,
+                math.pi * rad / n + 0.05,
+                0.2,
+                0.0,
+                rng.uniform(0.5, 0.8),
+                M.WALL,
+            )
     elif r < 0.75:
-        b.add(float(c[0]), float(c[1]), rng.uniform(0, math.pi), 1.0, 1.0, 0.0, rng.uniform(2.5, 5.0), M.WALL)  # statue
+        b.add(
+            float(c[0]),
+            float(c[1]),
+            rng.uniform(0, math.pi),
+            1.0,
+            1.0,
+            0.0,
+            rng.uniform(2.5, 5.0),
+            M.WALL,
+        )  # statue
     else:
-        b.add(float(c[0]), float(c[1]), rng.uniform(0, math.pi), rng.uniform(1.5, 3.0), rng.uniform(1.5, 2.5), 0.0, 3.0, M.BUILDING)
+        b.add(
+            float(c[0]),
+            float(c[1]),
+            rng.uniform(0, math.pi),
+            rng.uniform(1.5, 3.0),
+            rng.uniform(1.5, 2.5),
+            0.0,
+            3.0,
+            M.BUILDING,
+        )
 
 
-def _parking_lot(b: _Builder, rng: np.random.Generator, rect: tuple[float, float, float, float], density: float) -> None:
+def _parking_lot(
+    b: _Builder, rng: np.random.Generator, rect: tuple[float, float, float, float], density: float
+) -> None:
     """Rows of parked cars, back to back, with aisles between, behind a hedge or low wall."""
     f = _rect_frame(rect)
     L, D = f.length, f.depth
@@ -512,14 +790,32 @@ def _parking_lot(b: _Builder, rng: np.random.Generator, rect: tuple[float, float
                 if length < depth - 0.2:
                     uc = u + stall / 2 + rng.uniform(-0.15, 0.15)
                     vc = v + depth / 2 + rng.uniform(-0.2, 0.2)
-                    f.box(b, uc - width / 2, uc + width / 2, vc - length / 2, vc + length / 2, z0, z1, k,
-                          dyaw=float(rng.normal(0.0, 0.03)))
+                    f.box(
+                        b,
+                        uc - width / 2,
+                        uc + width / 2,
+                        vc - length / 2,
+                        vc + length / 2,
+                        z0,
+                        z1,
+                        k,
+                        dyaw=float(rng.normal(0.0, 0.03)),
+                    )
             u += stall
         if row % 2 == 0 and v + 2 * depth < D - 2.0:
             # Lamps on the line between two back-to-back rows.
             u = rng.uniform(5.0, 15.0)
             while u < L - 5.0:
-                f.box(b, u - 0.12, u + 0.12, v + depth - 0.12, v + depth + 0.12, 0.0, rng.uniform(6.0, 8.0), M.POLE)
+                f.box(
+                    b,
+                    u - 0.12,
+                    u + 0.12,
+                    v + depth - 0.12,
+                    v + depth + 0.12,
+                    0.0,
+                    rng.uniform(6.0, 8.0),
+                    M.POLE,
+                )
                 u += rng.uniform(20.0, 30.0)
             v += depth
         else:
@@ -549,31 +845,67 @@ def _park(b: _Builder, rng: np.random.Generator, rect: tuple[float, float, float
         f.box(b, u - 3.0, u + 3.0, v - 3.0, v + 3.0, 0.0, 3.5, M.BUILDING)
 
 
-def _roundabout_island(b: _Builder, rng: np.random.Generator, c: np.ndarray, rad: float, clear: float) -> None:
+def _roundabout_island(
+    b: _Builder, rng: np.random.Generator, c: np.ndarray, rad: float, clear: float
+) -> None:
     """A round central island (curb ring, a hedge ring or bushes, a tree or a monument) and
     lamps around the circulating carriageway."""
     n = max(int(2 * math.pi * rad / 1.2), 10)
     for k in range(n):
         a = 2 * math.pi * k / n
-        b.add(float(c[0] + rad * math.cos(a)), float(c[1] + rad * math.sin(a)), a + math.pi / 2,
-              math.pi * rad / n + 0.05, 0.15, 0.0, 0.35, M.BARRIER)
+        b.add(
+            float(c[0] + rad * math.cos(a)),
+            float(c[1] + rad * math.sin(a)),
+            a + math.pi / 2,
+            math.pi * rad / n + 0.05,
+            0.15,
+            0.0,
+            0.35,
+            M.BARRIER,
+        )
     if rng.random() < 0.5 and rad > 3.0:
         r2 = rad - 0.8
         n2 = max(int(2 * math.pi * r2 / 1.5), 8)
         h = rng.uniform(0.8, 1.4)
         for k in range(n2):
             a = 2 * math.pi * k / n2
-            b.add(float(c[0] + r2 * math.cos(a)), float(c[1] + r2 * math.sin(a)), a + math.pi / 2,
-                  math.pi * r2 / n2 + 0.05, 0.35, 0.0, h, M.HEDGE)
+            b.add(
+                float(c[0] + r2 * math.cos(a)),
+                float(c[1] + r2 * math.sin(a)),
+                a + math.pi / 2,
+                math.pi * r2 / n2 + 0.05,
+                0.35,
+                0.0,
+                h,
+                M.HEDGE,
+            )
     else:
         for _ in range(rng.integers(2, 7)):
             a, r = rng.uniform(0, 2 * math.pi), rng.uniform(0.0, rad - 1.0)
             s = rng.uniform(0.8, 1.8)
-            b.add(float(c[0] + r * math.cos(a)), float(c[1] + r * math.sin(a)), a, s / 2, s / 2, 0.0, rng.uniform(0.6, 1.4), M.BUSH)
+            b.add(
+                float(c[0] + r * math.cos(a)),
+                float(c[1] + r * math.sin(a)),
+                a,
+                s / 2,
+                s / 2,
+                0.0,
+                rng.uniform(0.6, 1.4),
+                M.BUSH,
+            )
     if rng.random() < 0.6:
         _tree(b, rng, c, street=False, big=True)
     else:
-        b.add(float(c[0]), float(c[1]), rng.uniform(0, math.pi), 0.6, 0.6, 0.0, rng.uniform(3.0, 6.0), M.WALL)
+        b.add(
+            float(c[0]),
+            float(c[1]),
+            rng.uniform(0, math.pi),
+            0.6,
+            0.6,
+            0.0,
+            rng.uniform(3.0, 6.0),
+            M.WALL,
+        )
     for k in range(rng.integers(4, 9)):
         a = rng.uniform(0, 2 * math.pi)
         p = c + (clear + 1.2) * np.array([math.cos(a), math.sin(a)])
@@ -621,7 +953,10 @@ def _in_grid_streets(rows: np.ndarray, grid: StreetGrid) -> np.ndarray:
         return out
     c, s = np.abs(np.cos(rows[:, 2])), np.abs(np.sin(rows[:, 2]))
     ex, ey = rows[:, 3] * c + rows[:, 4] * s, rows[:, 3] * s + rows[:, 4] * c
-    for centres, half, p, e in ((grid.xs, grid.x_hw + grid.x_sw, rows[:, 0], ex), (grid.ys, grid.y_hw + grid.y_sw, rows[:, 1], ey)):
+    for centres, half, p, e in (
+        (grid.xs, grid.x_hw + grid.x_sw, rows[:, 0], ex),
+        (grid.ys, grid.y_hw + grid.y_sw, rows[:, 1], ey),
+    ):
         k = np.clip(np.searchsorted(centres, p), 1, len(centres) - 1)
         for kk in (k - 1, k):
             out |= np.abs(p - centres[kk]) < half[kk] + e
@@ -640,15 +975,26 @@ def _warp_rows(rows: np.ndarray, warp: Warp) -> np.ndarray:
     return out
 
 
-def _avenue_sides(grid: StreetGrid, p: np.ndarray, d: np.ndarray, hw: float, sw: float, u_lo: float, u_hi: float,
-                  parking: bool) -> list[_Side]:
+def _avenue_sides(
+    grid: StreetGrid,
+    p: np.ndarray,
+    d: np.ndarray,
+    hw: float,
+    sw: float,
+    u_lo: float,
+    u_hi: float,
+    parking: bool,
+) -> list[_Side]:
     """Both sides of an avenue between the grid streets it crosses (u from ``u_lo`` to ``u_hi``)."""
     nrm = np.array([-d[1], d[0]])
     sides = []
     for sign in (1.0, -1.0):
         q0 = p + sign * (hw + sw) * nrm
         cuts = []
-        for centres, half, k in ((grid.xs, grid.x_hw + grid.x_sw, 0), (grid.ys, grid.y_hw + grid.y_sw, 1)):
+        for centres, half, k in (
+            (grid.xs, grid.x_hw + grid.x_sw, 0),
+            (grid.ys, grid.y_hw + grid.y_sw, 1),
+        ):
             if abs(d[k]) < 1e-9:
                 continue
             a = (centres - half - q0[k]) / d[k]
@@ -661,7 +1007,9 @@ def _avenue_sides(grid: StreetGrid, p: np.ndarray, d: np.ndarray, hw: float, sw:
                 continue
             end = min(a, u_hi)
             if end - u > 14.0:
-                sides.append(_Side(q0 + u * d, d.copy(), sign * nrm, end - u, 36.0, sw, hw, parking))
+                sides.append(
+                    _Side(q0 + u * d, d.copy(), sign * nrm, end - u, 36.0, sw, hw, parking)
+                )
             u = max(u, b)
             if u >= u_hi:
                 break
@@ -677,10 +1025,46 @@ def _block_sides(grid: StreetGrid, i: int, j: int) -> list[_Side] | None:
         return None
     lx, ly = x1 - x0, y1 - y0
     return [
-        _Side(np.array([x0, y0]), np.array([1.0, 0.0]), np.array([0.0, 1.0]), lx, ly, grid.y_sw[j], grid.y_hw[j], bool(grid.y_parking[j])),
-        _Side(np.array([x1, y1]), np.array([-1.0, 0.0]), np.array([0.0, -1.0]), lx, ly, grid.y_sw[j + 1], grid.y_hw[j + 1], bool(grid.y_parking[j + 1])),
-        _Side(np.array([x0, y1]), np.array([0.0, -1.0]), np.array([1.0, 0.0]), ly, lx, grid.x_sw[i], grid.x_hw[i], bool(grid.x_parking[i])),
-        _Side(np.array([x1, y0]), np.array([0.0, 1.0]), np.array([-1.0, 0.0]), ly, lx, grid.x_sw[i + 1], grid.x_hw[i + 1], bool(grid.x_parking[i + 1])),
+        _Side(
+            np.array([x0, y0]),
+            np.array([1.0, 0.0]),
+            np.array([0.0, 1.0]),
+            lx,
+            ly,
+            grid.y_sw[j],
+            grid.y_hw[j],
+            bool(grid.y_parking[j]),
+        ),
+        _Side(
+            np.array([x1, y1]),
+            np.array([-1.0, 0.0]),
+            np.array([0.0, -1.0]),
+            lx,
+            ly,
+            grid.y_sw[j + 1],
+            grid.y_hw[j + 1],
+            bool(grid.y_parking[j + 1]),
+        ),
+        _Side(
+            np.array([x0, y1]),
+            np.array([0.0, -1.0]),
+            np.array([1.0, 0.0]),
+            ly,
+            lx,
+            grid.x_sw[i],
+            grid.x_hw[i],
+            bool(grid.x_parking[i]),
+        ),
+        _Side(
+            np.array([x1, y0]),
+            np.array([0.0, 1.0]),
+            np.array([-1.0, 0.0]),
+            ly,
+            lx,
+            grid.x_sw[i + 1],
+            grid.x_hw[i + 1],
+            bool(grid.x_parking[i + 1]),
+        ),
     ]
 
 
@@ -688,11 +1072,20 @@ def _overlap(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Do packed boxes ``a[k]`` and ``b[k]`` overlap in footprint (separating axis test)?"""
     d = b[:, :2] - a[:, :2]
     sep = np.zeros(len(a), dtype=bool)
-    axes = (a[:, 2:4], np.stack([-a[:, 3], a[:, 2]], 1), b[:, 2:4], np.stack([-b[:, 3], b[:, 2]], 1))
+    axes = (
+        a[:, 2:4],
+        np.stack([-a[:, 3], a[:, 2]], 1),
+        b[:, 2:4],
+        np.stack([-b[:, 3], b[:, 2]], 1),
+    )
     for ax in axes:
         pd = np.abs((d * ax).sum(1))
-        ra = a[:, 4] * np.abs((a[:, 2:4] * ax).sum(1)) + a[:, 5] * np.abs(a[:, 2] * ax[:, 1] - a[:, 3] * ax[:, 0])
-        rb = b[:, 4] * np.abs((b[:, 2:4] * ax).sum(1)) + b[:, 5] * np.abs(b[:, 2] * ax[:, 1] - b[:, 3] * ax[:, 0])
+        ra = a[:, 4] * np.abs((a[:, 2:4] * ax).sum(1)) + a[:, 5] * np.abs(
+            a[:, 2] * ax[:, 1] - a[:, 3] * ax[:, 0]
+        )
+        rb = b[:, 4] * np.abs((b[:, 2:4] * ax).sum(1)) + b[:, 5] * np.abs(
+            b[:, 2] * ax[:, 1] - b[:, 3] * ax[:, 0]
+        )
         sep |= pd > ra + rb
     return ~sep
 
@@ -701,8 +1094,13 @@ def _ego_boxes(traj: Trajectory, ts: np.ndarray, margin: float) -> np.ndarray:
     x, y, yaw = traj.pose_at(ts)
     off = EGO_LENGTH_M / 2 - EGO_REAR_OVERHANG_M
     return pack_boxes(
-        x + off * np.cos(yaw), y + off * np.sin(yaw), yaw,
-        np.full(len(ts), EGO_LENGTH_M / 2 + margin), np.full(len(ts), EGO_WIDTH_M / 2 + margin), np.zeros(len(ts)), np.full(len(ts), 1.6),
+        x + off * np.cos(yaw),
+        y + off * np.sin(yaw),
+        yaw,
+        np.full(len(ts), EGO_LENGTH_M / 2 + margin),
+        np.full(len(ts), EGO_WIDTH_M / 2 + margin),
+        np.zeros(len(ts)),
+        np.full(len(ts), 1.6),
     )
 
 
@@ -716,7 +1114,12 @@ def _aabbs(p: np.ndarray) -> np.ndarray:
 def _touch(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Do bounds ``a`` and ``b`` (broadcast, last axis x_lo, y_lo, x_hi, y_hi) intersect? Boxes
     whose bounds do not intersect cannot overlap, so only the others need the exact test."""
-    return (a[..., 0] <= b[..., 2]) & (b[..., 0] <= a[..., 2]) & (a[..., 1] <= b[..., 3]) & (b[..., 1] <= a[..., 3])
+    return (
+        (a[..., 0] <= b[..., 2])
+        & (b[..., 0] <= a[..., 2])
+        & (a[..., 1] <= b[..., 3])
+        & (b[..., 1] <= a[..., 3])
+    )
 
 
 #: Samples of a track whose bounds are merged into one piece's bounds.
@@ -726,7 +1129,9 @@ _SEGMENT = 16
 def _segment_bounds(box: np.ndarray) -> np.ndarray:
     """Bounds of each run of ``_SEGMENT`` consecutive sample bounds (the last run may be shorter)."""
     n = len(box)
-    pad = np.concatenate([box, np.repeat(box[-1:], (-n) % _SEGMENT, axis=0)]).reshape(-1, _SEGMENT, 4)
+    pad = np.concatenate([box, np.repeat(box[-1:], (-n) % _SEGMENT, axis=0)]).reshape(
+        -1, _SEGMENT, 4
+    )
     return np.concatenate([pad[:, :, :2].min(1), pad[:, :, 2:].max(1)], -1)
 
 
@@ -744,7 +1149,9 @@ class _MoverSet:
     a long drive's world
     grows with its traffic, not with traffic x duration x traffic."""
 
-    def __init__(self, traj: Trajectory, duration: float, static: np.ndarray, warp: Warp | None = None) -> None:
+    def __init__(
+        self, traj: Trajectory, duration: float, static: np.ndarray, warp: Warp | None = None
+    ) -> None:
         self.traj = traj
         self.warp = warp
         self.ts = np.arange(-0.3, duration + 0.31, 0.2)
@@ -774,7 +1181,15 @@ class _MoverSet:
             if self.warp is not None:
                 yaw, _ = self.warp.direction(x, y, yaw)
                 x, y = self.warp.apply(x, y)
-        return pack_boxes(x, y, yaw, np.full(n, m["hl"]), np.full(n, m["hw"]), np.full(n, m["z0"]), np.full(n, m["z1"]))
+        return pack_boxes(
+            x,
+            y,
+            yaw,
+            np.full(n, m["hl"]),
+            np.full(n, m["hw"]),
+            np.full(n, m["z0"]),
+            np.full(n, m["z1"]),
+        )
 
     def offer(self, m: dict) -> bool:
         """Accept ``m`` if it overlaps neither the ego, nor accepted movers, nor static boxes."""
@@ -791,10 +1206,16 @@ class _MoverSet:
             if len(near) and _overlap(tr[near], self.tracks[k][near]).any():
                 return False
         if len(self.static):
-            cand = np.nonzero(_touch(self.static_aabb, bounds) & (self.static_lo < m["z1"]) & (self.static_hi > m["z0"]))[0]
+            cand = np.nonzero(
+                _touch(self.static_aabb, bounds)
+                & (self.static_lo < m["z1"])
+                & (self.static_hi > m["z0"])
+            )[0]
             if len(cand):
                 # Pieces of the track first, then its samples in the pieces that touch a box.
-                seg_idx, c_idx = np.nonzero(_touch(segs[:, None, :], self.static_aabb[cand][None, :, :]))
+                seg_idx, c_idx = np.nonzero(
+                    _touch(segs[:, None, :], self.static_aabb[cand][None, :, :])
+                )
                 t_idx = (seg_idx[:, None] * _SEGMENT + np.arange(_SEGMENT)).ravel()
                 c_idx = np.repeat(c_idx, _SEGMENT)
                 ok = t_idx < len(box)
@@ -815,18 +1236,58 @@ class _MoverSet:
         a = self.accepted
         col = lambda k, dt=np.float64: np.array([m[k] for m in a], dtype=dt)  # noqa: E731
         return Movers(
-            col("cls", np.int32), col("hl"), col("hw"), col("z0"), col("z1"), np.array([m["p0"] for m in a], dtype=np.float64),
-            col("heading"), col("speed"), col("tb"), col("te"), col("follow", bool), col("gap"), col("lead"), self.warp,
+            col("cls", np.int32),
+            col("hl"),
+            col("hw"),
+            col("z0"),
+            col("z1"),
+            np.array([m["p0"] for m in a], dtype=np.float64),
+            col("heading"),
+            col("speed"),
+            col("tb"),
+            col("te"),
+            col("follow", bool),
+            col("gap"),
+            col("lead"),
+            self.warp,
         )
 
 
-def _mover(klass: int, length: float, width: float, z0: float, z1: float, p0: np.ndarray, heading: float, speed: float,
-           tb: float = -1e9, te: float = 1e9, follow: bool = False, gap: float = 0.0, lead: float = 0.0) -> dict:
-    return dict(cls=klass, hl=length / 2, hw=width / 2, z0=z0, z1=z1, p0=np.asarray(p0, dtype=np.float64), heading=heading,
-                speed=speed, tb=tb, te=te, follow=follow, gap=gap, lead=lead)
+def _mover(
+    klass: int,
+    length: float,
+    width: float,
+    z0: float,
+    z1: float,
+    p0: np.ndarray,
+    heading: float,
+    speed: float,
+    tb: float = -1e9,
+    te: float = 1e9,
+    follow: bool = False,
+    gap: float = 0.0,
+    lead: float = 0.0,
+) -> dict:
+    return dict(
+        cls=klass,
+        hl=length / 2,
+        hw=width / 2,
+        z0=z0,
+        z1=z1,
+        p0=np.asarray(p0, dtype=np.float64),
+        heading=heading,
+        speed=speed,
+        tb=tb,
+        te=te,
+        follow=follow,
+        gap=gap,
+        lead=lead,
+    )
 
 
-def _plan(seed: int, config: SimConfig) -> tuple[np.random.Generator, str, StreetGrid, Route, Warp | None, Trajectory]:
+def _plan(
+    seed: int, config: SimConfig
+) -> tuple[np.random.Generator, str, StreetGrid, Route, Warp | None, Trajectory]:
     rng = np.random.default_rng([int(seed), 0x5EED])
     env = config.world.environment
     if env == "mixed":
@@ -842,7 +1303,9 @@ def _plan(seed: int, config: SimConfig) -> tuple[np.random.Generator, str, Stree
     return rng, env, grid, route, warp, traj
 
 
-def plan_drive(seed: int, config: SimConfig) -> tuple[np.random.Generator, str, StreetGrid, Trajectory]:
+def plan_drive(
+    seed: int, config: SimConfig
+) -> tuple[np.random.Generator, str, StreetGrid, Trajectory]:
     """The first stage of :func:`generate_world`: environment, streets and the ego trajectory
     (city frame, bent by the town's warp), with the generator in the state the rest of the world
     continues from."""
@@ -850,7 +1313,9 @@ def plan_drive(seed: int, config: SimConfig) -> tuple[np.random.Generator, str, 
     return rng, env, grid, traj
 
 
-def _choose_avenues(rng: np.random.Generator, grid: StreetGrid, upts: np.ndarray, env: str) -> list[tuple[float, float, float, float, float]]:
+def _choose_avenues(
+    rng: np.random.Generator, grid: StreetGrid, upts: np.ndarray, env: str
+) -> list[tuple[float, float, float, float, float]]:
     """Diagonal avenues, each through a grid junction near the route at 25-65 deg to the grid."""
     length_km = float(np.hypot(*np.diff(upts, axis=0).T).sum()) / 1000.0
     out = []
@@ -860,14 +1325,17 @@ def _choose_avenues(rng: np.random.Generator, grid: StreetGrid, upts: np.ndarray
         y = float(grid.ys[np.argmin(np.abs(grid.ys - p[1]))])
         if any(abs(a[0] - x) < 1.0 and abs(a[1] - y) < 1.0 for a in out):
             continue
-        angle = float(rng.uniform(math.radians(25.0), math.radians(65.0))) * (1.0 if rng.random() < 0.5 else -1.0)
+        angle = float(rng.uniform(math.radians(25.0), math.radians(65.0))) * (
+            1.0 if rng.random() < 0.5 else -1.0
+        )
         hw = float(rng.uniform(6.5, 9.5)) if env == "urban" else float(rng.uniform(5.5, 8.0))
         out.append((x, y, angle, hw, float(rng.uniform(3.5, 6.0))))
     return out
 
 
-def _choose_roundabouts(rng: np.random.Generator, grid: StreetGrid, near, path: np.ndarray,
-                        avenues: list) -> list[tuple[float, float, float]]:
+def _choose_roundabouts(
+    rng: np.random.Generator, grid: StreetGrid, near, path: np.ndarray, avenues: list
+) -> list[tuple[float, float, float]]:
     """Roundabouts at junctions near the route that the route never crosses (the ego needs no
     path around the island)."""
     out = []
@@ -887,8 +1355,15 @@ def _choose_roundabouts(rng: np.random.Generator, grid: StreetGrid, near, path: 
     return out
 
 
-def _avenue_traffic(rng: np.random.Generator, movers: "_MoverSet", avenue: tuple, u_lo: float, u_hi: float, urban: bool,
-                    density: float) -> None:
+def _avenue_traffic(
+    rng: np.random.Generator,
+    movers: _MoverSet,
+    avenue: tuple,
+    u_lo: float,
+    u_hi: float,
+    urban: bool,
+    density: float,
+) -> None:
     """Two lanes each way along a diagonal avenue."""
     x, y, angle, hw, _ = avenue
     d = np.array([math.cos(angle), math.sin(angle)])
@@ -946,7 +1421,15 @@ def generate_world(seed: int, config: SimConfig) -> tuple[World, Trajectory, Tra
             kind = "sides"
             if irregular:
                 r = rng.random()
-                kind = "square" if r < use[0] else "lot" if r < use[0] + use[1] else "park" if r < sum(use) else "sides"
+                kind = (
+                    "square"
+                    if r < use[0]
+                    else "lot"
+                    if r < use[0] + use[1]
+                    else "park"
+                    if r < sum(use)
+                    else "sides"
+                )
             if kind != "sides":
                 p0, p1 = blk[0].origin, blk[1].origin
                 rect = (float(p0[0]), float(p0[1]), float(p1[0]), float(p1[1]))
@@ -965,7 +1448,9 @@ def generate_world(seed: int, config: SimConfig) -> tuple[World, Trajectory, Tra
                 else:
                     _street_furniture(b, rng, side, urban=urban, density=density)
                     if side.parking:
-                        _parked_cars(b, rng, side, empty_p=(0.22 if urban else 0.6) / max(density, 0.2))
+                        _parked_cars(
+                            b, rng, side, empty_p=(0.22 if urban else 0.6) / max(density, 0.2)
+                        )
                 sides.append(side)
     rows = _rows_array(b.rows)
     avenue_spans: list[tuple[float, float]] = []
@@ -991,7 +1476,9 @@ def generate_world(seed: int, config: SimConfig) -> tuple[World, Trajectory, Tra
         arows = arows[~_in_grid_streets(arows, grid)]
         for x0, y0, x1, y1 in layout.squares + layout.parking_lots + layout.parks:
             # An avenue through an open block keeps it open.
-            arows = arows[~((arows[:, 0] > x0) & (arows[:, 0] < x1) & (arows[:, 1] > y0) & (arows[:, 1] < y1))]
+            arows = arows[
+                ~((arows[:, 0] > x0) & (arows[:, 0] < x1) & (arows[:, 1] > y0) & (arows[:, 1] < y1))
+            ]
         for x, y, angle, hw, sw in avenues:
             d = np.array([math.cos(angle), math.sin(angle)])
             arows = arows[~_in_strip(arows, np.array([x, y]), d, hw)]
@@ -1008,19 +1495,47 @@ def generate_world(seed: int, config: SimConfig) -> tuple[World, Trajectory, Tra
             _roundabout_island(rb, rng, c, rad, rad + 7.5)
             layout.roundabouts.append((x, y, rad))
         rows = _warp_rows(np.concatenate([rows, _rows_array(rb.rows)]), warp)
-    static = pack_boxes(rows[:, 0], rows[:, 1], rows[:, 2], rows[:, 3], rows[:, 4], rows[:, 5], rows[:, 6])
+    static = pack_boxes(
+        rows[:, 0], rows[:, 1], rows[:, 2], rows[:, 3], rows[:, 4], rows[:, 5], rows[:, 6]
+    )
     static_cls = rows[:, 7].astype(np.int32)
 
     movers = _MoverSet(traj, config.duration_s, static, warp)
     # A vehicle ahead of the ego and one behind, driving its path (time-shifted).
     if rng.random() < 0.55 * min(density, 1.0):
         k, length, width, z0, z1 = _vehicle_dims(rng, moving=True)
-        movers.offer(_mover(k, length, width, z0, z1, np.zeros(2), 0.0, 0.0, follow=True,
-                            gap=rng.uniform(8.0, 14.0) + (length - 4.5) / 2, lead=rng.uniform(0.8, 2.0)))
+        movers.offer(
+            _mover(
+                k,
+                length,
+                width,
+                z0,
+                z1,
+                np.zeros(2),
+                0.0,
+                0.0,
+                follow=True,
+                gap=rng.uniform(8.0, 14.0) + (length - 4.5) / 2,
+                lead=rng.uniform(0.8, 2.0),
+            )
+        )
     if rng.random() < 0.45 * min(density, 1.0):
         k, length, width, z0, z1 = _vehicle_dims(rng, moving=True)
-        movers.offer(_mover(k, length, width, z0, z1, np.zeros(2), 0.0, 0.0, follow=True,
-                            gap=-rng.uniform(8.0, 14.0) - (length - 4.5) / 2, lead=-rng.uniform(0.8, 2.0)))
+        movers.offer(
+            _mover(
+                k,
+                length,
+                width,
+                z0,
+                z1,
+                np.zeros(2),
+                0.0,
+                0.0,
+                follow=True,
+                gap=-rng.uniform(8.0, 14.0) - (length - 4.5) / 2,
+                lead=-rng.uniform(0.8, 2.0),
+            )
+        )
     # Traffic on the streets near the route: both directions, one speed a lane.
     spacing = 45.0 if urban else 90.0
     xlo, xhi = pts[:, 0].min() - 120.0, pts[:, 0].max() + 120.0
@@ -1040,7 +1555,11 @@ def generate_world(seed: int, config: SimConfig) -> tuple[World, Trajectory, Tra
                     keep = np.concatenate([[True], np.diff(pos) > 12.0])
                     pos = pos[keep]
                 lane = c - d * LANE_OFFSET_M if axis == 0 else c + d * LANE_OFFSET_M
-                heading = (0.0 if d > 0 else math.pi) if axis == 0 else (math.pi / 2 if d > 0 else -math.pi / 2)
+                heading = (
+                    (0.0 if d > 0 else math.pi)
+                    if axis == 0
+                    else (math.pi / 2 if d > 0 else -math.pi / 2)
+                )
                 for p in pos:
                     k, length, width, z0, z1 = _vehicle_dims(rng, moving=True)
                     p0 = np.array([p, lane]) if axis == 0 else np.array([lane, p])
@@ -1051,7 +1570,18 @@ def generate_world(seed: int, config: SimConfig) -> tuple[World, Trajectory, Tra
                     lane_c = c - d * off if axis == 0 else c + d * off
                     p = rng.uniform(a_lo, a_hi)
                     p0 = np.array([p, lane_c]) if axis == 0 else np.array([lane_c, p])
-                    movers.offer(_mover(M.CYCLIST, 1.8, 0.6, 0.0, 1.75, p0, heading, float(rng.uniform(3.5, 6.0))))
+                    movers.offer(
+                        _mover(
+                            M.CYCLIST,
+                            1.8,
+                            0.6,
+                            0.0,
+                            1.75,
+                            p0,
+                            heading,
+                            float(rng.uniform(3.5, 6.0)),
+                        )
+                    )
     for avenue, (u_lo, u_hi) in zip(layout.avenues, avenue_spans):
         _avenue_traffic(rng, movers, avenue, u_lo, u_hi, urban, density)
     # Pedestrians walking along sidewalks, and some crossing at corners.
@@ -1062,8 +1592,18 @@ def generate_world(seed: int, config: SimConfig) -> tuple[World, Trajectory, Tra
             v = -sw * rng.uniform(0.22, 0.42)
             fwd = rng.random() < 0.5
             heading = side.yaw if fwd else side.yaw + math.pi
-            movers.offer(_mover(M.PEDESTRIAN, 0.5, 0.6, 0.0, float(rng.uniform(1.5, 1.9)), side.point(u, v), heading,
-                                float(rng.uniform(0.9, 1.6))))
+            movers.offer(
+                _mover(
+                    M.PEDESTRIAN,
+                    0.5,
+                    0.6,
+                    0.0,
+                    float(rng.uniform(1.5, 1.9)),
+                    side.point(u, v),
+                    heading,
+                    float(rng.uniform(0.9, 1.6)),
+                )
+            )
         if rng.random() < (0.3 if urban else 0.08) * density:
             speed = float(rng.uniform(1.1, 1.5))
             start = side.point(-1.0, -sw + 0.2)
@@ -1071,8 +1611,20 @@ def generate_world(seed: int, config: SimConfig) -> tuple[World, Trajectory, Tra
             tb = float(rng.uniform(-2.0, config.duration_s))
             heading = math.atan2(-side.n[1], -side.n[0])
             p0 = start - np.array([math.cos(heading), math.sin(heading)]) * speed * tb
-            movers.offer(_mover(M.PEDESTRIAN, 0.5, 0.6, 0.0, float(rng.uniform(1.5, 1.9)), p0, heading, speed, tb=tb,
-                                te=tb + dist / speed))
+            movers.offer(
+                _mover(
+                    M.PEDESTRIAN,
+                    0.5,
+                    0.6,
+                    0.0,
+                    float(rng.uniform(1.5, 1.9)),
+                    p0,
+                    heading,
+                    speed,
+                    tb=tb,
+                    te=tb + dist / speed,
+                )
+            )
     mv = movers.movers()
 
     # Into the global frame: a random rotation, the start a few hundred metres from the origin.
@@ -1080,14 +1632,36 @@ def generate_world(seed: int, config: SimConfig) -> tuple[World, Trajectory, Tra
     start = np.array([float(traj.pose_at(0.0)[0]), float(traj.pose_at(0.0)[1])])
     target = rng.uniform(300.0, 1700.0, size=2)
     c, s = math.cos(theta), math.sin(theta)
-    tf = SE2(float(target[0] - (c * start[0] - s * start[1])), float(target[1] - (s * start[0] + c * start[1])), theta)
+    tf = SE2(
+        float(target[0] - (c * start[0] - s * start[1])),
+        float(target[1] - (s * start[0] + c * start[1])),
+        theta,
+    )
     gxy = tf.apply(static[:, :2]) if len(static) else np.zeros((0, 2))
     yaw_g = rows[:, 2] + theta
-    static_g = pack_boxes(gxy[:, 0], gxy[:, 1], yaw_g, static[:, 4], static[:, 5], static[:, 6], static[:, 7])
-    refl = np.clip(M.LIDAR_REFLECTIVITY[static_cls] * rng.uniform(0.7, 1.3, size=len(static_cls)), 0.02, 1.0)
+    static_g = pack_boxes(
+        gxy[:, 0], gxy[:, 1], yaw_g, static[:, 4], static[:, 5], static[:, 6], static[:, 7]
+    )
+    refl = np.clip(
+        M.LIDAR_REFLECTIVITY[static_cls] * rng.uniform(0.7, 1.3, size=len(static_cls)), 0.02, 1.0
+    )
     rcs_off = rng.normal(0.0, 2.0, size=len(static_cls))
-    m_refl = np.clip(M.LIDAR_REFLECTIVITY[mv.classes] * rng.uniform(0.7, 1.3, size=len(mv)), 0.02, 1.0)
+    m_refl = np.clip(
+        M.LIDAR_REFLECTIVITY[mv.classes] * rng.uniform(0.7, 1.3, size=len(mv)), 0.02, 1.0
+    )
     m_rcs = rng.normal(0.0, 2.0, size=len(mv))
-    world = World(env, static_g, yaw_g, static_cls, refl, rcs_off, mv.transformed(tf), m_refl, m_rcs, grid, tf,
-                  layout if irregular else None)
+    world = World(
+        env,
+        static_g,
+        yaw_g,
+        static_cls,
+        refl,
+        rcs_off,
+        mv.transformed(tf),
+        m_refl,
+        m_rcs,
+        grid,
+        tf,
+        layout if irregular else None,
+    )
     return world, traj.transformed(tf), traj

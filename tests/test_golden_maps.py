@@ -1,0 +1,102 @@
+"""The maps of commit 1f2fccd, bit for bit: every change to the update path must keep them.
+
+Two levels. The fusion level feeds seeded ISM grids (patches of free, occupied and mixed mass,
+with vacuous and invalid cells) at poses that cross tiles, turn by quarter turns and by odd
+angles, into one :class:`MapSet` of the six maps. The mapper level maps a short simulated
+scene with the geometric ISMs (numba only, so no inference library's kernels enter). Each map
+is hashed over its tiles (keys, masses and coverage). The hashes were written by the code of
+1f2fccd (``python tests/test_golden_maps.py`` prints them); a hash that changes means the maps
+changed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from evgrid.geometry import SE2, GridSpec
+
+GOLDEN = Path(__file__).with_name("data") / "golden_maps.json"
+
+
+def _digest(m) -> str:
+    h = hashlib.sha256()
+    for key in sorted(m.tiles):
+        masses, covered = m.tiles[key], m.covered_tiles[key]
+        h.update(np.asarray(key, np.int64).tobytes())
+        h.update(np.ascontiguousarray(masses).tobytes())
+        h.update(np.ascontiguousarray(covered).tobytes())
+    return h.hexdigest()
+
+
+def _isms(rng: np.random.Generator, n: int) -> dict[str, np.ndarray]:
+    out = {}
+    for name in ("ray_ilm", "ray_irm", "deep_irm"):
+        g = np.zeros((n, n, 3), np.float32)
+        g[..., 2] = 1.0
+        for _ in range(12):
+            r, c = rng.integers(0, n - 40, 2)
+            h, w = rng.integers(4, 40, 2)
+            f, o = rng.uniform(0, 0.7), rng.uniform(0, 0.3)
+            g[r : r + h, c : c + w] = (f, o, 1.0 - f - o)
+        mixed = rng.dirichlet((1.0, 1.0, 2.0), size=(n // 4, n // 4)).astype(np.float32)
+        g[: n // 4, -n // 4 :] = mixed
+        g[5, 7] = (np.nan, 0.0, 1.0)  # invalid: taken as vacuous, counted
+        g[9, 11] = (0.5, 0.6, 0.2)
+        out[name] = g
+    return out
+
+
+POSES = [
+    SE2(0.0, 0.0, 0.0),
+    SE2(1.3, -0.4, 0.05),
+    SE2(2.6, 0.2, math.pi / 2),
+    SE2(7.9, 3.1, math.radians(10.0)),
+    SE2(12.2, 9.7, math.radians(45.0)),
+    SE2(-6.4, 4.4, math.pi),
+    SE2(30.0, -22.0, -2.0),
+]
+
+
+def fusion_digests(update) -> dict[str, str]:
+    """The six maps after ``update(maps, pose, isms)`` at :data:`POSES` with seeded ISMs."""
+    from evgrid.fusion import MapSet
+
+    grid = GridSpec(n_cells=128, length_m=19.2)
+    maps = MapSet(grid)
+    rng = np.random.default_rng(20261202)
+    for pose in POSES:
+        update(maps, pose, _isms(rng, grid.n_cells))
+    return {name: _digest(maps[name]) for name in maps.names}
+
+
+def mapper_digests() -> dict[str, str]:
+    """The geometric maps of a 2 s simulated scene (ray ILM and ray IRM, no Ev-Net)."""
+    from evgrid.config import MapperConfig
+    from evgrid.data import SimConfig, simulate_scene
+    from evgrid.mapper import OccupancyMapper
+
+    mapper = OccupancyMapper(MapperConfig(maps=("ray_ilm", "ray_irm")))
+    for frame in simulate_scene(3, SimConfig(duration_s=2.0)):
+        mapper.process(frame)
+    return {name: _digest(mapper.maps[name]) for name in mapper.maps.names}
+
+
+def _update(maps, pose, isms):
+    maps.update(pose, isms)
+
+
+def test_fusion_maps_are_the_reference_maps():
+    assert fusion_digests(_update) == json.loads(GOLDEN.read_text())["fusion"]
+
+
+def test_mapper_maps_are_the_reference_maps():
+    assert mapper_digests() == json.loads(GOLDEN.read_text())["mapper"]
+
+
+if __name__ == "__main__":
+    print(json.dumps({"fusion": fusion_digests(_update), "mapper": mapper_digests()}, indent=1))
