@@ -19,6 +19,7 @@ from evgrid.geometry import SE2, GridSpec
 from evgrid.grid import EvidentialMap, MapWindow, Warper
 from evgrid.ism import ray_ilm
 from evgrid.ism.radar import ray_irm_xy
+from tests.oracle import TwoPassMaps
 from tests.strategies import random_masses
 
 GRID = GridSpec(32, 4.0)
@@ -137,14 +138,16 @@ def test_each_update_rule_rejects_invalid_cells_and_returns_their_count(name):
     assert n == len(BAD) * len(rule.isms)
 
 
-def test_apply_and_update_windows_count_rejected_window_cells():
+def test_apply_and_the_oracles_windows_count_rejected_window_cells():
+    # Windows that did not come from a warper's check (the two-pass oracle of tests/oracle.py,
+    # once MapSet.update_windows): each rule rejects their invalid cells and counts them.
     ism = mass.vacuous((4, 6))
     ism[1, 2] = [0.7, 0.0, 0.7]
     ism[2, 3] = [np.nan, np.nan, np.nan]
     window = MapWindow(5, -3, ism, np.ones((4, 6), bool))
     em = EvidentialMap(GRID, tile_cells=8)
     assert em.apply(window, RULES["ray_ilm"].update) == 2
-    ms = MapSet(GRID, P)
+    ms = TwoPassMaps(GRID, P)
     assert ms.update_windows({k: window for k in ISMS}) == {
         "ray_ilm": 2,
         "deep_acc": 2,

@@ -28,7 +28,7 @@ import numpy as np
 
 from evgrid.geometry import SE2, GridSpec
 from evgrid.io import atomic_write
-from evgrid.kernels import _COARSE, _k_coarse, _k_count_invalid, _k_load, _k_warp
+from evgrid.kernels import COARSE, coarse_blocks, count_invalid, load_padded, warp_rows
 from evgrid.mass import vacuous
 
 logger = logging.getLogger(__name__)
@@ -136,8 +136,10 @@ class Warper:
         self._masses = np.empty(side * side * 3, dtype=np.float32)
         self._covered = np.empty(side * side, dtype=np.bool_)
         self._spans = np.zeros((side, 2), dtype=np.int64)
-        self._src = vacuous((n + 3, n + 3))  # local grid + vacuous border (see _k_warp)
-        self._coarse = np.zeros(((n + 3 + _COARSE - 1) // _COARSE,) * 2, dtype=np.bool_)
+        self._src = vacuous(
+            (n + 3, n + 3)
+        )  # local grid + vacuous border (see evgrid.kernels.warp_rows)
+        self._coarse = np.zeros(((n + 3 + COARSE - 1) // COARSE,) * 2, dtype=np.bool_)
         self.n_rejected = 0
 
     @property
@@ -160,7 +162,7 @@ class Warper:
             raise ValueError(
                 f"{self.name}: the local grid must be a numeric array of shape {(n, n, 3)}, got {a.dtype} {a.shape}"
             )
-        n_bad = int(_k_load(np.ascontiguousarray(a, dtype=np.float32), self._src))
+        n_bad = int(load_padded(np.ascontiguousarray(a, dtype=np.float32), self._src))
         if n_bad:
             if self.n_rejected == 0:
                 logger.warning(
@@ -170,7 +172,7 @@ class Warper:
                     n_bad,
                 )
             self.n_rejected += n_bad
-        _k_coarse(self._src, self._coarse)
+        coarse_blocks(self._src, self._coarse)
         return n_bad
 
     def warp_loaded(self, pose: SE2) -> MapWindow:
@@ -180,7 +182,7 @@ class Warper:
         r0, c0, h, w = warp_window(grid, pose)
         # windows are packed at the buffers' start (row stride w) so each is one contiguous block
         spans = self._spans[:h]
-        _k_warp(
+        warp_rows(
             self.source,
             3 * (n + 3),
             self._coarse,
@@ -240,7 +242,9 @@ class EvidentialMap:
             c.nbytes for c in self.covered_tiles.values()
         )
 
-    def _tile(self, key: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    def tile(self, key: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+        """The masses ``(ts, ts, 3)`` and coverage ``(ts, ts)`` of tile ``key`` (tile row, tile
+        column), views to update in place; a tile not yet stored is created vacuous."""
         t = self.tiles.get(key)
         if t is None:
             t = vacuous((self.tile_cells, self.tile_cells))
@@ -248,10 +252,11 @@ class EvidentialMap:
             self.covered_tiles[key] = np.zeros((self.tile_cells, self.tile_cells), dtype=np.bool_)
         return t, self.covered_tiles[key]
 
-    def _pieces(
+    def pieces(
         self, r0: int, c0: int, h: int, w: int
     ) -> Iterator[tuple[tuple[int, int], slice, slice, slice, slice]]:
-        """(tile key, tile rows, tile cols, window rows, window cols) for each tile the window meets."""
+        """The tiles that map cells ``[r0:r0+h, c0:c0+w]`` meet, stored or not: for each, (tile
+        key, tile rows, tile cols, window rows, window cols), the slices of the same cells."""
         ts = self.tile_cells
         for ti in range(r0 // ts, (r0 + h - 1) // ts + 1):
             ra, rb = max(r0, ti * ts), min(r0 + h, (ti + 1) * ts)
@@ -289,7 +294,7 @@ class EvidentialMap:
                 raise ValueError(f"window arrays must have shape {(h, w, 3)}, got {a.shape}")
         spans = window.row_spans()
         n_rejected = 0
-        for key, tr, tc, wr, wc in self._pieces(window.r0, window.c0, h, w):
+        for key, tr, tc, wr, wc in self.pieces(window.r0, window.c0, h, w):
             piece = np.clip(spans[wr] - wc.start, 0, wc.stop - wc.start)
             rows_on = np.flatnonzero(piece[:, 1] > piece[:, 0])
             if len(rows_on) == 0:
@@ -298,7 +303,7 @@ class EvidentialMap:
             a, b = int(rows_on[0]), int(rows_on[-1]) + 1
             tr = slice(tr.start + a, tr.start + b)
             wr = slice(wr.start + a, wr.start + b)
-            tile, tcov = self._tile(key)
+            tile, tcov = self.tile(key)
             views = (arr[wr, wc] for arr in arrays)
             if pass_spans:
                 n = fn(tile[tr, tc], *views, spans=piece[a:b])
@@ -312,7 +317,7 @@ class EvidentialMap:
         """Dense copy of map cells ``[r0:r0+h, c0:c0+w]``: masses ``(h, w, 3)`` and coverage ``(h, w)``."""
         out = vacuous((h, w))
         cov = np.zeros((h, w), dtype=np.bool_)
-        for key, tr, tc, wr, wc in self._pieces(r0, c0, h, w):
+        for key, tr, tc, wr, wc in self.pieces(r0, c0, h, w):
             t = self.tiles.get(key)
             if t is not None:
                 out[wr, wc] = t[tr, tc]
@@ -449,7 +454,7 @@ def load_map(path: str | os.PathLike) -> EvidentialMap:
             f"{path} is inconsistent: {len(keys)} keys, tiles {tiles.shape} {tiles.dtype}, coverage {covered.shape} {covered.dtype}"
         )
     tiles = np.ascontiguousarray(tiles)
-    n_bad = int(_k_count_invalid(tiles.reshape(-1), 0, 1, tiles.size // 3)) if tiles.size else 0
+    n_bad = int(count_invalid(tiles.reshape(-1), 0, 1, tiles.size // 3)) if tiles.size else 0
     if n_bad:
         raise MapFileError(
             f"{path}: {n_bad} cell(s) hold no valid mass (NaN, inf, negative, or not summing to 1); the file is corrupt"

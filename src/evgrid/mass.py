@@ -21,7 +21,7 @@ import math
 
 import numpy as np
 
-from evgrid.kernels import MASS_ATOL, _k_count_invalid, _k_dempster, _k_gamma, _k_yager, rows
+from evgrid.kernels import MASS_ATOL, count_invalid, dempster_rows, gamma_rows, rows, yager_rows
 
 __all__ = [
     "VACUOUS",
@@ -86,7 +86,7 @@ def _masses32(m: np.ndarray, name: str) -> np.ndarray:
         raise ValueError(f"{name}: masses must be real numbers, got dtype {a.dtype}")
     a = np.ascontiguousarray(a, dtype=np.float32)
     flat, rs, h, w = rows(a.reshape(1, -1, 3))
-    if _k_count_invalid(flat, rs, h, w):
+    if count_invalid(flat, rs, h, w):
         validate(a, name)  # says what is wrong
         raise ValueError(f"{name}: not a mass array (NaN, inf, negative, or not summing to 1)")
     return a
@@ -137,12 +137,12 @@ def dempster(m1: np.ndarray, m2: np.ndarray, out: np.ndarray | None = None) -> n
 
     Total conflict gives [0, 0, 1] (docs/decisions.md#total-conflict).
     """
-    return _combine(_k_dempster, m1, m2, out)
+    return _combine(dempster_rows, m1, m2, out)
 
 
 def yager(m1: np.ndarray, m2: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """Yager's rule ``m1 (+)_Y m2`` (paper eq. (6)): the conflict K goes to m_u."""
-    return _combine(_k_yager, m1, m2, out)
+    return _combine(yager_rows, m1, m2, out)
 
 
 def _check_unit(name: str, v: np.ndarray | float) -> np.ndarray:
@@ -218,5 +218,5 @@ def deep_discount_factor(
     out = np.empty(shape[:-1], dtype=np.float32)
     fa, ars, h, w = rows(a)
     fb, brs, _, _ = rows(b)
-    _k_gamma(fa, ars, fb, brs, float(m_u_min), float(alpha), out.reshape(-1), h, w)
+    gamma_rows(fa, ars, fb, brs, float(m_u_min), float(alpha), out.reshape(-1), h, w)
     return out
