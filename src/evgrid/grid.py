@@ -18,7 +18,6 @@ import logging
 import math
 import os
 import zipfile
-import zlib
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -374,8 +373,49 @@ class MapFileError(ValueError):
     """A file that is not a complete evgrid map (truncated, foreign or of a newer format)."""
 
 
+#: The largest header the loader reads (bytes): a real header is a few hundred.
+_MAX_HEADER_BYTES = 1 << 20
+_ARRAYS = ("header", "keys", "tiles", "covered")
+
+
+def _check_extent(where: str, grid: GridSpec, ts: int, keys, covered_any) -> str | None:
+    """Why tile ``keys`` cannot belong to a map of ``grid`` (None if they can).
+
+    Every tile must lie within :data:`evgrid.fusion.MAX_POSE_M` (plus a local grid) of the
+    origin, and the tiles holding covered cells must span at least one local grid
+    (``n_cells`` a side): each update covers a whole local grid.
+    """
+    from evgrid.fusion import MAX_POSE_M
+
+    if len(keys) == 0:
+        return None
+    limit = (MAX_POSE_M + grid.length_m) / grid.resolution / ts + 1
+    worst = int(np.abs(keys).max())
+    if worst > limit:
+        return (
+            f"{where} 'keys': tile key {worst} lies beyond {MAX_POSE_M:g} m of the map origin "
+            f"(at most {int(limit)} for {ts}-cell tiles of {grid.resolution:g} m)"
+        )
+    used = keys[np.asarray(covered_any, bool)]
+    if len(used):
+        h = (int(used[:, 0].max()) - int(used[:, 0].min()) + 1) * ts
+        w = (int(used[:, 1].max()) - int(used[:, 1].min()) + 1) * ts
+        if min(h, w) < grid.n_cells:
+            return (
+                f"{where} 'spec': n_cells {grid.n_cells} contradicts the tiles: their covered "
+                f"cells span {h} x {w} cells, less than one local grid"
+            )
+    return None
+
+
 def save_map(m: EvidentialMap, path: str | os.PathLike) -> Path:
-    """Save a map losslessly (compressed ``.npz`` with its grid grid and metadata), atomically."""
+    """Save a map losslessly (compressed ``.npz`` with its grid and metadata), atomically."""
+    if not isinstance(m, EvidentialMap):
+        raise TypeError(f"save_map needs an EvidentialMap, got {type(m).__name__}")
+    if not isinstance(path, (str, os.PathLike)) or not str(path) or Path(path).name in ("", "."):
+        raise ValueError(f"save_map: {path!r} names no file; give one such as 'fused.npz'")
+    if Path(path).is_dir():
+        raise IsADirectoryError(f"save_map: {path} is a folder; give a file name inside it")
     keys = sorted(m.tiles)
     header = {
         "format": _FORMAT,
@@ -385,6 +425,15 @@ def save_map(m: EvidentialMap, path: str | os.PathLike) -> Path:
         "metadata": m.metadata,
     }
     ts = m.tile_cells
+    why = _check_extent(
+        "save_map: field",
+        m.grid,
+        ts,
+        np.array(keys, dtype=np.int64).reshape(-1, 2),
+        [m.covered_tiles[k].any() for k in keys],
+    )
+    if why:
+        raise ValueError(f"{why}; the map could not be loaded back")
     arrays = {
         "header": np.frombuffer(json.dumps(header).encode(), dtype=np.uint8),
         "keys": np.array(keys, dtype=np.int64).reshape(-1, 2),
@@ -398,66 +447,92 @@ def save_map(m: EvidentialMap, path: str | os.PathLike) -> Path:
     return atomic_write(path, lambda f: np.savez_compressed(f, **arrays))
 
 
-def load_map(path: str | os.PathLike) -> EvidentialMap:
-    """Load a map written by :func:`save_map`; raise :class:`MapFileError` (one line naming the file) for anything else.
+def _declared(path: Path, zf: zipfile.ZipFile, name: str) -> tuple[tuple[int, ...], np.dtype]:
+    """Shape and dtype that member ``name.npy`` declares, read from its header only."""
+    info = zf.getinfo(name + ".npy")
+    with zf.open(info) as f:
+        version = np.lib.format.read_magic(f)
+        shape, fortran, dtype = (
+            np.lib.format.read_array_header_1_0(f)
+            if version == (1, 0)
+            else np.lib.format.read_array_header_2_0(f)
+        )
+    nbytes = int(np.prod(shape, dtype=np.float64)) * dtype.itemsize
+    if fortran or dtype.hasobject or nbytes > info.file_size:
+        raise MapFileError(
+            f"{path}: array '{name}' declares {shape} {dtype} ({nbytes} bytes), more than the "
+            f"{info.file_size} bytes stored, or an order evgrid does not write; the file is corrupt"
+        )
+    return tuple(shape), dtype
 
-    The tiles must hold valid masses: a corrupt file never yields a map with NaN or negative cells.
+
+def load_map(path: str | os.PathLike) -> EvidentialMap:
+    """Load a map written by :func:`save_map`.
+
+    Anything else raises :class:`MapFileError`, one line naming the file (and the field where
+    one is at fault). Each array's declared shape is checked against the header before its
+    data is read, and the tiles must hold valid masses: a corrupt file never yields a map with
+    NaN or negative cells, and never makes the loader allocate what the file does not hold.
     """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no map file at {path}")
+    with open(path, "rb") as f:
+        if f.read(6) == b"\x93NUMPY":
+            raise MapFileError(
+                f"{path} is a single numpy array (.npy), not an evgrid map (an .npz of save_map)"
+            )
     try:
-        with np.load(path, allow_pickle=False) as z:
-            names = set(z.files)
-            if not {"header", "keys", "tiles", "covered"} <= names:
+        with zipfile.ZipFile(path) as zf:
+            names = {n.removesuffix(".npy") for n in zf.namelist()}
+            if not set(_ARRAYS) <= names:
                 raise MapFileError(f"{path} is not an evgrid map (arrays {sorted(names)})")
+            shapes = {n: _declared(path, zf, n) for n in _ARRAYS}
+            hshape, hdtype = shapes["header"]
+            if len(hshape) != 1 or hdtype != np.uint8 or hshape[0] > _MAX_HEADER_BYTES:
+                raise MapFileError(f"{path}: array 'header' is {hshape} {hdtype}, not JSON bytes")
+        with np.load(path, allow_pickle=False) as z:
             header = json.loads(z["header"].tobytes().decode())
+            ts, spec, metadata = _header_fields(path, header)
+            n_keys = shapes["keys"][0][0] if len(shapes["keys"][0]) == 2 else -1
+            want = {  # shape, dtype test, what it is
+                "keys": ((n_keys, 2), lambda d: d.kind == "i", "integer tile keys"),
+                "tiles": ((n_keys, ts, ts, 3), lambda d: d == np.float32, "float32 masses"),
+                "covered": ((n_keys, ts, ts), lambda d: d == np.bool_, "bool coverage"),
+            }
+            for name, (shape, ok, what) in want.items():
+                got_shape, got_dtype = shapes[name]
+                if got_shape != shape or not ok(got_dtype):
+                    raise MapFileError(
+                        f"{path} is inconsistent: array '{name}' is {got_shape} {got_dtype}; "
+                        f"the header's tile_cells {ts} and {n_keys} keys make it {shape} {what}"
+                    )
             keys, tiles, covered = z["keys"], z["tiles"], z["covered"]
-    except MapFileError:
+    except (MapFileError, FileNotFoundError):
         raise
-    except (
-        zipfile.BadZipFile,
-        zlib.error,
-        EOFError,
-        OSError,
-        ValueError,
-        KeyError,
-        UnicodeDecodeError,
-        AttributeError,
-    ) as e:
-        raise MapFileError(f"{path} is truncated or not an evgrid map: {e}") from e
-    if not isinstance(header, dict) or header.get("format") != _FORMAT:
+    except Exception as e:  # noqa: BLE001 - whatever a corrupt file makes zipfile or numpy raise
+        # (zlib.error, BadZipFile, EOFError, tokenize.TokenError or SyntaxError from a garbled
+        # array header, UnicodeDecodeError, JSONDecodeError, MemoryError ...)
+        why = " ".join(str(e).split())[:200]  # one line, whatever the library wrote
         raise MapFileError(
-            f"{path} is not an evgrid map (format {header.get('format') if isinstance(header, dict) else None!r})"
-        )
-    if header.get("version") != _FORMAT_VERSION:
+            f"{path} is truncated or not an evgrid map: {type(e).__name__}: {why}"
+        ) from e
+    keys = np.asarray(keys, dtype=np.int64)
+    dup = _first_duplicate(keys)
+    if dup is not None:
         raise MapFileError(
-            f"{path} has map format version {header.get('version')!r}; this evgrid reads {_FORMAT_VERSION}"
+            f"{path}: field 'keys': tile key {dup} appears more than once; the file is corrupt"
         )
-    ts = header.get("tile_cells")
-    if isinstance(ts, bool) or not isinstance(ts, int) or ts < 8:
-        raise MapFileError(f"{path}: header field 'tile_cells' must be an integer >= 8, got {ts!r}")
-    try:
-        spec = GridSpec.from_dict(header["spec"])
-        metadata = dict(header.get("metadata", {}))
-    except (KeyError, TypeError, ValueError) as e:
-        raise MapFileError(f"{path}: header field 'spec' or 'metadata' is invalid ({e})") from e
-    if keys.shape != (len(keys), 2) or keys.dtype.kind != "i":
-        raise MapFileError(f"{path} is inconsistent: tile keys {keys.shape} {keys.dtype}")
-    if (
-        tiles.shape != (len(keys), ts, ts, 3)
-        or covered.shape != (len(keys), ts, ts)
-        or tiles.dtype != np.float32
-        or covered.dtype != np.bool_
-    ):
-        raise MapFileError(
-            f"{path} is inconsistent: {len(keys)} keys, tiles {tiles.shape} {tiles.dtype}, coverage {covered.shape} {covered.dtype}"
-        )
+    used = covered.reshape(len(keys), -1).any(1) if len(keys) else np.zeros(0, bool)
+    why = _check_extent(f"{path}: field", spec, ts, keys, used)
+    if why:
+        raise MapFileError(why)
     tiles = np.ascontiguousarray(tiles)
     n_bad = int(count_invalid(tiles.reshape(-1), 0, 1, tiles.size // 3)) if tiles.size else 0
     if n_bad:
         raise MapFileError(
-            f"{path}: {n_bad} cell(s) hold no valid mass (NaN, inf, negative, or not summing to 1); the file is corrupt"
+            f"{path}: {n_bad} cell(s) hold no valid mass (NaN, inf, negative, or not summing "
+            "to 1); the file is corrupt"
         )
     m = EvidentialMap(spec, ts, metadata)
     for k, t, c in zip(keys, tiles, covered):
@@ -465,3 +540,33 @@ def load_map(path: str | os.PathLike) -> EvidentialMap:
         m.tiles[key] = np.ascontiguousarray(t)
         m.covered_tiles[key] = np.ascontiguousarray(c)
     return m
+
+
+def _header_fields(path: Path, header: Any) -> tuple[int, GridSpec, dict[str, Any]]:
+    """``tile_cells``, the grid and the metadata of a map file's header; MapFileError if bad."""
+    if not isinstance(header, dict) or header.get("format") != _FORMAT:
+        fmt = header.get("format") if isinstance(header, dict) else None
+        raise MapFileError(f"{path} is not an evgrid map (format {fmt!r})")
+    if header.get("version") != _FORMAT_VERSION:
+        raise MapFileError(
+            f"{path} has map format version {header.get('version')!r}; "
+            f"this evgrid reads {_FORMAT_VERSION}"
+        )
+    ts = header.get("tile_cells")
+    if isinstance(ts, bool) or not isinstance(ts, int) or not 8 <= ts <= 4096:
+        raise MapFileError(
+            f"{path}: header field 'tile_cells' must be an integer in [8, 4096], got {ts!r}"
+        )
+    try:
+        spec = GridSpec.from_dict(header["spec"])
+        metadata = dict(header.get("metadata", {}))
+    except (KeyError, TypeError, ValueError) as e:
+        raise MapFileError(f"{path}: header field 'spec' or 'metadata' is invalid ({e})") from e
+    return ts, spec, metadata
+
+
+def _first_duplicate(keys: np.ndarray) -> tuple[int, int] | None:
+    if len(keys) < 2:
+        return None
+    u, counts = np.unique(keys, axis=0, return_counts=True)
+    return (int(u[counts > 1][0, 0]), int(u[counts > 1][0, 1])) if (counts > 1).any() else None

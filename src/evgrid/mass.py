@@ -184,15 +184,28 @@ def from_evidence(e: np.ndarray) -> np.ndarray:
     """Subjective-logic masses from evidence ``[e_f, e_o] >= 0``: ``[e_f/S, e_o/S, 2/S]``, ``S = 2 + e_f + e_o``.
 
     Paper eqs. (9), (10) and (14). Evidence 0 is accepted (the paper says strictly positive):
-    it is the vacuous mass, and a network's softplus output can underflow to 0.
+    it is the vacuous mass, and a network's softplus output can underflow to 0. Evidence so
+    large that S overflows (about 1e308) still gives a mass: ``[1e308, 1e308]`` is
+    ``[0.5, 0.5, 0]``.
     """
     a = np.asarray(e, dtype=np.float64)
     if a.ndim == 0 or a.shape[-1] != 2:
         raise ValueError(f"e: the last axis must be [e_f, e_o] of length 2, got shape {a.shape}")
     if not np.isfinite(a).all() or (a < 0).any():
         raise ValueError("e: evidence must be finite and non-negative")
-    s = 2.0 + a[..., 0] + a[..., 1]
-    return np.stack([a[..., 0] / s, a[..., 1] / s, 2.0 / s], axis=-1).astype(np.float32)
+    with np.errstate(over="ignore"):
+        s = 2.0 + a[..., 0] + a[..., 1]
+    out = np.stack([a[..., 0] / s, a[..., 1] / s, 2.0 / s], axis=-1)
+    over = ~np.isfinite(s)
+    if over.any():
+        # S overflows float64 only for evidence near 1e308, where e / S would be 0 / 0 = [0, 0,
+        # 0]: scale by the larger evidence first (the same masses in exact arithmetic)
+        b = a[over]
+        t = b.max(axis=-1, keepdims=True)
+        b = b / t
+        st = 2.0 / t[..., 0] + b[..., 0] + b[..., 1]
+        out[over] = np.stack([b[..., 0] / st, b[..., 1] / st, (2.0 / t[..., 0]) / st], axis=-1)
+    return out.astype(np.float32)
 
 
 def pignistic_occupied(m: np.ndarray) -> np.ndarray:
