@@ -1,4 +1,5 @@
-"""Hostile scene and map files: one error naming the file and what is wrong, never a stray exception.
+"""Hostile scene and map files: one error naming the file and what is wrong, never a stray
+exception.
 
 Before issue 12 a 0-byte scene file raised EOFError (the CLI printed only "Aborted."), a corrupt
 deflate stream raised zlib.error, a missing array KeyError and a broken 'meta' JSONDecodeError,
@@ -45,7 +46,7 @@ def _garble_member(src: Path, dst: Path, member: str) -> None:
     dst.write_bytes(bytes(buf))
 
 
-# --- scene files ------------------------------------------------------------------------------------
+# --- scene files ----------------------------------------------------------------------------------
 
 
 def test_an_empty_scene_file_names_the_file(tmp_path):
@@ -141,7 +142,7 @@ def test_scene_file_errors_are_value_errors():
     assert issubclass(SceneFileError, ValueError)
 
 
-# --- map files --------------------------------------------------------------------------------------
+# --- map files ------------------------------------------------------------------------------------
 
 
 @pytest.fixture(scope="module")
@@ -266,7 +267,7 @@ def test_a_radar_file_with_bytes_beyond_its_header_is_an_error(tmp_path):
         read_radar_pcd(path)
 
 
-# --- map files, round 3 (issue 26) ------------------------------------------------------------------
+# --- map files, round 3 (issue 26) ----------------------------------------------------------------
 
 
 def test_every_single_byte_flip_in_a_map_file_is_a_map_file_error_or_a_valid_map(
@@ -339,9 +340,7 @@ def test_a_tile_key_of_1e9_names_file_and_field(map_file, tmp_path):
         load_map(path)
 
 
-def test_an_array_declaring_more_than_the_file_holds_is_refused_before_reading(
-    map_file, tmp_path
-):
+def test_an_array_declaring_more_than_the_file_holds_is_refused_before_reading(map_file, tmp_path):
     # tile_cells 4096 in the header: the arrays' shapes no longer fit it, checked from the
     # arrays' own headers before any data is read or allocated
     path = _rewrite(map_file, tmp_path / "big.npz", lambda h: h.__setitem__("tile_cells", 4096))

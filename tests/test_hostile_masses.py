@@ -195,7 +195,7 @@ def test_whatever_ism_is_applied_every_stored_cell_stays_a_valid_mass(seed, garb
     assert n == int((~valid).sum())
 
 
-# --- the public algebra ----------------------------------------------------------------------------
+# --- the public algebra ---------------------------------------------------------------------------
 
 GOOD = np.array([0.2, 0.3, 0.5], np.float32)
 
@@ -260,7 +260,7 @@ def test_dempster_accepts_exactly_the_masses(m):
             mass.dempster(GOOD, m32)
 
 
-# --- point arrays in the devkit's (columns, n) layout -------------------------------------------------
+# --- point arrays in the devkit's (columns, n) layout ---------------------------------------------
 
 
 @pytest.mark.parametrize("rows", [3, 4, 5])

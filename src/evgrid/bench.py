@@ -29,7 +29,8 @@ import numpy as np
 
 
 def timings_ms(fn, prep=None, repeat: int = 20) -> np.ndarray:
-    """Wall times of ``repeat`` calls of ``fn()`` in ms after one warm-up call; ``prep()`` runs untimed before each."""
+    """Wall times of ``repeat`` calls of ``fn()`` in ms after one warm-up call; ``prep()`` runs
+    untimed before each."""
     if prep:
         prep()
     fn()
@@ -49,7 +50,8 @@ def median_ms(fn, prep=None, repeat: int = 20) -> float:
 
 
 def interleaved_timings(fns: dict[str, Any], repeat: int = 20) -> dict[str, np.ndarray]:
-    """Wall times in ms of ``repeat`` calls of each ``fns[name]()`` after a warm-up call, taken in turns so that all see the same load."""
+    """Wall times in ms of ``repeat`` calls of each ``fns[name]()`` after a warm-up call, taken in
+    turns so that all see the same load."""
     for fn in fns.values():
         fn()
     ts: dict[str, list[float]] = {k: [] for k in fns}
@@ -111,7 +113,8 @@ def _per_frame(frames: Sequence, deep, repeats: int) -> dict[str, Any]:
 
 
 def _deep_parts(deep, sweeps, ego_pose, now_us: int, repeat: int) -> dict[str, Any]:
-    """The deep IRM's steps, each path and runtime, on one buffer of sweeps; exactness against the plain path."""
+    """The deep IRM's steps, each path and runtime, on one buffer of sweeps; exactness against the
+    plain path."""
     from evgrid.ism.deep import evidence_to_masses, radar_image
     from evgrid.ism.runtime import make_runtime, ort_available
 
@@ -186,7 +189,7 @@ def _rig(deep, seed: int, duration_s: float) -> dict[str, Any]:
 
 
 def _end_to_end(deep, seed: int, duration_s: float) -> dict[str, Any]:
-    """Frames per second of mapping a simulated scene (simulation, six maps, scores, figures, GIF)."""
+    """Frames per second of mapping a simulated scene (simulation, maps, scores, figures, GIF)."""
     from evgrid.data import SimConfig, simulate_scene
     from evgrid.runs import map_scene
 
@@ -214,7 +217,8 @@ def run_bench(
     end_to_end_s: float | None = None,
     timing_repeat: int = 20,
 ) -> dict[str, Any]:
-    """Time the mapper on simulated scenes and the kernels on 512 x 512 grids, one core (see the module doc).
+    """Time the mapper on simulated scenes and the kernels on 512 x 512 grids, one core (see the
+    module doc).
 
     ``rig_s`` and ``end_to_end_s`` are the lengths of the rig and end-to-end scenes (default
     ``duration_s``; 0 skips; a whole nuScenes-like scene is ``end_to_end_s=20``);
@@ -274,9 +278,9 @@ def run_bench(
         "per_frame": runs,
         "deep_irm_parts_ms": parts,
         "kernels_ms": kernels,
-        "note": "components_ms are medians per map update (the median over runs of each run's median), "
-        "components_ms_p10 the 10th percentile over all updates; step_total is one whole update of "
-        "all listed maps",
+        "note": "components_ms are medians per map update (the median over runs of each run's "
+        "median), components_ms_p10 the 10th percentile over all updates; step_total is one "
+        "whole update of all listed maps",
     }
     rig_s = duration_s if rig_s is None else rig_s
     end_to_end_s = duration_s if end_to_end_s is None else end_to_end_s

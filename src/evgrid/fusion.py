@@ -1,4 +1,4 @@
-"""The map update rules of the paper's Table I, declared once, and a set of maps updated in one pass.
+"""The map update rules of the paper's Table I, declared once; a set of maps updated in one pass.
 
 :data:`RULES` is the one table of the rules: each row names a map, the inputs its per-cell
 kernel reads, the kernel's code in :mod:`evgrid.kernels` and the parameters it uses. The
@@ -102,7 +102,8 @@ logger = logging.getLogger(__name__)
 
 @dataclass(frozen=True, slots=True)
 class FusionParams:
-    """Parameters of the deep-ISM rules: ``m_u_min`` (unitless, [0, 1)), ``alpha`` (tanh gain, >= 0)."""
+    """Parameters of the deep-ISM rules: ``m_u_min`` (unitless, in [0, 1)) and ``alpha`` (the
+    gain of tanh, >= 0)."""
 
     m_u_min: float = M_U_MIN_DEFAULT
     alpha: float = ALPHA_DEFAULT

@@ -47,7 +47,8 @@ class GridSpec:
     def __post_init__(self) -> None:
         if check_int(self, "n_cells", min=2) % 2:
             raise ValueError(
-                f"GridSpec.n_cells must be even (the ego vehicle sits on a cell corner), got {self.n_cells!r}"
+                "GridSpec.n_cells must be even (the ego vehicle sits on a cell corner), "
+                f"got {self.n_cells!r}"
             )
         check_number(self, "length_m", min=0.0, min_open=True)
 
@@ -68,7 +69,7 @@ class GridSpec:
 
     # --- local grid <-> ego-frame metres ---------------------------------------------------
     def xy_to_uv(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Ego-frame metres -> continuous local indices (row u, col v); cell centres are integers."""
+        """Ego-frame metres -> continuous local indices (row u, col v); cell centres at integers."""
         c0 = self.n_cells / 2.0 - 0.5
         res = self.resolution
         return c0 - np.asarray(x) / res, c0 - np.asarray(y) / res
@@ -229,7 +230,8 @@ _HOMOGENEOUS.flags.writeable = False
 
 @dataclass(frozen=True, slots=True, eq=False)
 class SE3:
-    """A rigid transform ``p' = R p + t`` (metres); as ``sensor_to_ego`` or ``ego_pose`` (ego -> global).
+    """A rigid transform ``p' = R p + t`` (metres); as ``sensor_to_ego`` or ``ego_pose`` (ego ->
+    global).
 
     The constructor validates (user data comes in here); poses composed from valid poses
     (``@``, :meth:`inverse`, :meth:`identity`, :meth:`from_se2`) are built unchecked, as a

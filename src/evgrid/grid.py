@@ -4,8 +4,8 @@ Indexing and frames are those of :mod:`evgrid.geometry`. A local ISM grid (``(n,
 ego-centred) taken at ego pose ``pose`` (an :class:`~evgrid.geometry.SE2` of the ego in the
 first pose's frame) is resampled onto the map cells its square covers, bilinearly (a convex
 mix of masses is a mass), cells beyond the local grid counting as vacuous [0, 0, 1]
-(docs/decisions.md#map-frame-and-warp). Only that window of the map is read or written, and within it the update rules
-visit only the covered cells of each row (:attr:`MapWindow.spans`).
+(docs/decisions.md#map-frame-and-warp). Only that window of the map is read or written, and
+within it the update rules visit only the covered cells of each row (:attr:`MapWindow.spans`).
 
 The map stores square tiles of ``tile_cells`` cells, created the first time a local grid
 covers them, so memory grows with the area explored, not with the bounding box of the drive.
@@ -47,7 +47,8 @@ __all__ = [
 
 @dataclass(frozen=True, slots=True, eq=False)
 class MapWindow:
-    """A local grid resampled into the map: masses ``(h, w, 3)`` whose cell [0, 0] is map cell ``(r0, c0)``.
+    """A local grid resampled into the map: masses ``(h, w, 3)`` whose cell [0, 0] is map cell
+    ``(r0, c0)``.
 
     ``covered[i, j]`` is True where the local grid contributes any mass to the cell. Covered
     cells of a row are contiguous: ``spans[i] = (lo, hi)`` (int64) gives them as columns
@@ -62,7 +63,7 @@ class MapWindow:
     spans: np.ndarray | None = None
 
     def row_spans(self) -> np.ndarray:
-        """``spans``, or whole rows ``(0, w)`` where a row has a covered cell when there are none."""
+        """``spans``; without them, whole rows ``(0, w)`` where a row has a covered cell."""
         if self.spans is not None:
             return self.spans
         h, w = self.shape
@@ -77,7 +78,7 @@ class MapWindow:
 
 
 def _pose_affine(grid: GridSpec, pose: SE2) -> tuple[float, float, float, float]:
-    """Coefficients of map (R, C) -> local (u, v): u = cu + cos a + sin b, v = cu - sin a + cos b."""
+    """Map (R, C) -> local (u, v) coefficients: u = cu + cos a + sin b, v = cu - sin a + cos b."""
     res = grid.resolution
     return math.cos(pose.yaw), math.sin(pose.yaw), pose.x / res, pose.y / res
 
@@ -85,7 +86,8 @@ def _pose_affine(grid: GridSpec, pose: SE2) -> tuple[float, float, float, float]
 def window_affine(
     grid: GridSpec, pose: SE2, r0: int, c0: int
 ) -> tuple[float, float, float, float, float, float]:
-    """``(u00, v00, du_di, du_dj, dv_di, dv_dj)``: window cell (i, j) (map cell (r0 + i, c0 + j)) samples local (u, v)."""
+    """``(u00, v00, du_di, du_dj, dv_di, dv_dj)``: window cell (i, j) (map cell (r0 + i, c0 + j))
+    samples local (u, v)."""
     cs, sn, tx, ty = _pose_affine(grid, pose)
     cc = grid.n_cells / 2.0 - 0.5
     a0 = r0 + 0.5 + tx
@@ -152,21 +154,23 @@ class Warper:
         return self._coarse
 
     def load(self, local: np.ndarray) -> int:
-        """Take ``local`` ``(n, n, 3)`` for the next warps; returns how many of its cells were not masses."""
+        """Take ``local`` ``(n, n, 3)`` for the next warps; returns how many of its cells were not
+        masses."""
         n = self.grid.n_cells
         a = np.asarray(local)
         if a.shape != (n, n, 3) or not (
             np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)
         ):
             raise ValueError(
-                f"{self.name}: the local grid must be a numeric array of shape {(n, n, 3)}, got {a.dtype} {a.shape}"
+                f"{self.name}: the local grid must be a numeric array of shape {(n, n, 3)}, "
+                f"got {a.dtype} {a.shape}"
             )
         n_bad = int(load_padded(np.ascontiguousarray(a, dtype=np.float32), self._src))
         if n_bad:
             if self.n_rejected == 0:
                 logger.warning(
-                    "%s: %d cell(s) of the local grid are not masses (NaN, inf, negative or not summing "
-                    "to 1); they are taken as vacuous and counted in n_rejected",
+                    "%s: %d cell(s) of the local grid are not masses (NaN, inf, negative or not "
+                    "summing to 1); they are taken as vacuous and counted in n_rejected",
                     self.name,
                     n_bad,
                 )
@@ -175,7 +179,8 @@ class Warper:
         return n_bad
 
     def warp_loaded(self, pose: SE2) -> MapWindow:
-        """The grid of the last :meth:`load`, taken at ego ``pose`` (first-pose frame, m/rad), resampled into the map."""
+        """The grid of the last :meth:`load`, taken at ego ``pose`` (first-pose frame, m/rad),
+        resampled into the map."""
         grid = self.grid
         n = grid.n_cells
         r0, c0, h, w = warp_window(grid, pose)
@@ -200,13 +205,15 @@ class Warper:
         return MapWindow(r0, c0, masses, covered, spans)
 
     def warp(self, local: np.ndarray, pose: SE2) -> MapWindow:
-        """Resample ``local`` ``(n, n, 3)`` taken at ego ``pose`` (first-pose frame, m/rad) into the map."""
+        """Resample ``local`` ``(n, n, 3)`` taken at ego ``pose`` (first-pose frame, m/rad) into the
+        map."""
         self.load(local)
         return self.warp_loaded(pose)
 
 
 def warp_to_map(local: np.ndarray, pose: SE2, grid: GridSpec) -> MapWindow:
-    """Resample a local mass grid ``(n, n, 3)`` taken at ego ``pose`` (first-pose frame, m/rad) into the map."""
+    """Resample a local mass grid ``(n, n, 3)`` taken at ego ``pose`` (first-pose frame, m/rad) into
+    the map."""
     return Warper(grid).warp(local, pose)
 
 
@@ -232,7 +239,8 @@ class EvidentialMap:
         self.metadata: dict[str, Any] = dict(metadata or {})
 
     def __repr__(self) -> str:
-        return f"EvidentialMap({len(self.tiles)} tiles of {self.tile_cells} cells, {self.nbytes / 2**20:.1f} MiB)"
+        mib = self.nbytes / 2**20
+        return f"EvidentialMap({len(self.tiles)} tiles of {self.tile_cells} cells, {mib:.1f} MiB)"
 
     @property
     def nbytes(self) -> int:
@@ -276,7 +284,8 @@ class EvidentialMap:
         *masses: np.ndarray,
         pass_spans: bool = False,
     ) -> int:
-        """Call ``fn(map_view, *window_views)`` on every covered piece; ``fn`` updates ``map_view`` in place.
+        """Call ``fn(map_view, *window_views)`` on every covered piece; ``fn`` updates ``map_view``
+        in place.
 
         ``masses`` are ``(h, w, 3)`` arrays aligned with ``window`` (default: ``window.masses``).
         With ``pass_spans``, ``fn`` also gets ``spans=``: the window's covered columns per row of
@@ -313,7 +322,8 @@ class EvidentialMap:
         return n_rejected
 
     def read(self, r0: int, c0: int, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
-        """Dense copy of map cells ``[r0:r0+h, c0:c0+w]``: masses ``(h, w, 3)`` and coverage ``(h, w)``."""
+        """Dense copy of map cells ``[r0:r0+h, c0:c0+w]``: masses ``(h, w, 3)``, coverage
+        ``(h, w)``."""
         out = vacuous((h, w))
         cov = np.zeros((h, w), dtype=np.bool_)
         for key, tr, tc, wr, wc in self.pieces(r0, c0, h, w):
@@ -324,7 +334,7 @@ class EvidentialMap:
         return out, cov
 
     def bounds(self) -> tuple[int, int, int, int]:
-        """``(r0, c0, h, w)`` of the smallest tile-aligned box holding every tile; zeros when empty."""
+        """``(r0, c0, h, w)``: the smallest tile-aligned box holding every tile; zeros if none."""
         if not self.tiles:
             return (0, 0, 0, 0)
         ts = self.tile_cells
@@ -357,7 +367,8 @@ class EvidentialMap:
         )
 
     def to_dense(self) -> tuple[np.ndarray, np.ndarray, int, int]:
-        """The whole map as dense arrays: masses, coverage, and the map cell ``(r0, c0)`` of element [0, 0]."""
+        """The whole map as dense arrays: masses, coverage, and the map cell ``(r0, c0)`` of element
+        [0, 0]."""
         r0, c0, h, w = self.bounds()
         m, cov = self.read(r0, c0, h, w)
         return m, cov, r0, c0

@@ -88,7 +88,8 @@ def _normalise_cell(f, o, u):
 @numba.njit(inline="always", **_JIT)
 def _dempster_cell(f1, o1, u1, f2, o2, u2):
     # Paper eq. (5); f + o + u equals 1 - K for normalised inputs, so dividing by it
-    # normalises. Total conflict (1 - K = 0) is undefined: vacuous (docs/decisions.md#total-conflict).
+    # normalises. Total conflict (1 - K = 0) is undefined: vacuous
+    # (docs/decisions.md#total-conflict).
     f = f1 * f2 + f1 * u2 + u1 * f2
     o = o1 * o2 + o1 * u2 + u1 * o2
     u = u1 * u2
@@ -502,7 +503,8 @@ _AHEAD = 2  # rows ahead whose source lines are prefetched (see _prefetch_span)
 
 @intrinsic
 def _prefetch(typingctx, arr, idx):
-    """A hint to bring ``arr[idx]`` (a 1-D array) into the caches (``llvm.prefetch``: read, keep); never faults."""
+    """A hint to bring ``arr[idx]`` (a 1-D array) into the caches (``llvm.prefetch``: read, keep);
+    never faults."""
 
     def codegen(context, builder, signature, args):
         ary = context.make_array(signature.args[0])(context, builder, args[0])
@@ -534,7 +536,8 @@ def coarse_blocks(src, coarse):
 
 @numba.njit(**_CHECKED)
 def load_padded(local, src):
-    """src[1:n+1, 1:n+1] = local with invalid cells (see _valid_cell) made vacuous; returns their number."""
+    """src[1:n+1, 1:n+1] = local with invalid cells (see _valid_cell) made vacuous; returns their
+    number."""
     n_bad = 0
     for r in range(local.shape[0]):
         for c in range(local.shape[1]):
@@ -593,7 +596,8 @@ def window_spans(u00, v00, du_di, du_dj, dv_di, dv_dj, n, h, w, spans):
 
 @numba.njit(**_JIT)
 def band_columns(spans, h, w, jl, jh):
-    """jl[b], jh[b]: the covered columns [jl, jh) of band b (rows [32 b, 32 b + 32)); (w, 0) if none."""
+    """jl[b], jh[b]: the covered columns [jl, jh) of band b (rows [32 b, 32 b + 32)); (w, 0) if
+    none."""
     for bi in range(0, h, BLOCK):
         lo = w
         hi = 0
@@ -770,7 +774,8 @@ def warp_rows(
 
 @numba.njit(**_JIT)
 def informative_blocks(coarse, n, u00, v00, du_di, du_dj, dv_di, dv_dj, h, jl, jh, out):
-    """out[b, k]: whether block k (columns jl[b] + 32 k ...) of band b is informative (see warp_rows)."""
+    """out[b, k]: whether block k (columns jl[b] + 32 k ...) of band b is informative (see
+    warp_rows)."""
     for bi in range(0, h, BLOCK):
         b = bi // BLOCK
         i1 = min(h, bi + BLOCK)

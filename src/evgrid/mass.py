@@ -1,4 +1,4 @@
-"""The evidential algebra on the frame {free, occupied}: masses ``[m_f, m_o, m_u]`` (paper sec. III).
+"""The evidential algebra on the frame {free, occupied}: masses ``[m_f, m_o, m_u]`` (sec. III).
 
 Every public function takes arrays of shape ``(..., 3)`` (masses) or ``(..., 2)`` (evidence)
 and broadcasts over the leading axes; outputs are float32. Masses are dimensionless, each in
@@ -70,13 +70,15 @@ def validate(m: np.ndarray, name: str = "m", atol: float = _SUM_ATOL) -> np.ndar
     off = np.abs(s - 1.0)
     if (off > atol).any():
         raise ValueError(
-            f"{name}: masses must sum to 1 within {atol:g}, worst sum {float(s.flat[int(off.argmax())]):.6g}"
+            f"{name}: masses must sum to 1 within {atol:g}, "
+            f"worst sum {float(s.flat[int(off.argmax())]):.6g}"
         )
     return a
 
 
 def _masses32(m: np.ndarray, name: str) -> np.ndarray:
-    """``m`` as a C-contiguous float32 mass array ``(..., 3)``; ValueError naming ``name`` if it is not one."""
+    """``m`` as a C-contiguous float32 mass array ``(..., 3)``; ValueError naming ``name`` if it is
+    not one."""
     a = np.asarray(m)
     if a.ndim == 0 or a.shape[-1] != 3:
         raise ValueError(
@@ -115,7 +117,8 @@ def _combine(kernel, m1: np.ndarray, m2: np.ndarray, out: np.ndarray | None) -> 
     else:
         if out.shape != shape or out.dtype != np.float32 or not out.flags.c_contiguous:
             raise ValueError(
-                f"out must be a C-contiguous float32 array of shape {shape}, got {out.shape} {out.dtype}"
+                f"out must be a C-contiguous float32 array of shape {shape}, "
+                f"got {out.shape} {out.dtype}"
             )
         res = out
     fa, ars, h, w = rows(a)
@@ -153,7 +156,7 @@ def _check_unit(name: str, v: np.ndarray | float) -> np.ndarray:
 
 
 def discount(m: np.ndarray, gamma: np.ndarray | float) -> np.ndarray:
-    """Discounting ``gamma (x) m = [g m_f, g m_o, 1 - g + g m_u]`` (paper eq. (8)), gamma in [0, 1]."""
+    """Discounting ``gamma (x) m = [g m_f, g m_o, 1 - g + g m_u]`` (eq. (8)), gamma in [0, 1]."""
     _masses32(m, "m")
     a = np.asarray(m, dtype=np.float64)
     g = _check_unit("gamma", gamma)
@@ -181,7 +184,8 @@ def limit_unknown(m: np.ndarray, m_u_min: float) -> np.ndarray:
 
 
 def from_evidence(e: np.ndarray) -> np.ndarray:
-    """Subjective-logic masses from evidence ``[e_f, e_o] >= 0``: ``[e_f/S, e_o/S, 2/S]``, ``S = 2 + e_f + e_o``.
+    """Subjective-logic masses from evidence ``[e_f, e_o] >= 0``: ``[e_f/S, e_o/S, 2/S]`` with
+    ``S = 2 + e_f + e_o``.
 
     Paper eqs. (9), (10) and (14). Evidence 0 is accepted (the paper says strictly positive):
     it is the vacuous mass, and a network's softplus output can underflow to 0. Evidence so
