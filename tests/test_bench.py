@@ -1,13 +1,14 @@
-"""`evgrid bench` (evgrid.bench): the old path beside the new, the rig and the end-to-end run."""
+"""`evgrid bench` (evgrid.bench): per-frame components, the deep IRM's parts, the rig and the
+end-to-end run."""
 
 from __future__ import annotations
 
 import numpy as np
 import torch
 
-from evgrid.bench import PlainDeepIrm, interleaved_ms, run_bench
+from evgrid.bench import interleaved_ms, run_bench
 from evgrid.geometry import GridSpec
-from evgrid.ism.deep import CHANNELS, DeepIrm
+from evgrid.ism.deep import CHANNELS, DeepIrm, radar_image
 from evgrid.ism.evnet import EvNet, EvNetConfig, save_checkpoint
 from evgrid.ism.synthetic import street_radar_sweeps
 
@@ -18,10 +19,12 @@ def _tiny(tmp_path):
     return save_checkpoint(net, tmp_path / "tiny.safetensors", extra={"grid": GridSpec().to_dict()})
 
 
-def test_plain_path_wrapper_gives_the_fast_path_masses(tmp_path):
+def test_plain_path_gives_the_fast_path_masses(tmp_path):
+    # the deep IRM's plain path (bench's "old:" parts) against what the mapper runs; the bench's
+    # --old-path, which mapped whole scenes with it, is gone (issue 23)
     deep = DeepIrm(_tiny(tmp_path), runtime="torch")
     sweeps, ego = street_radar_sweeps(n_sweeps=2)
-    old = PlainDeepIrm(deep).predict(sweeps, ego, 1_000_000)
+    old = deep.predict_image(radar_image(sweeps, ego, deep.grid, 1_000_000, deep.params))
     assert np.abs(old - deep.predict(sweeps, ego, 1_000_000)).max() <= 2e-6
 
 
@@ -32,22 +35,20 @@ def test_interleaved_ms_times_each_function():
     assert calls == ["a", "b"] * 4  # one warm-up call each, then in turns
 
 
-def test_run_bench_reports_old_and_new_paths_rig_and_end_to_end(tmp_path):
+def test_run_bench_reports_components_rig_and_end_to_end(tmp_path):
     res = run_bench(
         0.5,
         str(_tiny(tmp_path)),
-        old_path=True,
         repeats=1,
         rig_s=0.5,
         end_to_end_s=0.5,
         timing_repeat=1,
     )
     per = res["per_frame"]
-    assert {"six_maps", "six_maps_old_path", "fused_only", "fused_only_old_path"} <= set(per)
-    assert (
-        "deep_irm" in per["fused_only"]["components_ms"]
-        and "deep_irm" in per["fused_only_old_path"]["components_ms"]
-    )
+    assert set(per) == {"six_maps", "fused_only"}
+    for label in per:
+        assert {"deep_irm", "warp", "fuse", "step_total"} <= set(per[label]["components_ms"])
+    assert "ray_ilm" in per["six_maps"]["components_ms"]
     parts = res["deep_irm_parts_ms"]
     assert parts["exactness_vs_plain"]["torch"]["max_abs_mass_diff"] <= 2e-6
     assert "new: pooled_input" in parts["ms"] and "old: radar_image" in parts["ms"]

@@ -45,7 +45,7 @@ def _three_by_three() -> EvidentialMap:
         ],
         dtype=np.float32,
     )
-    tile = m._tile((0, 0))[0]
+    tile = m.tile((0, 0))[0]
     tile[:3, :3] = masses
     m.covered_tiles[(0, 0)][:3, :3] = True
     return m

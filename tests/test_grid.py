@@ -60,8 +60,9 @@ def test_90_degree_yaw_and_translation_move_a_cell_where_hand_computation_says()
     local = mass.vacuous(SPEC.shape)
     r, c = 10, 40
     local[r, c] = MARK
-    # cell centre in the ego frame: x = (32 - 10 - 0.5) res = 21.5 res, y = (32 - 40 - 0.5) res = -8.5 res
-    # yaw +90 deg: (x, y) -> (-y, x) = (8.5 res, 21.5 res); then + (4 res, -7 res) = (12.5 res, 14.5 res)
+    # cell centre in the ego frame: x = (32 - 10 - 0.5) res = 21.5 res,
+    # y = (32 - 40 - 0.5) res = -8.5 res; yaw +90 deg: (x, y) -> (-y, x) = (8.5 res, 21.5 res);
+    # then + (4 res, -7 res) = (12.5 res, 14.5 res)
     # map cell: R = floor(-12.5) = -13, C = floor(-14.5) = -15
     w = warp_to_map(local, SE2(4 * RES, -7 * RES, math.pi / 2), SPEC)
     got = np.argwhere(w.masses[..., 2] < 1.0)
@@ -206,7 +207,7 @@ def test_failed_save_keeps_the_previous_file(tmp_path, monkeypatch):
 def _numpy_warp_reference(
     local: np.ndarray, pose: SE2, grid: GridSpec, r0: int, c0: int, h: int, w: int
 ) -> np.ndarray:
-    """Bilinear resampling written plainly: map cell centre -> ego frame -> continuous local index."""
+    """Bilinear resampling written plainly: map cell centre -> ego frame -> local index."""
     R, C = np.meshgrid(np.arange(r0, r0 + h), np.arange(c0, c0 + w), indexing="ij")
     x, y = grid.map_cell_to_xy(R, C)
     lx, ly = SE2.inverse(pose).apply(np.stack([x, y], -1)).transpose(2, 0, 1)

@@ -1,4 +1,5 @@
-"""Hostile scene and map files: one error naming the file and what is wrong, never a stray exception.
+"""Hostile scene and map files: one error naming the file and what is wrong, never a stray
+exception.
 
 Before issue 12 a 0-byte scene file raised EOFError (the CLI printed only "Aborted."), a corrupt
 deflate stream raised zlib.error, a missing array KeyError and a broken 'meta' JSONDecodeError,
@@ -45,7 +46,7 @@ def _garble_member(src: Path, dst: Path, member: str) -> None:
     dst.write_bytes(bytes(buf))
 
 
-# --- scene files ------------------------------------------------------------------------------------
+# --- scene files ----------------------------------------------------------------------------------
 
 
 def test_an_empty_scene_file_names_the_file(tmp_path):
@@ -141,7 +142,7 @@ def test_scene_file_errors_are_value_errors():
     assert issubclass(SceneFileError, ValueError)
 
 
-# --- map files --------------------------------------------------------------------------------------
+# --- map files ------------------------------------------------------------------------------------
 
 
 @pytest.fixture(scope="module")
@@ -264,3 +265,97 @@ def test_a_radar_file_with_bytes_beyond_its_header_is_an_error(tmp_path):
     path.write_bytes(path.read_bytes() + b"\0" * 7)
     with pytest.raises(ValueError, match=r"radar\.pcd.*declares 3 points"):
         read_radar_pcd(path)
+
+
+# --- map files, round 3 (issue 26) ----------------------------------------------------------------
+
+
+def test_every_single_byte_flip_in_a_map_file_is_a_map_file_error_or_a_valid_map(
+    map_file, tmp_path
+):
+    # before: 45 of 674 flips raised a raw tokenize.TokenError naming no file
+    data = map_file.read_bytes()
+    path = tmp_path / "flipped.npz"
+    outcomes = {"error": 0, "loaded": 0}
+    for i in range(len(data)):
+        buf = bytearray(data)
+        buf[i] ^= 0xFF
+        path.write_bytes(bytes(buf))
+        try:
+            m = load_map(path)
+        except MapFileError as e:
+            assert "flipped.npz" in str(e) and "\n" not in str(e)
+            outcomes["error"] += 1
+        else:  # a flip in a field nobody reads: the map is still whole and valid
+            for t in m.tiles.values():
+                assert np.isfinite(t).all() and (t >= 0).all()
+            outcomes["loaded"] += 1
+    assert outcomes["error"] > len(data) // 2
+
+
+def test_a_npy_array_given_as_a_map_names_the_file(tmp_path):
+    # before: TypeError: 'numpy.ndarray' object does not support the context manager protocol
+    np.save(tmp_path / "a.npy", np.zeros((4, 4, 3), np.float32))
+    with pytest.raises(MapFileError, match=r"a\.npy is a single numpy array"):
+        load_map(tmp_path / "a.npy")
+
+
+def _rewrite(map_file: Path, path: Path, header=None, **arrays) -> Path:
+    a = _arrays(map_file)
+    if header is not None:
+        h = json.loads(a["header"].tobytes().decode())
+        header(h)
+        a["header"] = np.frombuffer(json.dumps(h).encode(), np.uint8)
+    a.update(arrays)
+    np.savez_compressed(path, **a)
+    return path
+
+
+def test_a_header_contradicting_its_tiles_names_file_and_field(map_file, tmp_path):
+    # n_cells 100000: no update of such local grids covers only a few 16-cell tiles (before, the
+    # nav2 export wrote a map of 0.4 mm cells)
+    path = _rewrite(
+        map_file, tmp_path / "wide.npz", lambda h: h["spec"].__setitem__("n_cells", 100000)
+    )
+    with pytest.raises(MapFileError, match=r"wide\.npz: field 'spec': n_cells 100000 contradicts"):
+        load_map(path)
+
+
+def test_several_tiles_under_one_key_name_file_and_field(map_file, tmp_path):
+    a = _arrays(map_file)
+    keys = a["keys"].copy()
+    keys[1] = keys[0]
+    path = _rewrite(map_file, tmp_path / "dup.npz", keys=keys)
+    with pytest.raises(MapFileError, match=r"dup\.npz: field 'keys': tile key .* more than once"):
+        load_map(path)
+
+
+def test_a_tile_key_of_1e9_names_file_and_field(map_file, tmp_path):
+    # before: numpy's "array is too big" when the map was exported
+    a = _arrays(map_file)
+    keys = a["keys"].copy()
+    keys[0] = (10**9, 0)
+    path = _rewrite(map_file, tmp_path / "far.npz", keys=keys)
+    with pytest.raises(MapFileError, match=r"far\.npz: field 'keys': tile key 1000000000 lies"):
+        load_map(path)
+
+
+def test_an_array_declaring_more_than_the_file_holds_is_refused_before_reading(map_file, tmp_path):
+    # tile_cells 4096 in the header: the arrays' shapes no longer fit it, checked from the
+    # arrays' own headers before any data is read or allocated
+    path = _rewrite(map_file, tmp_path / "big.npz", lambda h: h.__setitem__("tile_cells", 4096))
+    with pytest.raises(MapFileError, match=r"big\.npz is inconsistent: array 'tiles'"):
+        load_map(path)
+    path = _rewrite(map_file, tmp_path / "huge.npz", lambda h: h.__setitem__("tile_cells", 10**6))
+    with pytest.raises(MapFileError, match=r"huge\.npz: header field 'tile_cells'"):
+        load_map(path)
+
+
+def test_save_map_to_no_file_is_a_clear_error(map_file, tmp_path):
+    m = load_map(map_file)
+    with pytest.raises(ValueError, match="names no file"):
+        save_map(m, "")
+    with pytest.raises(IsADirectoryError, match="is a folder"):
+        save_map(m, tmp_path)
+    with pytest.raises(TypeError, match="EvidentialMap"):
+        save_map(np.zeros(3), tmp_path / "x.npz")

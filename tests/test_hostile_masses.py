@@ -19,6 +19,7 @@ from evgrid.geometry import SE2, GridSpec
 from evgrid.grid import EvidentialMap, MapWindow, Warper
 from evgrid.ism import ray_ilm
 from evgrid.ism.radar import ray_irm_xy
+from tests.oracle import TwoPassMaps
 from tests.strategies import random_masses
 
 GRID = GridSpec(32, 4.0)
@@ -137,14 +138,16 @@ def test_each_update_rule_rejects_invalid_cells_and_returns_their_count(name):
     assert n == len(BAD) * len(rule.isms)
 
 
-def test_apply_and_update_windows_count_rejected_window_cells():
+def test_apply_and_the_oracles_windows_count_rejected_window_cells():
+    # Windows that did not come from a warper's check (the two-pass oracle of tests/oracle.py,
+    # once MapSet.update_windows): each rule rejects their invalid cells and counts them.
     ism = mass.vacuous((4, 6))
     ism[1, 2] = [0.7, 0.0, 0.7]
     ism[2, 3] = [np.nan, np.nan, np.nan]
     window = MapWindow(5, -3, ism, np.ones((4, 6), bool))
     em = EvidentialMap(GRID, tile_cells=8)
     assert em.apply(window, RULES["ray_ilm"].update) == 2
-    ms = MapSet(GRID, P)
+    ms = TwoPassMaps(GRID, P)
     assert ms.update_windows({k: window for k in ISMS}) == {
         "ray_ilm": 2,
         "deep_acc": 2,
@@ -192,7 +195,7 @@ def test_whatever_ism_is_applied_every_stored_cell_stays_a_valid_mass(seed, garb
     assert n == int((~valid).sum())
 
 
-# --- the public algebra ----------------------------------------------------------------------------
+# --- the public algebra ---------------------------------------------------------------------------
 
 GOOD = np.array([0.2, 0.3, 0.5], np.float32)
 
@@ -257,7 +260,7 @@ def test_dempster_accepts_exactly_the_masses(m):
             mass.dempster(GOOD, m32)
 
 
-# --- point arrays in the devkit's (columns, n) layout -------------------------------------------------
+# --- point arrays in the devkit's (columns, n) layout ---------------------------------------------
 
 
 @pytest.mark.parametrize("rows", [3, 4, 5])
@@ -281,3 +284,59 @@ def test_sweeps_name_a_transposed_point_array():
 
     with pytest.raises(ValueError, match="transposed"):
         LidarSweep(np.zeros((5, 100), np.float32), SE3.identity(), SE3.identity(), 0)
+
+
+# --- API edges, round 3 (issue 26) ---------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "pose", [SE2(1e30, 0.0, 0.0), SE2(0.0, -2e8, 1.0), SE2._unchecked(float("nan"), 0.0, 0.0)]
+)
+def test_map_update_refuses_a_pose_far_from_the_frame_naming_it(pose):
+    # before: SE2(1e30, 0, 0) placed the grid at tile key -5e28 without an error
+    ms = MapSet(GRID, P, ("ray_ilm",))
+    with pytest.raises(ValueError, match=r"pose SE2\(x=.*finite and within 1e\+08 m"):
+        ms.update(pose, {"ray_ilm": mass.vacuous(GRID.shape)})
+    assert ms.n_updates == 0 and not ms["ray_ilm"].tiles
+
+
+def test_map_update_takes_a_pose_in_a_utm_like_frame():
+    # real fixed frames reach 1e7 m: a pose there maps, at its own tiles
+    ms = MapSet(GRID, P, ("ray_ilm",))
+    ism = mass.vacuous(GRID.shape)
+    ism[10:20, 10:20] = [0.6, 0.1, 0.3]
+    ms.update(SE2(5e7, -3e6, 0.3), {"ray_ilm": ism})
+    r0, c0, _, _ = ms["ray_ilm"].covered_bounds()
+    assert abs(r0 * GRID.resolution + 5e7) < 10 and abs(c0 * GRID.resolution - 3e6) < 10
+
+
+def test_from_evidence_of_huge_evidence_is_a_mass():
+    # before: [1e308, 1e308] gave [0, 0, 0] (S overflowed)
+    np.testing.assert_array_equal(mass.from_evidence([1e308, 1e308]), [0.5, 0.5, 0.0])
+    m = mass.from_evidence([[1e308, 1.0], [0.0, 1.7e308], [3.0, 1.0]])
+    mass.validate(m)
+    np.testing.assert_array_equal(m[0], [1.0, 0.0, 0.0])
+    np.testing.assert_array_equal(m[2], np.float32([0.5, 1 / 6, 1 / 3]))
+
+
+def test_map_set_arguments_of_the_wrong_kind_are_named():
+    # before: MapSet(spec, {'m_u_min': 2.0}) raised an AttributeError
+    with pytest.raises(TypeError, match=r"params must be a FusionParams.*dict"):
+        MapSet(GRID, {"m_u_min": 2.0})
+    with pytest.raises(TypeError, match="grid must be a GridSpec"):
+        MapSet({"n_cells": 32})
+    with pytest.raises(TypeError, match="names must be a tuple of map names"):
+        MapSet(GRID, P, "fused")
+    with pytest.raises(ValueError, match="repeat"):
+        MapSet(GRID, P, ("fused", "fused"))
+
+
+def test_grid_spec_from_dict_names_what_is_missing():
+    # before: a bare KeyError
+    with pytest.raises(ValueError, match=r"missing key\(s\) \['length_m'\]"):
+        GridSpec.from_dict({"n_cells": 32})
+    with pytest.raises(ValueError, match="'length_m' is not a number"):
+        GridSpec.from_dict({"n_cells": 32, "length_m": "wide"})
+    with pytest.raises(ValueError, match="needs a mapping"):
+        GridSpec.from_dict([32, 4.0])
+    assert GridSpec.from_dict(GRID.to_dict()) == GRID

@@ -86,7 +86,8 @@ def test_deep_discount_factor_hand_computed():
     # vacuous map, prediction at the limit 0.5: tanh(10 * 0.5) < bound (1 - .5) / (1 * .5) = 1
     g = mass.deep_discount_factor([0, 0, 1], [0.5, 0, 0.5], m_u_min=0.5, alpha=10)
     assert g == pytest.approx(math.tanh(5.0), abs=1e-7)
-    # map [.3, 0, .7], prediction [.6, 0, .4], m_u_min .4: bound (.7 - .4) / (.7 * .6 - 0) = 5/7 < tanh(3)
+    # map [.3, 0, .7], prediction [.6, 0, .4], m_u_min .4: bound (.7 - .4) / (.7 * .6 - 0) = 5/7 <
+    # tanh(3)
     g = mass.deep_discount_factor([0.3, 0, 0.7], [0.6, 0, 0.4], m_u_min=0.4, alpha=10)
     assert g == pytest.approx(5 / 7, rel=1e-6)
     fused = mass.yager([0.3, 0, 0.7], mass.discount([0.6, 0, 0.4], g))
@@ -96,7 +97,8 @@ def test_deep_discount_factor_hand_computed():
 
 
 def test_deep_discount_exact_bound_where_papers_bound_fails():
-    """The paper's bound (eq. (35)) holds K fixed and lets m_u fall below m_u_min; the exact one does not.
+    """The paper's bound (eq. (35)) holds K fixed and lets m_u fall below m_u_min; the exact one
+    does not.
 
     docs/decisions.md#exact-gamma-bound
     """
@@ -182,7 +184,8 @@ def test_kernels_match_a_float64_numpy_reference():
 
 @given(masses(), masses())
 def test_dempster_never_raises_unknown(m1, m2):
-    """Paper IV-A: Dempster's fused unknown mass never exceeds either input's (total conflict aside)."""
+    """Paper IV-A: Dempster's fused unknown mass never exceeds either input's (total conflict
+    aside)."""
     if 1.0 - float(mass.conflict(m1, m2)) < 1e-6:
         return  # undefined there; vacuous (docs/decisions.md#total-conflict)
     u = mass.dempster(m1, m2)[2]
@@ -245,7 +248,8 @@ def test_gamma_in_unit_interval_and_zero_without_gain(m_map, m_pred, m_u_min, al
 @settings(max_examples=25, deadline=None)
 @given(st.integers(0, 2**32 - 1), st.floats(0.05, 0.9), st.floats(0.5, 50.0))
 def test_deep_discount_invariant_over_1000_updates(seed, m_u_min, alpha):
-    """Paper eq. (30), docs/decisions.md#exact-gamma-bound: m_u >= m_u_min stays true under any deep_disc updates."""
+    """Paper eq. (30), docs/decisions.md#exact-gamma-bound: m_u >= m_u_min stays true under any
+    deep_disc updates."""
     from evgrid.fusion import FusionParams, update_deep_disc
 
     rng = np.random.default_rng(seed)

@@ -4,11 +4,9 @@ Sections of the result:
 
 * ``per_frame``: map a simulated scene with all six maps and with ``fused`` alone; the median
   milliseconds of each component per map update (``step_total``: one whole update), the median
-  over ``repeats`` runs. With ``old_path`` the same frames are also mapped the old way: the
-  deep IRM's plain path (full 512 x 512 image, the whole Ev-Net on torch, ``from_evidence``) and
-  the maps updated through whole warped windows (warp, then the rules) instead of in one pass;
-  runs interleaved with the new path's, so before/after come from one run on the same machine
-  load. In one pass, ``warp`` is only the ISMs' check and padding; the sampling is in ``fuse``.
+  over ``repeats`` runs. ``warp`` is the ISMs' check and padding; the sampling and the rules
+  are in ``fuse`` (one pass, :meth:`evgrid.fusion.MapSet.update`). To compare commits, run
+  ``benchmarks/bench_commits.py``, which runs each commit's bench in turns.
 * ``deep_irm_parts_ms``: the deep IRM's steps on one buffer of radar sweeps, for each path and
   each installed runtime, with how far the fast path's masses are from the plain path's.
 * ``rig``: per-frame time of a 10 Hz lidar + 4 Hz radar rig, every frame a map update.
@@ -31,7 +29,8 @@ import numpy as np
 
 
 def timings_ms(fn, prep=None, repeat: int = 20) -> np.ndarray:
-    """Wall times of ``repeat`` calls of ``fn()`` in ms after one warm-up call; ``prep()`` runs untimed before each."""
+    """Wall times of ``repeat`` calls of ``fn()`` in ms after one warm-up call; ``prep()`` runs
+    untimed before each."""
     if prep:
         prep()
     fn()
@@ -51,7 +50,8 @@ def median_ms(fn, prep=None, repeat: int = 20) -> float:
 
 
 def interleaved_timings(fns: dict[str, Any], repeat: int = 20) -> dict[str, np.ndarray]:
-    """Wall times in ms of ``repeat`` calls of each ``fns[name]()`` after a warm-up call, taken in turns so that all see the same load."""
+    """Wall times in ms of ``repeat`` calls of each ``fns[name]()`` after a warm-up call, taken in
+    turns so that all see the same load."""
     for fn in fns.values():
         fn()
     ts: dict[str, list[float]] = {k: [] for k in fns}
@@ -68,35 +68,14 @@ def interleaved_ms(fns: dict[str, Any], repeat: int = 20) -> dict[str, float]:
     return {k: float(np.median(v)) for k, v in interleaved_timings(fns, repeat).items()}
 
 
-class PlainDeepIrm:
-    """The deep IRM's plain path behind the mapper's interface: full input image, whole Ev-Net on torch, from_evidence.
-
-    What the mapper ran before the fast path; ``evgrid bench --old-path`` maps with it for comparison.
-    """
-
-    def __init__(self, deep):
-        self.deep = deep
-
-    def predict(self, sweeps, ego_pose, now_us=None) -> np.ndarray:
-        from evgrid.ism.deep import radar_image
-
-        d = self.deep
-        return d.predict_image(radar_image(sweeps, ego_pose, d.grid, now_us, d.params))
-
-
 def _map_frames(
     frames: Sequence, maps: tuple[str, ...], deep, update_rate_hz: float = 10.0
 ) -> tuple[Any, np.ndarray]:
-    """Map ``frames``; return the mapper and each frame's ``process`` time (ms).
-
-    With the deep IRM's plain path (:class:`PlainDeepIrm`) the maps are also updated the old
-    way, through whole warped windows.
-    """
+    """Map ``frames``; return the mapper and each frame's ``process`` time (ms)."""
     from evgrid.config import MapperConfig
     from evgrid.mapper import OccupancyMapper
 
     mapper = OccupancyMapper(MapperConfig(maps=maps, update_rate_hz=update_rate_hz), deep=deep)
-    mapper.one_pass = not isinstance(deep, PlainDeepIrm)
     ts = np.empty(len(frames))
     for k, f in enumerate(frames):
         t = time.perf_counter()
@@ -105,41 +84,37 @@ def _map_frames(
     return mapper, ts * 1e3
 
 
-def _per_frame(frames: Sequence, deep, old_path: bool, repeats: int) -> dict[str, Any]:
+def _per_frame(frames: Sequence, deep, repeats: int) -> dict[str, Any]:
     from evgrid import fusion
 
-    paths = {"new": deep, **({"old": PlainDeepIrm(deep)} if old_path else {})}
     out: dict[str, Any] = {}
     for label, maps in (("six_maps", fusion.MAP_NAMES), ("fused_only", ("fused",))):
-        for impl in paths.values():  # warm up: compilation, first allocations, the ONNX export
-            _map_frames(frames[:4], maps, impl)
-        runs: dict[str, list[dict[str, float]]] = {p: [] for p in paths}
-        every: dict[str, dict[str, list[float]]] = {p: {} for p in paths}
-        walls: dict[str, list[float]] = {p: [] for p in paths}
+        _map_frames(frames[:4], maps, deep)  # warm up: compilation, first allocations
+        runs: list[dict[str, float]] = []
+        every: dict[str, list[float]] = {}
+        walls: list[float] = []
         for _ in range(repeats):
-            for p, impl in paths.items():  # interleaved: both paths see the same machine load
-                mapper, ts = _map_frames(frames, maps, impl)
-                runs[p].append(mapper.timing_summary())
-                for k, v in mapper.timings.items():
-                    every[p].setdefault(k, []).extend(v)
-                walls[p].append(float(ts.sum()) * 1e-3)
-        for p in paths:
-            keys = runs[p][0].keys()
-            key = label if p == "new" else f"{label}_old_path"
-            out[key] = {
-                "components_ms": {k: float(np.median([r[k] for r in runs[p]])) for k in keys},
-                # the fastest tenth of the updates: what a quiet core gives on a shared machine
-                "components_ms_p10": {k: float(np.percentile(every[p][k], 10)) for k in keys},
-                "step_total_ms_runs": [r["step_total"] for r in runs[p]],
-                "updates": mapper.n_updates,
-                "frames": len(frames),
-                "frames_per_second": len(frames) / float(np.median(walls[p])),
-            }
+            mapper, ts = _map_frames(frames, maps, deep)
+            runs.append(mapper.timing_summary())
+            for k, v in mapper.timings.items():
+                every.setdefault(k, []).extend(v)
+            walls.append(float(ts.sum()) * 1e-3)
+        keys = runs[0].keys()
+        out[label] = {
+            "components_ms": {k: float(np.median([r[k] for r in runs])) for k in keys},
+            # the fastest tenth of the updates: what a quiet core gives on a shared machine
+            "components_ms_p10": {k: float(np.percentile(every[k], 10)) for k in keys},
+            "step_total_ms_runs": [r["step_total"] for r in runs],
+            "updates": mapper.n_updates,
+            "frames": len(frames),
+            "frames_per_second": len(frames) / float(np.median(walls)),
+        }
     return out
 
 
 def _deep_parts(deep, sweeps, ego_pose, now_us: int, repeat: int) -> dict[str, Any]:
-    """The deep IRM's steps, each path and runtime, on one buffer of sweeps; exactness against the plain path."""
+    """The deep IRM's steps, each path and runtime, on one buffer of sweeps; exactness against the
+    plain path."""
     from evgrid.ism.deep import evidence_to_masses, radar_image
     from evgrid.ism.runtime import make_runtime, ort_available
 
@@ -214,7 +189,7 @@ def _rig(deep, seed: int, duration_s: float) -> dict[str, Any]:
 
 
 def _end_to_end(deep, seed: int, duration_s: float) -> dict[str, Any]:
-    """Frames per second of mapping a simulated scene (simulation, six maps, scores, figures, GIF)."""
+    """Frames per second of mapping a simulated scene (simulation, maps, scores, figures, GIF)."""
     from evgrid.data import SimConfig, simulate_scene
     from evgrid.runs import map_scene
 
@@ -237,15 +212,14 @@ def _end_to_end(deep, seed: int, duration_s: float) -> dict[str, Any]:
 def run_bench(
     duration_s: float = 6.0,
     checkpoint: str | None = None,
-    old_path: bool = False,
     repeats: int = 3,
     rig_s: float | None = None,
     end_to_end_s: float | None = None,
     timing_repeat: int = 20,
 ) -> dict[str, Any]:
-    """Time the mapper on simulated scenes and the kernels on 512 x 512 grids, one core (see the module doc).
+    """Time the mapper on simulated scenes and the kernels on 512 x 512 grids, one core (see the
+    module doc).
 
-    ``old_path`` also maps with the deep IRM's plain path, interleaved, for before/after;
     ``rig_s`` and ``end_to_end_s`` are the lengths of the rig and end-to-end scenes (default
     ``duration_s``; 0 skips; a whole nuScenes-like scene is ``end_to_end_s=20``);
     ``timing_repeat`` calls time each kernel and each deep IRM step.
@@ -266,7 +240,7 @@ def run_bench(
     scene = simulate_scene(4, SimConfig(duration_s=duration_s))
     frames = list(scene)
 
-    runs = _per_frame(frames, deep, old_path, repeats)
+    runs = _per_frame(frames, deep, repeats)
     mapper, _ = _map_frames(frames, ("fused",), deep)
     sweeps = mapper.buffer.sweeps(deep.params.n_sweeps)
     parts = _deep_parts(deep, sweeps, frames[-1].ego_pose, frames[-1].timestamp, timing_repeat)
@@ -290,9 +264,6 @@ def run_bench(
         "warp_and_deep_disc_fuse_512_yaw45": median_ms(
             lambda: one_map.update(pose, {"deep_irm": a}), repeat=rep
         ),
-        "warp_and_deep_disc_fuse_512_yaw45_two_pass": median_ms(
-            lambda: one_map.update_windows(one_map.warp(pose, {"deep_irm": a})), repeat=rep
-        ),
     }
     result: dict[str, Any] = {
         "machine": {
@@ -307,9 +278,9 @@ def run_bench(
         "per_frame": runs,
         "deep_irm_parts_ms": parts,
         "kernels_ms": kernels,
-        "note": "components_ms are medians per map update (the median over runs of each run's median), "
-        "components_ms_p10 the 10th percentile over all updates; step_total is one whole update of "
-        "all listed maps",
+        "note": "components_ms are medians per map update (the median over runs of each run's "
+        "median), components_ms_p10 the 10th percentile over all updates; step_total is one "
+        "whole update of all listed maps",
     }
     rig_s = duration_s if rig_s is None else rig_s
     end_to_end_s = duration_s if end_to_end_s is None else end_to_end_s

@@ -1075,13 +1075,6 @@ def bench(
     checkpoint: Path = typer.Option(
         None, "--checkpoint", help="Ev-Net checkpoint; default: the shipped one."
     ),
-    old_path: bool = typer.Option(
-        False,
-        "--old-path",
-        help="Also time the old path (the deep IRM's full image on "
-        "torch, maps updated through whole warped windows), interleaved with the new "
-        "one: before and after in one run.",
-    ),
     end_to_end: float = typer.Option(
         None,
         "--end-to-end",
@@ -1097,7 +1090,7 @@ def bench(
 
     Example:
       evgrid bench --out out/bench.json
-      evgrid bench --old-path --end-to-end 20   # before/after of the deep IRM, and a whole 20 s run
+      evgrid bench --end-to-end 20   # and a whole 20 s run mapped end to end
     """
     import json
 
@@ -1107,7 +1100,6 @@ def bench(
     res = run_bench(
         seconds,
         str(checkpoint) if checkpoint else None,
-        old_path=old_path,
         repeats=repeats,
         end_to_end_s=end_to_end,
     )

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from evgrid.data.radar_filter import RadarFilter
-from evgrid.fusion import MAP_NAMES, FusionParams
+from evgrid.fusion import MAP_NAMES, RULES, FusionParams
 from evgrid.geometry import GridSpec
 from evgrid.ism.deep import RadarImageParams
 from evgrid.ism.lidar import RayIlmParams
@@ -97,10 +97,10 @@ class MapperConfig:
 
     def __post_init__(self) -> None:
         check_choice(self, "runtime", choices=RUNTIMES)
-        unknown = [m for m in self.maps if m not in MAP_NAMES]
+        unknown = [m for m in self.maps if m not in RULES]  # Table I's six, and nav
         if unknown or not self.maps:
             raise ValueError(
-                f"MapperConfig.maps: unknown map name(s) {unknown}; choose from {MAP_NAMES}"
+                f"MapperConfig.maps: unknown map name(s) {unknown}; choose from {tuple(RULES)}"
             )
         check_number(self, "update_rate_hz", min=0.0, min_open=True)
         check_int(self, "threads", min=1)

@@ -1,7 +1,8 @@
-"""The six map update rules of the paper's Table I, and a set of maps updated in one pass.
+"""The map update rules of the paper's Table I, declared once; a set of maps updated in one pass.
 
-Each rule updates map cells in place from ISM masses on the same cells (both ``(h, w, 3)``
-views, see :meth:`evgrid.grid.EvidentialMap.apply`):
+:data:`RULES` is the one table of the rules: each row names a map, the inputs its per-cell
+kernel reads, the kernel's code in :mod:`evgrid.kernels` and the parameters it uses. The
+paper's six maps (:data:`MAP_NAMES`), and a navigation map computed when asked for:
 
 ==============  ==========================================================================
 ``ray_ilm``     map = map (+)_D ray ILM (the reference)
@@ -10,19 +11,26 @@ views, see :meth:`evgrid.grid.EvidentialMap.apply`):
 ``deep_disc``   m = limit_unknown(deep IRM, m_u_min); map = map (+)_Y (gamma (x) m)
 ``ray_irm``     map = map (+)_D ray IRM
 ``fused``       the deep_disc step, then map = map (+)_D ray IRM
+``nav``         the ray_ilm map (+)_D the fused map, the fused map's free mass ignored where
+                the lidar's evidence is occupied-dominant (never free where the lidar saw
+                occupied), its occupied mass where the lidar's is free-dominant
 ==============  ==========================================================================
 
-ISM cells that are vacuous leave a map cell unchanged under every rule, so kernels skip them.
-ISM cells that are not masses (NaN or inf, a negative mass, a sum off 1 by more than
-``evgrid.kernels.MASS_ATOL``) leave it unchanged too: each rule returns how many it rejected,
-and :class:`MapSet` counts them (docs/hostile-input.md). The paper's equations behind each rule:
-docs/equations.md#the-six-maps-of-table-i.
+:class:`MapSet` updates any of them in one pass per time step (:meth:`MapSet.update`, the
+only route by which a map is updated); the ``update_*`` functions apply one rule to dense
+views (the same kernel, for users and tests). ISM cells that are vacuous leave a map cell
+unchanged under the six rules, so kernels skip them. ISM cells that are not masses (NaN or
+inf, a negative mass, a sum off 1 by more than ``evgrid.kernels.MASS_ATOL``) leave it
+unchanged too: each rule returns how many it rejected (docs/hostile-input.md). The paper's
+equations behind each rule: docs/equations.md#the-six-maps-of-table-i.
 """
 
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Mapping
+import math
+import time
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -30,26 +38,26 @@ import numpy as np
 from evgrid.geometry import SE2, GridSpec
 from evgrid.grid import EvidentialMap, MapWindow, Warper, warp_window, window_affine
 from evgrid.kernels import (
-    _BLOCK,
+    BLOCK,
     RULE_DEEP_DISC,
     RULE_DEEP_REPLACE,
     RULE_DEMPSTER,
     RULE_FUSED,
-    _k_blocks,
-    _k_deep_disc_into,
-    _k_deep_replace_into,
-    _k_dempster_into,
-    _k_fused_into,
-    _k_informative,
-    _k_spans,
-    _k_warp_update,
+    RULE_NAV,
+    band_columns,
+    informative_blocks,
     rows,
+    update_rows,
+    warp_update,
+    window_spans,
 )
 from evgrid.validation import check_number
 
 __all__ = [
     "MAP_NAMES",
+    "NAV_MAP",
     "ISM_NAMES",
+    "MAX_POSE_M",
     "FusionParams",
     "UpdateRule",
     "RULES",
@@ -59,10 +67,11 @@ __all__ = [
     "update_deep_disc",
     "update_ray_irm",
     "update_fused",
+    "update_nav",
     "MapSet",
 ]
 
-#: The six maps of the paper's Table I, in its order.
+#: The six maps of the paper's Table I, in its order (the default map set).
 MAP_NAMES: tuple[str, ...] = (
     "ray_ilm",
     "deep_acc",
@@ -71,16 +80,20 @@ MAP_NAMES: tuple[str, ...] = (
     "ray_irm",
     "fused",
 )
+#: The navigation map: computed when asked for, not one of Table I's.
+NAV_MAP = "nav"
 #: The three inverse sensor models that feed them.
 ISM_NAMES: tuple[str, ...] = ("ray_ilm", "ray_irm", "deep_irm")
+#: Poses farther than this (m) from the map frame's origin are refused: real fixed frames such
+#: as UTM reach 1e7 m, and beyond 1e8 m float64 positions lose the grid's resolution.
+MAX_POSE_M = 1e8
 
 # Default lower limit on the deep ISM's unknown mass; the paper gives no value
 # (docs/decisions.md#default-lower-limit-on-unknown-mass).
 # Chosen by `evgrid sweep-m-u-min` on simulated validation scenes (seeds 4, 9, 14, 19) with the
-# shipped Ev-Net: the highest limit whose deep_disc mIoU is within 0.01 of the best (0.494 vs
-# 0.495 at 0.1); at >= 0.5 a cell known only to the deep IRM can never be classified free or
-# occupied (deep_disc free mIoU drops from 0.76 to 0), below 0.3 the prior is less clearly
-# apart from verified space for no gain.
+# shipped Ev-Net: the highest limit whose deep_disc mIoU is within 0.01 of the best; at >= 0.5
+# a cell known only to the deep IRM can never be classified free or occupied, below 0.3 the
+# prior is less clearly apart from verified space for no gain.
 M_U_MIN_DEFAULT = 0.3
 ALPHA_DEFAULT = 10.0  # paper, section IV-D, eq. (28)
 
@@ -89,7 +102,8 @@ logger = logging.getLogger(__name__)
 
 @dataclass(frozen=True, slots=True)
 class FusionParams:
-    """Parameters of the deep-ISM rules: ``m_u_min`` (unitless, [0, 1)) and ``alpha`` (gain of tanh, >= 0)."""
+    """Parameters of the deep-ISM rules: ``m_u_min`` (unitless, in [0, 1)) and ``alpha`` (the
+    gain of tanh, >= 0)."""
 
     m_u_min: float = M_U_MIN_DEFAULT
     alpha: float = ALPHA_DEFAULT
@@ -99,11 +113,118 @@ class FusionParams:
         check_number(self, "alpha", min=0.0)
 
 
-# --- public rules ----------------------------------------------------------------------------
+# --- the table of rules --------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class UpdateRule:
+    """One map's update rule: a row of :data:`RULES`.
+
+    ``inputs`` are what its kernel reads per cell, in argument order: local ISM grids, or for a
+    rule ``from_maps`` other maps of the same step (already updated). ``isms`` are the ISMs a
+    map set must compute for it; ``kernel`` its code in :mod:`evgrid.kernels`; ``params`` the
+    :class:`FusionParams` fields it uses; ``equation`` what it computes (paper's numbers).
+    """
+
+    name: str
+    inputs: tuple[str, ...]
+    kernel: int
+    params: tuple[str, ...]
+    equation: str
+    from_maps: bool = False
+    isms: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        if not self.from_maps:
+            object.__setattr__(self, "isms", self.inputs)
+
+    def update(self, cell: np.ndarray, *args, spans: np.ndarray | None = None) -> int:
+        """``update(cell, *inputs[, params[, spans]])``: apply the rule in place on dense views.
+
+        ``cell`` and each input are ``(h, w, 3)`` float32 views with contiguous rows; ``spans``
+        (``(h, 2)`` int64) limits row i to columns ``spans[i, 0]:spans[i, 1]``. Returns the
+        number of invalid input cells rejected (their map cells are left untouched).
+        """
+        n = len(self.inputs)
+        if not n <= len(args) <= n + 2:
+            raise TypeError(
+                f"{self.name}: update(cell, {', '.join(self.inputs)}[, params[, spans]]) "
+                f"got {len(args)} argument(s) after cell"
+            )
+        inputs, rest = args[:n], args[n:]
+        params = rest[0] if rest and rest[0] is not None else FusionParams()
+        if len(rest) > 1:
+            spans = rest[1]
+        if not isinstance(params, FusionParams):
+            raise TypeError(f"{self.name}: params must be a FusionParams, got {params!r}")
+        _check_views(cell, *inputs)
+        fm, mrs, h, w = rows(cell)
+        fa, ars, _, _ = rows(inputs[0])
+        fb, brs, _, _ = rows(inputs[-1])
+        return int(
+            update_rows(
+                self.kernel,
+                fm,
+                mrs,
+                fa,
+                ars,
+                fb,
+                brs,
+                h,
+                w,
+                _row_spans(spans, h, w),
+                float(params.m_u_min),
+                float(params.alpha),
+            )
+        )
+
+
+#: Every map's update rule, declared once (paper Table I, then the navigation map); the one-pass
+#: update of :class:`MapSet` and the ``update_*`` functions dispatch the kernels from it.
+RULES: dict[str, UpdateRule] = {
+    r.name: r
+    for r in (
+        UpdateRule("ray_ilm", ("ray_ilm",), RULE_DEMPSTER, (), "map (+)_D ray ILM, eq. (5)"),
+        UpdateRule("deep_acc", ("deep_irm",), RULE_DEMPSTER, (), "map (+)_D deep IRM, eq. (5)"),
+        UpdateRule(
+            "deep_replace",
+            ("deep_irm",),
+            RULE_DEEP_REPLACE,
+            ("m_u_min",),
+            "m = deep IRM (box+) m_u_min, eq. (15); cell := m where m_u(m) < m_u(cell)",
+        ),
+        UpdateRule(
+            "deep_disc",
+            ("deep_irm",),
+            RULE_DEEP_DISC,
+            ("m_u_min", "alpha"),
+            "map (+)_Y (gamma (x) (deep IRM (box+) m_u_min)), eqs. (15), (29), (35)",
+        ),
+        UpdateRule("ray_irm", ("ray_irm",), RULE_DEMPSTER, (), "map (+)_D ray IRM, eq. (5)"),
+        UpdateRule(
+            "fused",
+            ("deep_irm", "ray_irm"),
+            RULE_FUSED,
+            ("m_u_min", "alpha"),
+            "the deep_disc step, then map (+)_D ray IRM, eq. (5)",
+        ),
+        UpdateRule(
+            NAV_MAP,
+            ("ray_ilm", "fused"),
+            RULE_NAV,
+            (),
+            "ray_ilm map (+)_D fused map restricted by the lidar's evidence, eq. (5)",
+            from_maps=True,
+            isms=("ray_ilm", "deep_irm", "ray_irm"),
+        ),
+    )
+}
 
 
 def _check_views(cell: np.ndarray, *isms: np.ndarray) -> None:
     for a in (cell, *isms):
+        if not isinstance(a, np.ndarray):
+            raise ValueError(f"map and ISM views must be numpy arrays, got {type(a).__name__}")
         if a.ndim != 3 or a.shape[2] != 3 or a.dtype != np.float32:
             raise ValueError(
                 f"map and ISM views must be float32 (h, w, 3), got {a.dtype} {a.shape}"
@@ -131,150 +252,132 @@ def _row_spans(spans: np.ndarray | None, h: int, w: int) -> np.ndarray:
     return spans  # kernels clamp each [lo, hi) to [0, w]
 
 
-def _pair(cell: np.ndarray, ism: np.ndarray, spans: np.ndarray | None) -> tuple:
-    fm, mrs, h, w = rows(cell)
-    fi, irs, _, _ = rows(ism)
-    return fm, mrs, fi, irs, h, w, _row_spans(spans, h, w)
-
-
-# Each rule updates ``cell`` in place from ISM views of the same shape. ``spans`` (optional,
-# ``(h, 2)`` int64) limits row i to columns ``spans[i, 0]:spans[i, 1]``: the covered cells of
-# a warped window (:attr:`evgrid.grid.MapWindow.spans`); cells outside are left untouched.
-# Each returns the number of invalid ISM cells it rejected (their map cells are left untouched).
+# The rules on dense views: thin calls of the table's rows (the same kernel as MapSet.update's
+# pass), kept for users who fuse their own grids, and as the per-rule reference of the tests.
 
 
 def update_ray_ilm(
     cell: np.ndarray,
     ilm: np.ndarray,
-    params: FusionParams = FusionParams(),
+    params: FusionParams | None = None,
     spans: np.ndarray | None = None,
 ) -> int:
-    """``map = map (+)_D ray ILM``, in place on ``(h, w, 3)`` float32 views."""
-    _check_views(cell, ilm)
-    return int(_k_dempster_into(*_pair(cell, ilm, spans)))
+    """``map = map (+)_D ray ILM`` (paper eq. (5)), in place on ``(h, w, 3)`` float32 views."""
+    return RULES["ray_ilm"].update(cell, ilm, params, spans=spans)
 
 
 def update_deep_acc(
     cell: np.ndarray,
     deep: np.ndarray,
-    params: FusionParams = FusionParams(),
+    params: FusionParams | None = None,
     spans: np.ndarray | None = None,
 ) -> int:
     """``map = map (+)_D deep IRM`` (paper: deep IRM (acc.)), in place."""
-    _check_views(cell, deep)
-    return int(_k_dempster_into(*_pair(cell, deep, spans)))
+    return RULES["deep_acc"].update(cell, deep, params, spans=spans)
 
 
 def update_deep_replace(
     cell: np.ndarray,
     deep: np.ndarray,
-    params: FusionParams = FusionParams(),
+    params: FusionParams | None = None,
     spans: np.ndarray | None = None,
 ) -> int:
-    """Replace a cell by ``limit_unknown(deep IRM, m_u_min)`` where that is less unknown (paper: deep IRM (replace))."""
-    _check_views(cell, deep)
-    return int(_k_deep_replace_into(*_pair(cell, deep, spans), float(params.m_u_min)))
+    """Take ``limit_unknown(deep IRM, m_u_min)`` where it is less unknown (deep IRM (replace))."""
+    return RULES["deep_replace"].update(cell, deep, params, spans=spans)
 
 
 def update_deep_disc(
     cell: np.ndarray,
     deep: np.ndarray,
-    params: FusionParams = FusionParams(),
+    params: FusionParams | None = None,
     spans: np.ndarray | None = None,
 ) -> int:
-    """``map = map (+)_Y (gamma (x) limit_unknown(deep IRM))`` (paper eqs. (29), (35); deep IRM (disc.)), in place."""
-    _check_views(cell, deep)
-    return int(
-        _k_deep_disc_into(*_pair(cell, deep, spans), float(params.m_u_min), float(params.alpha))
-    )
+    """``map (+)_Y (gamma (x) limit_unknown(deep IRM))`` (eqs. (29), (35); deep IRM (disc.))."""
+    return RULES["deep_disc"].update(cell, deep, params, spans=spans)
 
 
 def update_ray_irm(
     cell: np.ndarray,
     irm: np.ndarray,
-    params: FusionParams = FusionParams(),
+    params: FusionParams | None = None,
     spans: np.ndarray | None = None,
 ) -> int:
-    """``map = map (+)_D ray IRM``, in place."""
-    _check_views(cell, irm)
-    return int(_k_dempster_into(*_pair(cell, irm, spans)))
+    """``map = map (+)_D ray IRM`` (paper eq. (5)), in place."""
+    return RULES["ray_irm"].update(cell, irm, params, spans=spans)
 
 
 def update_fused(
     cell: np.ndarray,
     deep: np.ndarray,
     irm: np.ndarray,
-    params: FusionParams = FusionParams(),
+    params: FusionParams | None = None,
     spans: np.ndarray | None = None,
 ) -> int:
-    """The deep_disc step with the deep IRM, then ``map (+)_D ray IRM`` (paper: fused IRM), in place.
+    """The deep_disc step with the deep IRM, then ``map (+)_D ray IRM`` (fused IRM), in place.
 
     An invalid cell of one ISM skips that ISM's step on the cell; the count is over both ISMs.
     """
-    _check_views(cell, deep, irm)
-    fm, mrs, h, w = rows(cell)
-    fd, drs, _, _ = rows(deep)
-    fi, irs, _, _ = rows(irm)
-    return int(
-        _k_fused_into(
-            fm,
-            mrs,
-            fd,
-            drs,
-            fi,
-            irs,
-            h,
-            w,
-            _row_spans(spans, h, w),
-            float(params.m_u_min),
-            float(params.alpha),
-        )
-    )
+    return RULES["fused"].update(cell, deep, irm, params, spans=spans)
 
 
-@dataclass(frozen=True, slots=True)
-class UpdateRule:
-    """One map of Table I: its name, the ISMs it reads (in argument order) and its update function."""
+def update_nav(
+    cell: np.ndarray,
+    lidar_map: np.ndarray,
+    fused_map: np.ndarray,
+    params: FusionParams | None = None,
+    spans: np.ndarray | None = None,
+) -> int:
+    """``cell := nav(lidar_map, fused_map)`` per cell (docs/equations.md#the-navigation-map).
+
+    Dempster's rule (eq. (5)) of the lidar map's cell with the fused map's, whose free mass
+    counts as unknown where the lidar's occupied mass exceeds its free mass, and whose occupied
+    mass counts as unknown where the lidar's free mass exceeds its occupied mass. Returns 0.
+    """
+    return RULES[NAV_MAP].update(cell, lidar_map, fused_map, params, spans=spans)
+
+
+# --- a set of maps, updated in one pass ----------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class _Row:
+    """One map in a pass: its name, rule, tiles and parameters."""
 
     name: str
-    isms: tuple[str, ...]
-    update: Callable[..., int]
+    rule: UpdateRule
+    map: EvidentialMap
+    params: FusionParams
+    shown: bool  # False: kept only as an input of a rule from maps (not in MapSet.maps)
 
 
-# The one-pass kernel's code for each rule (evgrid.kernels._k_warp_update).
-_KERNEL_RULE = {
-    "ray_ilm": RULE_DEMPSTER,
-    "deep_acc": RULE_DEMPSTER,
-    "deep_replace": RULE_DEEP_REPLACE,
-    "deep_disc": RULE_DEEP_DISC,
-    "ray_irm": RULE_DEMPSTER,
-    "fused": RULE_FUSED,
-}
-
-RULES: dict[str, UpdateRule] = {
-    "ray_ilm": UpdateRule("ray_ilm", ("ray_ilm",), update_ray_ilm),
-    "deep_acc": UpdateRule("deep_acc", ("deep_irm",), update_deep_acc),
-    "deep_replace": UpdateRule("deep_replace", ("deep_irm",), update_deep_replace),
-    "deep_disc": UpdateRule("deep_disc", ("deep_irm",), update_deep_disc),
-    "ray_irm": UpdateRule("ray_irm", ("ray_irm",), update_ray_irm),
-    "fused": UpdateRule("fused", ("deep_irm", "ray_irm"), update_fused),
-}
+def _check_pose(pose: SE2) -> None:
+    if not isinstance(pose, SE2):
+        raise TypeError(f"pose must be an evgrid.geometry.SE2, got {type(pose).__name__}")
+    x, y, yaw = pose.x, pose.y, pose.yaw
+    if not all(math.isfinite(v) for v in (x, y, yaw)) or max(abs(x), abs(y)) > MAX_POSE_M:
+        raise ValueError(
+            f"pose {pose!r} is not a valid ego pose in the map frame: poses must be finite and "
+            f"within {MAX_POSE_M:g} m of the frame's origin (check the odometry's units and frame)"
+        )
 
 
 class MapSet:
-    """Several maps of Table I over one scene, in the first pose's frame, updated in one pass.
+    """Several maps over one scene, in the first pose's frame, updated in one pass per time step.
 
     :meth:`update` loads each ISM grid once (checked, into the padded copy of its
     :class:`~evgrid.grid.Warper`) and then visits each covered map cell once: it samples every
-    ISM there as the warp would (bilinearly) and applies every map's rule, so no warped window
-    is written and read back. :meth:`warp` and :meth:`update_windows` do the same in two passes
-    through whole warped windows (the extra map sets of the ``m_u_min`` sweep share them); both
-    give the same maps.
+    ISM there as a warp would (bilinearly) and applies every map's rule, row by row of the
+    map's rule table (kernel code, inputs, ``m_u_min``, ``alpha``). Other map sets attached
+    with :meth:`attach` (the ``m_u_min`` sweep's) are extra rows of the same pass.
+
+    ``names`` are any of :data:`RULES` (default: the six of Table I). ``nav`` reads the
+    ``ray_ilm`` and ``fused`` maps of the same step: where they are not asked for, the set
+    keeps them for it without showing them in :attr:`maps`.
 
     Invalid ISM cells never reach a map: ``n_rejected[ism]`` counts the cells of the local ISM
-    grids that were not masses and were taken as vacuous (no information), and
-    ``n_rejected_cells[map]`` the window cells that a map's update rule rejected (non-zero only
-    for windows that did not come from :meth:`warp`).
+    grids that were not masses and were taken as vacuous (no information);
+    ``n_rejected_cells[map]`` the cells a map's rule rejected (0 when every ISM went through
+    the loading check, as it does in :meth:`update`).
     """
 
     def __init__(
@@ -284,87 +387,160 @@ class MapSet:
         names: tuple[str, ...] = MAP_NAMES,
         tile_cells: int = 256,
     ):
+        if grid is not None and not isinstance(grid, GridSpec):
+            raise TypeError(f"MapSet: grid must be a GridSpec, got {type(grid).__name__}")
+        if params is not None and not isinstance(params, FusionParams):
+            raise TypeError(
+                f"MapSet: params must be a FusionParams (e.g. FusionParams(m_u_min=0.3)), "
+                f"got {type(params).__name__} {params!r}"
+            )
+        if isinstance(names, str) or not all(isinstance(n, str) for n in names):
+            raise TypeError(f"MapSet: names must be a tuple of map names, got {names!r}")
         unknown = [n for n in names if n not in RULES]
         if unknown or not names:
-            raise ValueError(f"unknown map name(s) {unknown}; choose from {MAP_NAMES}")
+            raise ValueError(f"unknown map name(s) {unknown}; choose from {tuple(RULES)}")
+        if len(set(names)) != len(names):
+            raise ValueError(f"map names repeat: {tuple(names)}")
         self.grid = grid or GridSpec()
         self.params = params or FusionParams()
         self.names = tuple(names)
-        self.maps: dict[str, EvidentialMap] = {
-            n: EvidentialMap(
-                self.grid,
-                tile_cells,
-                {"rule": n, "m_u_min": self.params.m_u_min, "alpha": self.params.alpha},
+        # maps read by a rule from maps come first in the pass, and are kept when not shown
+        needed = [m for n in self.names if RULES[n].from_maps for m in RULES[n].inputs]
+        order = [n for n in self.names if not RULES[n].from_maps]
+        order += [m for m in dict.fromkeys(needed) if m not in order]
+        order += [n for n in self.names if RULES[n].from_maps]
+        self._rows = [
+            _Row(
+                n,
+                RULES[n],
+                EvidentialMap(
+                    self.grid,
+                    tile_cells,
+                    {"rule": n, "m_u_min": self.params.m_u_min, "alpha": self.params.alpha},
+                ),
+                self.params,
+                n in self.names,
             )
-            for n in self.names
-        }
+            for n in order
+        ]
+        self.tile_cells = self._rows[0].map.tile_cells
+        shown = {r.name: r.map for r in self._rows}
+        self.maps: dict[str, EvidentialMap] = {n: shown[n] for n in self.names}
         self.required_isms: tuple[str, ...] = tuple(
             i for i in ISM_NAMES if any(i in RULES[n].isms for n in self.names)
         )
-        # one loader / warper per ISM: its checked, padded copy of the local grid is what the
-        # one-pass update samples
+        # one loader per ISM: its checked, padded copy of the local grid is what the pass samples
         self._warpers = {i: Warper(self.grid, i) for i in self.required_isms}
-        slot = {i: s for s, i in enumerate(self.required_isms)}
-        # per map: its rule's kernel code and the slots of the ISMs it reads
-        self._rules = np.array(
-            [
-                (_KERNEL_RULE[m], slot[RULES[m].isms[0]], slot[RULES[m].isms[-1]])
-                for m in self.names
-            ],
-            dtype=np.int64,
-        )
-        self._bufs = np.empty((len(self.required_isms), 3 * int(tile_cells)), dtype=np.float32)
+        self._attached: list[MapSet] = []
+        self._host: MapSet | None = None
+        self._bufs = np.empty((len(self.required_isms), 3 * self.tile_cells), dtype=np.float32)
         side = int(np.ceil(self.grid.n_cells * np.sqrt(2.0))) + 4
         self._spans = np.zeros((side, 2), dtype=np.int64)
+        self._plan()
         self.n_updates = 0
         self.n_rejected_cells: dict[str, int] = {m: 0 for m in self.names}
+        #: Milliseconds of the last update: ``warp`` checking and padding the ISMs, ``fuse``
+        #: the pass that samples them and applies the rules.
+        self.last_ms: dict[str, float] = {}
+
+    def _plan(self) -> None:
+        """The pass's table: per row (kernel code, first input, last input) and (m_u_min, alpha)."""
+        slot = {i: s for s, i in enumerate(self.required_isms)}
+        codes, params, rows_, owners = [], [], [], []
+        for s in (self, *self._attached):
+            index = {r.name: len(rows_) + k for k, r in enumerate(s._rows)}
+            for r in s._rows:
+                where = index if r.rule.from_maps else slot
+                codes.append((r.rule.kernel, where[r.rule.inputs[0]], where[r.rule.inputs[-1]]))
+                params.append((r.params.m_u_min, r.params.alpha))
+            rows_ += s._rows
+            owners += [s] * len(s._rows)
+        self._codes = np.array(codes, dtype=np.int64).reshape(-1, 3)
+        self._params = np.array(params, dtype=np.float64).reshape(-1, 2)
+        self._pass_rows: list[_Row] = rows_
+        self._pass_owners: list[MapSet] = owners
+
+    def attach(self, other: MapSet) -> None:
+        """Update ``other``'s maps in this set's pass from now on: extra rows of the same table.
+
+        ``other`` (same grid and tiling, its ISMs among this set's) keeps its own parameters,
+        maps and counters; its :meth:`update` must not be called while attached.
+        """
+        if not isinstance(other, MapSet):
+            raise TypeError(f"can only attach a MapSet, got {type(other).__name__}")
+        if other is self or other._host is not None or other._attached:
+            raise ValueError("a map set can be attached once, to one other set, and not to itself")
+        missing = set(other.required_isms) - set(self.required_isms)
+        if missing:
+            raise ValueError(
+                f"the attached map set needs ISMs {sorted(missing)} that this set does not compute"
+            )
+        if other.grid != self.grid or other.tile_cells != self.tile_cells:
+            raise ValueError(
+                f"the attached map set's grid {other.grid} / tiles {other.tile_cells} differ "
+                f"from this set's {self.grid} / {self.tile_cells}"
+            )
+        other._host = self
+        self._attached.append(other)
+        self._plan()
 
     @property
     def n_rejected(self) -> dict[str, int]:
         """Per ISM, the cells of its local grids that were not masses and were taken as vacuous."""
+        if self._host is not None:
+            return {i: self._host._warpers[i].n_rejected for i in self.required_isms}
         return {i: w.n_rejected for i, w in self._warpers.items()}
 
     def __getitem__(self, name: str) -> EvidentialMap:
         return self.maps[name]
 
-    def load(self, isms: Mapping[str, np.ndarray]) -> None:
-        """Take the local ISM grids ``(n, n, 3)`` of one step; cells that are not masses become vacuous (counted)."""
+    def update(self, pose: SE2, isms: Mapping[str, np.ndarray]) -> dict[str, int]:
+        """Fuse one time step: local ISM grids ``(n, n, 3)`` keyed by ISM name, taken at ego
+        ``pose`` (m, rad) in the map frame; every map of this set and of the sets attached to it.
+
+        Cells of an ISM grid that are not masses are taken as vacuous and counted in
+        :attr:`n_rejected`. Returns, per map of this set, the cells its rule rejected.
+        """
+        if self._host is not None:
+            raise ValueError("this map set is attached to another: update that one")
+        _check_pose(pose)
         missing = [i for i in self.required_isms if i not in isms]
         if missing:
             raise ValueError(f"missing ISM grid(s) {missing}; these maps need {self.required_isms}")
+        t0 = time.perf_counter()
         for name, warper in self._warpers.items():
             warper.load(isms[name])
+        t1 = time.perf_counter()
+        rejected = self._pass(pose)
+        self.last_ms = {"warp": (t1 - t0) * 1e3, "fuse": (time.perf_counter() - t1) * 1e3}
+        for s in (self, *self._attached):
+            s.n_updates += 1
+        out: dict[str, int] = {}
+        for row, owner, r in zip(self._pass_rows, self._pass_owners, rejected):
+            if row.shown:
+                owner.n_rejected_cells[row.name] += int(r)
+                if owner is self:
+                    out[row.name] = int(r)
+        return out
 
-    def update(self, pose: SE2, isms: Mapping[str, np.ndarray]) -> dict[str, int]:
-        """Fuse one time step: local ISM grids keyed by ISM name, taken at ego ``pose`` in the first pose's frame.
-
-        Returns, per map, the window cells its rule rejected (always 0 here: invalid ISM cells
-        are made vacuous on loading and counted in ``n_rejected``).
-        """
-        self.load(isms)
-        return self.update_loaded(pose)
-
-    def update_loaded(self, pose: SE2) -> dict[str, int]:
-        """Fuse the ISM grids of the last :meth:`load`, taken at ego ``pose``, into every map in one pass."""
+    def _pass(self, pose: SE2) -> np.ndarray:
+        """The one pass over the window at ``pose``: the ISMs of the last load, every row's rule."""
         grid, n = self.grid, self.grid.n_cells
         r0, c0, h, w = warp_window(grid, pose)
         affine = window_affine(grid, pose, r0, c0)
         spans = self._spans[:h]
-        _k_spans(*affine, n, h, w, spans)
-        nb = (h + _BLOCK - 1) // _BLOCK
+        window_spans(*affine, n, h, w, spans)
+        nb = (h + BLOCK - 1) // BLOCK
         jl, jh = np.empty(nb, np.int64), np.empty(nb, np.int64)
-        _k_blocks(spans, h, w, jl, jh)
-        informative = np.zeros(
-            (len(self.required_isms), nb, (w + _BLOCK - 1) // _BLOCK + 1), dtype=np.bool_
-        )
+        band_columns(spans, h, w, jl, jh)
         warpers = tuple(self._warpers.values())
+        informative = np.zeros((len(warpers), nb, (w + BLOCK - 1) // BLOCK + 1), dtype=np.bool_)
         for s, warper in enumerate(warpers):
-            _k_informative(warper.coarse, n, *affine, h, jl, jh, informative[s])
-        maps = [self.maps[m] for m in self.names]
-        ts = maps[0].tile_cells
+            informative_blocks(warper.coarse, n, *affine, h, jl, jh, informative[s])
+        maps = [r.map for r in self._pass_rows]
         rejected = np.zeros(len(maps), dtype=np.int64)
         src = tuple(warper.source for warper in warpers)
-        for key, tr, tc, wr, wc in maps[0]._pieces(r0, c0, h, w):
+        for key, tr, tc, wr, wc in maps[0].pieces(r0, c0, h, w):
             piece = spans[wr]
             rows_on = np.flatnonzero(
                 np.minimum(piece[:, 1], wc.stop) > np.maximum(piece[:, 0], wc.start)
@@ -372,8 +548,8 @@ class MapSet:
             if len(rows_on) == 0:
                 continue
             a, b = int(rows_on[0]), int(rows_on[-1]) + 1  # the piece's rows with covered cells
-            tiles = [m._tile(key) for m in maps]
-            _k_warp_update(
+            tiles = [m.tile(key) for m in maps]
+            warp_update(
                 src,
                 3 * (n + 3),
                 n,
@@ -387,55 +563,21 @@ class MapSet:
                 wc.stop,
                 tuple(t.reshape(-1) for t, _ in tiles),
                 tuple(c.reshape(-1) for _, c in tiles),
-                ts,
+                self.tile_cells,
                 tr.start + a,
                 tc.start,
-                self._rules,
-                float(self.params.m_u_min),
-                float(self.params.alpha),
+                self._codes,
+                self._params,
                 self._bufs,
                 rejected,
             )
-        self.n_updates += 1
-        out = {m: int(r) for m, r in zip(self.names, rejected)}
-        for m, r in out.items():
-            self.n_rejected_cells[m] += r
-        return out
-
-    def warp(self, pose: SE2, isms: Mapping[str, np.ndarray]) -> dict[str, MapWindow]:
-        """Every required local ISM grid ``(n, n, 3)`` at ``pose`` warped into a whole map window (buffers reused next call)."""
-        self.load(isms)
-        return self.warp_loaded(pose)
-
-    def warp_loaded(self, pose: SE2) -> dict[str, MapWindow]:
-        """The windows of the ISM grids of the last :meth:`load` at ``pose`` (see :meth:`warp`)."""
-        return {name: warper.warp_loaded(pose) for name, warper in self._warpers.items()}
-
-    def update_windows(self, windows: Mapping[str, MapWindow]) -> dict[str, int]:
-        """Fuse already-warped ISM windows (all from the same pose) into every map.
-
-        Window cells that are not masses leave their map cells untouched; returns how many each
-        map's rule rejected in this step (also added to ``n_rejected_cells``).
-        """
-        any_w = next(iter(windows.values()))
-        rejected: dict[str, int] = {}
-        for name in self.names:
-            rule = RULES[name]
-            arrays = tuple(windows[i].masses for i in rule.isms)
-            params = self.params
-            rejected[name] = n = self.maps[name].apply(
-                any_w,
-                lambda cell, *views, spans, _u=rule.update: _u(cell, *views, params, spans),
-                *arrays,
-                pass_spans=True,
-            )
-            if n and self.n_rejected_cells[name] == 0:
-                logger.warning(
-                    "%s: the update rule rejected %d window cell(s) that are not masses; "
-                    "counted in MapSet.n_rejected_cells",
-                    name,
-                    n,
-                )
-            self.n_rejected_cells[name] += n
-        self.n_updates += 1
         return rejected
+
+    def windows(self, pose: SE2) -> dict[str, MapWindow]:
+        """The ISM grids of the last :meth:`update` warped whole into map windows at ``pose``.
+
+        For observers that want whole windows; no map is updated from them. Each window is a
+        view of its warper's buffers that the next call overwrites.
+        """
+        host = self._host or self
+        return {i: host._warpers[i].warp_loaded(pose) for i in self.required_isms}

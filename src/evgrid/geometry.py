@@ -27,7 +27,7 @@ Map grid (the first pose's frame)
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -47,7 +47,8 @@ class GridSpec:
     def __post_init__(self) -> None:
         if check_int(self, "n_cells", min=2) % 2:
             raise ValueError(
-                f"GridSpec.n_cells must be even (the ego vehicle sits on a cell corner), got {self.n_cells!r}"
+                "GridSpec.n_cells must be even (the ego vehicle sits on a cell corner), "
+                f"got {self.n_cells!r}"
             )
         check_number(self, "length_m", min=0.0, min_open=True)
 
@@ -68,7 +69,7 @@ class GridSpec:
 
     # --- local grid <-> ego-frame metres ---------------------------------------------------
     def xy_to_uv(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Ego-frame metres -> continuous local indices (row u, col v); cell centres are integers."""
+        """Ego-frame metres -> continuous local indices (row u, col v); cell centres at integers."""
         c0 = self.n_cells / 2.0 - 0.5
         res = self.resolution
         return c0 - np.asarray(x) / res, c0 - np.asarray(y) / res
@@ -118,8 +119,22 @@ class GridSpec:
 
     @classmethod
     def from_dict(cls, d: dict) -> GridSpec:
-        """Inverse of :meth:`to_dict`."""
-        return cls(n_cells=int(d["n_cells"]), length_m=float(d["length_m"]))
+        """Inverse of :meth:`to_dict`; ValueError naming a missing or malformed key."""
+        if not isinstance(d, Mapping):
+            raise ValueError(f"GridSpec.from_dict needs a mapping, got {type(d).__name__}")
+        missing = [k for k in ("n_cells", "length_m") if k not in d]
+        if missing:
+            raise ValueError(
+                f"GridSpec.from_dict: missing key(s) {missing} (a grid needs n_cells and "
+                f"length_m), got keys {sorted(map(str, d))}"
+            )
+        try:
+            n_cells, length_m = d["n_cells"], float(d["length_m"])
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"GridSpec.from_dict: key 'length_m' is not a number ({e})") from e
+        if isinstance(n_cells, float) and n_cells.is_integer():
+            n_cells = int(n_cells)
+        return cls(n_cells=n_cells, length_m=length_m)
 
 
 def quaternion_to_matrix(q: Sequence[float]) -> np.ndarray:
@@ -215,7 +230,8 @@ _HOMOGENEOUS.flags.writeable = False
 
 @dataclass(frozen=True, slots=True, eq=False)
 class SE3:
-    """A rigid transform ``p' = R p + t`` (metres); as ``sensor_to_ego`` or ``ego_pose`` (ego -> global).
+    """A rigid transform ``p' = R p + t`` (metres); as ``sensor_to_ego`` or ``ego_pose`` (ego ->
+    global).
 
     The constructor validates (user data comes in here); poses composed from valid poses
     (``@``, :meth:`inverse`, :meth:`identity`, :meth:`from_se2`) are built unchecked, as a

@@ -4,8 +4,8 @@ Indexing and frames are those of :mod:`evgrid.geometry`. A local ISM grid (``(n,
 ego-centred) taken at ego pose ``pose`` (an :class:`~evgrid.geometry.SE2` of the ego in the
 first pose's frame) is resampled onto the map cells its square covers, bilinearly (a convex
 mix of masses is a mass), cells beyond the local grid counting as vacuous [0, 0, 1]
-(docs/decisions.md#map-frame-and-warp). Only that window of the map is read or written, and within it the update rules
-visit only the covered cells of each row (:attr:`MapWindow.spans`).
+(docs/decisions.md#map-frame-and-warp). Only that window of the map is read or written, and
+within it the update rules visit only the covered cells of each row (:attr:`MapWindow.spans`).
 
 The map stores square tiles of ``tile_cells`` cells, created the first time a local grid
 covers them, so memory grows with the area explored, not with the bounding box of the drive.
@@ -18,7 +18,6 @@ import logging
 import math
 import os
 import zipfile
-import zlib
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,7 +27,7 @@ import numpy as np
 
 from evgrid.geometry import SE2, GridSpec
 from evgrid.io import atomic_write
-from evgrid.kernels import _COARSE, _k_coarse, _k_count_invalid, _k_load, _k_warp
+from evgrid.kernels import COARSE, coarse_blocks, count_invalid, load_padded, warp_rows
 from evgrid.mass import vacuous
 
 logger = logging.getLogger(__name__)
@@ -48,7 +47,8 @@ __all__ = [
 
 @dataclass(frozen=True, slots=True, eq=False)
 class MapWindow:
-    """A local grid resampled into the map: masses ``(h, w, 3)`` whose cell [0, 0] is map cell ``(r0, c0)``.
+    """A local grid resampled into the map: masses ``(h, w, 3)`` whose cell [0, 0] is map cell
+    ``(r0, c0)``.
 
     ``covered[i, j]`` is True where the local grid contributes any mass to the cell. Covered
     cells of a row are contiguous: ``spans[i] = (lo, hi)`` (int64) gives them as columns
@@ -63,7 +63,7 @@ class MapWindow:
     spans: np.ndarray | None = None
 
     def row_spans(self) -> np.ndarray:
-        """``spans``, or whole rows ``(0, w)`` where a row has a covered cell when there are none."""
+        """``spans``; without them, whole rows ``(0, w)`` where a row has a covered cell."""
         if self.spans is not None:
             return self.spans
         h, w = self.shape
@@ -78,7 +78,7 @@ class MapWindow:
 
 
 def _pose_affine(grid: GridSpec, pose: SE2) -> tuple[float, float, float, float]:
-    """Coefficients of map (R, C) -> local (u, v): u = cu + cos a + sin b, v = cu - sin a + cos b."""
+    """Map (R, C) -> local (u, v) coefficients: u = cu + cos a + sin b, v = cu - sin a + cos b."""
     res = grid.resolution
     return math.cos(pose.yaw), math.sin(pose.yaw), pose.x / res, pose.y / res
 
@@ -86,7 +86,8 @@ def _pose_affine(grid: GridSpec, pose: SE2) -> tuple[float, float, float, float]
 def window_affine(
     grid: GridSpec, pose: SE2, r0: int, c0: int
 ) -> tuple[float, float, float, float, float, float]:
-    """``(u00, v00, du_di, du_dj, dv_di, dv_dj)``: window cell (i, j) (map cell (r0 + i, c0 + j)) samples local (u, v)."""
+    """``(u00, v00, du_di, du_dj, dv_di, dv_dj)``: window cell (i, j) (map cell (r0 + i, c0 + j))
+    samples local (u, v)."""
     cs, sn, tx, ty = _pose_affine(grid, pose)
     cc = grid.n_cells / 2.0 - 0.5
     a0 = r0 + 0.5 + tx
@@ -136,8 +137,10 @@ class Warper:
         self._masses = np.empty(side * side * 3, dtype=np.float32)
         self._covered = np.empty(side * side, dtype=np.bool_)
         self._spans = np.zeros((side, 2), dtype=np.int64)
-        self._src = vacuous((n + 3, n + 3))  # local grid + vacuous border (see _k_warp)
-        self._coarse = np.zeros(((n + 3 + _COARSE - 1) // _COARSE,) * 2, dtype=np.bool_)
+        self._src = vacuous(
+            (n + 3, n + 3)
+        )  # local grid + vacuous border (see evgrid.kernels.warp_rows)
+        self._coarse = np.zeros(((n + 3 + COARSE - 1) // COARSE,) * 2, dtype=np.bool_)
         self.n_rejected = 0
 
     @property
@@ -151,36 +154,39 @@ class Warper:
         return self._coarse
 
     def load(self, local: np.ndarray) -> int:
-        """Take ``local`` ``(n, n, 3)`` for the next warps; returns how many of its cells were not masses."""
+        """Take ``local`` ``(n, n, 3)`` for the next warps; returns how many of its cells were not
+        masses."""
         n = self.grid.n_cells
         a = np.asarray(local)
         if a.shape != (n, n, 3) or not (
             np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)
         ):
             raise ValueError(
-                f"{self.name}: the local grid must be a numeric array of shape {(n, n, 3)}, got {a.dtype} {a.shape}"
+                f"{self.name}: the local grid must be a numeric array of shape {(n, n, 3)}, "
+                f"got {a.dtype} {a.shape}"
             )
-        n_bad = int(_k_load(np.ascontiguousarray(a, dtype=np.float32), self._src))
+        n_bad = int(load_padded(np.ascontiguousarray(a, dtype=np.float32), self._src))
         if n_bad:
             if self.n_rejected == 0:
                 logger.warning(
-                    "%s: %d cell(s) of the local grid are not masses (NaN, inf, negative or not summing "
-                    "to 1); they are taken as vacuous and counted in n_rejected",
+                    "%s: %d cell(s) of the local grid are not masses (NaN, inf, negative or not "
+                    "summing to 1); they are taken as vacuous and counted in n_rejected",
                     self.name,
                     n_bad,
                 )
             self.n_rejected += n_bad
-        _k_coarse(self._src, self._coarse)
+        coarse_blocks(self._src, self._coarse)
         return n_bad
 
     def warp_loaded(self, pose: SE2) -> MapWindow:
-        """The grid of the last :meth:`load`, taken at ego ``pose`` (first-pose frame, m/rad), resampled into the map."""
+        """The grid of the last :meth:`load`, taken at ego ``pose`` (first-pose frame, m/rad),
+        resampled into the map."""
         grid = self.grid
         n = grid.n_cells
         r0, c0, h, w = warp_window(grid, pose)
         # windows are packed at the buffers' start (row stride w) so each is one contiguous block
         spans = self._spans[:h]
-        _k_warp(
+        warp_rows(
             self.source,
             3 * (n + 3),
             self._coarse,
@@ -199,13 +205,15 @@ class Warper:
         return MapWindow(r0, c0, masses, covered, spans)
 
     def warp(self, local: np.ndarray, pose: SE2) -> MapWindow:
-        """Resample ``local`` ``(n, n, 3)`` taken at ego ``pose`` (first-pose frame, m/rad) into the map."""
+        """Resample ``local`` ``(n, n, 3)`` taken at ego ``pose`` (first-pose frame, m/rad) into the
+        map."""
         self.load(local)
         return self.warp_loaded(pose)
 
 
 def warp_to_map(local: np.ndarray, pose: SE2, grid: GridSpec) -> MapWindow:
-    """Resample a local mass grid ``(n, n, 3)`` taken at ego ``pose`` (first-pose frame, m/rad) into the map."""
+    """Resample a local mass grid ``(n, n, 3)`` taken at ego ``pose`` (first-pose frame, m/rad) into
+    the map."""
     return Warper(grid).warp(local, pose)
 
 
@@ -231,7 +239,8 @@ class EvidentialMap:
         self.metadata: dict[str, Any] = dict(metadata or {})
 
     def __repr__(self) -> str:
-        return f"EvidentialMap({len(self.tiles)} tiles of {self.tile_cells} cells, {self.nbytes / 2**20:.1f} MiB)"
+        mib = self.nbytes / 2**20
+        return f"EvidentialMap({len(self.tiles)} tiles of {self.tile_cells} cells, {mib:.1f} MiB)"
 
     @property
     def nbytes(self) -> int:
@@ -240,7 +249,9 @@ class EvidentialMap:
             c.nbytes for c in self.covered_tiles.values()
         )
 
-    def _tile(self, key: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    def tile(self, key: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+        """The masses ``(ts, ts, 3)`` and coverage ``(ts, ts)`` of tile ``key`` (tile row, tile
+        column), views to update in place; a tile not yet stored is created vacuous."""
         t = self.tiles.get(key)
         if t is None:
             t = vacuous((self.tile_cells, self.tile_cells))
@@ -248,10 +259,11 @@ class EvidentialMap:
             self.covered_tiles[key] = np.zeros((self.tile_cells, self.tile_cells), dtype=np.bool_)
         return t, self.covered_tiles[key]
 
-    def _pieces(
+    def pieces(
         self, r0: int, c0: int, h: int, w: int
     ) -> Iterator[tuple[tuple[int, int], slice, slice, slice, slice]]:
-        """(tile key, tile rows, tile cols, window rows, window cols) for each tile the window meets."""
+        """The tiles that map cells ``[r0:r0+h, c0:c0+w]`` meet, stored or not: for each, (tile
+        key, tile rows, tile cols, window rows, window cols), the slices of the same cells."""
         ts = self.tile_cells
         for ti in range(r0 // ts, (r0 + h - 1) // ts + 1):
             ra, rb = max(r0, ti * ts), min(r0 + h, (ti + 1) * ts)
@@ -272,7 +284,8 @@ class EvidentialMap:
         *masses: np.ndarray,
         pass_spans: bool = False,
     ) -> int:
-        """Call ``fn(map_view, *window_views)`` on every covered piece; ``fn`` updates ``map_view`` in place.
+        """Call ``fn(map_view, *window_views)`` on every covered piece; ``fn`` updates ``map_view``
+        in place.
 
         ``masses`` are ``(h, w, 3)`` arrays aligned with ``window`` (default: ``window.masses``).
         With ``pass_spans``, ``fn`` also gets ``spans=``: the window's covered columns per row of
@@ -289,7 +302,7 @@ class EvidentialMap:
                 raise ValueError(f"window arrays must have shape {(h, w, 3)}, got {a.shape}")
         spans = window.row_spans()
         n_rejected = 0
-        for key, tr, tc, wr, wc in self._pieces(window.r0, window.c0, h, w):
+        for key, tr, tc, wr, wc in self.pieces(window.r0, window.c0, h, w):
             piece = np.clip(spans[wr] - wc.start, 0, wc.stop - wc.start)
             rows_on = np.flatnonzero(piece[:, 1] > piece[:, 0])
             if len(rows_on) == 0:
@@ -298,7 +311,7 @@ class EvidentialMap:
             a, b = int(rows_on[0]), int(rows_on[-1]) + 1
             tr = slice(tr.start + a, tr.start + b)
             wr = slice(wr.start + a, wr.start + b)
-            tile, tcov = self._tile(key)
+            tile, tcov = self.tile(key)
             views = (arr[wr, wc] for arr in arrays)
             if pass_spans:
                 n = fn(tile[tr, tc], *views, spans=piece[a:b])
@@ -309,10 +322,11 @@ class EvidentialMap:
         return n_rejected
 
     def read(self, r0: int, c0: int, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
-        """Dense copy of map cells ``[r0:r0+h, c0:c0+w]``: masses ``(h, w, 3)`` and coverage ``(h, w)``."""
+        """Dense copy of map cells ``[r0:r0+h, c0:c0+w]``: masses ``(h, w, 3)``, coverage
+        ``(h, w)``."""
         out = vacuous((h, w))
         cov = np.zeros((h, w), dtype=np.bool_)
-        for key, tr, tc, wr, wc in self._pieces(r0, c0, h, w):
+        for key, tr, tc, wr, wc in self.pieces(r0, c0, h, w):
             t = self.tiles.get(key)
             if t is not None:
                 out[wr, wc] = t[tr, tc]
@@ -320,7 +334,7 @@ class EvidentialMap:
         return out, cov
 
     def bounds(self) -> tuple[int, int, int, int]:
-        """``(r0, c0, h, w)`` of the smallest tile-aligned box holding every tile; zeros when empty."""
+        """``(r0, c0, h, w)``: the smallest tile-aligned box holding every tile; zeros if none."""
         if not self.tiles:
             return (0, 0, 0, 0)
         ts = self.tile_cells
@@ -353,7 +367,8 @@ class EvidentialMap:
         )
 
     def to_dense(self) -> tuple[np.ndarray, np.ndarray, int, int]:
-        """The whole map as dense arrays: masses, coverage, and the map cell ``(r0, c0)`` of element [0, 0]."""
+        """The whole map as dense arrays: masses, coverage, and the map cell ``(r0, c0)`` of element
+        [0, 0]."""
         r0, c0, h, w = self.bounds()
         m, cov = self.read(r0, c0, h, w)
         return m, cov, r0, c0
@@ -369,8 +384,49 @@ class MapFileError(ValueError):
     """A file that is not a complete evgrid map (truncated, foreign or of a newer format)."""
 
 
+#: The largest header the loader reads (bytes): a real header is a few hundred.
+_MAX_HEADER_BYTES = 1 << 20
+_ARRAYS = ("header", "keys", "tiles", "covered")
+
+
+def _check_extent(where: str, grid: GridSpec, ts: int, keys, covered_any) -> str | None:
+    """Why tile ``keys`` cannot belong to a map of ``grid`` (None if they can).
+
+    Every tile must lie within :data:`evgrid.fusion.MAX_POSE_M` (plus a local grid) of the
+    origin, and the tiles holding covered cells must span at least one local grid
+    (``n_cells`` a side): each update covers a whole local grid.
+    """
+    from evgrid.fusion import MAX_POSE_M
+
+    if len(keys) == 0:
+        return None
+    limit = (MAX_POSE_M + grid.length_m) / grid.resolution / ts + 1
+    worst = int(np.abs(keys).max())
+    if worst > limit:
+        return (
+            f"{where} 'keys': tile key {worst} lies beyond {MAX_POSE_M:g} m of the map origin "
+            f"(at most {int(limit)} for {ts}-cell tiles of {grid.resolution:g} m)"
+        )
+    used = keys[np.asarray(covered_any, bool)]
+    if len(used):
+        h = (int(used[:, 0].max()) - int(used[:, 0].min()) + 1) * ts
+        w = (int(used[:, 1].max()) - int(used[:, 1].min()) + 1) * ts
+        if min(h, w) < grid.n_cells:
+            return (
+                f"{where} 'spec': n_cells {grid.n_cells} contradicts the tiles: their covered "
+                f"cells span {h} x {w} cells, less than one local grid"
+            )
+    return None
+
+
 def save_map(m: EvidentialMap, path: str | os.PathLike) -> Path:
-    """Save a map losslessly (compressed ``.npz`` with its grid grid and metadata), atomically."""
+    """Save a map losslessly (compressed ``.npz`` with its grid and metadata), atomically."""
+    if not isinstance(m, EvidentialMap):
+        raise TypeError(f"save_map needs an EvidentialMap, got {type(m).__name__}")
+    if not isinstance(path, (str, os.PathLike)) or not str(path) or Path(path).name in ("", "."):
+        raise ValueError(f"save_map: {path!r} names no file; give one such as 'fused.npz'")
+    if Path(path).is_dir():
+        raise IsADirectoryError(f"save_map: {path} is a folder; give a file name inside it")
     keys = sorted(m.tiles)
     header = {
         "format": _FORMAT,
@@ -380,6 +436,15 @@ def save_map(m: EvidentialMap, path: str | os.PathLike) -> Path:
         "metadata": m.metadata,
     }
     ts = m.tile_cells
+    why = _check_extent(
+        "save_map: field",
+        m.grid,
+        ts,
+        np.array(keys, dtype=np.int64).reshape(-1, 2),
+        [m.covered_tiles[k].any() for k in keys],
+    )
+    if why:
+        raise ValueError(f"{why}; the map could not be loaded back")
     arrays = {
         "header": np.frombuffer(json.dumps(header).encode(), dtype=np.uint8),
         "keys": np.array(keys, dtype=np.int64).reshape(-1, 2),
@@ -393,66 +458,92 @@ def save_map(m: EvidentialMap, path: str | os.PathLike) -> Path:
     return atomic_write(path, lambda f: np.savez_compressed(f, **arrays))
 
 
-def load_map(path: str | os.PathLike) -> EvidentialMap:
-    """Load a map written by :func:`save_map`; raise :class:`MapFileError` (one line naming the file) for anything else.
+def _declared(path: Path, zf: zipfile.ZipFile, name: str) -> tuple[tuple[int, ...], np.dtype]:
+    """Shape and dtype that member ``name.npy`` declares, read from its header only."""
+    info = zf.getinfo(name + ".npy")
+    with zf.open(info) as f:
+        version = np.lib.format.read_magic(f)
+        shape, fortran, dtype = (
+            np.lib.format.read_array_header_1_0(f)
+            if version == (1, 0)
+            else np.lib.format.read_array_header_2_0(f)
+        )
+    nbytes = int(np.prod(shape, dtype=np.float64)) * dtype.itemsize
+    if fortran or dtype.hasobject or nbytes > info.file_size:
+        raise MapFileError(
+            f"{path}: array '{name}' declares {shape} {dtype} ({nbytes} bytes), more than the "
+            f"{info.file_size} bytes stored, or an order evgrid does not write; the file is corrupt"
+        )
+    return tuple(shape), dtype
 
-    The tiles must hold valid masses: a corrupt file never yields a map with NaN or negative cells.
+
+def load_map(path: str | os.PathLike) -> EvidentialMap:
+    """Load a map written by :func:`save_map`.
+
+    Anything else raises :class:`MapFileError`, one line naming the file (and the field where
+    one is at fault). Each array's declared shape is checked against the header before its
+    data is read, and the tiles must hold valid masses: a corrupt file never yields a map with
+    NaN or negative cells, and never makes the loader allocate what the file does not hold.
     """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no map file at {path}")
+    with open(path, "rb") as f:
+        if f.read(6) == b"\x93NUMPY":
+            raise MapFileError(
+                f"{path} is a single numpy array (.npy), not an evgrid map (an .npz of save_map)"
+            )
     try:
-        with np.load(path, allow_pickle=False) as z:
-            names = set(z.files)
-            if not {"header", "keys", "tiles", "covered"} <= names:
+        with zipfile.ZipFile(path) as zf:
+            names = {n.removesuffix(".npy") for n in zf.namelist()}
+            if not set(_ARRAYS) <= names:
                 raise MapFileError(f"{path} is not an evgrid map (arrays {sorted(names)})")
+            shapes = {n: _declared(path, zf, n) for n in _ARRAYS}
+            hshape, hdtype = shapes["header"]
+            if len(hshape) != 1 or hdtype != np.uint8 or hshape[0] > _MAX_HEADER_BYTES:
+                raise MapFileError(f"{path}: array 'header' is {hshape} {hdtype}, not JSON bytes")
+        with np.load(path, allow_pickle=False) as z:
             header = json.loads(z["header"].tobytes().decode())
+            ts, spec, metadata = _header_fields(path, header)
+            n_keys = shapes["keys"][0][0] if len(shapes["keys"][0]) == 2 else -1
+            want = {  # shape, dtype test, what it is
+                "keys": ((n_keys, 2), lambda d: d.kind == "i", "integer tile keys"),
+                "tiles": ((n_keys, ts, ts, 3), lambda d: d == np.float32, "float32 masses"),
+                "covered": ((n_keys, ts, ts), lambda d: d == np.bool_, "bool coverage"),
+            }
+            for name, (shape, ok, what) in want.items():
+                got_shape, got_dtype = shapes[name]
+                if got_shape != shape or not ok(got_dtype):
+                    raise MapFileError(
+                        f"{path} is inconsistent: array '{name}' is {got_shape} {got_dtype}; "
+                        f"the header's tile_cells {ts} and {n_keys} keys make it {shape} {what}"
+                    )
             keys, tiles, covered = z["keys"], z["tiles"], z["covered"]
-    except MapFileError:
+    except (MapFileError, FileNotFoundError):
         raise
-    except (
-        zipfile.BadZipFile,
-        zlib.error,
-        EOFError,
-        OSError,
-        ValueError,
-        KeyError,
-        UnicodeDecodeError,
-        AttributeError,
-    ) as e:
-        raise MapFileError(f"{path} is truncated or not an evgrid map: {e}") from e
-    if not isinstance(header, dict) or header.get("format") != _FORMAT:
+    except Exception as e:  # noqa: BLE001 - whatever a corrupt file makes zipfile or numpy raise
+        # (zlib.error, BadZipFile, EOFError, tokenize.TokenError or SyntaxError from a garbled
+        # array header, UnicodeDecodeError, JSONDecodeError, MemoryError ...)
+        why = " ".join(str(e).split())[:200]  # one line, whatever the library wrote
         raise MapFileError(
-            f"{path} is not an evgrid map (format {header.get('format') if isinstance(header, dict) else None!r})"
-        )
-    if header.get("version") != _FORMAT_VERSION:
+            f"{path} is truncated or not an evgrid map: {type(e).__name__}: {why}"
+        ) from e
+    keys = np.asarray(keys, dtype=np.int64)
+    dup = _first_duplicate(keys)
+    if dup is not None:
         raise MapFileError(
-            f"{path} has map format version {header.get('version')!r}; this evgrid reads {_FORMAT_VERSION}"
+            f"{path}: field 'keys': tile key {dup} appears more than once; the file is corrupt"
         )
-    ts = header.get("tile_cells")
-    if isinstance(ts, bool) or not isinstance(ts, int) or ts < 8:
-        raise MapFileError(f"{path}: header field 'tile_cells' must be an integer >= 8, got {ts!r}")
-    try:
-        spec = GridSpec.from_dict(header["spec"])
-        metadata = dict(header.get("metadata", {}))
-    except (KeyError, TypeError, ValueError) as e:
-        raise MapFileError(f"{path}: header field 'spec' or 'metadata' is invalid ({e})") from e
-    if keys.shape != (len(keys), 2) or keys.dtype.kind != "i":
-        raise MapFileError(f"{path} is inconsistent: tile keys {keys.shape} {keys.dtype}")
-    if (
-        tiles.shape != (len(keys), ts, ts, 3)
-        or covered.shape != (len(keys), ts, ts)
-        or tiles.dtype != np.float32
-        or covered.dtype != np.bool_
-    ):
-        raise MapFileError(
-            f"{path} is inconsistent: {len(keys)} keys, tiles {tiles.shape} {tiles.dtype}, coverage {covered.shape} {covered.dtype}"
-        )
+    used = covered.reshape(len(keys), -1).any(1) if len(keys) else np.zeros(0, bool)
+    why = _check_extent(f"{path}: field", spec, ts, keys, used)
+    if why:
+        raise MapFileError(why)
     tiles = np.ascontiguousarray(tiles)
-    n_bad = int(_k_count_invalid(tiles.reshape(-1), 0, 1, tiles.size // 3)) if tiles.size else 0
+    n_bad = int(count_invalid(tiles.reshape(-1), 0, 1, tiles.size // 3)) if tiles.size else 0
     if n_bad:
         raise MapFileError(
-            f"{path}: {n_bad} cell(s) hold no valid mass (NaN, inf, negative, or not summing to 1); the file is corrupt"
+            f"{path}: {n_bad} cell(s) hold no valid mass (NaN, inf, negative, or not summing "
+            "to 1); the file is corrupt"
         )
     m = EvidentialMap(spec, ts, metadata)
     for k, t, c in zip(keys, tiles, covered):
@@ -460,3 +551,33 @@ def load_map(path: str | os.PathLike) -> EvidentialMap:
         m.tiles[key] = np.ascontiguousarray(t)
         m.covered_tiles[key] = np.ascontiguousarray(c)
     return m
+
+
+def _header_fields(path: Path, header: Any) -> tuple[int, GridSpec, dict[str, Any]]:
+    """``tile_cells``, the grid and the metadata of a map file's header; MapFileError if bad."""
+    if not isinstance(header, dict) or header.get("format") != _FORMAT:
+        fmt = header.get("format") if isinstance(header, dict) else None
+        raise MapFileError(f"{path} is not an evgrid map (format {fmt!r})")
+    if header.get("version") != _FORMAT_VERSION:
+        raise MapFileError(
+            f"{path} has map format version {header.get('version')!r}; "
+            f"this evgrid reads {_FORMAT_VERSION}"
+        )
+    ts = header.get("tile_cells")
+    if isinstance(ts, bool) or not isinstance(ts, int) or not 8 <= ts <= 4096:
+        raise MapFileError(
+            f"{path}: header field 'tile_cells' must be an integer in [8, 4096], got {ts!r}"
+        )
+    try:
+        spec = GridSpec.from_dict(header["spec"])
+        metadata = dict(header.get("metadata", {}))
+    except (KeyError, TypeError, ValueError) as e:
+        raise MapFileError(f"{path}: header field 'spec' or 'metadata' is invalid ({e})") from e
+    return ts, spec, metadata
+
+
+def _first_duplicate(keys: np.ndarray) -> tuple[int, int] | None:
+    if len(keys) < 2:
+        return None
+    u, counts = np.unique(keys, axis=0, return_counts=True)
+    return (int(u[counts > 1][0, 0]), int(u[counts > 1][0, 1])) if (counts > 1).any() else None

@@ -3,7 +3,7 @@
 All per-cell formulas and every kernel that inlines them live in this one module: numba's
 on-disk cache is invalidated only when the jitted function's own file changes, so kernels in
 another module would keep stale copies of an edited formula. The one-pass map update
-(:func:`_k_warp_update`) inlines both the warp's sampling and the rules.
+(:func:`warp_update`) inlines both the warp's sampling and the rules.
 
 Kernels take ``(h, w, 3)`` float32 views as a flat buffer and a row stride (see
 :func:`rows`), loop rows, and are branch-free with ``error_model="numpy"`` so that LLVM
@@ -15,6 +15,9 @@ count invalid input cells; the in-place map kernels leave the map cell under an 
 cell untouched and return how many they rejected. These kernels are compiled without the
 ``nnan``/``ninf`` fast-math flags, under which LLVM may assume that no value is NaN and fold the
 checks away; the other flags (and so vectorisation and the results for valid cells) are kept.
+
+The names that :mod:`evgrid.mass`, :mod:`evgrid.grid` and :mod:`evgrid.fusion` use are public
+(``__all__``); everything with a leading underscore is private to this module.
 """
 
 from __future__ import annotations
@@ -27,6 +30,30 @@ from llvmlite import ir
 from numba.core import cgutils, types
 from numba.extending import intrinsic
 
+__all__ = [
+    "MASS_ATOL",
+    "BLOCK",
+    "COARSE",
+    "RULE_DEMPSTER",
+    "RULE_DEEP_REPLACE",
+    "RULE_DEEP_DISC",
+    "RULE_FUSED",
+    "RULE_NAV",
+    "rows",
+    "count_invalid",
+    "dempster_rows",
+    "yager_rows",
+    "gamma_rows",
+    "update_rows",
+    "coarse_blocks",
+    "load_padded",
+    "window_spans",
+    "band_columns",
+    "informative_blocks",
+    "warp_rows",
+    "warp_update",
+]
+
 # --- per-cell formulas (float64 scalars in, normalised float64 triple out) ---------------------
 
 _JIT = dict(cache=True, fastmath=True, error_model="numpy")
@@ -35,7 +62,7 @@ _CHECKED = dict(
     cache=True, fastmath={"nsz", "arcp", "contract", "afn", "reassoc"}, error_model="numpy"
 )
 # The warp's sampling: no fused multiply-adds, no reassociation, and compiled once, not inlined,
-# so every kernel that samples (_k_warp's windows, _k_warp_update's one pass) rounds alike and
+# so every kernel that samples (warp_rows's windows, warp_update's one pass) rounds alike and
 # gives the same masses bit for bit
 _EXACT = dict(cache=True, fastmath={"nsz", "arcp", "afn"}, error_model="numpy")
 _TINY = 1e-30
@@ -61,7 +88,8 @@ def _normalise_cell(f, o, u):
 @numba.njit(inline="always", **_JIT)
 def _dempster_cell(f1, o1, u1, f2, o2, u2):
     # Paper eq. (5); f + o + u equals 1 - K for normalised inputs, so dividing by it
-    # normalises. Total conflict (1 - K = 0) is undefined: vacuous (docs/decisions.md#total-conflict).
+    # normalises. Total conflict (1 - K = 0) is undefined: vacuous
+    # (docs/decisions.md#total-conflict).
     f = f1 * f2 + f1 * u2 + u1 * f2
     o = o1 * o2 + o1 * u2 + u1 * o2
     u = u1 * u2
@@ -170,7 +198,7 @@ def _deep_disc_cell(f1, o1, u1, f2, o2, u2, m_u_min, alpha):
 
 
 @numba.njit(**_JIT)
-def _k_dempster(a, ars, b, brs, out, ors, h, w):
+def dempster_rows(a, ars, b, brs, out, ors, h, w):
     for i in range(h):
         ra, rb, ro = (
             a[i * ars : i * ars + 3 * w],
@@ -193,7 +221,7 @@ def _k_dempster(a, ars, b, brs, out, ors, h, w):
 
 
 @numba.njit(**_JIT)
-def _k_yager(a, ars, b, brs, out, ors, h, w):
+def yager_rows(a, ars, b, brs, out, ors, h, w):
     for i in range(h):
         ra, rb, ro = (
             a[i * ars : i * ars + 3 * w],
@@ -216,7 +244,7 @@ def _k_yager(a, ars, b, brs, out, ors, h, w):
 
 
 @numba.njit(**_JIT)
-def _k_gamma(a, ars, b, brs, m_u_min, alpha, out, h, w):
+def gamma_rows(a, ars, b, brs, m_u_min, alpha, out, h, w):
     for i in range(h):
         ra, rb, ro = (
             a[i * ars : i * ars + 3 * w],
@@ -245,7 +273,7 @@ def _row_sum(bad, n):
 
 
 @numba.njit(**_CHECKED)
-def _k_count_invalid(a, ars, h, w):
+def count_invalid(a, ars, h, w):
     # Number of cells that are not masses (see _valid_cell): one read of the grid, no writes.
     # (A loop that only counts vectorises with the count inside it.)
     n = 0
@@ -255,22 +283,6 @@ def _k_count_invalid(a, ars, h, w):
             p = 3 * j
             ok = _valid_cell(np.float64(ra[p]), np.float64(ra[p + 1]), np.float64(ra[p + 2]))
             n += 0 if ok else 1
-    return n
-
-
-@numba.njit(**_CHECKED)
-def _k_vacate_invalid(a, ars, h, w):
-    # Invalid cells become vacuous (no information), in place; returns how many there were.
-    n = 0
-    for i in range(h):
-        ra = a[i * ars : i * ars + 3 * w]
-        for j in range(w):
-            p = 3 * j
-            ok = _valid_cell(np.float64(ra[p]), np.float64(ra[p + 1]), np.float64(ra[p + 2]))
-            n += 0 if ok else 1
-            ra[p] = ra[p] if ok else 0.0
-            ra[p + 1] = ra[p + 1] if ok else 0.0
-            ra[p + 2] = ra[p + 2] if ok else 1.0
     return n
 
 
@@ -392,64 +404,77 @@ def _fused_row(mp_, deep_, irm_, bad, n, m_u_min, alpha):
     return _row_sum(bad, n)
 
 
-@numba.njit(**_CHECKED)
-def _k_dempster_into(mp, mrs, ism, irs, h, w, spans):
-    n_bad = 0
-    bad = np.zeros(w, np.uint8)
-    for i in range(h):
-        lo, hi = _span(spans, i, w)
-        n_bad += _dempster_row(
-            mp[i * mrs + 3 * lo : i * mrs + 3 * hi],
-            ism[i * irs + 3 * lo : i * irs + 3 * hi],
-            bad,
-            hi - lo,
+@numba.njit(inline="always", **_JIT)
+def _nav_cell(fl, ol, ul, ff, of, uf):
+    # nav (docs/equations.md#the-navigation-map): the lidar map L (+)_D the fused map F, with F
+    # restricted where L's evidence leans one way: where m_o(L) > m_f(L), F's free mass counts as
+    # unknown, so the cell can never end up free; where m_f(L) > m_o(L), F's occupied mass counts
+    # as unknown, so the lidar's free space stays free. Where L holds no evidence it is F.
+    occ = ol > fl
+    fre = fl > ol
+    f2 = 0.0 if occ else ff
+    o2 = 0.0 if fre else of
+    u2 = uf + (ff if occ else 0.0) + (of if fre else 0.0)
+    return _dempster_cell(fl, ol, ul, f2, o2, u2)
+
+
+@numba.njit(inline="always", **_CHECKED)
+def _nav_row(mp_, lidar_, fused_, n):
+    # nav from the lidar map's and the fused map's cells of the same row (already updated in
+    # this step), for every cell of the row; map cells are never invalid, so nothing is rejected.
+    for j in range(n):
+        p = 3 * j
+        f, o, u = _nav_cell(
+            np.float64(lidar_[p]),
+            np.float64(lidar_[p + 1]),
+            np.float64(lidar_[p + 2]),
+            np.float64(fused_[p]),
+            np.float64(fused_[p + 1]),
+            np.float64(fused_[p + 2]),
         )
-    return n_bad
+        mp_[p] = f
+        mp_[p + 1] = o
+        mp_[p + 2] = u
+    return 0
+
+
+#: Kernel codes of the update rules; :data:`evgrid.fusion.RULES` says which map uses which.
+#: RULE_NAV reads two maps' rows (the lidar and fused maps), the others one or two ISMs' rows.
+RULE_DEMPSTER, RULE_DEEP_REPLACE, RULE_DEEP_DISC, RULE_FUSED, RULE_NAV = 0, 1, 2, 3, 4
+
+
+@numba.njit(inline="always", **_CHECKED)
+def _rule_row(code, mp_, a, b, bad, n, m_u_min, alpha):
+    # One row of a map updated by the rule of ``code`` from rows ``a`` and ``b`` (the first and
+    # last input of the rule: the same row for one-input rules); returns the rejected cells.
+    if code == RULE_DEMPSTER:
+        return _dempster_row(mp_, a, bad, n)
+    elif code == RULE_DEEP_REPLACE:
+        return _deep_replace_row(mp_, a, bad, n, m_u_min)
+    elif code == RULE_DEEP_DISC:
+        return _deep_disc_row(mp_, a, bad, n, m_u_min, alpha)
+    elif code == RULE_FUSED:
+        return _fused_row(mp_, a, b, bad, n, m_u_min, alpha)
+    return _nav_row(mp_, a, b, n)
 
 
 @numba.njit(**_CHECKED)
-def _k_deep_replace_into(mp, mrs, ism, irs, h, w, spans, m_u_min):
+def update_rows(code, mp, mrs, a, ars, b, brs, h, w, spans, m_u_min, alpha):
+    """Update the ``(h, w)`` map view ``mp`` in place by rule ``code`` from the views ``a``, ``b``.
+
+    Views travel as (flat buffer, row stride) (see :func:`rows`); row i is updated on columns
+    ``spans[i, 0]:spans[i, 1]`` only (clamped to [0, w]). Returns the invalid input cells
+    rejected (their map cells are left untouched).
+    """
     n_bad = 0
     bad = np.zeros(w, np.uint8)
     for i in range(h):
         lo, hi = _span(spans, i, w)
-        n_bad += _deep_replace_row(
+        n_bad += _rule_row(
+            code,
             mp[i * mrs + 3 * lo : i * mrs + 3 * hi],
-            ism[i * irs + 3 * lo : i * irs + 3 * hi],
-            bad,
-            hi - lo,
-            m_u_min,
-        )
-    return n_bad
-
-
-@numba.njit(**_CHECKED)
-def _k_deep_disc_into(mp, mrs, ism, irs, h, w, spans, m_u_min, alpha):
-    n_bad = 0
-    bad = np.zeros(w, np.uint8)
-    for i in range(h):
-        lo, hi = _span(spans, i, w)
-        n_bad += _deep_disc_row(
-            mp[i * mrs + 3 * lo : i * mrs + 3 * hi],
-            ism[i * irs + 3 * lo : i * irs + 3 * hi],
-            bad,
-            hi - lo,
-            m_u_min,
-            alpha,
-        )
-    return n_bad
-
-
-@numba.njit(**_CHECKED)
-def _k_fused_into(mp, mrs, deep, drs, irm, irs, h, w, spans, m_u_min, alpha):
-    n_bad = 0
-    bad = np.zeros(w, np.uint8)
-    for i in range(h):
-        lo, hi = _span(spans, i, w)
-        n_bad += _fused_row(
-            mp[i * mrs + 3 * lo : i * mrs + 3 * hi],
-            deep[i * drs + 3 * lo : i * drs + 3 * hi],
-            irm[i * irs + 3 * lo : i * irs + 3 * hi],
+            a[i * ars + 3 * lo : i * ars + 3 * hi],
+            b[i * brs + 3 * lo : i * brs + 3 * hi],
             bad,
             hi - lo,
             m_u_min,
@@ -468,17 +493,18 @@ def _k_fused_into(mp, mrs, deep, drs, irm, irs, h, w, spans, m_u_min, alpha):
 
 # Fractional source positions closer than this to a whole cell (in cells) are snapped to it.
 _SNAP = 1e-6
-# Window rows are visited in bands of _BLOCK rows and, within a band, blocks of _BLOCK columns
+# Window rows are visited in bands of BLOCK rows and, within a band, blocks of BLOCK columns
 # from the band's first covered column, which keeps the rotated source footprint in cache at
 # any yaw; a block whose footprint holds only vacuous cells is written vacuous, unsampled.
-_BLOCK = 32
-_COARSE = 8  # side of the source blocks whose vacuousness is checked before sampling
+BLOCK = 32
+COARSE = 8  # side of the source blocks whose vacuousness is checked before sampling
 _AHEAD = 2  # rows ahead whose source lines are prefetched (see _prefetch_span)
 
 
 @intrinsic
 def _prefetch(typingctx, arr, idx):
-    """A hint to bring ``arr[idx]`` (a 1-D array) into the caches (``llvm.prefetch``: read, keep); never faults."""
+    """A hint to bring ``arr[idx]`` (a 1-D array) into the caches (``llvm.prefetch``: read, keep);
+    never faults."""
 
     def codegen(context, builder, signature, args):
         ary = context.make_array(signature.args[0])(context, builder, args[0])
@@ -493,24 +519,25 @@ def _prefetch(typingctx, arr, idx):
 
 
 @numba.njit(**_JIT)
-def _k_coarse(src, coarse):
+def coarse_blocks(src, coarse):
     """coarse[a, b] = any cell of src block [8a, 8a + 8) x [8b, 8b + 8) is not vacuous."""
     # branch-free (a running min per block): a branch per cell mispredicts on scattered cells
     n_r, n_c = src.shape[0], src.shape[1]
     u_min = np.empty(coarse.shape[1], dtype=np.float32)
     for a in range(coarse.shape[0]):
         u_min[:] = 1.0
-        for r in range(a * _COARSE, min(n_r, (a + 1) * _COARSE)):
+        for r in range(a * COARSE, min(n_r, (a + 1) * COARSE)):
             for c in range(n_c):
-                b = c // _COARSE
+                b = c // COARSE
                 u_min[b] = min(u_min[b], src[r, c, 2])
         for b in range(coarse.shape[1]):
             coarse[a, b] = u_min[b] < 1.0
 
 
 @numba.njit(**_CHECKED)
-def _k_load(local, src):
-    """src[1:n+1, 1:n+1] = local with invalid cells (see _valid_cell) made vacuous; returns their number."""
+def load_padded(local, src):
+    """src[1:n+1, 1:n+1] = local with invalid cells (see _valid_cell) made vacuous; returns their
+    number."""
     n_bad = 0
     for r in range(local.shape[0]):
         for c in range(local.shape[1]):
@@ -540,7 +567,7 @@ def _row_range(a, d, n, w):
 
 
 @numba.njit(**_JIT)
-def _k_spans(u00, v00, du_di, du_dj, dv_di, dv_dj, n, h, w, spans):
+def window_spans(u00, v00, du_di, du_dj, dv_di, dv_dj, n, h, w, spans):
     """spans[i] = columns of row i whose local position (u, v) lies in (-1, n)^2."""
     nf = float(n)
     for i in range(h):
@@ -568,17 +595,18 @@ def _k_spans(u00, v00, du_di, du_dj, dv_di, dv_dj, n, h, w, spans):
 
 
 @numba.njit(**_JIT)
-def _k_blocks(spans, h, w, jl, jh):
-    """jl[b], jh[b]: the covered columns [jl, jh) of band b (rows [32 b, 32 b + 32)); (w, 0) if none."""
-    for bi in range(0, h, _BLOCK):
+def band_columns(spans, h, w, jl, jh):
+    """jl[b], jh[b]: the covered columns [jl, jh) of band b (rows [32 b, 32 b + 32)); (w, 0) if
+    none."""
+    for bi in range(0, h, BLOCK):
         lo = w
         hi = 0
-        for i in range(bi, min(h, bi + _BLOCK)):
+        for i in range(bi, min(h, bi + BLOCK)):
             if spans[i, 1] > spans[i, 0]:
                 lo = min(lo, spans[i, 0])
                 hi = max(hi, spans[i, 1])
-        jl[bi // _BLOCK] = lo
-        jh[bi // _BLOCK] = hi
+        jl[bi // BLOCK] = lo
+        jh[bi // BLOCK] = hi
 
 
 @numba.njit(inline="always", **_JIT)
@@ -598,10 +626,10 @@ def _block_informative(coarse, n, u00, v00, du_di, du_dj, dv_di, dv_dj, bi, i1, 
             vlo = min(vlo, v)
             vhi = max(vhi, v)
     n_cr, n_cc = coarse.shape[0], coarse.shape[1]
-    a0 = max(0, int(max(ulo, 0.0)) - 1) // _COARSE
-    a1 = min(n_cr - 1, (int(min(max(uhi, 0.0), n + 2.0)) + 2) // _COARSE)
-    b0 = max(0, int(max(vlo, 0.0)) - 1) // _COARSE
-    b1 = min(n_cc - 1, (int(min(max(vhi, 0.0), n + 2.0)) + 2) // _COARSE)
+    a0 = max(0, int(max(ulo, 0.0)) - 1) // COARSE
+    a1 = min(n_cr - 1, (int(min(max(uhi, 0.0), n + 2.0)) + 2) // COARSE)
+    b0 = max(0, int(max(vlo, 0.0)) - 1) // COARSE
+    b1 = min(n_cc - 1, (int(min(max(vhi, 0.0), n + 2.0)) + 2) // COARSE)
     informative = False
     for a in range(a0, a1 + 1):
         for b in range(b0, b1 + 1):
@@ -619,7 +647,7 @@ def _fill_vacuous(ro, o0, m):
 
 @numba.njit(**_EXACT)
 def _positions(srs, n, u00, v00, du_di, du_dj, dv_di, dv_dj, i, j0, j2, idx, frac):
-    # idx[k], frac[2 k : 2 k + 2], k < j2 - j0 (<= _BLOCK): where window cell (i, j0 + k)
+    # idx[k], frac[2 k : 2 k + 2], k < j2 - j0 (<= BLOCK): where window cell (i, j0 + k)
     # samples every local grid (the same affine for all): the flat index of its top-left padded
     # source cell and the fractions.
     a = u00 + i * du_di + 1.0  # the row's padded source position (see the warp above)
@@ -675,7 +703,7 @@ def _prefetch_span(src, informative, srs, n, a, b, du_dj, dv_dj, j0, j2):
     # cells j0 ... j2 - 1 of the row at (a, b) (the row _AHEAD rows on) will sample, while this
     # one is worked: off the quarter turns, a row's samples cross source rows, which the
     # hardware prefetcher does not follow, and a cold source line costs a memory latency (2x
-    # slower at 10 and 45 degrees without this; _k_warp's 32 x 32 blocks keep their footprint
+    # slower at 10 and 45 degrees without this; warp_rows's 32 x 32 blocks keep their footprint
     # in cache instead). One hint per two cells.
     top = len(src[0]) - 1
     for j in range(j0, j2, 2):
@@ -689,13 +717,13 @@ def _prefetch_span(src, informative, srs, n, a, b, du_dj, dv_dj, j0, j2):
 
 
 @numba.njit(**_JIT)
-def _k_warp(
+def warp_rows(
     src, srs, coarse, n, u00, v00, du_di, du_dj, dv_di, dv_dj, out, ors, covered, crs, h, w, spans
 ):
     # The window (h, w) written whole: sampled masses on covered cells, vacuous elsewhere.
-    _k_spans(u00, v00, du_di, du_dj, dv_di, dv_dj, n, h, w, spans)
-    idx = np.empty(_BLOCK, dtype=np.int64)
-    frac = np.empty(2 * _BLOCK, dtype=np.float32)
+    window_spans(u00, v00, du_di, du_dj, dv_di, dv_dj, n, h, w, spans)
+    idx = np.empty(BLOCK, dtype=np.int64)
+    frac = np.empty(2 * BLOCK, dtype=np.float32)
     for i in range(h):
         ro = out[i * ors : i * ors + 3 * w]
         cv = covered[i * crs : i * crs + w]
@@ -705,13 +733,13 @@ def _k_warp(
         cv[:lo] = False
         cv[lo:hi] = True
         cv[hi:] = False
-    jl = np.empty((h + _BLOCK - 1) // _BLOCK, np.int64)
+    jl = np.empty((h + BLOCK - 1) // BLOCK, np.int64)
     jh = np.empty_like(jl)
-    _k_blocks(spans, h, w, jl, jh)
-    for bi in range(0, h, _BLOCK):
-        i1 = min(h, bi + _BLOCK)
-        for bj in range(jl[bi // _BLOCK], jh[bi // _BLOCK], _BLOCK):
-            j1 = min(jh[bi // _BLOCK], bj + _BLOCK)
+    band_columns(spans, h, w, jl, jh)
+    for bi in range(0, h, BLOCK):
+        i1 = min(h, bi + BLOCK)
+        for bj in range(jl[bi // BLOCK], jh[bi // BLOCK], BLOCK):
+            j1 = min(jh[bi // BLOCK], bj + BLOCK)
             informative = _block_informative(
                 coarse, n, u00, v00, du_di, du_dj, dv_di, dv_dj, bi, i1, bj, j1
             )
@@ -745,24 +773,21 @@ def _k_warp(
 
 
 @numba.njit(**_JIT)
-def _k_informative(coarse, n, u00, v00, du_di, du_dj, dv_di, dv_dj, h, jl, jh, out):
-    """out[b, k]: whether block k (columns jl[b] + 32 k ...) of band b is informative (see _k_warp)."""
-    for bi in range(0, h, _BLOCK):
-        b = bi // _BLOCK
-        i1 = min(h, bi + _BLOCK)
-        for bj in range(jl[b], jh[b], _BLOCK):
-            j1 = min(jh[b], bj + _BLOCK)
-            out[b, (bj - jl[b]) // _BLOCK] = _block_informative(
+def informative_blocks(coarse, n, u00, v00, du_di, du_dj, dv_di, dv_dj, h, jl, jh, out):
+    """out[b, k]: whether block k (columns jl[b] + 32 k ...) of band b is informative (see
+    warp_rows)."""
+    for bi in range(0, h, BLOCK):
+        b = bi // BLOCK
+        i1 = min(h, bi + BLOCK)
+        for bj in range(jl[b], jh[b], BLOCK):
+            j1 = min(jh[b], bj + BLOCK)
+            out[b, (bj - jl[b]) // BLOCK] = _block_informative(
                 coarse, n, u00, v00, du_di, du_dj, dv_di, dv_dj, bi, i1, bj, j1
             )
 
 
-# Rules of the one-pass update (_k_warp_update): (code, ISM index, second ISM index).
-RULE_DEMPSTER, RULE_DEEP_REPLACE, RULE_DEEP_DISC, RULE_FUSED = 0, 1, 2, 3
-
-
 @numba.njit(**_CHECKED)
-def _k_warp_update(
+def warp_update(
     src,
     srs,
     n,
@@ -785,32 +810,33 @@ def _k_warp_update(
     tr0,
     tc0,
     rules,
-    m_u_min,
-    alpha,
+    params,
     bufs,
     rejected,
 ):
     # One tile piece of a window, every map at once: window rows [wa, wb) and columns
     # [wc0, wc1) are tile cells (tr0 + i - wa, tc0 + j - wc0). Each row's covered cells are
-    # sampled from each ISM (src[s], a tuple of the padded local grids, flat) exactly as _k_warp
+    # sampled from each ISM (src[s], a tuple of the padded local grids, flat) exactly as warp_rows
     # writes them, into a row buffer per ISM, and each map's rule runs on the buffers: the same
     # masses as warping whole windows and updating from them, without writing or re-reading the
-    # windows.
-    idx = np.empty(_BLOCK, dtype=np.int64)
-    frac = np.empty(2 * _BLOCK, dtype=np.float32)
+    # windows. Row k of ``rules`` is map k's (kernel code, first input, last input), its
+    # ``params`` row (m_u_min, alpha): inputs are ISM slots (bufs), for RULE_NAV earlier maps
+    # (tiles) whose rows this step has already updated.
+    idx = np.empty(BLOCK, dtype=np.int64)
+    frac = np.empty(2 * BLOCK, dtype=np.float32)
     bad = np.zeros(ts, np.uint8)
     for i in range(wa, wb):
         lo = max(spans[i, 0], wc0)
         hi = min(spans[i, 1], wc1)
         if hi <= lo:
             continue
-        band = i // _BLOCK
+        band = i // BLOCK
         a = u00 + i * du_di + 1.0  # the row's padded source position, for the prefetch hints
         b = v00 + i * dv_di + 1.0
         j = lo
         while j < hi:
-            k = (j - jl[band]) // _BLOCK
-            j1 = min(hi, jl[band] + (k + 1) * _BLOCK)
+            k = (j - jl[band]) // BLOCK
+            j1 = min(hi, jl[band] + (k + 1) * BLOCK)
             located = False  # the positions are the same for every ISM: computed once
             for s in range(len(src)):
                 if informative[s, band, k]:
@@ -841,12 +867,12 @@ def _k_warp_update(
         for k in range(len(tiles)):
             mp_ = tiles[k][3 * t : 3 * (t + m)]
             code, x, y = rules[k, 0], rules[k, 1], rules[k, 2]
-            if code == RULE_DEMPSTER:
-                rejected[k] += _dempster_row(mp_, bufs[x], bad, m)
-            elif code == RULE_DEEP_REPLACE:
-                rejected[k] += _deep_replace_row(mp_, bufs[x], bad, m, m_u_min)
-            elif code == RULE_DEEP_DISC:
-                rejected[k] += _deep_disc_row(mp_, bufs[x], bad, m, m_u_min, alpha)
+            if code == RULE_NAV:
+                rejected[k] += _nav_row(
+                    mp_, tiles[x][3 * t : 3 * (t + m)], tiles[y][3 * t : 3 * (t + m)], m
+                )
             else:
-                rejected[k] += _fused_row(mp_, bufs[x], bufs[y], bad, m, m_u_min, alpha)
+                rejected[k] += _rule_row(
+                    code, mp_, bufs[x], bufs[y], bad, m, params[k, 0], params[k, 1]
+                )
             covs[k][t : t + m] = True

@@ -45,9 +45,10 @@ class MapUpdate:
 
     @property
     def windows(self) -> dict[str, MapWindow]:
-        """The ISMs warped into whole map windows: computed on access (one warp per ISM) from the ISM
-        grids the map set holds, so valid while observers handle this update."""
-        return self.maps.warp_loaded(self.pose)
+        """The ISMs warped into whole map windows, for observers that want them: computed on
+        access (one warp per ISM) from the ISM grids the map set holds, so valid while observers
+        handle this update (the maps are not updated from them)."""
+        return self.maps.windows(self.pose)
 
 
 class Observer(Protocol):
@@ -60,8 +61,9 @@ class OccupancyMapper:
     """The maps of one scene, built online: call :meth:`process` with each :class:`Frame` in time order.
 
     ``deep`` is a :class:`~evgrid.ism.deep.DeepIrm` (loaded from ``config.checkpoint``, or the
-    shipped checkpoint, when the maps need it and none is given). ``extra`` map sets are updated
-    from the same ISM grids and warps (the ``m_u_min`` sweep uses them).
+    shipped checkpoint, when the maps need it and none is given). ``extra`` map sets are attached
+    to the mapper's (:meth:`evgrid.fusion.MapSet.attach`): rows of the same one-pass update from
+    the same ISM grids (the ``m_u_min`` sweep uses them).
     """
 
     def __init__(
@@ -74,12 +76,8 @@ class OccupancyMapper:
         self.config = config
         self.maps = MapSet(config.grid, config.fusion, config.maps, config.tile_cells)
         self.extra = tuple(extra)
-        for s in self.extra:
-            missing = set(s.required_isms) - set(self.maps.required_isms)
-            if missing:
-                raise ValueError(
-                    f"extra map sets need ISMs {sorted(missing)} that the mapper's maps do not compute"
-                )
+        for s in self.extra:  # extra rows of the same one-pass update
+            self.maps.attach(s)
         self.observers = list(observers)
         self.buffer = RadarBuffer(max(config.radar.n_sweeps, config.image.n_sweeps))
         self.deep = deep
@@ -110,8 +108,6 @@ class OccupancyMapper:
         self.last_isms: dict[str, np.ndarray] = {}
         self.n_frames = 0
         self.n_updates = 0
-        # False: warp whole windows, then fuse them (the same maps; `evgrid bench --old-path` times both)
-        self.one_pass = True
 
     def process(self, frame: Frame) -> bool:
         """Take one frame; at the update rate and at keyframes update the maps. Returns whether it did."""
@@ -131,19 +127,11 @@ class OccupancyMapper:
             return False
         pose = self.pose_in_map(frame.ego_pose)
         isms = self.local_isms(frame)  # each ISM once, in the current ego frame
-        t = time.perf_counter()
-        self.maps.load(isms)  # each ISM checked and padded once
-        t = self._time("warp", t)
-        if (
-            self.extra or not self.one_pass
-        ):  # warped once into whole windows that every map set reads
-            windows = self.maps.warp_loaded(pose)
-            self.maps.update_windows(windows)
-            for extra in self.extra:
-                extra.update_windows(windows)
-        else:  # into the first pose's frame and through the six update rules (paper Table I), in one pass
-            self.maps.update_loaded(pose)
-        self._time("fuse", t)
+        # into the map frame and through every map's update rule (paper Table I), in one pass;
+        # the extra map sets are rows of the same pass
+        self.maps.update(pose, isms)
+        for k, ms in self.maps.last_ms.items():  # "warp": the ISMs checked; "fuse": the pass
+            self.timings.setdefault(k, []).append(ms)
         self._time("step_total", t0)
         self.n_updates += 1
         self.last_isms = isms

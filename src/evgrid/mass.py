@@ -1,4 +1,4 @@
-"""The evidential algebra on the frame {free, occupied}: masses ``[m_f, m_o, m_u]`` (paper sec. III).
+"""The evidential algebra on the frame {free, occupied}: masses ``[m_f, m_o, m_u]`` (sec. III).
 
 Every public function takes arrays of shape ``(..., 3)`` (masses) or ``(..., 2)`` (evidence)
 and broadcasts over the leading axes; outputs are float32. Masses are dimensionless, each in
@@ -21,7 +21,7 @@ import math
 
 import numpy as np
 
-from evgrid.kernels import MASS_ATOL, _k_count_invalid, _k_dempster, _k_gamma, _k_yager, rows
+from evgrid.kernels import MASS_ATOL, count_invalid, dempster_rows, gamma_rows, rows, yager_rows
 
 __all__ = [
     "VACUOUS",
@@ -70,13 +70,15 @@ def validate(m: np.ndarray, name: str = "m", atol: float = _SUM_ATOL) -> np.ndar
     off = np.abs(s - 1.0)
     if (off > atol).any():
         raise ValueError(
-            f"{name}: masses must sum to 1 within {atol:g}, worst sum {float(s.flat[int(off.argmax())]):.6g}"
+            f"{name}: masses must sum to 1 within {atol:g}, "
+            f"worst sum {float(s.flat[int(off.argmax())]):.6g}"
         )
     return a
 
 
 def _masses32(m: np.ndarray, name: str) -> np.ndarray:
-    """``m`` as a C-contiguous float32 mass array ``(..., 3)``; ValueError naming ``name`` if it is not one."""
+    """``m`` as a C-contiguous float32 mass array ``(..., 3)``; ValueError naming ``name`` if it is
+    not one."""
     a = np.asarray(m)
     if a.ndim == 0 or a.shape[-1] != 3:
         raise ValueError(
@@ -86,7 +88,7 @@ def _masses32(m: np.ndarray, name: str) -> np.ndarray:
         raise ValueError(f"{name}: masses must be real numbers, got dtype {a.dtype}")
     a = np.ascontiguousarray(a, dtype=np.float32)
     flat, rs, h, w = rows(a.reshape(1, -1, 3))
-    if _k_count_invalid(flat, rs, h, w):
+    if count_invalid(flat, rs, h, w):
         validate(a, name)  # says what is wrong
         raise ValueError(f"{name}: not a mass array (NaN, inf, negative, or not summing to 1)")
     return a
@@ -115,7 +117,8 @@ def _combine(kernel, m1: np.ndarray, m2: np.ndarray, out: np.ndarray | None) -> 
     else:
         if out.shape != shape or out.dtype != np.float32 or not out.flags.c_contiguous:
             raise ValueError(
-                f"out must be a C-contiguous float32 array of shape {shape}, got {out.shape} {out.dtype}"
+                f"out must be a C-contiguous float32 array of shape {shape}, "
+                f"got {out.shape} {out.dtype}"
             )
         res = out
     fa, ars, h, w = rows(a)
@@ -137,12 +140,12 @@ def dempster(m1: np.ndarray, m2: np.ndarray, out: np.ndarray | None = None) -> n
 
     Total conflict gives [0, 0, 1] (docs/decisions.md#total-conflict).
     """
-    return _combine(_k_dempster, m1, m2, out)
+    return _combine(dempster_rows, m1, m2, out)
 
 
 def yager(m1: np.ndarray, m2: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """Yager's rule ``m1 (+)_Y m2`` (paper eq. (6)): the conflict K goes to m_u."""
-    return _combine(_k_yager, m1, m2, out)
+    return _combine(yager_rows, m1, m2, out)
 
 
 def _check_unit(name: str, v: np.ndarray | float) -> np.ndarray:
@@ -153,7 +156,7 @@ def _check_unit(name: str, v: np.ndarray | float) -> np.ndarray:
 
 
 def discount(m: np.ndarray, gamma: np.ndarray | float) -> np.ndarray:
-    """Discounting ``gamma (x) m = [g m_f, g m_o, 1 - g + g m_u]`` (paper eq. (8)), gamma in [0, 1]."""
+    """Discounting ``gamma (x) m = [g m_f, g m_o, 1 - g + g m_u]`` (eq. (8)), gamma in [0, 1]."""
     _masses32(m, "m")
     a = np.asarray(m, dtype=np.float64)
     g = _check_unit("gamma", gamma)
@@ -181,18 +184,32 @@ def limit_unknown(m: np.ndarray, m_u_min: float) -> np.ndarray:
 
 
 def from_evidence(e: np.ndarray) -> np.ndarray:
-    """Subjective-logic masses from evidence ``[e_f, e_o] >= 0``: ``[e_f/S, e_o/S, 2/S]``, ``S = 2 + e_f + e_o``.
+    """Subjective-logic masses from evidence ``[e_f, e_o] >= 0``: ``[e_f/S, e_o/S, 2/S]`` with
+    ``S = 2 + e_f + e_o``.
 
     Paper eqs. (9), (10) and (14). Evidence 0 is accepted (the paper says strictly positive):
-    it is the vacuous mass, and a network's softplus output can underflow to 0.
+    it is the vacuous mass, and a network's softplus output can underflow to 0. Evidence so
+    large that S overflows (about 1e308) still gives a mass: ``[1e308, 1e308]`` is
+    ``[0.5, 0.5, 0]``.
     """
     a = np.asarray(e, dtype=np.float64)
     if a.ndim == 0 or a.shape[-1] != 2:
         raise ValueError(f"e: the last axis must be [e_f, e_o] of length 2, got shape {a.shape}")
     if not np.isfinite(a).all() or (a < 0).any():
         raise ValueError("e: evidence must be finite and non-negative")
-    s = 2.0 + a[..., 0] + a[..., 1]
-    return np.stack([a[..., 0] / s, a[..., 1] / s, 2.0 / s], axis=-1).astype(np.float32)
+    with np.errstate(over="ignore"):
+        s = 2.0 + a[..., 0] + a[..., 1]
+    out = np.stack([a[..., 0] / s, a[..., 1] / s, 2.0 / s], axis=-1)
+    over = ~np.isfinite(s)
+    if over.any():
+        # S overflows float64 only for evidence near 1e308, where e / S would be 0 / 0 = [0, 0,
+        # 0]: scale by the larger evidence first (the same masses in exact arithmetic)
+        b = a[over]
+        t = b.max(axis=-1, keepdims=True)
+        b = b / t
+        st = 2.0 / t[..., 0] + b[..., 0] + b[..., 1]
+        out[over] = np.stack([b[..., 0] / st, b[..., 1] / st, (2.0 / t[..., 0]) / st], axis=-1)
+    return out.astype(np.float32)
 
 
 def pignistic_occupied(m: np.ndarray) -> np.ndarray:
@@ -218,5 +235,5 @@ def deep_discount_factor(
     out = np.empty(shape[:-1], dtype=np.float32)
     fa, ars, h, w = rows(a)
     fb, brs, _, _ = rows(b)
-    _k_gamma(fa, ars, fb, brs, float(m_u_min), float(alpha), out.reshape(-1), h, w)
+    gamma_rows(fa, ars, fb, brs, float(m_u_min), float(alpha), out.reshape(-1), h, w)
     return out
