@@ -19,17 +19,17 @@ import numpy as np
 
 from evgrid.config import MapperConfig
 from evgrid.data.sim import SimConfig, simulate_scene
-from evgrid.data.sim.config import LidarConfig, RigConfig
+from evgrid.data.sim.config import LidarConfig, SimRadarRig
 from evgrid.data.sim.lidar import EGO_HIT
 from evgrid.evaluate import free_fraction_near_path
 from evgrid.ism.self_returns import SelfReturnFilter, SelfReturnParams
 from evgrid.mapper import OccupancyMapper
 
 RIGS = {
-    "nuscenes (20 Hz lidar, 5 x 13 Hz radar)": (20.0, RigConfig()),
+    "nuscenes (20 Hz lidar, 5 x 13 Hz radar)": (20.0, SimRadarRig()),
     "10 Hz lidar, 3 x 4 Hz radar (nuScenes layout)": (
         10.0,
-        RigConfig(
+        SimRadarRig(
             radar_channels=("RADAR_FRONT", "RADAR_BACK_LEFT", "RADAR_BACK_RIGHT"),
             radar_rates_hz=(4.0,),
         ),

@@ -15,7 +15,7 @@ from evgrid.data.frame import LidarSweep
 from evgrid.data.mounts import LIDAR_MOUNT, RADAR_MOUNTS
 from evgrid.data.radar_filter import RadarFilter, check_trained_filter
 from evgrid.data.sim import SimConfig, simulate_scene
-from evgrid.data.sim.config import LidarConfig, RigConfig, SweepFaults
+from evgrid.data.sim.config import LidarConfig, SimRadarRig, SweepFaults
 from evgrid.data.sim.lidar import EGO_HIT
 from evgrid.data.sweeps import GapCounter, RadarBuffer
 from evgrid.evaluate import free_fraction_near_path
@@ -30,7 +30,7 @@ from evgrid.ism.self_returns import (
 )
 from evgrid.mapper import OccupancyMapper
 
-RIG = RigConfig(
+RIG = SimRadarRig(
     radar_channels=("RADAR_FRONT", "RADAR_BACK_LEFT", "RADAR_BACK_RIGHT"), radar_rates_hz=(4.0,)
 )
 
@@ -197,7 +197,7 @@ def test_faulty_rig_maps_and_counts(tmp_path):
     from evgrid.data.nuscenes_format import write_nuscenes
 
     faults = SweepFaults(drop=0.2, duplicate=0.2, reorder=0.3, lidar_drop=0.15, seed=3)
-    rig = RigConfig(
+    rig = SimRadarRig(
         radar_channels=("FRONT", "REAR"),
         radar_mounts=("RADAR_FRONT", "RADAR_BACK_LEFT"),
         radar_rates_hz=(20.0, 7.0),
@@ -227,14 +227,14 @@ def test_faulty_rig_maps_and_counts(tmp_path):
 
 def test_simulator_rig_without_faults_is_the_default_scene():
     a = simulate_scene(3, SimConfig(duration_s=0.5))
-    b = simulate_scene(3, SimConfig(duration_s=0.5, rig=RigConfig(radar_rates_hz=(13.0,))))
+    b = simulate_scene(3, SimConfig(duration_s=0.5, rig=SimRadarRig(radar_rates_hz=(13.0,))))
     fa, fb = a.frame(4), b.frame(4)
     assert np.array_equal(fa.lidar.points, fb.lidar.points)
     assert all(
         np.array_equal(x.points, y.points) for x, y in zip(fa.radar_sweeps(), fb.radar_sweeps())
     )
     with pytest.raises(ValueError, match="radar mount"):
-        RigConfig(radar_channels=("X",))
+        SimRadarRig(radar_channels=("X",))
 
 
 def test_gap_counter_and_buffer_count_missing_sweeps():
