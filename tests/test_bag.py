@@ -358,7 +358,9 @@ def test_lidar_recorded_out_of_order_is_put_in_place_and_duplicates_dropped(tmp_
         2,
         3,
     ]
-    assert scene.counts["lidar_sweeps_late"] == 1
+    # counted under its reason (was lidar_sweeps_late, which also held backwards stamps)
+    assert scene.counts["lidar_sweeps_duplicate"] == 1
+    assert scene.counts["lidar_sweeps_backwards"] == 0
 
 
 def test_bag_errors_for_unreadable_paths(tmp_path):

@@ -29,6 +29,7 @@ __all__ = [
     "POINTFIELD_DTYPES",
     "cloud_fields",
     "cloud_to_columns",
+    "CloudError",
     "columns_to_cloud",
     "se3_to_transform",
     "transform_to_se3",
@@ -133,10 +134,46 @@ def cloud_fields(msg: Any) -> tuple[str, ...]:
     return tuple(f.name for f in msg.fields)
 
 
+class CloudError(ValueError):
+    """A ``sensor_msgs/PointCloud2`` whose layout contradicts itself (a field beyond the point,
+    data shorter than its points): it cannot be decoded."""
+
+
+def _cloud_layout(msg: Any, fmt: dict[str, tuple[np.dtype, int]]) -> tuple[int, int, int, int]:
+    """(point_step, height, width, row_step) of a cloud, checked against its fields and data;
+    :class:`CloudError` saying what contradicts what."""
+    step, height, width = int(msg.point_step), int(msg.height), int(msg.width)
+    row = int(msg.row_step)
+    if step <= 0:
+        raise CloudError(f"point_step is {step} bytes")
+    for name, (dt, off) in fmt.items():
+        if off < 0 or off + dt.itemsize > step:
+            raise CloudError(
+                f"field {name!r} ({dt.itemsize} bytes at offset {off}) lies beyond the "
+                f"point_step of {step} bytes"
+            )
+    size = len(msg.data)
+    if height > 1 and row != width * step:  # padded rows
+        if row < width * step:
+            raise CloudError(
+                f"row_step {row} is shorter than width {width} x point_step {step} bytes"
+            )
+        need = (height - 1) * row + width * step
+    else:
+        need = height * width * step
+    if size < need:
+        raise CloudError(
+            f"data holds {size} bytes, fewer than the {need} of {height} x {width} points of "
+            f"{step} bytes (point_step or width too large, or the data cut short)"
+        )
+    return step, height, width, row
+
+
 def cloud_to_columns(msg: Any, names: Sequence[str]) -> np.ndarray:
     """The named fields of a ``sensor_msgs/PointCloud2`` as an ``(n, len(names))`` float32 array.
 
-    Raises KeyError listing the names the cloud lacks.
+    Raises KeyError listing the names the cloud lacks, :class:`CloudError` for a cloud whose
+    layout contradicts itself (checked before any byte is read, so no numpy text escapes).
     """
     by_name = {f.name: f for f in msg.fields}
     missing = [n for n in names if n not in by_name]
@@ -147,9 +184,9 @@ def cloud_to_columns(msg: Any, names: Sequence[str]) -> np.ndarray:
     for n in names:
         f = by_name[n]
         if f.datatype not in POINTFIELD_DTYPES:
-            raise KeyError(f"field {n!r} has unknown PointField datatype {f.datatype}")
+            raise CloudError(f"field {n!r} has unknown PointField datatype {f.datatype}")
         fmt[n] = (np.dtype(order + POINTFIELD_DTYPES[f.datatype]), int(f.offset))
-    step = int(msg.point_step)
+    step, height, width, row = _cloud_layout(msg, fmt)
     dtype = np.dtype(
         {
             "names": list(fmt),
@@ -158,14 +195,10 @@ def cloud_to_columns(msg: Any, names: Sequence[str]) -> np.ndarray:
             "itemsize": step,
         }
     )
-    height, width = int(msg.height), int(msg.width)
     data = np.asarray(msg.data, dtype=np.uint8)
-    row = int(msg.row_step)
     if height > 1 and row != width * step:  # padded rows: drop each row's padding
-        data = data[: height * row].reshape(height, row)[:, : width * step].reshape(-1)
+        data = np.concatenate([data[i * row : i * row + width * step] for i in range(height)])
     n = height * width
-    if data.size < n * step:
-        raise KeyError(f"cloud data has {data.size} bytes, fewer than {n} points of {step} bytes")
     rec = data[: n * step].view(dtype)
     out = np.empty((n, len(names)), dtype=np.float32)
     for i, nm in enumerate(names):

@@ -6,6 +6,7 @@ from __future__ import annotations
 import bisect
 import logging
 import math
+from collections import deque
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,10 +26,17 @@ from evgrid.data.bag.rig import RecordingRig, load_rig
 from evgrid.data.bag.transforms import TransformBuffer
 from evgrid.data.frame import LIDAR_CHANNEL, Frame, LidarSweep, RadarSweep
 from evgrid.geometry import SE3
+from evgrid.ros import CloudError
 
 __all__ = ["BagScene", "load_bag"]
 
 logger = logging.getLogger(__name__)
+
+#: Skips of one reason logged one by one before they are only counted.
+_LOG_FIRST = 5
+#: A lidar stamp this far (s) ahead of the recording's clock, beyond the lead its stamps
+#: usually have, is not a time the sweep can have been taken at.
+_FUTURE_S = 10.0
 
 
 @dataclass
@@ -41,14 +49,21 @@ class _PoseTrack:
         return self.tf.lookup(self.world, self.base, t_us)
 
 
+#: Message types of sensor topics that a rig might have meant to read.
+_SENSOR_TYPES = ("sensor_msgs/msg/PointCloud2", "radar_msgs/msg/RadarScan")
+
+
 class BagScene:
     """A recording as a :class:`~evgrid.data.frame.Scene`; frames are read lazily on iteration.
 
     ``stopped`` says where a damaged recording stopped being readable (None when whole);
-    ``counts`` what was skipped on the last full iteration (frames without a pose, lidar
-    sweeps recorded too late or twice, radar sweeps recorded after their frame was made, without
-    a pose, or after the last lidar sweep). Frame indices (and ``keyframes: every``) count the
-    frames made.
+    ``counts`` what was skipped on the last full iteration, each under its reason: pose samples
+    that are not finite, frames without a pose, lidar messages whose stamp goes backwards,
+    repeats one or lies far ahead of the recording's time, malformed clouds (layout or
+    implausible coordinates), radar sweeps recorded after their frame was made, without a pose,
+    or after the last lidar sweep. Each skip is logged with the topic, message index and stamp
+    (the first few of each reason). Frame indices (and ``keyframes: every``) count the frames
+    made. ``has_radar``: whether the rig names any radar (a rig without one is said at load).
     """
 
     def __init__(self, path: str | Path, rig: RecordingRig):
@@ -58,7 +73,23 @@ class BagScene:
         self._rec = Recording(self.path)
         self.stopped: str | None = None
         self.counts: dict[str, int] = {}
+        self._logged: dict[str, int] = {}
+        self._pose_counts = {"pose_samples_not_finite": 0}
         self._scan_poses()
+
+    @property
+    def has_radar(self) -> bool:
+        """Whether the rig names any radar topic."""
+        return bool(self.rig.radars)
+
+    def _skip(self, reason: str, counts: dict[str, int], msg: str, *args: Any) -> None:
+        """Count a skip under its reason and log the first few of each reason."""
+        counts[reason] = counts.get(reason, 0) + 1
+        n = self._logged.get(reason, 0)
+        if n < _LOG_FIRST:
+            more = f" (further {reason} are counted, not logged)" if n == _LOG_FIRST - 1 else ""
+            logger.warning(msg + "%s", *args, more)
+        self._logged[reason] = n + 1
 
     def __repr__(self) -> str:
         return f"BagScene({self.name!r}, {self._rec.kind}, {self._n_lidar} lidar sweeps)"
@@ -86,18 +117,23 @@ class BagScene:
         types = self._pose_types()
         count = {rig.lidar.topic} | {r.topic for r in rig.radars}
         self._n_lidar = 0
+        index: dict[str, int] = {}
         for topic, _, msg in self._rec.messages(set(types), count - set(types)):
+            k = index[topic] = index.get(topic, -1) + 1
             if topic == rig.lidar.topic:
                 self._n_lidar += 1
             if msg is None:
                 continue
             if self._rec.topics[topic] != types[topic]:
                 raise BagError(
-                    f"{self.path}: pose topic {topic} is {self._rec.topics[topic]}, not {types[topic]}"
+                    f"{self.path}: pose topic {topic} is {self._rec.topics[topic]}, not "
+                    f"{types[topic]}"
                 )
             if topic == rig.odometry_topic:
                 p = msg.pose.pose
-                tf.add(
+                self._add_pose(
+                    tf,
+                    f"{topic} message {k}",
                     msg.header.frame_id,
                     msg.child_frame_id,
                     stamp_to_us(msg.header.stamp),
@@ -107,7 +143,9 @@ class BagScene:
             else:
                 for tr in msg.transforms:
                     tt, q = tr.transform.translation, tr.transform.rotation
-                    tf.add(
+                    self._add_pose(
+                        tf,
+                        f"{topic} message {k}",
                         tr.header.frame_id,
                         tr.child_frame_id,
                         stamp_to_us(tr.header.stamp),
@@ -123,6 +161,37 @@ class BagScene:
         self._poses = _PoseTrack(tf, rig.world_frame, rig.base_frame)
         self._extrinsics: dict[str, SE3] = {}
 
+    def _add_pose(
+        self,
+        tf: TransformBuffer,
+        where: str,
+        parent: str,
+        child: str,
+        t_us: int,
+        translation: tuple,
+        q_xyzw: tuple,
+        static: bool = False,
+    ) -> None:
+        """One transform into the buffer; one that is not finite (or whose quaternion has no
+        length) is skipped, counted and logged, as tf2 refuses NaN input: the frames around it
+        take the pose interpolated from the samples on either side."""
+        vals = np.array([*translation, *q_xyzw], dtype=np.float64)
+        if not np.isfinite(vals).all() or not np.linalg.norm(vals[3:]) > 0:
+            self._skip(
+                "pose_samples_not_finite",
+                self._pose_counts,
+                "%s %s (stamp %d us): transform %s -> %s is not finite (%s); sample ignored, "
+                "the frames around it take the pose interpolated from its neighbours",
+                self.path,
+                where,
+                t_us,
+                parent,
+                child,
+                vals.tolist(),
+            )
+            return
+        tf.add(parent, child, t_us, translation, q_xyzw, static=static)
+
     def _check(self, tf: TransformBuffer) -> None:
         rig, have = self.rig, self._rec.topics
         need = [rig.lidar.topic, *(r.topic for r in rig.radars)]
@@ -136,8 +205,8 @@ class BagScene:
             typ = have[r.topic]
             if typ not in ("sensor_msgs/msg/PointCloud2", "radar_msgs/msg/RadarScan"):
                 raise BagError(
-                    f"{self.path}: radar topic {r.topic} is {typ}; evgrid reads sensor_msgs/PointCloud2 "
-                    "or radar_msgs/RadarScan"
+                    f"{self.path}: radar topic {r.topic} is {typ}; evgrid reads "
+                    "sensor_msgs/PointCloud2 or radar_msgs/RadarScan"
                 )
         if have[rig.lidar.topic] != "sensor_msgs/msg/PointCloud2":
             raise BagError(
@@ -154,6 +223,25 @@ class BagScene:
             raise BagError(
                 f"{self.path}: frame(s) {missing} not in {src}; its frames are {sorted(frames)}"
             )
+        used = set(need) | set(self._pose_types())
+        unused = {t: typ for t, typ in sorted(have.items()) if t not in used}
+        sensors = {t: typ for t, typ in unused.items() if typ in _SENSOR_TYPES}
+        if unused:
+            logger.warning(
+                "%s: the rig file leaves %d topic(s) unused: %s",
+                self.path,
+                len(unused),
+                ", ".join(f"{t} ({typ.split('/')[-1]})" for t, typ in unused.items()),
+            )
+        if not rig.radars:
+            logger.warning(
+                "%s: the rig names no radar: only the lidar is read, so there are no radar maps "
+                "(ray_irm, deep_irm and the maps fused from them)%s",
+                self.path,
+                f"; the recording has sensor topics {sorted(sensors)}: name them under radars: "
+                if sensors
+                else "",
+            )
 
     def _extrinsic(self, frame: str, where: str) -> SE3:
         frame = frame.lstrip("/")
@@ -169,8 +257,9 @@ class BagScene:
                 )
             if e is None:
                 raise BagError(
-                    f"{where}: no extrinsics for frame {frame!r}: not in {self.rig.tf_static_topic} "
-                    f"below {self.rig.base_frame!r} nor under extrinsics: in the rig file"
+                    f"{where}: no extrinsics for frame {frame!r}: not in "
+                    f"{self.rig.tf_static_topic} below {self.rig.base_frame!r} nor under "
+                    "extrinsics: in the rig file"
                 )
             self._extrinsics[frame] = e
         return e
@@ -190,8 +279,8 @@ class BagScene:
     def _sensor_velocity(
         self, t_us: int, sensor_to_ego: SE3, dt_us: int = 50_000
     ) -> np.ndarray | None:
-        """Velocity (m/s) of a sensor's origin in its own frame at ``t_us``: poses differenced over ``t_us +- dt_us``
-        (one-sided at the ends of the pose track)."""
+        """Velocity (m/s) of a sensor's origin in its own frame at ``t_us``: poses differenced
+        over ``t_us +- dt_us`` (one-sided at the ends of the pose track)."""
         span = self._tf.span(self.rig.world_frame, self.rig.base_frame)
         if span is None:
             return None
@@ -206,14 +295,30 @@ class BagScene:
     def _is_keyframe(self, index: int, t_us: int, state: dict) -> bool:
         rig = self.rig
         if rig.keyframe_every is not None:
-            return index % rig.keyframe_every == 0
+            return index % rig.keyframe_every == rig.keyframe_offset % rig.keyframe_every
         period = 1e6 / rig.keyframe_rate_hz
         nxt = state.get("next")
+        if nxt is None and rig.keyframe_offset_s:  # the first tick that long after the first frame
+            nxt = state["next"] = t_us + rig.keyframe_offset_s * 1e6
         if nxt is None or t_us >= nxt:
             base = t_us if nxt is None else nxt
             state["next"] = base + period * (math.floor((t_us - base) / period) + 1)
             return True
         return False
+
+    @staticmethod
+    def _lidar_stamp(
+        t: int, bag_ns: int, last: int | None, queue: list, leads: deque[int]
+    ) -> str | None:
+        """Why a lidar message at stamp ``t`` (us) recorded at ``bag_ns`` cannot make a frame
+        (a key of :data:`_STAMP_REASONS`), or None when it can."""
+        if t == last or any(q[0] == t for q in queue):
+            return "duplicate"
+        if last is not None and t < last:
+            return "backwards"
+        if leads and t - bag_ns // 1000 - sorted(leads)[len(leads) // 2] > _FUTURE_S * 1e6:
+            return "future"
+        return None
 
     def __iter__(self) -> Iterator[Frame]:
         from evgrid.ros import stamp_to_us
@@ -226,13 +331,20 @@ class BagScene:
         counts = dict.fromkeys(
             (
                 "frames_no_pose",
-                "lidar_sweeps_late",
+                "lidar_sweeps_duplicate",
+                "lidar_sweeps_backwards",
+                "lidar_sweeps_future",
+                "lidar_messages_malformed",
                 "radar_sweeps_late",
                 "radar_sweeps_no_pose",
                 "radar_sweeps_after_end",
+                "radar_messages_malformed",
             ),
             0,
         )
+        counts.update(self._pose_counts)
+        leads: deque[int] = deque(maxlen=9)  # lidar stamp minus bag time (us), last accepted
+        index: dict[str, int] = {}
         state: dict = {"index": 0, "last_t": None, "kf": {}}
 
         def emit(upto_ns: int | None) -> Iterator[Frame]:
@@ -240,8 +352,9 @@ class BagScene:
                 t, pts, frame_id = lidar_q.pop(0)
                 ego = self._poses.ego(t)
                 if ego is None:
-                    counts["frames_no_pose"] += 1
-                    logger.warning(
+                    self._skip(
+                        "frames_no_pose",
+                        counts,
                         "%s: no ego pose at lidar stamp %d us (%s -> %s); frame skipped",
                         self.path,
                         t,
@@ -280,24 +393,32 @@ class BagScene:
 
         topics = {rig.lidar.topic, *radar_by_topic}
         for topic, bag_t, msg in self._rec.messages(topics):
-            where = f"{self.path} {topic}"
+            k = index[topic] = index.get(topic, -1) + 1
             t = stamp_to_us(msg.header.stamp)
+            where = f"{self.path} {topic} message {k} (stamp {t} us)"
             if topic == rig.lidar.topic:
-                if (state["last_t"] is not None and t <= state["last_t"]) or any(
-                    q[0] == t for q in lidar_q
-                ):
-                    counts["lidar_sweeps_late"] += (
-                        1  # recorded after its frame was made, or a duplicate
+                reason = self._lidar_stamp(t, bag_t, state["last_t"], lidar_q, leads)
+                if reason is not None:
+                    self._skip(
+                        f"lidar_sweeps_{reason}",
+                        counts,
+                        "%s: %s; sweep skipped",
+                        where,
+                        _STAMP_REASONS[reason].format(
+                            last=state["last_t"], lead=bag_t // 1000, future=_FUTURE_S
+                        ),
                     )
                     continue
+                try:
+                    pts = lidar_points(msg, rig.lidar, where)
+                except CloudError as e:
+                    self._skip("lidar_messages_malformed", counts, "%s: %s; skipped", where, e)
+                    continue
+                leads.append(t - bag_t // 1000)
                 # recorded out of order within the tolerance: put it in its place
                 bisect.insort(
                     lidar_q,
-                    (
-                        t,
-                        lidar_points(msg, rig.lidar, where),
-                        rig.lidar.frame or msg.header.frame_id,
-                    ),
+                    (t, pts, rig.lidar.frame or msg.header.frame_id),
                     key=lambda q: q[0],
                 )
             else:
@@ -305,11 +426,15 @@ class BagScene:
                 if state["last_t"] is not None and t <= state["last_t"]:
                     counts["radar_sweeps_late"] += 1
                     continue
-                pts = (
-                    radar_scan_points(msg)
-                    if hasattr(msg, "returns")
-                    else radar_cloud_points(msg, r, where)
-                )
+                try:
+                    pts = (
+                        radar_scan_points(msg)
+                        if hasattr(msg, "returns")
+                        else radar_cloud_points(msg, r, where)
+                    )
+                except CloudError as e:
+                    self._skip("radar_messages_malformed", counts, "%s: %s; skipped", where, e)
+                    continue
                 ego = self._poses.ego(t)
                 if ego is None:
                     counts["radar_sweeps_no_pose"] += 1
@@ -326,13 +451,24 @@ class BagScene:
         yield from emit(None)
         counts["radar_sweeps_after_end"] = len(radar_q)
         self.counts = counts
+        self._logged = {}
         if self._rec.stopped:
             self.stopped = self._rec.stopped
             logger.warning("%s; the scene ends at frame %d", self.stopped, state["index"])
 
 
+#: Why a lidar message is skipped for its stamp (``{last}``: the last frame's stamp, us).
+_STAMP_REASONS = {
+    "duplicate": "stamp repeats one already read",
+    "backwards": "stamp is before the last frame made (t = {last} us), beyond the sync tolerance",
+    "future": "stamp lies more than {future:g} s ahead of the recording's clock ({lead} us), "
+    "beyond the lead the sweeps before had",
+}
+
+
 def load_bag(path: str | Path, rig: RecordingRig | Mapping[str, Any] | str | Path) -> BagScene:
-    """A recording (``.bag``, ``.mcap`` or a ROS 2 bag folder) as a scene, read as the rig (a file, its dict or a RecordingRig) says.
+    """A recording (``.bag``, ``.mcap`` or a ROS 2 bag folder) as a scene, read as the rig (a
+    file, its dict or a RecordingRig) says.
 
     Raises :class:`BagError` naming missing topics or frames (fields are checked as sweeps are
     read), :class:`RigError` for a bad rig file.
