@@ -36,8 +36,8 @@ def _plausible_share(xyz: np.ndarray) -> float:
     """The share of the returns whose range is plausible; points that are NaN or exactly
     (0, 0, 0) are no returns (organised clouds mark the beams without one so) and are not
     judged (1.0 when there is no return at all)."""
-    p = xyz.astype(np.float64)
-    with np.errstate(over="ignore", invalid="ignore"):
+    with np.errstate(all="ignore"):  # garbage is what is being judged
+        p = xyz.astype(np.float64)
         r = np.sqrt((p * p).sum(axis=1))
     ret = np.isfinite(p).all(axis=1) & (p != 0).any(axis=1)
     if not ret.any():
