@@ -29,11 +29,14 @@ Self-return modes (:class:`SelfReturnParams`):
   scene, and their bounding box (grown by ``margin_m``) is the vehicle's body box: a point inside
   it is removed too, which catches the sparse returns of edges no single voxel sees often enough.
   Until then ``prior`` (a passenger car, :data:`NUSCENES_BODY`) stands in for the body box, and
-  it is *checked against what is seen* from the first ``grow_travel_m`` of driving: voxels fixed
-  in the ego frame that touch the body known so far (within ``grow_gap_m``: a roof box, a van's
-  or a truck cab's taller body) are part of the vehicle at once, so a car larger than the prior
-  leaves no trail of its own body along a short drive either. What drives beside the vehicle is
-  a gap away from its body, and is not grown into it.
+  it is *checked against what is seen* every ``grow_travel_m`` of driving: voxels fixed in the
+  ego frame that touch the body known so far or the sensor's mount (within ``grow_gap_m``: a
+  roof box, a van's or a truck cab's taller body) are part of the vehicle at once, so a vehicle
+  larger than the prior leaves no trail of its own body along a short drive either. What
+  drives beside the vehicle is a gap away from its body, and is not grown into it. Until the
+  first check, the prior reaches up to ``mount_reach_m`` above the sensor (and that far around
+  it), and ``column_half_width_m`` to either side: what is right above the vehicle is its own,
+  or something it passes under and saw from afar on the way.
 * ``"box"``: remove returns inside ``body`` (ego frame; default :data:`NUSCENES_BODY`).
 * ``"off"``: keep everything (the paper's ray ILM, literally).
 """
@@ -285,13 +288,25 @@ class SelfReturnParams:
     #: for a few metres is a gap away from it; the vehicle's own roof box or cab is not.
     grow_travel_m: float = 2.0
     grow_gap_m: float = 0.3
+    #: The column under the sensor, this far around it (and up to this far above it), holds
+    #: its mount: the body is grown from there too.
+    mount_reach_m: float = 0.75
+    #: Until the first check, the body box is at least this wide to either side of the ego
+    #: frame's x axis: half the widest road vehicle (2.55 m), mirrors aside.
+    column_half_width_m: float = 1.3
 
     def __post_init__(self) -> None:
         check_choice(self, "mode", choices=SELF_RETURN_MODES)
         for name in ("voxel_m", "max_radius_m", "min_travel_m", "step_m"):
             check_number(self, name, min=0.0, min_open=True)
         check_number(self, "min_height_m")
-        for name in ("margin_m", "grow_travel_m", "grow_gap_m"):
+        for name in (
+            "margin_m",
+            "grow_travel_m",
+            "grow_gap_m",
+            "mount_reach_m",
+            "column_half_width_m",
+        ):
             check_number(self, name, min=0.0)
         check_number(self, "hit_fraction", min=0.0, max=1.0, min_open=True)
         if self.step_m >= self.min_travel_m:
@@ -364,6 +379,7 @@ class SelfReturnFilter:
         self.n_sweeps = 0
         self.learnt_box: BodyBox | None = None
         self.grown_box: BodyBox | None = None
+        self._checked = False  # whether the prior was checked against what is seen yet
         self._window = _Window()  # near voxels, for learning the body (min_travel_m)
         self._outside = _Window()  # near voxels outside the body box, for growing it
         self._last_xy: np.ndarray | None = None  # where the last sweep entered the windows
@@ -407,16 +423,35 @@ class SelfReturnFilter:
     ) -> np.ndarray:
         near_keys = keys[near]
         box = self.body_box
+        sensor = np.asarray(sweep.sensor_to_ego.translation, dtype=np.float64)
         position = np.asarray(sweep.ego_pose.translation[:2], dtype=np.float64)
+        growing = self.learnt_box is None and box is not None and self.params.grow_travel_m > 0
         if self._enter(position):
             self._learn(np.unique(near_keys))
-            if self.learnt_box is None and box is not None and self.params.grow_travel_m > 0:
-                self._grow(np.unique(keys[near & ~box.contains(xyz)]), box)
+            if growing:
+                self._grow(np.unique(keys[near & ~box.contains(xyz)]), box, sensor)
         box = self.body_box
+        if growing and not self._checked:
+            box = self._column(box, sensor)
         drop = box.contains(xyz) if box is not None else np.zeros(len(xyz), dtype=bool)
         if len(self._learnt):
             drop[near] |= np.isin(near_keys, self._learnt)
         return drop
+
+    def _column(self, box: BodyBox, sensor: np.ndarray) -> BodyBox:
+        """The prior's footprint (and the sensor's mount) up to above the sensor: the body box
+        until the prior has been checked against what is seen. Whatever is right above the
+        vehicle is either its own (a roof box, a van's roof) or something it passes under,
+        which it saw on the way there; so removing it for the first metres loses nothing."""
+        r, w = self.params.mount_reach_m, self.params.column_half_width_m
+        return BodyBox(
+            min(box.x0, sensor[0] - r),
+            min(box.y0, sensor[1] - r, -w),
+            box.z0,
+            max(box.x1, sensor[0] + r),
+            max(box.y1, sensor[1] + r, w),
+            max(box.z1, sensor[2] + r),
+        )
 
     def _enter(self, position: np.ndarray) -> bool:
         """Whether this sweep enters the windows: the vehicle moved ``step_m`` since the last one
@@ -448,16 +483,23 @@ class SelfReturnFilter:
                 lo[0] - m, lo[1] - m, lo[2] - m, hi[0] + m, hi[1] + m, hi[2] + m
             )
 
-    def _grow(self, keys: np.ndarray, box: BodyBox) -> None:
+    def _grow(self, keys: np.ndarray, box: BodyBox, sensor: np.ndarray) -> None:
         """Count this sweep's voxels outside the body box; every ``grow_travel_m`` of path, the
-        fixed ones attached to the body join it (the prior checked against what is seen)."""
+        fixed ones attached to the body or to the sensor's mount join the body (the prior
+        checked against what is seen)."""
         p, w = self.params, self._outside
         w.add(keys, self._step)
         if w.travel < p.grow_travel_m:
             return
         fixed = w.fixed(p.hit_fraction)
         w.reset()
-        attached = _attached(fixed, box, p.voxel_m, p.grow_gap_m)
+        self._checked = True
+        # The sensor is mounted on the vehicle: whatever reaches up to it is the vehicle too (a
+        # van's or a truck's roof lies above the prior, right under the lidar's blind cone).
+        r = p.mount_reach_m
+        mount = (*(sensor[:2] - r), 0.0, *(sensor[:2] + r), sensor[2] + r)
+        anchors = [box.as_tuple(), mount]
+        attached = _attached(fixed, anchors, p.voxel_m, p.grow_gap_m)
         if len(attached):
             self._learnt = np.union1d(self._learnt, attached)
             lo, hi = _voxel_bounds(attached, p.voxel_m)
@@ -544,15 +586,20 @@ def _voxel_bounds(keys: np.ndarray, voxel_m: float) -> tuple[np.ndarray, np.ndar
     return ijk.min(axis=0) * voxel_m, (ijk.max(axis=0) + 1) * voxel_m
 
 
-def _attached(keys: np.ndarray, box: BodyBox, voxel_m: float, gap_m: float) -> np.ndarray:
-    """The voxels of ``keys`` within ``gap_m`` of ``box`` or, in a chain, of such a voxel."""
+def _attached(
+    keys: np.ndarray, anchors: list[tuple[float, ...]], voxel_m: float, gap_m: float
+) -> np.ndarray:
+    """The voxels of ``keys`` within ``gap_m`` of one of the ``anchors`` boxes (x0, y0, z0, x1,
+    y1, z1) or, in a chain, of such a voxel."""
     if len(keys) == 0:
         return keys
     ijk = _voxel_ijk(keys)
     lo, hi = ijk * voxel_m, (ijk + 1) * voxel_m
-    b = np.array(box.as_tuple())
-    d = np.maximum(0.0, np.maximum(b[:3] - hi, lo - b[3:]))
-    joined = np.sqrt((d * d).sum(axis=1)) <= gap_m + 1e-9
+    joined = np.zeros(len(keys), dtype=bool)
+    for a in anchors:
+        b = np.asarray(a, dtype=np.float64)
+        d = np.maximum(0.0, np.maximum(b[:3] - hi, lo - b[3:]))
+        joined |= np.sqrt((d * d).sum(axis=1)) <= gap_m + 1e-9
     reach = 1 + int(math.floor(gap_m / voxel_m + 1e-9))  # voxels apart, along each axis
     while True:
         near = np.abs(ijk[:, None, :] - ijk[joined][None, :, :]).max(axis=2) <= reach

@@ -28,6 +28,7 @@ __all__ = [
     "SensorMount",
     "Vehicle",
     "NUSCENES_CAR",
+    "OTHER_VEHICLES",
     "LIDAR_MOUNT",
     "RADAR_MOUNTS",
     "SENSOR_MOUNTS",
@@ -134,3 +135,52 @@ if tuple(RADAR_MOUNTS) != RADAR_CHANNELS:  # same order as the frame contract
         f"RADAR_MOUNTS {tuple(RADAR_MOUNTS)} disagree with frame.RADAR_CHANNELS {RADAR_CHANNELS}"
     )
 SENSOR_MOUNTS: dict[str, SensorMount] = NUSCENES_CAR.mounts
+
+
+def _lidar_at(x: float, z: float) -> SensorMount:
+    return SensorMount(LIDAR_CHANNEL, x, 0.0, z, -90.0)
+
+
+#: Vehicles that are not the nuScenes car, for the simulator's rigs with other bodies (the
+#: self-return benchmarks and tests: what the default filter does on a body it was not told
+#: about). Their radars sit where the nuScenes car's do; only the lidar and the body differ.
+OTHER_VEHICLES: dict[str, Vehicle] = {
+    v.name: v
+    for v in (
+        Vehicle(
+            name="car with a roof box",
+            lidar=NUSCENES_CAR.lidar,
+            radars=NUSCENES_CAR.radars,
+            # a roof box behind the lidar (beyond its 0.8 m minimum range), 0.1 m taller than
+            # it: returns at about 1.9 m
+            parts=(*NUSCENES_CAR.parts, ("roof box", (-0.80, -0.55, 1.48, 0.05, 0.55, 1.95))),
+            clearance=(-0.9, -1.1, 0.0, 3.6, 1.1, 2.05),
+        ),
+        Vehicle(
+            name="van",
+            lidar=_lidar_at(2.0, 2.75),  # on a rack 0.25 m above the roof
+            radars=NUSCENES_CAR.radars,
+            parts=(
+                ("body up to the bonnet", (-1.30, -1.00, 0.30, 4.00, 1.00, 1.10)),
+                ("cab and cargo box", (-1.30, -1.00, 1.10, 2.90, 1.00, 2.50)),
+                ("rack bar under the lidar", (1.80, -0.80, 2.50, 2.20, 0.80, 2.60)),
+                ("left mirror", (2.80, 1.00, 1.20, 3.00, 1.22, 1.50)),
+                ("right mirror", (2.80, -1.22, 1.20, 3.00, -1.00, 1.50)),
+            ),
+            clearance=(-1.45, -1.35, 0.0, 4.15, 1.35, 2.7),
+        ),
+        Vehicle(
+            name="truck cab",
+            lidar=_lidar_at(3.6, 3.2),  # on the cab roof, at its front
+            radars=NUSCENES_CAR.radars,
+            parts=(
+                ("cab", (1.80, -1.25, 0.50, 4.30, 1.25, 3.00)),
+                ("chassis", (-2.00, -0.50, 0.60, 1.80, 0.50, 1.10)),
+                ("air deflector", (2.00, -1.10, 3.00, 3.00, 1.10, 3.40)),
+                ("left mirror", (3.90, 1.25, 1.60, 4.10, 1.50, 2.20)),
+                ("right mirror", (3.90, -1.50, 1.60, 4.10, -1.25, 2.20)),
+            ),
+            clearance=(-2.1, -1.6, 0.0, 4.4, 1.6, 3.5),
+        ),
+    )
+}

@@ -84,9 +84,13 @@ def body_hits(
 class LidarModel:
     """Simulates sweeps of one lidar with a fixed mounting and configuration."""
 
-    def __init__(self, cfg: LidarConfig, mount: SensorMount = LIDAR_MOUNT) -> None:
+    def __init__(
+        self, cfg: LidarConfig, mount: SensorMount = LIDAR_MOUNT, body: np.ndarray | None = None
+    ) -> None:
         self.cfg = cfg
         self.mount = mount
+        #: the ego body's boxes (another vehicle's: ``Vehicle.body_boxes``)
+        self.body = EGO_BODY_BOXES if body is None else np.asarray(body, dtype=np.float64)
         self.elev = np.radians(np.linspace(cfg.elev_min_deg, cfg.elev_max_deg, cfg.n_beams))
         self.slopes = np.tan(self.elev)
         self.cos_e = np.cos(self.elev)
@@ -200,7 +204,7 @@ class LidarModel:
             ),
             axis=-1,
         )
-        t3, cos = body_hits(np.array([m.x, m.y, m.z]), dirs)
+        t3, cos = body_hits(np.array([m.x, m.y, m.z]), dirs, self.body)
         t = t3 * self.cos_e[None, :]  # horizontal distance, as out_t
         closer = np.isfinite(t) & ((out_id == HIT_NONE) | (t < out_t))
         out_t[closer] = t[closer]
