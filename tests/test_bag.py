@@ -1,4 +1,5 @@
-"""Robot recordings in (evgrid.data.bag): a simulated scene written as a bag maps as the scene itself."""
+"""Robot recordings in (evgrid.data.bag): a simulated scene written as a bag maps as the scene
+itself."""
 
 from __future__ import annotations
 
@@ -114,7 +115,8 @@ def _handmade(
     yaw_rate=0.5,
     compensated=True,
 ):
-    """Odometry at 10 Hz driving along x at 2 m/s while turning at ``yaw_rate``; lidar and radar between samples."""
+    """Odometry at 10 Hz driving along x at 2 m/s while turning at ``yaw_rate``; lidar and radar
+    between samples."""
     path = tmp_path / "hand"
     w = RecordingWriter(path, storage)
     s = w.store

@@ -25,7 +25,7 @@ def frames():
     return list(simulate_scene(3, SimConfig(duration_s=0.8)))
 
 
-# --- the frame contract and the pose gate -----------------------------------------------------------
+# --- the frame contract and the pose gate --------------------------------------------------------
 
 
 def test_a_lidar_sweep_without_extrinsics_is_refused_at_construction(frames):
@@ -55,7 +55,7 @@ def test_a_half_turn_within_one_frame_is_said_to_be_a_turn(frames, caplog):
     assert gate.jumps[0]["turn_deg"] == pytest.approx(180.0, abs=1.0)
 
 
-# --- recordings ---------------------------------------------------------------------------------------
+# --- recordings ----------------------------------------------------------------------------------
 
 rosbags = pytest.importorskip("rosbags")
 pytest.importorskip("mcap")
@@ -266,7 +266,7 @@ def test_rig_files_are_checked_at_every_level(tmp_path, rig, key):
     assert str(e.value).startswith(str(path)) and key in str(e.value)
 
 
-# --- nuScenes -----------------------------------------------------------------------------------------
+# --- nuScenes ------------------------------------------------------------------------------------
 
 pytest.importorskip("nuscenes")
 

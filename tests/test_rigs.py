@@ -1,4 +1,5 @@
-"""Real sensor data, correct by default: self-returns, any rig, faulty sweeps, radar validity fields (docs/rigs.md)."""
+"""Real sensor data, correct by default: self-returns, any rig, faulty sweeps, radar validity
+fields (docs/rigs.md)."""
 
 from __future__ import annotations
 
@@ -91,7 +92,8 @@ def test_self_returns_leave_the_ray_ilm_outside_the_body_unchanged(params):
 
 
 def _moving_sweeps(n: int, step_m: float, body: np.ndarray, rng: np.random.Generator):
-    """Sweeps of a vehicle driving along x: fixed body points plus posts every 5 m beside the road."""
+    """Sweeps of a vehicle driving along x: fixed body points plus posts every 5 m beside the
+    road."""
     s2e = LIDAR_MOUNT.sensor_to_ego()
     for k in range(n):
         x = k * step_m
@@ -159,7 +161,8 @@ def test_simulated_lidar_sees_its_own_car():
 
 @pytest.fixture(scope="module")
 def rig_maps(tmp_path_factory):
-    """A 10 Hz lidar with three 4 Hz radars, with and without self-returns, through the nuScenes layout."""
+    """A 10 Hz lidar with three 4 Hz radars, with and without self-returns, through the nuScenes
+    layout."""
     from evgrid.data.nuscenes import load_nuscenes
     from evgrid.data.nuscenes_format import write_nuscenes
 

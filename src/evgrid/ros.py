@@ -1,4 +1,5 @@
-"""ROS messages without ROS: type stores, point clouds, transforms and stamps (``pip install 'evgrid[ros]'``).
+"""ROS messages without ROS: type stores, point clouds, transforms and stamps
+(``pip install 'evgrid[ros]'``).
 
 Messages are (de)serialised by the pure-Python ``rosbags`` package. Its type stores know the
 standard ROS 1 (Noetic) and ROS 2 (Humble) messages; the two packages we need beyond them,
@@ -48,14 +49,16 @@ INSTALL_ROS = "pip install 'evgrid[ros]'"
 #: Message definitions registered on top of the standard type stores (ROS 2 spelling).
 EXTRA_MSGS: dict[str, str] = {
     "radar_msgs/msg/RadarReturn": (
-        "float32 range\nfloat32 azimuth\nfloat32 elevation\nfloat32 doppler_velocity\nfloat32 amplitude\n"
+        "float32 range\nfloat32 azimuth\nfloat32 elevation\nfloat32 doppler_velocity\n"
+        "float32 amplitude\n"
     ),
     "radar_msgs/msg/RadarScan": "std_msgs/Header header\nradar_msgs/RadarReturn[] returns\n",
     "grid_map_msgs/msg/GridMapInfo": (
         "float64 resolution\nfloat64 length_x\nfloat64 length_y\ngeometry_msgs/Pose pose\n"
     ),
     "grid_map_msgs/msg/GridMap": (
-        "std_msgs/Header header\ngrid_map_msgs/GridMapInfo info\nstring[] layers\nstring[] basic_layers\n"
+        "std_msgs/Header header\ngrid_map_msgs/GridMapInfo info\nstring[] layers\n"
+        "string[] basic_layers\n"
         "std_msgs/Float32MultiArray[] data\nuint16 outer_start_index\nuint16 inner_start_index\n"
     ),
 }
@@ -75,7 +78,8 @@ def require(module: str, extra: str = "ros") -> Any:
 
 @functools.lru_cache(maxsize=2)
 def typestore(ros_version: int = 2) -> Any:
-    """The rosbags type store of ROS 2 Humble (or ROS 1 Noetic) with radar_msgs and grid_map_msgs added.
+    """The rosbags type store of ROS 2 Humble (or ROS 1 Noetic) with radar_msgs and grid_map_msgs
+    added.
 
     Shared by every caller: register nothing more on it (use :func:`new_typestore`).
     """
@@ -83,7 +87,8 @@ def typestore(ros_version: int = 2) -> Any:
 
 
 def new_typestore(ros_version: int = 2) -> Any:
-    """A fresh type store as :func:`typestore`'s, for a reader that registers a recording's own definitions."""
+    """A fresh type store as :func:`typestore`'s, for a reader that registers a recording's own
+    definitions."""
     require("rosbags")
     from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
@@ -104,7 +109,8 @@ def new_typestore(ros_version: int = 2) -> Any:
 
 
 def stamp_to_us(stamp: Any) -> int:
-    """A ``builtin_interfaces/Time`` (sec, nanosec) -> integer microseconds (evgrid's timestamps)."""
+    """A ``builtin_interfaces/Time`` (sec, nanosec) -> integer microseconds (evgrid's
+    timestamps)."""
     return int(stamp.sec) * 1_000_000 + int(stamp.nanosec) // 1000
 
 
@@ -296,7 +302,8 @@ def se3_to_transform(
 
 
 def transform_to_se3(t: Sequence[float], q_xyzw: Sequence[float]) -> SE3:
-    """ROS translation and quaternion (x, y, z, w) -> :class:`SE3`; yaw-only quaternions give the planar matrix."""
+    """ROS translation and quaternion (x, y, z, w) -> :class:`SE3`; yaw-only quaternions give the
+    planar matrix."""
     x, y, z, w = (float(v) for v in q_xyzw)
     if x == 0.0 and y == 0.0 and (z != 0.0 or w != 0.0):
         yaw = _yaw_of(z, w)
@@ -314,7 +321,8 @@ STORAGES = ("mcap", "sqlite3", "ros1", "plain-mcap")
 
 
 class RecordingWriter:
-    """Writes messages to a ROS 2 bag (``mcap`` or ``sqlite3`` storage), a ROS 1 bag or a plain MCAP file.
+    """Writes messages to a ROS 2 bag (``mcap`` or ``sqlite3`` storage), a ROS 1 bag or a plain
+    MCAP file.
 
     ``write(topic, type, t_ns, msg)`` registers a topic on first use. Messages are built with
     :attr:`store` (ROS 1 types for ``ros1``, ROS 2 Humble otherwise).

@@ -1,4 +1,5 @@
-"""Scenes from robot recordings: ROS 1 bags, ROS 2 bags (sqlite3 or MCAP storage) and plain MCAP files.
+"""Scenes from robot recordings: ROS 1 bags, ROS 2 bags (sqlite3 or MCAP storage) and plain MCAP
+files.
 
 A *rig file* (YAML, see docs/ros.md and docs/rig_example.yaml) says which topics hold the lidar
 and the radars, which frames are the world and the vehicle, how point-cloud fields are named and

@@ -6,7 +6,8 @@ __all__ = ["BagError", "RigError"]
 
 
 class BagError(ValueError):
-    """A recording that cannot be mapped as the rig file describes it (missing topic, frame or field)."""
+    """A recording that cannot be mapped as the rig file describes it (missing topic, frame or
+    field)."""
 
 
 class RigError(ValueError):

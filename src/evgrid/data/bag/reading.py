@@ -13,7 +13,8 @@ __all__ = ["bag_kind", "Recording"]
 
 
 def bag_kind(path: str | Path) -> str:
-    """``ros1`` (a ``.bag`` file), ``ros2-sqlite3`` / ``ros2-mcap`` (a rosbag2 folder) or ``mcap`` (a file)."""
+    """``ros1`` (a ``.bag`` file), ``ros2-sqlite3`` / ``ros2-mcap`` (a rosbag2 folder) or
+    ``mcap`` (a file)."""
     p = Path(path)
     if p.is_dir():
         meta = p / "metadata.yaml"
@@ -59,7 +60,8 @@ class Recording:
     def messages(
         self, topics: set[str], count_only: set[str] = frozenset()
     ) -> Iterator[tuple[str, int, Any]]:
-        """(topic, bag time ns, message) for ``topics``; ``count_only`` topics yield ``None`` messages."""
+        """(topic, bag time ns, message) for ``topics``; ``count_only`` topics yield ``None``
+        messages."""
         self.stopped = None
         if self.kind in ("mcap", "ros2-mcap"):
             for f in self._mcap_files():
@@ -145,7 +147,10 @@ class Recording:
                 else:
                     yield conn.topic, t, reader.deserialize(raw, conn.msgtype)
         except Exception as e:  # noqa: BLE001 - any damage ends the readable part
-            self.stopped = f"{self.path} is damaged or truncated after bag time {last_t} ns: {type(e).__name__} {e}"
+            self.stopped = (
+                f"{self.path} is damaged or truncated after bag time {last_t} ns: "
+                f"{type(e).__name__} {e}"
+            )
         finally:
             reader.close()
 
@@ -206,7 +211,8 @@ def _ros1_header(buf: bytes) -> dict[str, bytes]:
 
 
 def _ros1_records(fh: Any) -> Iterator[tuple[int, dict[str, bytes], bytes]]:
-    """(op code, header fields, data) of each record of a ROS 1 bag stream; EOFError when one is cut short."""
+    """(op code, header fields, data) of each record of a ROS 1 bag stream; EOFError when one
+    is cut short."""
     while True:
         raw = fh.read(4)
         if not raw:

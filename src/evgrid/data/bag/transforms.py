@@ -89,7 +89,8 @@ class TransformBuffer:
         return transform_to_se3(tr, _slerp(quat[i - 1], quat[i], f))
 
     def span(self, target: str, source: str) -> tuple[int, int] | None:
-        """Times (us) over which every dynamic transform from ``source`` up to ``target`` has samples."""
+        """Times (us) over which every dynamic transform from ``source`` up to ``target`` has
+        samples."""
         lo, hi = -(2**62), 2**62
         frame, seen = source.lstrip("/"), set()
         while frame != target.lstrip("/"):
@@ -107,7 +108,8 @@ class TransformBuffer:
         return lo, hi
 
     def lookup(self, target: str, source: str, t_us: int) -> SE3 | None:
-        """Pose of ``source`` in ``target`` at ``t_us`` (None: no chain, or the time is off the track)."""
+        """Pose of ``source`` in ``target`` at ``t_us`` (None: no chain, or the time is off the
+        track)."""
         target, frame = target.lstrip("/"), source.lstrip("/")
         pose: SE3 | None = None
         seen = set()
