@@ -1,4 +1,5 @@
-"""Robot recordings in (evgrid.data.bag): a simulated scene written as a bag maps as the scene itself."""
+"""Robot recordings in (evgrid.data.bag): a simulated scene written as a bag maps as the scene
+itself."""
 
 from __future__ import annotations
 
@@ -15,7 +16,7 @@ pytest.importorskip("yaml")
 
 from evgrid.config import MapperConfig  # noqa: E402
 from evgrid.data import SimConfig, simulate_scene  # noqa: E402
-from evgrid.data.bag import BagError, RigConfig, RigError, TransformBuffer, load_bag, load_rig  # noqa: E402
+from evgrid.data.bag import BagError, RecordingRig, RigError, TransformBuffer, load_bag, load_rig  # noqa: E402
 from evgrid.data.bag_writer import write_bag, write_rig  # noqa: E402
 from evgrid.data.frame import RADAR_COLUMNS  # noqa: E402
 from evgrid.fusion import MAP_NAMES  # noqa: E402
@@ -114,7 +115,8 @@ def _handmade(
     yaw_rate=0.5,
     compensated=True,
 ):
-    """Odometry at 10 Hz driving along x at 2 m/s while turning at ``yaw_rate``; lidar and radar between samples."""
+    """Odometry at 10 Hz driving along x at 2 m/s while turning at ``yaw_rate``; lidar and radar
+    between samples."""
     path = tmp_path / "hand"
     w = RecordingWriter(path, storage)
     s = w.store
@@ -163,7 +165,7 @@ def _handmade(
             ),
         )
     w.close()
-    rig = RigConfig.from_dict(
+    rig = RecordingRig.from_dict(
         {
             "world_frame": "odom",
             "base_frame": "base_link",
@@ -234,16 +236,16 @@ def test_missing_topic_field_and_frame_are_named(mcap_bag, tmp_path):
     rig = load_rig(rig_path).to_dict()
     bad = dict(rig, lidar={"topic": "/nope/points"})
     with pytest.raises(BagError, match="/nope/points"):
-        load_bag(bag, RigConfig.from_dict(bad))
+        load_bag(bag, RecordingRig.from_dict(bad))
     bad = dict(rig, base_frame="chassis")
     with pytest.raises(BagError, match="chassis"):
-        load_bag(bag, RigConfig.from_dict(bad))
+        load_bag(bag, RecordingRig.from_dict(bad))
     bad = dict(rig, radars=[dict(rig["radars"][0], fields={"rcs": "snr"})])
     with pytest.raises(BagError, match="snr"):
-        list(load_bag(bag, RigConfig.from_dict(bad)))
+        list(load_bag(bag, RecordingRig.from_dict(bad)))
     bad = dict(rig, lidar={"topic": rig["lidar"]["topic"], "frame": "velodyne"})
     with pytest.raises(BagError, match="velodyne"):
-        list(load_bag(bag, RigConfig.from_dict(bad)))
+        list(load_bag(bag, RecordingRig.from_dict(bad)))
     bad = dict(rig, poses={"source": "odometry", "topic": "/lidar_top/points"})
     with pytest.raises(BagError, match="not nav_msgs/msg/Odometry"):
         load_bag(bag, bad)  # a rig may be given as its dict too
@@ -254,16 +256,16 @@ def test_missing_topic_field_and_frame_are_named(mcap_bag, tmp_path):
 
 def test_rig_file_errors_and_round_trip(tmp_path):
     with pytest.raises(RigError, match="lidar"):
-        RigConfig.from_dict({"radars": []})
+        RecordingRig.from_dict({"radars": []})
     with pytest.raises(RigError, match="colour"):
-        RigConfig.from_dict({"lidar": {"topic": "/l"}, "colour": 1})
+        RecordingRig.from_dict({"lidar": {"topic": "/l"}, "colour": 1})
     with pytest.raises(RigError, match="dopler"):
-        RigConfig.from_dict(
+        RecordingRig.from_dict(
             {"lidar": {"topic": "/l"}, "radars": [{"topic": "/r", "fields": {"dopler": "v"}}]}
         )
     with pytest.raises(RigError, match="keyframes"):
-        RigConfig.from_dict({"lidar": {"topic": "/l"}, "keyframes": {"every": 0}})
-    rig = RigConfig.from_dict(
+        RecordingRig.from_dict({"lidar": {"topic": "/l"}, "keyframes": {"every": 0}})
+    rig = RecordingRig.from_dict(
         {
             "lidar": {"topic": "/l", "fields": {"ring": "channel"}},
             "radars": [{"topic": "/radar/front"}],
@@ -358,13 +360,15 @@ def test_lidar_recorded_out_of_order_is_put_in_place_and_duplicates_dropped(tmp_
         2,
         3,
     ]
-    assert scene.counts["lidar_sweeps_late"] == 1
+    # counted under its reason (was lidar_sweeps_late, which also held backwards stamps)
+    assert scene.counts["lidar_sweeps_duplicate"] == 1
+    assert scene.counts["lidar_sweeps_backwards"] == 0
 
 
 def test_bag_errors_for_unreadable_paths(tmp_path):
     with pytest.raises(FileNotFoundError):
-        load_bag(tmp_path / "none.mcap", RigConfig.from_dict({"lidar": {"topic": "/l"}}))
+        load_bag(tmp_path / "none.mcap", RecordingRig.from_dict({"lidar": {"topic": "/l"}}))
     (tmp_path / "x.txt").write_text("hi")
     with pytest.raises(BagError, match="unknown recording"):
-        load_bag(tmp_path / "x.txt", RigConfig.from_dict({"lidar": {"topic": "/l"}}))
+        load_bag(tmp_path / "x.txt", RecordingRig.from_dict({"lidar": {"topic": "/l"}}))
     shutil.rmtree(tmp_path)

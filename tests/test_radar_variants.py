@@ -165,7 +165,8 @@ def test_transfer_command_writes_its_table(tmp_path):
 
 
 def test_transfer_makes_samples_as_the_checkpoint_was_trained(tmp_path):
-    """A checkpoint trained on every frame of a coarser grid is scored on samples made so, not on defaults."""
+    """A checkpoint trained on every frame of a coarser grid is scored on samples made so, not on
+    defaults."""
     from evgrid.geometry import GridSpec
     from evgrid.ism.deep import default_checkpoint
     from evgrid.ism.evnet import load_checkpoint, save_checkpoint

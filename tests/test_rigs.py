@@ -1,4 +1,5 @@
-"""Real sensor data, correct by default: self-returns, any rig, faulty sweeps, radar validity fields (docs/rigs.md)."""
+"""Real sensor data, correct by default: self-returns, any rig, faulty sweeps, radar validity
+fields (docs/rigs.md)."""
 
 from __future__ import annotations
 
@@ -15,7 +16,7 @@ from evgrid.data.frame import LidarSweep
 from evgrid.data.mounts import LIDAR_MOUNT, RADAR_MOUNTS
 from evgrid.data.radar_filter import RadarFilter, check_trained_filter
 from evgrid.data.sim import SimConfig, simulate_scene
-from evgrid.data.sim.config import LidarConfig, RigConfig, SweepFaults
+from evgrid.data.sim.config import LidarConfig, SimRadarRig, SweepFaults
 from evgrid.data.sim.lidar import EGO_HIT
 from evgrid.data.sweeps import GapCounter, RadarBuffer
 from evgrid.evaluate import free_fraction_near_path
@@ -30,7 +31,7 @@ from evgrid.ism.self_returns import (
 )
 from evgrid.mapper import OccupancyMapper
 
-RIG = RigConfig(
+RIG = SimRadarRig(
     radar_channels=("RADAR_FRONT", "RADAR_BACK_LEFT", "RADAR_BACK_RIGHT"), radar_rates_hz=(4.0,)
 )
 
@@ -91,7 +92,8 @@ def test_self_returns_leave_the_ray_ilm_outside_the_body_unchanged(params):
 
 
 def _moving_sweeps(n: int, step_m: float, body: np.ndarray, rng: np.random.Generator):
-    """Sweeps of a vehicle driving along x: fixed body points plus posts every 5 m beside the road."""
+    """Sweeps of a vehicle driving along x: fixed body points plus posts every 5 m beside the
+    road."""
     s2e = LIDAR_MOUNT.sensor_to_ego()
     for k in range(n):
         x = k * step_m
@@ -159,7 +161,8 @@ def test_simulated_lidar_sees_its_own_car():
 
 @pytest.fixture(scope="module")
 def rig_maps(tmp_path_factory):
-    """A 10 Hz lidar with three 4 Hz radars, with and without self-returns, through the nuScenes layout."""
+    """A 10 Hz lidar with three 4 Hz radars, with and without self-returns, through the nuScenes
+    layout."""
     from evgrid.data.nuscenes import load_nuscenes
     from evgrid.data.nuscenes_format import write_nuscenes
 
@@ -197,7 +200,7 @@ def test_faulty_rig_maps_and_counts(tmp_path):
     from evgrid.data.nuscenes_format import write_nuscenes
 
     faults = SweepFaults(drop=0.2, duplicate=0.2, reorder=0.3, lidar_drop=0.15, seed=3)
-    rig = RigConfig(
+    rig = SimRadarRig(
         radar_channels=("FRONT", "REAR"),
         radar_mounts=("RADAR_FRONT", "RADAR_BACK_LEFT"),
         radar_rates_hz=(20.0, 7.0),
@@ -227,14 +230,14 @@ def test_faulty_rig_maps_and_counts(tmp_path):
 
 def test_simulator_rig_without_faults_is_the_default_scene():
     a = simulate_scene(3, SimConfig(duration_s=0.5))
-    b = simulate_scene(3, SimConfig(duration_s=0.5, rig=RigConfig(radar_rates_hz=(13.0,))))
+    b = simulate_scene(3, SimConfig(duration_s=0.5, rig=SimRadarRig(radar_rates_hz=(13.0,))))
     fa, fb = a.frame(4), b.frame(4)
     assert np.array_equal(fa.lidar.points, fb.lidar.points)
     assert all(
         np.array_equal(x.points, y.points) for x, y in zip(fa.radar_sweeps(), fb.radar_sweeps())
     )
     with pytest.raises(ValueError, match="radar mount"):
-        RigConfig(radar_channels=("X",))
+        SimRadarRig(radar_channels=("X",))
 
 
 def test_gap_counter_and_buffer_count_missing_sweeps():

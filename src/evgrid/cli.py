@@ -282,9 +282,9 @@ def _sim_config(
     from dataclasses import replace
 
     from evgrid.data.sim import SimConfig, WorldConfig
-    from evgrid.data.sim.config import LidarConfig, RigConfig, SweepFaults
+    from evgrid.data.sim.config import LidarConfig, SimRadarRig, SweepFaults
 
-    rig = RigConfig()
+    rig = SimRadarRig()
     if radar_channels:
         pairs = [c.strip().split("=", 1) for c in radar_channels.split(",") if c.strip()]
         rig = replace(

@@ -9,7 +9,6 @@ convergence, pictures, exports) watches the updates as an observer (:mod:`evgrid
 from __future__ import annotations
 
 import logging
-import math
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -17,12 +16,13 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from evgrid.config import MapperConfig, PoseLimits
-from evgrid.data.frame import Frame, RadarSweep
+from evgrid.config import MapperConfig
+from evgrid.data.frame import Frame
 from evgrid.data.sweeps import GapCounter, RadarBuffer
 from evgrid.fusion import MapSet
 from evgrid.geometry import SE2, SE3
 from evgrid.grid import MapWindow, warp_window
+from evgrid.preprocess import PoseError, PoseGate, Preprocessor
 
 __all__ = ["OccupancyMapper", "MapUpdate", "Observer", "PoseGate", "PoseError", "UpdateSchedule"]
 
@@ -88,19 +88,17 @@ class OccupancyMapper:
                 config.checkpoint, config.grid, config.image, config.threads, config.runtime
             )
         if self.deep is not None:
-            from evgrid.data.radar_filter import check_trained_filter
+            from evgrid.preprocess import check_trained_filter
 
             check_trained_filter(
                 config.radar_filter,
                 getattr(self.deep, "info", None),
                 str(getattr(self.deep, "checkpoint", "the checkpoint")),
             )
-        from evgrid.ism.self_returns import SelfReturnFilter
-
-        self.self_returns = SelfReturnFilter(config.self_returns)
+        # the pose gate, the radar validity filter and the self-returns, as in training
+        self.preprocess = Preprocessor.from_config(config)
+        self.poses: PoseGate = self.preprocess.poses
         self.lidar_gaps = GapCounter()
-        self.n_radar_filtered = 0
-        self.poses = PoseGate(config.poses)
         self.schedule = UpdateSchedule(config.update_rate_hz)
         self.first_pose: SE3 | None = None
         self.timings: dict[str, list[float]] = {}
@@ -115,14 +113,11 @@ class OccupancyMapper:
             raise TypeError(f"process needs a Frame, got {type(frame).__name__}")
         t0 = time.perf_counter()
         self.n_frames += 1
-        if not self.poses.accept(frame):  # an odometry glitch: nothing of this frame is mapped
+        if not self.preprocess.accept(frame):  # an odometry glitch: nothing of it is mapped
             return False
         self.lidar_gaps.add(frame.timestamp)
-        for sweep in frame.radar_sweeps():
-            if self.poses.sweep_ok(sweep, frame):
-                sweep, dropped = self.config.radar_filter(sweep)  # as in training
-                self.n_radar_filtered += dropped
-                self.buffer.push(sweep)
+        for sweep in self.preprocess.radar_sweeps(frame):  # pose-checked and filtered
+            self.buffer.push(sweep)
         if not self.schedule.due(frame.timestamp, frame.is_keyframe):
             return False
         pose = self.pose_in_map(frame.ego_pose)
@@ -150,7 +145,7 @@ class OccupancyMapper:
         out: dict[str, np.ndarray] = {}
         t = time.perf_counter()
         if "ray_ilm" in need:
-            lidar = self.self_returns(frame.lidar)  # the vehicle's own returns stop no ray
+            lidar = self.preprocess.lidar(frame.lidar)  # the vehicle's own returns stop no ray
             out["ray_ilm"] = ray_ilm(lidar, grid=cfg.grid, params=cfg.lidar, threads=cfg.threads)
             t = self._time("ray_ilm", t)
         if "ray_irm" in need:
@@ -190,8 +185,8 @@ class OccupancyMapper:
             "radar_sweeps_out_of_order": self.buffer.n_out_of_order,
             "radar_sweeps_missing": self.buffer.n_missing,
             "lidar_frames_missing": self.lidar_gaps.n_missing,
-            "radar_detections_filtered": self.n_radar_filtered,
-            **self.self_returns.counts(),
+            "radar_detections_filtered": self.preprocess.n_radar_filtered,
+            **self.preprocess.self_returns.counts(),
             # invalid ISM cells taken as vacuous before the warp, and window cells a rule refused
             **{f"ism_cells_rejected_{k}": v for k, v in self.maps.n_rejected.items()},
             "map_cells_rejected": sum(self.maps.n_rejected_cells.values()),
@@ -234,115 +229,3 @@ class UpdateSchedule:
                 self._next_us += self.period_us
             return True
         return keyframe
-
-
-class PoseError(ValueError):
-    """An ego pose no map can use (non-finite, absurd, or a jump that never comes back)."""
-
-
-def _planar(pose: SE3) -> tuple[float, float, float]:
-    t = pose.translation
-    return float(t[0]), float(t[1]), pose.yaw
-
-
-def _where(frame: Frame) -> str:
-    return f"scene {frame.scene!r} frame {frame.index} (t = {frame.timestamp} us)"
-
-
-class PoseGate:
-    """Odometry sanity: frames whose ego pose jumped further than a vehicle can move are skipped, counted, logged."""
-
-    def __init__(self, limits: PoseLimits = PoseLimits()):
-        self.limits = limits
-        self._last: tuple[int, float, float, float] | None = (
-            None  # t_us, x, y, yaw of the last accepted frame
-        )
-        self._glitch_since: int | None = None
-        self.n_jumps = 0
-        self.n_stale = 0
-        self.n_radar_dropped = 0
-        self.jumps: list[dict[str, Any]] = []  # the first few, for metrics.json
-
-    def _check_finite(self, pose: SE3, what: str) -> None:
-        t = pose.translation
-        if not np.all(np.isfinite(t)) or not np.all(np.isfinite(pose.rotation)):
-            raise PoseError(f"{what}: ego pose is not finite ({t.tolist()})")
-        if np.max(np.abs(t)) > self.limits.max_position_m:
-            raise PoseError(
-                f"{what}: ego pose {t.tolist()} is more than {self.limits.max_position_m:g} m from the "
-                "origin; no map frame is that large (check the odometry's units and frame)"
-            )
-
-    def _plausible(
-        self, dt_s: float, a: tuple[float, float, float], b: tuple[float, float, float]
-    ) -> bool:
-        lim = self.limits
-        dist = math.hypot(b[0] - a[0], b[1] - a[1])
-        dyaw = abs(math.remainder(b[2] - a[2], 2 * math.pi))
-        return dist <= lim.max_speed_mps * dt_s + lim.slack_m and dyaw <= math.radians(
-            lim.max_yaw_rate_dps * dt_s + lim.slack_deg
-        )
-
-    def accept(self, frame: Frame) -> bool:
-        """Whether ``frame``'s pose continues the trajectory; raises :class:`PoseError` for unusable poses."""
-        self._check_finite(frame.ego_pose, _where(frame))
-        now = (frame.timestamp, *_planar(frame.ego_pose))
-        if self._last is None:
-            self._last = now
-            return True
-        dt = (now[0] - self._last[0]) * 1e-6
-        if dt <= 0:
-            self.n_stale += 1
-            logger.warning(
-                "%s: timestamp not after the last mapped frame's; frame skipped", _where(frame)
-            )
-            return False
-        if self._plausible(dt, self._last[1:], now[1:]):
-            self._last = now
-            self._glitch_since = None
-            return True
-        self.n_jumps += 1
-        if self._glitch_since is None:
-            self._glitch_since = self._last[0]
-            step = math.hypot(now[1] - self._last[1], now[2] - self._last[2])
-            if len(self.jumps) < 20:
-                self.jumps.append(
-                    {"index": frame.index, "timestamp": frame.timestamp, "jump_m": step, "dt_s": dt}
-                )
-            logger.warning(
-                "%s: ego pose jumped %.1f m in %.3f s, more than a vehicle can move; frame skipped",
-                _where(frame),
-                step,
-                dt,
-            )
-        if (frame.timestamp - self._glitch_since) * 1e-6 > self.limits.max_glitch_s:
-            raise PoseError(
-                f"{_where(frame)}: the ego pose jumped at t = {self._glitch_since} us and has not come back "
-                f"within {self.limits.max_glitch_s:g} s; split the scene there or fix the odometry"
-            )
-        return False
-
-    def sweep_ok(self, sweep: RadarSweep, frame: Frame) -> bool:
-        """Whether a radar sweep's own ego pose is plausible next to its frame's; implausible ones are dropped."""
-        pose = sweep.ego_pose
-        ok = bool(np.all(np.isfinite(pose.translation)))
-        if ok:
-            dt = abs(frame.timestamp - sweep.timestamp) * 1e-6
-            ok = self._plausible(dt, _planar(frame.ego_pose), _planar(pose))
-        if not ok:
-            self.n_radar_dropped += 1
-            logger.warning(
-                "%s: radar sweep %s at t = %d us has an implausible ego pose; sweep dropped",
-                _where(frame),
-                sweep.channel,
-                sweep.timestamp,
-            )
-        return ok
-
-    def counts(self) -> dict[str, int]:
-        """Frames and sweeps skipped for their poses."""
-        return {
-            "frames_pose_jump": self.n_jumps,
-            "frames_stale": self.n_stale,
-            "radar_sweeps_bad_pose": self.n_radar_dropped,
-        }

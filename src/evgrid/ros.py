@@ -1,4 +1,5 @@
-"""ROS messages without ROS: type stores, point clouds, transforms and stamps (``pip install 'evgrid[ros]'``).
+"""ROS messages without ROS: type stores, point clouds, transforms and stamps
+(``pip install 'evgrid[ros]'``).
 
 Messages are (de)serialised by the pure-Python ``rosbags`` package. Its type stores know the
 standard ROS 1 (Noetic) and ROS 2 (Humble) messages; the two packages we need beyond them,
@@ -29,6 +30,7 @@ __all__ = [
     "POINTFIELD_DTYPES",
     "cloud_fields",
     "cloud_to_columns",
+    "CloudError",
     "columns_to_cloud",
     "se3_to_transform",
     "transform_to_se3",
@@ -47,14 +49,16 @@ INSTALL_ROS = "pip install 'evgrid[ros]'"
 #: Message definitions registered on top of the standard type stores (ROS 2 spelling).
 EXTRA_MSGS: dict[str, str] = {
     "radar_msgs/msg/RadarReturn": (
-        "float32 range\nfloat32 azimuth\nfloat32 elevation\nfloat32 doppler_velocity\nfloat32 amplitude\n"
+        "float32 range\nfloat32 azimuth\nfloat32 elevation\nfloat32 doppler_velocity\n"
+        "float32 amplitude\n"
     ),
     "radar_msgs/msg/RadarScan": "std_msgs/Header header\nradar_msgs/RadarReturn[] returns\n",
     "grid_map_msgs/msg/GridMapInfo": (
         "float64 resolution\nfloat64 length_x\nfloat64 length_y\ngeometry_msgs/Pose pose\n"
     ),
     "grid_map_msgs/msg/GridMap": (
-        "std_msgs/Header header\ngrid_map_msgs/GridMapInfo info\nstring[] layers\nstring[] basic_layers\n"
+        "std_msgs/Header header\ngrid_map_msgs/GridMapInfo info\nstring[] layers\n"
+        "string[] basic_layers\n"
         "std_msgs/Float32MultiArray[] data\nuint16 outer_start_index\nuint16 inner_start_index\n"
     ),
 }
@@ -74,7 +78,8 @@ def require(module: str, extra: str = "ros") -> Any:
 
 @functools.lru_cache(maxsize=2)
 def typestore(ros_version: int = 2) -> Any:
-    """The rosbags type store of ROS 2 Humble (or ROS 1 Noetic) with radar_msgs and grid_map_msgs added.
+    """The rosbags type store of ROS 2 Humble (or ROS 1 Noetic) with radar_msgs and grid_map_msgs
+    added.
 
     Shared by every caller: register nothing more on it (use :func:`new_typestore`).
     """
@@ -82,7 +87,8 @@ def typestore(ros_version: int = 2) -> Any:
 
 
 def new_typestore(ros_version: int = 2) -> Any:
-    """A fresh type store as :func:`typestore`'s, for a reader that registers a recording's own definitions."""
+    """A fresh type store as :func:`typestore`'s, for a reader that registers a recording's own
+    definitions."""
     require("rosbags")
     from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
@@ -103,7 +109,8 @@ def new_typestore(ros_version: int = 2) -> Any:
 
 
 def stamp_to_us(stamp: Any) -> int:
-    """A ``builtin_interfaces/Time`` (sec, nanosec) -> integer microseconds (evgrid's timestamps)."""
+    """A ``builtin_interfaces/Time`` (sec, nanosec) -> integer microseconds (evgrid's
+    timestamps)."""
     return int(stamp.sec) * 1_000_000 + int(stamp.nanosec) // 1000
 
 
@@ -133,10 +140,46 @@ def cloud_fields(msg: Any) -> tuple[str, ...]:
     return tuple(f.name for f in msg.fields)
 
 
+class CloudError(ValueError):
+    """A ``sensor_msgs/PointCloud2`` whose layout contradicts itself (a field beyond the point,
+    data shorter than its points): it cannot be decoded."""
+
+
+def _cloud_layout(msg: Any, fmt: dict[str, tuple[np.dtype, int]]) -> tuple[int, int, int, int]:
+    """(point_step, height, width, row_step) of a cloud, checked against its fields and data;
+    :class:`CloudError` saying what contradicts what."""
+    step, height, width = int(msg.point_step), int(msg.height), int(msg.width)
+    row = int(msg.row_step)
+    if step <= 0:
+        raise CloudError(f"point_step is {step} bytes")
+    for name, (dt, off) in fmt.items():
+        if off < 0 or off + dt.itemsize > step:
+            raise CloudError(
+                f"field {name!r} ({dt.itemsize} bytes at offset {off}) lies beyond the "
+                f"point_step of {step} bytes"
+            )
+    size = len(msg.data)
+    if height > 1 and row != width * step:  # padded rows
+        if row < width * step:
+            raise CloudError(
+                f"row_step {row} is shorter than width {width} x point_step {step} bytes"
+            )
+        need = (height - 1) * row + width * step
+    else:
+        need = height * width * step
+    if size < need:
+        raise CloudError(
+            f"data holds {size} bytes, fewer than the {need} of {height} x {width} points of "
+            f"{step} bytes (point_step or width too large, or the data cut short)"
+        )
+    return step, height, width, row
+
+
 def cloud_to_columns(msg: Any, names: Sequence[str]) -> np.ndarray:
     """The named fields of a ``sensor_msgs/PointCloud2`` as an ``(n, len(names))`` float32 array.
 
-    Raises KeyError listing the names the cloud lacks.
+    Raises KeyError listing the names the cloud lacks, :class:`CloudError` for a cloud whose
+    layout contradicts itself (checked before any byte is read, so no numpy text escapes).
     """
     by_name = {f.name: f for f in msg.fields}
     missing = [n for n in names if n not in by_name]
@@ -147,9 +190,9 @@ def cloud_to_columns(msg: Any, names: Sequence[str]) -> np.ndarray:
     for n in names:
         f = by_name[n]
         if f.datatype not in POINTFIELD_DTYPES:
-            raise KeyError(f"field {n!r} has unknown PointField datatype {f.datatype}")
+            raise CloudError(f"field {n!r} has unknown PointField datatype {f.datatype}")
         fmt[n] = (np.dtype(order + POINTFIELD_DTYPES[f.datatype]), int(f.offset))
-    step = int(msg.point_step)
+    step, height, width, row = _cloud_layout(msg, fmt)
     dtype = np.dtype(
         {
             "names": list(fmt),
@@ -158,14 +201,10 @@ def cloud_to_columns(msg: Any, names: Sequence[str]) -> np.ndarray:
             "itemsize": step,
         }
     )
-    height, width = int(msg.height), int(msg.width)
     data = np.asarray(msg.data, dtype=np.uint8)
-    row = int(msg.row_step)
     if height > 1 and row != width * step:  # padded rows: drop each row's padding
-        data = data[: height * row].reshape(height, row)[:, : width * step].reshape(-1)
+        data = np.concatenate([data[i * row : i * row + width * step] for i in range(height)])
     n = height * width
-    if data.size < n * step:
-        raise KeyError(f"cloud data has {data.size} bytes, fewer than {n} points of {step} bytes")
     rec = data[: n * step].view(dtype)
     out = np.empty((n, len(names)), dtype=np.float32)
     for i, nm in enumerate(names):
@@ -263,7 +302,8 @@ def se3_to_transform(
 
 
 def transform_to_se3(t: Sequence[float], q_xyzw: Sequence[float]) -> SE3:
-    """ROS translation and quaternion (x, y, z, w) -> :class:`SE3`; yaw-only quaternions give the planar matrix."""
+    """ROS translation and quaternion (x, y, z, w) -> :class:`SE3`; yaw-only quaternions give the
+    planar matrix."""
     x, y, z, w = (float(v) for v in q_xyzw)
     if x == 0.0 and y == 0.0 and (z != 0.0 or w != 0.0):
         yaw = _yaw_of(z, w)
@@ -281,7 +321,8 @@ STORAGES = ("mcap", "sqlite3", "ros1", "plain-mcap")
 
 
 class RecordingWriter:
-    """Writes messages to a ROS 2 bag (``mcap`` or ``sqlite3`` storage), a ROS 1 bag or a plain MCAP file.
+    """Writes messages to a ROS 2 bag (``mcap`` or ``sqlite3`` storage), a ROS 1 bag or a plain
+    MCAP file.
 
     ``write(topic, type, t_ns, msg)`` registers a topic on first use. Messages are built with
     :attr:`store` (ROS 1 types for ``ros1``, ROS 2 Humble otherwise).

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from evgrid.data.bag import LidarTopic, RadarTopic, RigConfig
+from evgrid.data.bag import LidarTopic, RadarTopic, RecordingRig
 from evgrid.data.frame import LIDAR_COLUMNS, RADAR_COLUMNS, Frame, RadarSweep
 
 __all__ = ["write_bag", "write_rig", "topic_of"]
@@ -171,7 +171,7 @@ def write_bag(
     if lidar_channel is None:
         raise ValueError("write_bag got no frames")
     every = _keyframe_every(keyframes)
-    rig = RigConfig(
+    rig = RecordingRig(
         lidar=LidarTopic(topic_of(lidar_channel)),
         radars=tuple(RadarTopic(topic_of(ch), ch) for ch in radar_channels),
         world_frame=WORLD_FRAME,
@@ -195,7 +195,7 @@ def _keyframe_every(indices: list[int]) -> int:
     return int(steps.pop())
 
 
-def write_rig(rig: RigConfig, path: str | Path) -> Path:
+def write_rig(rig: RecordingRig, path: str | Path) -> Path:
     """Write a rig file (YAML) that :func:`evgrid.data.bag.load_rig` reads back."""
     import yaml
 

@@ -1,8 +1,9 @@
 """The frame contract: what every data source (simulator, nuScenes) yields, one frame a lidar sweep.
 
 A scene is an iterable of :class:`Frame` in time order. One frame per lidar sweep
-(``LIDAR_TOP`` at 20 Hz in nuScenes); ``is_keyframe`` marks the 2 Hz nuScenes samples, where maps are evaluated
-(and updated, as they are between keyframes too: docs/decisions.md#map-update-rate).
+(``LIDAR_TOP`` at 20 Hz in nuScenes); ``is_keyframe`` marks the 2 Hz nuScenes samples, where
+maps are evaluated (and updated, as they are between keyframes too:
+docs/decisions.md#map-update-rate).
 Each frame carries the radar sweeps of every radar (any number, any channel names;
 nuScenes has the five of ``RADAR_CHANNELS``) whose timestamps fall in
 ``(previous frame's timestamp, this frame's timestamp]``, oldest first, so that a consumer
@@ -33,6 +34,7 @@ __all__ = [
     "Frame",
     "Scene",
     "radar_column",
+    "channel_order",
 ]
 
 LIDAR_CHANNEL = "LIDAR_TOP"
@@ -76,6 +78,12 @@ def radar_column(name: str) -> int:
         raise KeyError(f"unknown radar column {name!r}; columns are {RADAR_COLUMNS}") from None
 
 
+def channel_order(channel: str) -> tuple[int, str]:
+    """Sort key of radar channels: nuScenes' five in their usual order, then any others by name."""
+    known = RADAR_CHANNELS.index(channel) if channel in RADAR_CHANNELS else len(RADAR_CHANNELS)
+    return known, channel
+
+
 def _check_points(points: np.ndarray, n_cols: int, what: str) -> np.ndarray:
     p = np.asarray(points)
     if p.ndim != 2 or p.shape[1] != n_cols:
@@ -84,6 +92,21 @@ def _check_points(points: np.ndarray, n_cols: int, what: str) -> np.ndarray:
             + (" (transposed? pass points.T)" if p.ndim == 2 and p.shape[0] < p.shape[1] else "")
         )
     return np.ascontiguousarray(p, dtype=np.float32)
+
+
+def _check_sweep(sweep: LidarSweep | RadarSweep, what: str) -> None:
+    # checked here, at construction: a None pose would otherwise surface as an AttributeError
+    # deep inside an ISM, naming nothing
+    for name in ("sensor_to_ego", "ego_pose"):
+        v = getattr(sweep, name)
+        if not isinstance(v, SE3):
+            raise ValueError(
+                f"{what}.{name} must be an SE3 (the sensor's extrinsics and the ego pose at the "
+                f"sweep's stamp), got {type(v).__name__}"
+            )
+    t = sweep.timestamp
+    if isinstance(t, bool) or not isinstance(t, (int, np.integer)):
+        raise ValueError(f"{what}.timestamp must be an integer number of microseconds, got {t!r}")
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -100,6 +123,7 @@ class LidarSweep:
         object.__setattr__(
             self, "points", _check_points(self.points, len(LIDAR_COLUMNS), "LidarSweep")
         )
+        _check_sweep(self, "LidarSweep")
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -116,6 +140,7 @@ class RadarSweep:
         object.__setattr__(
             self, "points", _check_points(self.points, len(RADAR_COLUMNS), "RadarSweep")
         )
+        _check_sweep(self, "RadarSweep")
         if not isinstance(self.channel, str) or not self.channel:
             raise ValueError(f"RadarSweep.channel must be a non-empty name, got {self.channel!r}")
 
@@ -139,9 +164,8 @@ class Frame:
     occupancy: np.ndarray | None = None
 
     def radar_sweeps(self) -> Iterator[RadarSweep]:
-        """All radar sweeps of this frame, channel by channel (nuScenes' order, then by name), oldest first."""
-        from evgrid.data.sweeps import channel_order
-
+        """All radar sweeps of this frame, channel by channel (nuScenes' order, then by name),
+        oldest first."""
         for ch in sorted(self.radar, key=channel_order):
             yield from self.radar[ch]
 

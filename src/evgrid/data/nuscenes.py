@@ -28,6 +28,7 @@ never gets ``min_travel_m`` (1 m) away from its first pose are left out.
 from __future__ import annotations
 
 import json
+import logging
 import os
 from collections.abc import Iterator, Sequence
 from pathlib import Path
@@ -48,15 +49,84 @@ __all__ = [
     "load_nuscenes",
     "nuscenes_splits",
     "NuScenesScene",
+    "NuScenesScenes",
     "NuScenesError",
+    "NuScenesDataError",
     "NUSCENES_DOWNLOAD_URL",
 ]
+
+logger = logging.getLogger(__name__)
 
 NUSCENES_DOWNLOAD_URL = "https://www.nuscenes.org/download"
 
 
 class NuScenesError(RuntimeError):
     """The dataset or the devkit is missing or not laid out as expected."""
+
+
+class NuScenesDataError(ValueError):
+    """A damaged table or sensor file; the message names the file (and the record and key)."""
+
+
+#: The keys evgrid (and the devkit's indexes) read from each table's records.
+REQUIRED_KEYS: dict[str, tuple[str, ...]] = {
+    "scene": ("token", "name", "first_sample_token"),
+    "sample": ("token", "scene_token", "timestamp", "prev", "next"),
+    "sample_data": (
+        "token",
+        "sample_token",
+        "ego_pose_token",
+        "calibrated_sensor_token",
+        "timestamp",
+        "filename",
+        "is_key_frame",
+        "prev",
+        "next",
+    ),
+    "ego_pose": ("token", "translation", "rotation"),
+    "calibrated_sensor": ("token", "sensor_token", "translation", "rotation"),
+    "sensor": ("token", "channel", "modality"),
+}
+
+#: A lidar file this much smaller than the median of its scene's is taken as cut short.
+SHORT_SWEEP_FRACTION = 0.5
+
+
+def check_records(table_file: Path, records: Any) -> None:
+    """:class:`NuScenesDataError` naming the file, the record's token and the key, for the first
+    record of ``records`` (the table in ``table_file``) that lacks a key evgrid reads."""
+    keys = REQUIRED_KEYS.get(table_file.stem, ())
+    if not isinstance(records, list):
+        raise NuScenesDataError(f"{table_file}: must hold a list of records")
+    for i, rec in enumerate(records):
+        if not isinstance(rec, dict):
+            raise NuScenesDataError(f"{table_file}: record {i} is not a JSON object")
+        for k in keys:
+            if k not in rec:
+                who = f"token {rec['token']!r}" if "token" in rec else f"number {i}"
+                raise NuScenesDataError(f"{table_file}: record {who} has no key {k!r}")
+
+
+def _diagnose(table_root: Path, err: Exception) -> NuScenesDataError | None:
+    """After the devkit failed to load ``table_root``: the error naming the damaged table
+    (a JSON file cut short, a record missing a key), or None when none is found."""
+    for name in REQUIRED_KEYS:
+        f = table_root / f"{name}.json"
+        if not f.is_file():
+            continue
+        try:
+            with open(f, encoding="utf-8") as fh:
+                records = json.load(fh)
+        except json.JSONDecodeError as e:
+            return NuScenesDataError(
+                f"{f}: not valid JSON at line {e.lineno} column {e.colno} ({e.msg}); the file "
+                "is cut short or damaged"
+            )
+        try:
+            check_records(f, records)
+        except NuScenesDataError as e:
+            return e
+    return None
 
 
 def _devkit() -> Any:
@@ -72,8 +142,8 @@ def _devkit() -> Any:
 
 def _check_layout(dataroot: Path, version: str) -> None:
     hint = (
-        f"download {version} from {NUSCENES_DOWNLOAD_URL} (the metadata and the lidar and radar blobs) "
-        f"and unpack it so that {dataroot / version / 'scene.json'} exists"
+        f"download {version} from {NUSCENES_DOWNLOAD_URL} (the metadata and the lidar and radar "
+        f"blobs) and unpack it so that {dataroot / version / 'scene.json'} exists"
     )
     if not dataroot.is_dir():
         raise FileNotFoundError(f"nuScenes dataroot {str(dataroot)!r} does not exist: {hint}")
@@ -112,13 +182,15 @@ def nuscenes_splits(dataroot: str | os.PathLike, version: str) -> dict[str, list
 
 
 class NuScenesScene:
-    """One nuScenes scene as a :class:`~evgrid.data.frame.Scene`; files are read lazily per frame."""
+    """One nuScenes scene as a :class:`~evgrid.data.frame.Scene`; files are read lazily per
+    frame."""
 
     def __init__(self, nusc: Any, scene_record: dict) -> None:
         self.nusc = nusc
         self.record = scene_record
         self.name: str = scene_record["name"]
         self.token: str = scene_record["token"]
+        self._lidar_bytes: float | None = None
         first = nusc.get("sample", scene_record["first_sample_token"])
         self.lidar_tokens = self._chain(first["data"][LIDAR_CHANNEL])
         self.lidar_timestamps = np.array(
@@ -200,21 +272,44 @@ class NuScenesScene:
         return len(self.lidar_tokens)
 
     def __iter__(self) -> Iterator[Frame]:
+        """The frames; one whose lidar file or ego pose is damaged is skipped, counted
+        (``stats["frames_damaged"]``) and logged naming the file and record."""
+        self.stats["frames_damaged"] = 0
         for i in range(len(self)):
-            yield self.frame(i)
+            try:
+                frame = self.frame(i)
+            except NuScenesDataError as e:
+                self.stats["frames_damaged"] += 1
+                logger.warning("scene %r frame %d: %s; frame skipped", self.name, i, e)
+                continue
+            yield frame
 
     def __repr__(self) -> str:
         return f"NuScenesScene({self.name!r}, {len(self)} frames)"
 
+    def _table(self, name: str) -> Path:
+        return Path(self.nusc.dataroot) / self.nusc.version / f"{name}.json"
+
     def _poses(self, sd: dict) -> tuple[SE3, SE3]:
+        """(sensor_to_ego, ego_pose) of a sample_data; NuScenesDataError naming the record for a
+        pose that is not finite or not a rotation."""
         cs = self.nusc.get("calibrated_sensor", sd["calibrated_sensor_token"])
         ep = self.nusc.get("ego_pose", sd["ego_pose_token"])
-        return SE3.from_quaternion(cs["rotation"], cs["translation"]), SE3.from_quaternion(
-            ep["rotation"], ep["translation"]
-        )
+        out = []
+        for table, rec in (("calibrated_sensor", cs), ("ego_pose", ep)):
+            try:
+                out.append(SE3.from_quaternion(rec["rotation"], rec["translation"]))
+            except (ValueError, TypeError) as e:
+                raise NuScenesDataError(
+                    f"{self._table(table)}: record {rec['token']!r} (sample_data "
+                    f"{sd['token']!r}, t = {sd['timestamp']} us): {e} (translation "
+                    f"{rec['translation']}, rotation {rec['rotation']})"
+                ) from None
+        return out[0], out[1]
 
     def ego_translations(self) -> np.ndarray:
-        """Ego positions (m, global) of every lidar sample_data, ``(n, 3)``."""
+        """Ego positions (m, global) of every lidar sample_data, ``(n, 3)`` (NaN where the
+        record is not finite)."""
         out = np.empty((len(self), 3))
         for i, tok in enumerate(self.lidar_tokens):
             sd = self.nusc.get("sample_data", tok)
@@ -222,9 +317,38 @@ class NuScenesScene:
         return out
 
     def travel_m(self) -> float:
-        """How far (m) the ego gets from its first pose during the scene."""
+        """How far (m) the ego gets from its first finite pose during the scene."""
         t = self.ego_translations()
+        t = t[np.isfinite(t).all(axis=1)]
         return float(np.max(np.hypot(t[:, 0] - t[0, 0], t[:, 1] - t[0, 1]))) if len(t) else 0.0
+
+    def _median_lidar_bytes(self) -> float:
+        if self._lidar_bytes is None:
+            sizes = []
+            for tok in self.lidar_tokens:
+                f = os.path.join(self.nusc.dataroot, self.nusc.get("sample_data", tok)["filename"])
+                if os.path.isfile(f):
+                    sizes.append(os.path.getsize(f))
+            self._lidar_bytes = float(np.median(sizes)) if sizes else 0.0
+        return self._lidar_bytes
+
+    def _read_lidar(self, path: str) -> np.ndarray:
+        """A lidar file's points; NuScenesDataError naming the file when it is empty, cut
+        inside a point, or less than half the size of the scene's typical sweep (cut at a point
+        boundary: no file format tells that from a small sweep, its neighbours do)."""
+        try:
+            pts = read_lidar_bin(path)
+        except ValueError as e:
+            raise NuScenesDataError(str(e)) from None
+        if len(pts) == 0:
+            raise NuScenesDataError(f"{path}: the lidar file is empty (0 bytes)")
+        median = self._median_lidar_bytes()
+        if 20 * len(pts) < SHORT_SWEEP_FRACTION * median:
+            raise NuScenesDataError(
+                f"{path}: {len(pts)} points, less than {SHORT_SWEEP_FRACTION:g} of the "
+                f"{median / 20:.0f} of the scene's median sweep; the file is cut short"
+            )
+        return pts
 
     def frame(self, i: int) -> Frame:
         """Frame ``i`` (reads the lidar file and the radar files of its sweeps)."""
@@ -233,14 +357,21 @@ class NuScenesScene:
         nusc = self.nusc
         sd = nusc.get("sample_data", self.lidar_tokens[i])
         s2e, pose = self._poses(sd)
-        pts = read_lidar_bin(os.path.join(nusc.dataroot, sd["filename"]))
+        pts = self._read_lidar(os.path.join(nusc.dataroot, sd["filename"]))
         lidar = LidarSweep(pts, s2e, pose, int(sd["timestamp"]), LIDAR_CHANNEL)
         radar: dict[str, tuple[RadarSweep, ...]] = {}
         for ch in self.radar_channels:
             sweeps = []
             for tok in self._radar[i][ch]:
                 rsd = nusc.get("sample_data", tok)
-                rs2e, rpose = self._poses(rsd)
+                try:
+                    rs2e, rpose = self._poses(rsd)
+                except NuScenesDataError as e:  # one radar sweep lost, not the frame
+                    self.stats["radar_sweeps_bad_pose"] = (
+                        self.stats.get("radar_sweeps_bad_pose", 0) + 1
+                    )
+                    logger.warning("scene %r: %s; radar sweep dropped", self.name, e)
+                    continue
                 rec, n_bad = read_radar_pcd_with_stats(os.path.join(nusc.dataroot, rsd["filename"]))
                 self.stats["radar_records_dropped"] = (
                     self.stats.get("radar_records_dropped", 0) + n_bad
@@ -261,6 +392,33 @@ class NuScenesScene:
         )
 
 
+class NuScenesScenes(list):
+    """The scenes :func:`load_nuscenes` returns (a list), with ``dropped``: the name of each
+    scene left out, and why, for the run to print."""
+
+    def __init__(self, *args: Any) -> None:
+        super().__init__(*args)
+        self.dropped: dict[str, str] = {}
+
+
+def _open(NuScenes: Any, root: Path, version: str, verbose: bool) -> Any:
+    """The devkit's database, its tables checked; NuScenesDataError naming the damaged table
+    file (JSON cut short), record and key instead of the devkit's bare errors."""
+    table_root = root / version
+    try:
+        nusc = NuScenes(version=version, dataroot=str(root), verbose=verbose)
+    except (json.JSONDecodeError, KeyError, TypeError) as e:
+        found = _diagnose(table_root, e)
+        if found is not None:
+            raise found from None
+        raise NuScenesDataError(
+            f"{table_root}: the nuScenes devkit cannot read the tables: {type(e).__name__} {e}"
+        ) from None
+    for name in REQUIRED_KEYS:
+        check_records(table_root / f"{name}.json", getattr(nusc, name))
+    return nusc
+
+
 def load_nuscenes(
     dataroot: str | os.PathLike,
     version: str = "v1.0-trainval",
@@ -270,7 +428,8 @@ def load_nuscenes(
     verbose: bool = False,
 ) -> list[NuScenesScene]:
     """The scenes of a split (or the named scenes; ``split=None`` and no names: all scenes) whose
-    ego travels at least ``min_travel_m`` metres, in the tables' order."""
+    ego travels at least ``min_travel_m`` metres, in the tables' order; the others are logged
+    and listed, with the reason, in the result's ``dropped``."""
     if not (min_travel_m >= 0.0):
         raise ValueError(
             f"min_travel_m must be a non-negative distance in metres, got {min_travel_m!r}"
@@ -287,22 +446,30 @@ def load_nuscenes(
     if scene_names is not None:
         names = set(scene_names)
         wanted = names if wanted is None else wanted & names
-    nusc = NuScenes(version=version, dataroot=str(root), verbose=verbose)
+    nusc = _open(NuScenes, root, version, verbose)
     if scene_names is not None:
         missing = sorted(set(scene_names) - {s["name"] for s in nusc.scene})
         if missing:
             raise ValueError(f"scenes {missing} are not in {str(root / version)!r}")
-    out = []
+    out = NuScenesScenes()
     for rec in nusc.scene:
         if wanted is not None and rec["name"] not in wanted:
             continue
         sc = NuScenesScene(nusc, rec)
-        if sc.travel_m() < min_travel_m:
+        travel = sc.travel_m()
+        if travel < min_travel_m:
+            why = (
+                f"the vehicle never gets {min_travel_m:g} m from its first pose (at most "
+                f"{travel:.2f} m): a scene standing still has nothing to map (paper sec. VI)"
+            )
+            out.dropped[sc.name] = why
+            logger.warning("nuScenes scene %r dropped: %s", sc.name, why)
             continue
         out.append(sc)
     if split is not None and not out and not wanted & {s["name"] for s in nusc.scene}:
         raise ValueError(
-            f"split {split!r} names none of the {len(nusc.scene)} scenes in {str(root / version)!r} "
-            f"(a {version} database with a {split!r} split from another version?)"
+            f"split {split!r} names none of the {len(nusc.scene)} scenes in "
+            f"{str(root / version)!r} (a {version} database with a {split!r} split from another "
+            "version?)"
         )
     return out

@@ -1,4 +1,5 @@
-"""Radars other than the calibrated one: parameters drawn per scene, and fixed radars outside the draw.
+"""Radars other than the calibrated one: parameters drawn per scene, and fixed radars outside the
+draw.
 
 Ev-Net trained on one simulated radar learns that radar. Training on radars drawn per scene
 (:class:`RadarRanges`) asks it to work on any radar in a family; :data:`OUT_OF_RANGE` holds
@@ -32,8 +33,9 @@ class RadarVariant:
 
     ``sensitivity_db`` shifts every target's signal-to-threshold (detection rate and reach);
     ``noise_scale`` scales range, azimuth and Doppler noise (near and far scan); ``clutter_scale``
-    the false-alarm and road-clutter rates; ``ghost_db`` lowers the multipath bounce loss (more ghosts); ``channels`` are the
-    nuScenes mount positions carrying a radar; ``rate_hz`` their sweep rate.
+    the false-alarm and road-clutter rates; ``ghost_db`` lowers the multipath bounce loss (more
+    ghosts); ``channels`` are the nuScenes mount positions carrying a radar; ``rate_hz`` their
+    sweep rate.
     """
 
     sensitivity_db: float = 0.0
@@ -55,7 +57,8 @@ class RadarVariant:
         ch = tuple(self.channels)
         if not ch or len(set(ch)) != len(ch) or not set(ch) <= set(RADAR_MOUNTS):
             raise ValueError(
-                f"RadarVariant.channels must be distinct radar mounts among {tuple(RADAR_MOUNTS)}, got {ch!r}"
+                "RadarVariant.channels must be distinct radar mounts among "
+                f"{tuple(RADAR_MOUNTS)}, got {ch!r}"
             )
 
     def apply(self, config: SimConfig) -> SimConfig:
@@ -63,7 +66,8 @@ class RadarVariant:
         r = config.radar
         radar = replace(
             r,
-            # SNR falls 40 log10(range / reference_range_m): +x dB is the reference range x 10^(x/40).
+            # SNR falls 40 log10(range / reference_range_m): +x dB is the reference range
+            # x 10^(x/40).
             reference_range_m=r.reference_range_m * 10.0 ** (self.sensitivity_db / 40.0),
             range_noise_m=r.range_noise_m * self.noise_scale,
             far_range_noise_m=r.far_range_noise_m * self.noise_scale,
@@ -118,11 +122,13 @@ class RadarRanges:
             lo, hi = getattr(self, name)
             if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi):
                 raise ValueError(
-                    f"RadarRanges.{name} must be (low, high) with low <= high, got {getattr(self, name)!r}"
+                    f"RadarRanges.{name} must be (low, high) with low <= high, got "
+                    f"{getattr(self, name)!r}"
                 )
         if not (1 <= self.n_radars[0] and self.n_radars[1] <= len(RADAR_CHANNELS)):
             raise ValueError(
-                f"RadarRanges.n_radars must lie in [1, {len(RADAR_CHANNELS)}], got {self.n_radars!r}"
+                f"RadarRanges.n_radars must lie in [1, {len(RADAR_CHANNELS)}], got "
+                f"{self.n_radars!r}"
             )
         if self.noise_scale[0] < 0 or self.clutter_scale[0] < 0 or self.rate_hz[0] <= 0:
             raise ValueError(

@@ -12,15 +12,9 @@ from __future__ import annotations
 from collections import deque
 from collections.abc import Iterable, Iterator
 
-from evgrid.data.frame import RADAR_CHANNELS, Frame, RadarSweep
+from evgrid.data.frame import Frame, RadarSweep, channel_order
 
 __all__ = ["RadarBuffer", "GapCounter", "last_sweeps", "channel_order"]
-
-
-def channel_order(channel: str) -> tuple[int, str]:
-    """Sort key of radar channels: nuScenes' five in their usual order, then any others by name."""
-    known = RADAR_CHANNELS.index(channel) if channel in RADAR_CHANNELS else len(RADAR_CHANNELS)
-    return known, channel
 
 
 def _check_n(n_sweeps: object, what: str) -> int:
@@ -30,7 +24,8 @@ def _check_n(n_sweeps: object, what: str) -> int:
 
 
 def last_sweeps(sweeps: Iterable[RadarSweep], n_sweeps: int) -> list[RadarSweep]:
-    """The last ``n_sweeps`` sweeps (by timestamp) of each channel, channel by channel, oldest first."""
+    """The last ``n_sweeps`` sweeps (by timestamp) of each channel, channel by channel, oldest
+    first."""
     n = _check_n(n_sweeps, "n_sweeps")
     per: dict[str, list[RadarSweep]] = {}
     for s in sweeps:
@@ -56,7 +51,8 @@ class GapCounter:
         self.n_missing = 0
 
     def add(self, t_us: int) -> int:
-        """Note a delivered timestamp (after the last one); returns how many sweeps were missing before it."""
+        """Note a delivered timestamp (after the last one); returns how many sweeps were missing
+        before it."""
         last, self._last = self._last, int(t_us)
         if last is None or t_us <= last:
             return 0
@@ -98,7 +94,8 @@ class RadarBuffer:
         return sum(g.n_missing for g in self._gaps.values())
 
     def push(self, sweep: RadarSweep) -> bool:
-        """Add one sweep to its channel (dropping that channel's oldest beyond ``n_sweeps``); False if skipped."""
+        """Add one sweep to its channel (dropping that channel's oldest beyond ``n_sweeps``);
+        False if skipped."""
         if not isinstance(sweep, RadarSweep):
             raise TypeError(f"RadarBuffer.push needs a RadarSweep, got {type(sweep).__name__}")
         newest = self._newest.get(sweep.channel)
@@ -126,7 +123,8 @@ class RadarBuffer:
             self.push(s)
 
     def sweeps(self, n_sweeps: int | None = None) -> list[RadarSweep]:
-        """The held sweeps (or only the last ``n_sweeps`` of each channel), channel by channel, oldest first."""
+        """The held sweeps (or only the last ``n_sweeps`` of each channel), channel by channel,
+        oldest first."""
         n = self.n_sweeps if n_sweeps is None else _check_n(n_sweeps, "n_sweeps")
         return [s for ch in sorted(self._buf, key=channel_order) for s in list(self._buf[ch])[-n:]]
 

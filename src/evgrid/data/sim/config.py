@@ -16,7 +16,7 @@ __all__ = [
     "EgoConfig",
     "WorldConfig",
     "SweepFaults",
-    "RigConfig",
+    "SimRadarRig",
     "SimConfig",
     "ENVIRONMENTS",
 ]
@@ -300,7 +300,7 @@ class SweepFaults:
 
 
 @dataclass(frozen=True)
-class RigConfig:
+class SimRadarRig:
     """Which radars the simulated vehicle carries, where, and how fast they sweep.
 
     ``radar_channels``: any names. ``radar_mounts``: for each channel, the nuScenes mount it sits
@@ -316,7 +316,7 @@ class RigConfig:
     def __post_init__(self) -> None:
         from evgrid.data.mounts import RADAR_MOUNTS
 
-        o = "RigConfig"
+        o = "SimRadarRig"
         chans = self.radar_channels
         if not all(isinstance(c, str) and c for c in chans) or len(set(chans)) != len(chans):
             raise ValueError(f"{o}.radar_channels must be distinct non-empty names, got {chans!r}")
@@ -367,7 +367,7 @@ class SimConfig:
     radar: RadarConfig = field(default_factory=RadarConfig)
     ego: EgoConfig = field(default_factory=EgoConfig)
     world: WorldConfig = field(default_factory=WorldConfig)
-    rig: RigConfig = field(default_factory=RigConfig)
+    rig: SimRadarRig = field(default_factory=SimRadarRig)
 
     def __post_init__(self) -> None:
         o = "SimConfig"
@@ -394,7 +394,7 @@ class SimConfig:
             ("radar", RadarConfig),
             ("ego", EgoConfig),
             ("world", WorldConfig),
-            ("rig", RigConfig),
+            ("rig", SimRadarRig),
         ):
             if not isinstance(getattr(self, name), typ):
                 raise ValueError(
@@ -432,11 +432,11 @@ class SimConfig:
                 kwargs[key] = GridSpec.from_dict(value)
             elif key == "rig":
                 v = dict(value)
-                bad = set(v) - {f.name for f in fields(RigConfig)}
+                bad = set(v) - {f.name for f in fields(SimRadarRig)}
                 if bad:
-                    raise ValueError(f"unknown RigConfig field(s) {sorted(bad)!r}")
+                    raise ValueError(f"unknown SimRadarRig field(s) {sorted(bad)!r}")
                 faults = SweepFaults(**v.pop("faults", {}))
-                kwargs[key] = RigConfig(faults=faults, **{k: tuple(x) for k, x in v.items()})
+                kwargs[key] = SimRadarRig(faults=faults, **{k: tuple(x) for k, x in v.items()})
             elif key in subs:
                 sub = subs[key]
                 sub_known = {f.name for f in fields(sub)}

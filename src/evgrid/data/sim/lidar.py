@@ -22,7 +22,7 @@ import math
 import numba
 import numpy as np
 
-from evgrid.data.mounts import LIDAR_MOUNT, SensorMount
+from evgrid.data.mounts import LIDAR_MOUNT, NUSCENES_CAR, SensorMount
 from evgrid.data.sim import materials as M
 from evgrid.data.sim.config import LidarConfig
 from evgrid.data.sim.raycast import HIT_NONE, lidar_cast
@@ -35,27 +35,9 @@ EGO_HIT = -3
 #: Reflectivity of the ego vehicle's paint and plastics (0-1).
 _EGO_REFLECTIVITY = 0.45
 
-#: The ego vehicle (a Renault Zoe with a sensor rack, as in nuScenes) as axis-aligned boxes in
-#: the ego frame: (x0, y0, z0, x1, y1, z1), metres, origin on the ground at the rear axle.
-EGO_BODY_BOXES: np.ndarray = np.array(
-    [
-        (-0.70, -0.88, 0.20, 3.45, 0.88, 1.00),  # body up to the bonnet and boot lid
-        (0.10, -0.80, 1.00, 2.30, 0.80, 1.20),  # cabin up to the window line
-        (
-            0.10,
-            -0.58,
-            1.20,
-            2.30,
-            0.58,
-            1.48,
-        ),  # upper cabin and roof (narrower: the windows lean in)
-        (1.94, -0.78, 1.64, 2.45, 0.78, 1.74),  # sensor rack, front bar: 0.1 m below the lidar
-        (-0.55, -0.78, 1.64, -0.06, 0.78, 1.74),  # sensor rack, rear bar
-        (2.00, 0.88, 0.85, 2.20, 1.05, 1.10),  # left mirror
-        (2.00, -1.05, 0.85, 2.20, -0.88, 1.10),  # right mirror
-    ],
-    dtype=np.float64,
-)
+#: The ego vehicle's body as axis-aligned boxes in the ego frame: (x0, y0, z0, x1, y1, z1),
+#: metres, origin on the ground at the rear axle (the one description: ``NUSCENES_CAR``).
+EGO_BODY_BOXES: np.ndarray = NUSCENES_CAR.body_boxes
 
 
 @numba.njit(cache=True)
@@ -102,9 +84,13 @@ def body_hits(
 class LidarModel:
     """Simulates sweeps of one lidar with a fixed mounting and configuration."""
 
-    def __init__(self, cfg: LidarConfig, mount: SensorMount = LIDAR_MOUNT) -> None:
+    def __init__(
+        self, cfg: LidarConfig, mount: SensorMount = LIDAR_MOUNT, body: np.ndarray | None = None
+    ) -> None:
         self.cfg = cfg
         self.mount = mount
+        #: the ego body's boxes (another vehicle's: ``Vehicle.body_boxes``)
+        self.body = EGO_BODY_BOXES if body is None else np.asarray(body, dtype=np.float64)
         self.elev = np.radians(np.linspace(cfg.elev_min_deg, cfg.elev_max_deg, cfg.n_beams))
         self.slopes = np.tan(self.elev)
         self.cos_e = np.cos(self.elev)
@@ -218,7 +204,7 @@ class LidarModel:
             ),
             axis=-1,
         )
-        t3, cos = body_hits(np.array([m.x, m.y, m.z]), dirs)
+        t3, cos = body_hits(np.array([m.x, m.y, m.z]), dirs, self.body)
         t = t3 * self.cos_e[None, :]  # horizontal distance, as out_t
         closer = np.isfinite(t) & ((out_id == HIT_NONE) | (t < out_t))
         out_t[closer] = t[closer]

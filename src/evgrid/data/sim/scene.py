@@ -207,7 +207,9 @@ class SimScene:
             (float(x), float(y), float(yaw)),
             rng,
         )
-        sweep = LidarSweep(pts, LIDAR_MOUNT.sensor_to_ego(), self._ego_se3(ts), ts, LIDAR_CHANNEL)
+        sweep = LidarSweep(
+            pts, self._lidar.mount.sensor_to_ego(), self._ego_se3(ts), ts, LIDAR_CHANNEL
+        )
         return sweep, hit
 
     def radar_sweep(self, channel: str, j: int) -> tuple[RadarSweep, np.ndarray]:

@@ -1,0 +1,149 @@
+"""The tf tree over time: ego poses and extrinsics looked up at any stamp, interpolated."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from evgrid.geometry import SE3
+
+__all__ = ["TransformBuffer"]
+
+
+class TransformBuffer:
+    """The tf tree over time: per child frame its parent and samples; static edges apart.
+
+    :meth:`lookup` gives the pose of a frame in an ancestor frame at a time, interpolating
+    every dynamic edge on the way (and returning a stored sample itself when the time is one).
+    """
+
+    def __init__(self, max_gap_us: int = 100_000):
+        self.max_gap_us = max_gap_us
+        self._dyn: dict[str, tuple[str, list[int], list[tuple]]] = {}
+        self._static: dict[str, tuple[str, SE3]] = {}
+        self._arrays: dict[str, tuple[str, np.ndarray, np.ndarray, np.ndarray]] = {}
+
+    def add(
+        self,
+        parent: str,
+        child: str,
+        t_us: int,
+        translation: tuple,
+        q_xyzw: tuple,
+        static: bool = False,
+    ) -> None:
+        """One transform: the pose of ``child`` in ``parent``."""
+        parent, child = parent.lstrip("/"), child.lstrip("/")
+        if static:
+            from evgrid.ros import transform_to_se3
+
+            self._static[child] = (parent, transform_to_se3(translation, q_xyzw))
+            return
+        p, ts, vals = self._dyn.setdefault(child, (parent, [], []))
+        ts.append(int(t_us))
+        vals.append((*translation, *q_xyzw))
+        self._arrays.pop(child, None)
+
+    def frames(self) -> set[str]:
+        """Every frame named as a child or a parent."""
+        out = set(self._dyn) | set(self._static)
+        out |= {p for p, *_ in self._dyn.values()} | {p for p, _ in self._static.values()}
+        return out
+
+    def _edge(self, child: str) -> tuple[str, np.ndarray, np.ndarray, np.ndarray]:
+        a = self._arrays.get(child)
+        if a is None:
+            parent, ts, vals = self._dyn[child]
+            t = np.asarray(ts, dtype=np.int64)
+            v = np.asarray(vals, dtype=np.float64)
+            order = np.argsort(t, kind="stable")
+            t, v = t[order], v[order]
+            a = self._arrays[child] = (parent, t, v[:, :3], v[:, 3:])
+        return a
+
+    def parent(self, child: str) -> str | None:
+        """The parent frame of ``child`` (dynamic edges first), or None for a root."""
+        child = child.lstrip("/")
+        if child in self._dyn:
+            return self._dyn[child][0]
+        if child in self._static:
+            return self._static[child][0]
+        return None
+
+    def _sample(self, child: str, t_us: int) -> SE3 | None:
+        from evgrid.ros import transform_to_se3
+
+        _, ts, trans, quat = self._edge(child)
+        i = int(np.searchsorted(ts, t_us))
+        if i < len(ts) and ts[i] == t_us:
+            return transform_to_se3(trans[i], quat[i])
+        if i == 0:
+            return transform_to_se3(trans[0], quat[0]) if ts[0] - t_us <= self.max_gap_us else None
+        if i == len(ts):
+            return (
+                transform_to_se3(trans[-1], quat[-1]) if t_us - ts[-1] <= self.max_gap_us else None
+            )
+        f = (t_us - ts[i - 1]) / (ts[i] - ts[i - 1])
+        tr = (1 - f) * trans[i - 1] + f * trans[i]
+        return transform_to_se3(tr, _slerp(quat[i - 1], quat[i], f))
+
+    def span(self, target: str, source: str) -> tuple[int, int] | None:
+        """Times (us) over which every dynamic transform from ``source`` up to ``target`` has
+        samples."""
+        lo, hi = -(2**62), 2**62
+        frame, seen = source.lstrip("/"), set()
+        while frame != target.lstrip("/"):
+            if frame in seen:
+                return None
+            seen.add(frame)
+            if frame in self._dyn:
+                parent, ts, _, _ = self._edge(frame)
+                lo, hi = max(lo, int(ts[0])), min(hi, int(ts[-1]))
+            elif frame in self._static:
+                parent = self._static[frame][0]
+            else:
+                return None
+            frame = parent
+        return lo, hi
+
+    def lookup(self, target: str, source: str, t_us: int) -> SE3 | None:
+        """Pose of ``source`` in ``target`` at ``t_us`` (None: no chain, or the time is off the
+        track)."""
+        target, frame = target.lstrip("/"), source.lstrip("/")
+        pose: SE3 | None = None
+        seen = set()
+        while frame != target:
+            if frame in seen:
+                return None
+            seen.add(frame)
+            if frame in self._dyn:
+                parent = self._dyn[frame][0]
+                step = self._sample(frame, t_us)
+                if step is None:
+                    return None
+            elif frame in self._static:
+                parent, step = self._static[frame]
+            else:
+                return None
+            pose = step if pose is None else step @ pose
+            frame = parent
+        return pose if pose is not None else SE3.identity()
+
+
+def _slerp(q0: np.ndarray, q1: np.ndarray, f: float) -> np.ndarray:
+    """Spherical interpolation of unit quaternions (x, y, z, w); yaw-only pairs stay yaw-only."""
+    if q0[0] == q0[1] == q1[0] == q1[1] == 0.0:  # planar: interpolate the yaw itself
+        y0, y1 = 2 * math.atan2(q0[2], q0[3]), 2 * math.atan2(q1[2], q1[3])
+        y = y0 + f * math.remainder(y1 - y0, 2 * math.pi)
+        return np.array([0.0, 0.0, math.sin(y / 2), math.cos(y / 2)])
+    a = q0 / np.linalg.norm(q0)
+    b = q1 / np.linalg.norm(q1)
+    d = float(a @ b)
+    if d < 0:
+        b, d = -b, -d
+    if d > 0.9995:
+        q = a + f * (b - a)
+        return q / np.linalg.norm(q)
+    th = math.acos(d)
+    return (math.sin((1 - f) * th) * a + math.sin(f * th) * b) / math.sin(th)
