@@ -107,7 +107,7 @@ _OVERWRITE = typer.Option(False, "--overwrite", help="Write into --out even if i
 _RESUME = typer.Option(
     False, "--resume", help="Continue the run in --out (default: the latest): keep complete scenes."
 )
-_ENGINE = typer.Option("local", "--engine", help="local (a process pool) or ray (docs/cluster.md).")
+_ENGINE = typer.Option("local", "--engine", help="local (a process pool) or ray (the ray extra).")
 
 
 def _workers(n: int) -> Any:
@@ -197,10 +197,10 @@ def simulate(
     """
     from evgrid.config import options_to_overrides
     from evgrid.console import bar
-    from evgrid.sim_writer import SimulateOptions, write_simulated
+    from evgrid.sim_writer import SimulateOptions, check_out, write_simulated
 
     _, values = options_to_overrides(ctx.args, {}, SimulateOptions, SimulateOptions)
-    opts = SimulateOptions(**values)
+    opts, out = SimulateOptions(**values), check_out(out)
     total = opts.scenes * opts.sim_config().n_frames
     with bar("simulating", total) as advance:
         names = write_simulated(opts, out, overwrite, on_frame=advance)

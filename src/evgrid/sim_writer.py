@@ -20,7 +20,7 @@ from pathlib import Path
 from evgrid.io import write_json
 from evgrid.validation import check_int, check_number
 
-__all__ = ["SimulateOptions", "FORMATS", "write_simulated"]
+__all__ = ["SimulateOptions", "FORMATS", "check_out", "write_simulated"]
 
 #: ``--format`` -> (rosbags storage, file suffix) of the recording formats.
 _BAGS = {"ros2": ("mcap", ""), "ros1": ("ros1", ".bag"), "mcap": ("plain-mcap", ".mcap")}
@@ -102,9 +102,7 @@ def write_simulated(
     """Simulate ``opts.scenes`` scenes from ``opts.seed`` on and write them under ``out`` in
     ``opts.format``; ``on_frame(scene name)`` after each frame. Returns the scene names.
     An existing scene is refused unless ``overwrite`` (FileExistsError naming it)."""
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise FileExistsError(f"--out {out} is a file; simulate writes a folder")
+    out = check_out(out)
     config = opts.sim_config()
     seeds = [opts.seed + k for k in range(opts.scenes)]
     out.mkdir(parents=True, exist_ok=True)
@@ -114,6 +112,14 @@ def write_simulated(
     if opts.format == "npz":
         return _write_npz(seeds, config, out, overwrite, tick)
     return _write_nuscenes(seeds, config, out, opts.version, overwrite, tick)
+
+
+def check_out(out: str | Path) -> Path:
+    """``out`` as a folder to write scenes into: a FileExistsError naming it if it is a file."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise FileExistsError(f"--out {out} is a file; simulate writes a folder")
+    return out
 
 
 def _write_npz(seeds, config, out: Path, overwrite: bool, tick) -> list[str]:
