@@ -148,6 +148,12 @@ def test_sweep_m_u_min(tmp_path, tiny_checkpoint):
     assert set(res["rows"][0]["miou"]) == {"deep_replace", "deep_disc", "fused"}
     assert res["chosen"] in (0.2, 0.6) and "highest m_u_min" in res["rule"]
     assert (tmp_path / "m_u_min_sweep.png").stat().st_size > 1000
+    # its config.json reloads: the same sweep again with --config
+    from evgrid.config import SweepConfig, load_config
+
+    sweep = load_config(tmp_path / "config.json", None)
+    assert isinstance(sweep, SweepConfig) and sweep.values == (0.2, 0.6)
+    assert sweep.scenes == ("sim-000004",) and sweep.mapper.checkpoint == str(tiny_checkpoint)
 
 
 def test_map_on_a_dataset_in_the_nuscenes_layout(tmp_path, tiny_checkpoint):
