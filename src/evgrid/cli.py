@@ -52,15 +52,6 @@ def main(
     _STATE["debug"] = debug or os.environ.get("EVGRID_DEBUG", "") not in ("", "0")
 
 
-def _message(e: BaseException) -> str:
-    """A failure as one line: the exception's own message (a KeyError's unquoted), else its type."""
-    text = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
-    text = " ".join(str(text).split())
-    if isinstance(e, (ValueError, OSError, KeyError, RuntimeError, ImportError)):
-        return text or type(e).__name__
-    return f"{type(e).__name__}: {text}" if text else type(e).__name__
-
-
 class _Command(typer.core.TyperCommand):
     """A command whose help ends with the options it takes from the config (written when asked
     for: the config's modules are slow to import)."""
@@ -88,7 +79,9 @@ def _command(*args: Any, typer_app: typer.Typer = app, **kwargs: Any) -> Callabl
             except Exception as e:
                 if _STATE["debug"]:
                     raise
-                typer.echo(f"evgrid: error: {_message(e)}", err=True)
+                from evgrid.console import error_line
+
+                typer.echo(f"evgrid: error: {error_line(e)}", err=True)
                 raise typer.Exit(1) from None
 
         if kwargs.pop("extra", False):
@@ -122,9 +115,7 @@ def _map(ctx, command, out, config, sets, workers, engine, resume, overwrite, pr
     from evgrid.sources import source_from_dict
 
     out = out or default_out(command, resume)
-    if resume and config is None and (out / "config.json").is_file():
-        config = out / "config.json"  # the run being continued
-    run = config_from_args(RunConfig, ctx.args, config, sets or (), preset, data0)
+    run = config_from_args(RunConfig, ctx.args, config, sets or (), preset, data0, resume and out)
     if run.outputs.viewer and workers > 1:
         raise typer.BadParameter("--viewer shows one scene at a time: use --workers 1")
     with ConsoleEvents() as events:
@@ -174,9 +165,8 @@ def demo(
     ctx: typer.Context, out: Path = typer.Option(Path("out/demo"), "--out"),
     workers: int = _workers(2), overwrite: bool = _OVERWRITE,
 ) -> None:  # fmt: skip
-    """Map three simulated validation scenes with the shipped Ev-Net: OUT/metrics.json
-    ({"maps": {name: {"free", "occupied", "unknown"}}, ...}), table.md, and per scene maps.png,
-    isms.png, convergence.png and maps.gif."""
+    """Map three simulated validation scenes with the shipped Ev-Net: OUT/metrics.json ({"maps":
+    {name: {"free", "occupied", "unknown"}}, ...}), table.md, per scene figures and a GIF."""
     from evgrid.io import write_json
 
     summary = _map(ctx, "demo", out, None, None, workers, "local", False, overwrite)
@@ -219,18 +209,12 @@ def train(
 
     Example: evgrid train --scenes 40 --val-scenes 10 --epochs 12 --out out/train
     """
-    from evgrid.console import console, training_events
+    from evgrid.console import print_text, train_report, training_events
     from evgrid.train_run import run_training, train_config_from_args
 
-    if resume and config is None and (out / "config.json").is_file():
-        config = out / "config.json"
-    run = train_config_from_args(ctx.args, config, sets or ())
+    run = train_config_from_args(ctx.args, config, sets or (), out if resume else None)
     with training_events() as events:
-        res = run_training(run, out, resume, **events)
-    console().print(
-        f"best epoch {res.best_epoch}: {res.best}; ray IRM baseline {res.ray_irm_baseline}; "
-        f"{res.seconds_per_epoch:.0f} s per epoch; checkpoint {out / 'best.safetensors'}"
-    )
+        print_text(train_report(run_training(run, out, resume, **events), out))
 
 
 @_command("sweep-m-u-min", extra=True)
@@ -238,11 +222,10 @@ def sweep_m_u_min_cmd(
     ctx: typer.Context, out: Path = _OUT, config: Path = _CONFIG, sets: list[str] = _SET,
     workers: int = _workers(2), engine: str = _ENGINE, overwrite: bool = _OVERWRITE,
 ) -> None:  # fmt: skip
-    """Sweep the lower limit m_u_min (--values 0.1,0.3,...): mIoU of deep_replace, deep_disc and
-    fused against ray_ilm (JSON + plot); writes config.json (re-run with --config).
+    """Sweep the lower limit m_u_min: mIoU of deep_replace, deep_disc and fused against ray_ilm
+    (JSON + plot); writes config.json (re-run with --config).
 
-    Example:
-      evgrid sweep-m-u-min --scenes 4 --values 0.1,0.2,0.3,0.4,0.5 --out out/sweep
+    Example: evgrid sweep-m-u-min --scenes 4 --values 0.1,0.2,0.3,0.4,0.5 --out out/sweep
     """
     from evgrid.config import SweepConfig, config_from_args
     from evgrid.console import ConsoleEvents, failures, print_text, sweep_report
@@ -274,12 +257,13 @@ def show(
 
     if defaults and (config or sets or ctx.args):
         raise typer.BadParameter("--defaults shows the defaults: give no other option")
-    run = load_config(config, None) if config and not (sets or ctx.args) else None
-    typer.echo(
-        json.dumps(
-            document(run or config_from_args(RunConfig, ctx.args, config, sets or ())), indent=2
-        )
+    plain = config and not (sets or ctx.args)  # a file of any kind, as it is
+    run = (
+        load_config(config, None)
+        if plain
+        else config_from_args(RunConfig, ctx.args, config, sets or ())
     )
+    typer.echo(json.dumps(document(run), indent=2))
 
 
 @_command("export")
@@ -297,10 +281,8 @@ def export_cmd(
 
     if fmt not in FORMATS:
         raise typer.BadParameter(f"--format must be one of {', '.join(FORMATS)}, got {fmt!r}")
-    for path in export_map(
-        load_map(map_file), out or map_file.with_suffix(""), fmt, name=map_file.stem
-    ):
-        typer.echo(f"wrote {path}")
+    written = export_map(load_map(map_file), out or map_file.with_suffix(""), fmt, map_file.stem)
+    typer.echo("\n".join(f"wrote {path}" for path in written))
 
 
 @_command()

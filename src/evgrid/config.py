@@ -626,13 +626,18 @@ def config_from_args(
     sets: Iterable[str] = (),
     preset: Iterable[tuple[str, Any]] = (),
     data_defaults: Mapping[str, Any] | None = None,
+    resume: str | os.PathLike | None = None,
 ) -> Any:
     """A run's config (:class:`RunConfig` or :class:`SweepConfig`) from command-line words: the
-    file at ``path`` (else the defaults), the command's ``preset``, the scene source of the data
-    options (:class:`evgrid.sources.DataOptions`, over ``data_defaults``; given or without a
-    file, they replace the file's scenes), the short options of :data:`MAP_OPTIONS` (or
+    file at ``path`` (else, when resuming the results folder ``resume``, its config.json; else
+    the defaults), the command's ``preset``, the scene source of the data options
+    (:class:`evgrid.sources.DataOptions`, over ``data_defaults``; given or without a file, they
+    replace the file's scenes), the short options of :data:`MAP_OPTIONS` (or
     :data:`SWEEP_OPTIONS`), then ``--set`` overrides, in that order."""
     from evgrid.sources import DataOptions, source_to_dict
+
+    if path is None and resume and (Path(resume) / "config.json").is_file():
+        path = Path(resume) / "config.json"  # the run being continued
 
     aliases = SWEEP_OPTIONS if cls is SweepConfig else MAP_OPTIONS
     overrides, data = options_to_overrides(args, aliases, cls, DataOptions)

@@ -176,3 +176,26 @@ def failures(failed: Mapping[str, str], out: Any) -> str | None:
         return None
     listed = "; ".join(f"{k}: {v}" for k, v in failed.items())
     return f"{len(failed)} scene(s) failed ({listed}); the others are in {out}"
+
+
+def train_report(res: Any, out: Any) -> str:
+    """What ``evgrid train`` prints at its end."""
+    return (
+        f"best epoch {res.best_epoch}: {res.best}; ray IRM baseline {res.ray_irm_baseline}; "
+        f"{res.seconds_per_epoch:.0f} s per epoch; checkpoint {out / 'best.safetensors'}"
+    )
+
+
+def error_line(e: BaseException) -> str:
+    """A failure as one line: the exception's own message (a KeyError's unquoted), else its
+    type; install hints as they work where evgrid is installed from (:func:`evgrid.install_hint`)."""
+    import re
+
+    from evgrid import install_hint
+
+    text = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
+    text = " ".join(str(text).split())
+    text = re.sub(r"pip install '?evgrid\[(\w+)\]'?", lambda m: install_hint(m.group(1)), text)
+    if isinstance(e, (ValueError, OSError, KeyError, RuntimeError, ImportError)):
+        return text or type(e).__name__
+    return f"{type(e).__name__}: {text}" if text else type(e).__name__

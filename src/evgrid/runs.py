@@ -15,6 +15,7 @@ import contextlib
 import logging
 import math
 import os
+import sys
 import time
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, replace
@@ -220,6 +221,11 @@ def _exporters(outputs: OutputConfig, out: Path | None, name: str) -> tuple[list
     kwargs = {"mcap": {"window_m": outputs.export_window_m}}
     found = [make_observer(fmt, paths[fmt], **kwargs.get(fmt, {})) for fmt in outputs.exports]
     if outputs.viewer:
+        # rerun spawns its viewer by name: the one installed beside this interpreter (a virtual
+        # environment's bin) is found even when that bin is not on PATH
+        bin_dir = str(Path(sys.executable).parent)
+        if bin_dir not in os.environ.get("PATH", "").split(os.pathsep):
+            os.environ["PATH"] = os.pathsep.join([bin_dir, os.environ.get("PATH", "")])
         found.append(make_observer("rerun", None))
     return found, partial
 

@@ -178,11 +178,18 @@ def run_training(
 
 
 def train_config_from_args(
-    args: list[str], path: str | os.PathLike | None = None, sets: list[str] = ()
+    args: list[str],
+    path: str | os.PathLike | None = None,
+    sets: list[str] = (),
+    resume: str | os.PathLike | None = None,
 ) -> TrainRunConfig:
-    """``evgrid train``'s config from command-line words: the file (else the defaults), the data
-    options of :class:`TrainData`, the short options of :data:`TRAIN_OPTIONS`, then ``--set``."""
+    """``evgrid train``'s config from command-line words: the file (else, resuming the run
+    folder ``resume``, its config.json; else the defaults), the data options of
+    :class:`TrainData`, the short options of :data:`TRAIN_OPTIONS`, then ``--set``."""
     from evgrid.config import options_to_overrides, parse_overrides
+
+    if path is None and resume and (Path(resume) / "config.json").is_file():
+        path = Path(resume) / "config.json"  # the run being continued
 
     overrides, data = options_to_overrides(args, TRAIN_OPTIONS, TrainRunConfig, TrainData)
     overrides += parse_overrides(sets)
