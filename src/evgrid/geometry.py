@@ -113,13 +113,17 @@ class GridSpec:
         return rows, cols
 
     def to_dict(self) -> dict[str, float | int]:
-        """Plain-JSON form."""
-        return {"n_cells": int(self.n_cells), "length_m": float(self.length_m)}
+        """Plain-JSON form (evgrid.serial, the serialiser of every parameter dataclass)."""
+        from evgrid.serial import to_dict
+
+        return to_dict(self)
 
     @classmethod
     def from_dict(cls, d: dict) -> GridSpec:
-        """Inverse of :meth:`to_dict`."""
-        return cls(n_cells=int(d["n_cells"]), length_m=float(d["length_m"]))
+        """Inverse of :meth:`to_dict`; a missing or bad field is a ValueError naming it."""
+        from evgrid.serial import from_dict
+
+        return from_dict(cls, d, "GridSpec", required=("n_cells", "length_m"))
 
 
 def quaternion_to_matrix(q: Sequence[float]) -> np.ndarray:

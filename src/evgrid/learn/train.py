@@ -90,10 +90,10 @@ class TrainConfig:
             )
 
     def to_dict(self) -> dict:
-        """Plain-JSON form."""
-        d = asdict(self)
-        d["grid"] = self.grid.to_dict()
-        return d
+        """Plain-JSON form (evgrid.serial, the serialiser of every parameter dataclass)."""
+        from evgrid.serial import to_dict
+
+        return to_dict(self)
 
     def data_key(self) -> str:
         """Hash of the settings that decide the cached samples."""
