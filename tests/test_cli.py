@@ -157,7 +157,8 @@ def test_sweep_m_u_min(tmp_path, tiny_checkpoint):
 
 
 def test_map_on_a_dataset_in_the_nuscenes_layout(tmp_path, tiny_checkpoint):
-    """`evgrid map --nuscenes`: the devkit reads a simulated dataset written in the nuScenes layout."""
+    """`evgrid map --nuscenes`: the devkit reads a simulated dataset written in the nuScenes
+    layout."""
     data = tmp_path / "nuscenes"
     r = runner.invoke(
         app,
@@ -200,7 +201,8 @@ def test_map_on_a_dataset_in_the_nuscenes_layout(tmp_path, tiny_checkpoint):
 
 
 def test_demo_writes_the_metrics_contract(tmp_path):
-    """DIR/metrics.json = {"maps": {<six names>: {"free", "occupied", "unknown"}}, ...} with the shipped Ev-Net."""
+    """DIR/metrics.json = {"maps": {<six names>: {"free", "occupied", "unknown"}}, ...} with the
+    shipped Ev-Net."""
     r = runner.invoke(
         app, ["demo", "--scenes", "1", "--duration", "2", "--workers", "1", "--out", str(tmp_path)]
     )

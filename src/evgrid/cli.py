@@ -120,8 +120,9 @@ def _map(ctx, command, out, config, sets, workers, engine, resume, overwrite, pr
         raise typer.BadParameter("--viewer shows one scene at a time: use --workers 1")
     with ConsoleEvents() as events:
         summary = map_scenes(
-            source_from_dict(run.source), out, run.mapper, run.outputs, run.scenes and list(run.scenes),
-            workers, overwrite=overwrite, engine=engine, resume=resume, events=events,
+            source_from_dict(run.source), out, run.mapper, run.outputs,
+            run.scenes and list(run.scenes), workers, overwrite=overwrite, engine=engine,
+            resume=resume, events=events,
         )  # fmt: skip
     print_text(map_report(summary, out))
     if failed := failures(summary["failed"], out):

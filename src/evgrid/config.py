@@ -108,7 +108,8 @@ class PoseLimits:
 
 @dataclass(frozen=True)
 class MapperConfig:
-    """Everything that decides the maps of a run (the core of :class:`~evgrid.mapper.OccupancyMapper`)."""
+    """Everything that decides the maps of a run (the core of
+    :class:`~evgrid.mapper.OccupancyMapper`)."""
 
     grid: GridSpec = field(default_factory=GridSpec)
     fusion: FusionParams = field(default_factory=FusionParams)

@@ -188,7 +188,8 @@ def train_report(res: Any, out: Any) -> str:
 
 def error_line(e: BaseException) -> str:
     """A failure as one line: the exception's own message (a KeyError's unquoted), else its
-    type; install hints as they work where evgrid is installed from (:func:`evgrid.install_hint`)."""
+    type; install hints as they work where evgrid is installed from
+    (:func:`evgrid.install_hint`)."""
     import re
 
     from evgrid import install_hint

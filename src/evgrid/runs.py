@@ -231,13 +231,15 @@ def _exporters(outputs: OutputConfig, out: Path | None, name: str) -> tuple[list
 
 
 def _source_report(frames: Any) -> dict[str, Any]:
-    """What the data source itself reports about the scene (bags: where a cut recording stopped; loaders: gap counts)."""
+    """What the data source itself reports about the scene (bags: where a cut recording stopped;
+    loaders: gap counts)."""
     found = {k: getattr(frames, k, None) for k in ("stopped", "counts", "stats")}
     report = {k: v for k, v in found.items() if v and not callable(v)}
     return {"source_report": report} if report else {}
 
 
-#: Seconds of driving after which convergence is reported (paper: faster convergence with the deep prior).
+#: Seconds of driving after which convergence is reported (paper: faster convergence with the deep
+#: prior).
 CONVERGENCE_TIMES_S: tuple[float, ...] = (1.0, 2.0, 5.0, 10.0)
 
 
@@ -245,7 +247,8 @@ def convergence_at(
     keyframes: list[dict[str, Any]], times_s: tuple[float, ...] = CONVERGENCE_TIMES_S
 ) -> dict[str, Any]:
     """Each map's perception field (free and occupied IoU against the truth, and the area classified
-    correctly) at the first keyframe at least ``t`` seconds after the scene's first; ``None`` past its end."""
+    correctly) at the first keyframe at least ``t`` seconds after the scene's first; ``None``
+    past its end."""
     kfs = [k for k in keyframes if "field" in k]
     if not kfs:
         return {}
@@ -344,7 +347,8 @@ def scene_config_hash(run: RunConfig, name: str) -> str:
 
 
 def summarize(per_scene: list[dict[str, Any]]) -> dict[str, Any]:
-    """mIoU over scenes (against ray_ilm and, where known, the truth), speed and skip counts, from per-scene metrics."""
+    """mIoU over scenes (against ray_ilm and, where known, the truth), speed and skip counts, from
+    per-scene metrics."""
 
     def clean(d: Mapping[str, Mapping[str, Any]]) -> dict:
         return {
@@ -400,7 +404,8 @@ def summarize(per_scene: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def convergence_table(conv: Mapping[str, Any]) -> str:
-    """Markdown: per map, free and occupied IoU against the truth and the area classified correctly after each time."""
+    """Markdown: per map, free and occupied IoU against the truth and the area classified correctly
+    after each time."""
     ts = conv["t_s"]
     head = (
         "| map | "
@@ -546,9 +551,10 @@ def _write_summary(
 SWEPT_MAPS: tuple[str, ...] = ("deep_replace", "deep_disc", "fused")  # the maps m_u_min changes
 
 CHOICE_RULE = (
-    "the highest m_u_min whose deep_disc mIoU (mean of the three classes, against ray_ilm) is within "
-    "0.01 of the best value swept: cells known only to the deep IRM stay as clearly apart from verified "
-    "space as accuracy allows; at m_u_min >= 0.5 such cells can never be classified free or occupied"
+    "the highest m_u_min whose deep_disc mIoU (mean of the three classes, against ray_ilm) is "
+    "within 0.01 of the best value swept: cells known only to the deep IRM stay as clearly apart "
+    "from verified space as accuracy allows; at m_u_min >= 0.5 such cells can never be "
+    "classified free or occupied"
 )
 
 

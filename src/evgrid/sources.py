@@ -1,4 +1,5 @@
-"""Where scenes come from, as small picklable descriptions (so one process per scene can load its own).
+"""Where scenes come from, as small picklable descriptions (so one process per scene can load its
+own).
 
 * :class:`SimSource` - the built-in simulator, by seed (the default when no dataset is given);
 * :class:`SimFilesSource` - scenes written by ``evgrid simulate`` (``.npz`` folder);
@@ -35,7 +36,8 @@ __all__ = [
 
 
 def sim_split(seed: int) -> str:
-    """Split of a simulated seed: every fifth seed (seed % 5 == 4) is ``val``, the others ``train``."""
+    """Split of a simulated seed: every fifth seed (seed % 5 == 4) is ``val``, the others
+    ``train``."""
     return "val" if seed % 5 == 4 else "train"
 
 
@@ -74,7 +76,8 @@ class SimSource:
         radar: RadarVariant | None = None,
         radar_ranges: RadarRanges | None = None,
     ) -> SimSource:
-        """The first ``n`` seeds from ``first_seed`` on that belong to ``split`` (``train`` or ``val``)."""
+        """The first ``n`` seeds from ``first_seed`` on that belong to ``split`` (``train`` or
+        ``val``)."""
         if split not in ("train", "val"):
             raise ValueError(f"split must be 'train' or 'val', got {split!r}")
         seeds, s = [], first_seed
@@ -147,7 +150,10 @@ class SimFilesSource:
         for e in SimFilesSource(self.folder)._index():
             splits[str(e.get("split"))] = splits.get(str(e.get("split")), 0) + 1
         held = ", ".join(f"{n} {s}" for s, n in sorted(splits.items())) or "no scenes"
-        return f"{self.folder} has no scenes of split {self.split!r}; it holds {held} (--split all maps every scene)"
+        return (
+            f"{self.folder} has no scenes of split {self.split!r}; it holds {held} "
+            "(--split all maps every scene)"
+        )
 
     def load(self, name: str) -> Scene:
         from evgrid.data.sim.store import load_sim_scene
@@ -174,7 +180,8 @@ def _nuscenes_scenes(
 
 @dataclass(frozen=True)
 class NuScenesSource:
-    """nuScenes scenes of a split (or the named ones) under ``dataroot``; see :func:`evgrid.data.load_nuscenes`."""
+    """nuScenes scenes of a split (or the named ones) under ``dataroot``; see
+    :func:`evgrid.data.load_nuscenes`."""
 
     dataroot: str
     version: str = "v1.0-trainval"
@@ -206,7 +213,8 @@ class NuScenesSource:
 
 @dataclass(frozen=True)
 class BagSource:
-    """Recordings (``.bag``, ``.mcap`` or ROS 2 bag folders) sharing one rig file; one scene each, see
+    """Recordings (``.bag``, ``.mcap`` or ROS 2 bag folders) sharing one rig file; one scene each,
+    see
     :func:`evgrid.data.bag.load_bag`. ``paths`` may be one path. A single recording is named by the
     rig file's ``scene`` (else its file name), several by their file names."""
 
@@ -253,7 +261,8 @@ def scenes_of(source: SceneSource, names: Sequence[str] | None = None) -> list[s
     missing = [n for n in names if n not in known]
     if missing:
         raise KeyError(
-            f"unknown scene(s) {missing}; available: {known[:10]}{' ...' if len(known) > 10 else ''}"
+            f"unknown scene(s) {missing}; available: {known[:10]}"
+            + (" ..." if len(known) > 10 else "")
         )
     return list(names)
 
@@ -285,7 +294,8 @@ def source_from_dict(d: dict) -> SceneSource:
     kinds = _kinds()
     if not isinstance(d, dict) or d.get("kind") not in kinds:
         raise ConfigError(
-            f"config source: 'kind' must be one of {sorted(kinds)}, got {d.get('kind') if isinstance(d, dict) else d!r}"
+            f"config source: 'kind' must be one of {sorted(kinds)}, "
+            f"got {d.get('kind') if isinstance(d, dict) else d!r}"
         )
     fields = {k: v for k, v in d.items() if k != "kind"}
     return from_dict(kinds[d["kind"]], fields, f"config source ({d['kind']})")
