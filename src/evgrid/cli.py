@@ -146,6 +146,7 @@ def _mapping(command: str, workers: int, doc: str, preset=(), data0={}) -> Calla
 
 _mapping("map", 1, """Map scenes: the six maps of the paper's Table I, figures, GIFs, metrics.
 
+    \b
     Examples:
       evgrid map --scenes 5 --out out/sim-val
       evgrid map --config out/sim-val/config.json --out out/sim-val-again
@@ -182,6 +183,7 @@ def simulate(
     """Simulate nuScenes-like scenes (lidar, radars, odometry, true occupancy) into OUT: npz,
     nuscenes, or recordings (ros2, ros1, mcap: needs evgrid[ros]); seed % 5 == 4 is 'val'.
 
+    \b
     Example (a 10 Hz lidar, three radars at 4 Hz):
       evgrid simulate --format nuscenes --out data/rig --lidar-rate 10 --radar-rate 4
         --radar-channels RADAR_FRONT,RADAR_BACK_LEFT,RADAR_BACK_RIGHT

@@ -420,6 +420,8 @@ def _parse(tp: Any, text: str, where: str) -> Any:
             if len(parts) != len(fs):
                 raise ValueError(f"expected {len(fs)} values {[f.name for f in fs]}, got {text!r}")
             return {f.name: _parse(hints[f.name], p, where) for f, p in zip(fs, parts)}
+    except ConfigError:
+        raise
     except (ValueError, json.JSONDecodeError) as e:
         raise ConfigError(f"{where}: {e}") from None
     try:

@@ -320,9 +320,9 @@ class DataOptions:
     def __post_init__(self) -> None:
         from evgrid.validation import check_int, check_number
 
-        check_int(self, "scenes", min=1)
-        check_int(self, "seed", min=0)
-        check_number(self, "duration", min=0.0, min_open=True)
+        check_int("", "--scenes", self.scenes, min=1)
+        check_int("", "--seed", self.seed, min=0)
+        check_number("", "--duration", self.duration, min=0.0, min_open=True)
 
     def source(self) -> SceneSource:
         """The scene source these options name (the simulator when none is given); paths are
