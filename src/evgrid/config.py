@@ -367,7 +367,11 @@ def _override(cls: type, d: dict, key: str, value: Any, where: str) -> None:
         else:  # inside a free-form section (the scene source): JSON values
             tp = Any
         if i == len(parts) - 1:
-            node[part] = _parse(tp, value, f"{where}: {key}") if isinstance(value, str) else value
+            if isinstance(value, str):
+                value = _parse(tp, value, f"{where}: {key}")
+            if part in PATH_KEYS and isinstance(value, str):
+                value = os.path.abspath(value)  # given on the command line: from here
+            node[part] = value
             return
         if node.get(part) is None:
             if not _optional_dataclass(tp) and tp is not Any:
