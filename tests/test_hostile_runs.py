@@ -229,8 +229,13 @@ def test_dropped_scenes_are_reported_with_why(tmp_path, monkeypatch):
     assert src.dropped() == {"b": "its vehicle travels less than 1 m (left out as in the paper)"}
 
     class Seen(RunEvents):
+        frames: list = []
+
         def start(self, todo, kept, dropped):
             self.dropped = dict(dropped)
+
+        def frame(self, scene, done, total):
+            self.frames.append((scene, done, total))
 
     class Fails(sources.SimSource):
         def dropped(self):
@@ -241,3 +246,23 @@ def test_dropped_scenes_are_reported_with_why(tmp_path, monkeypatch):
     config = MapperConfig(maps=("ray_ilm",))
     summary = map_scenes(Fails((4,), 0.2), out, config, OutputConfig(figures=False), events=seen)
     assert seen.dropped == {"sim-x": "why"} and summary["dropped"] == {"sim-x": "why"}
+    # progress per frame inside the scene, with the scene's length
+    assert seen.frames == [("sim-000004", k, 4) for k in range(1, 5)]
+
+
+def test_the_default_out_is_a_new_timestamped_folder_and_resume_continues_the_latest(
+    tmp_path, monkeypatch
+):
+    monkeypatch.chdir(tmp_path)
+    args = ["evaluate", *FAST, "--scenes", "1", "--workers", "1"]
+    r = runner.invoke(app, args)
+    assert r.exit_code == 0, r.output
+    latest = tmp_path / "out" / "evaluate" / "latest"
+    first = latest.resolve()
+    assert latest.is_symlink() and (first / "summary.json").is_file()
+    time.sleep(1.1)  # the next second: another folder
+    r = runner.invoke(app, args)
+    assert r.exit_code == 0, r.output  # a second run does not trip over the first
+    assert latest.resolve() != first and (latest.resolve() / "summary.json").is_file()
+    r = runner.invoke(app, [*args, "--resume"])
+    assert r.exit_code == 0 and "kept: ['sim-000004']" in r.output, r.output

@@ -35,6 +35,7 @@ __all__ = [
     "MARKER_NAME",
     "default_out",
     "results_folder",
+    "locked",
     "is_complete",
     "mark_complete",
 ]
@@ -115,6 +116,20 @@ def _take_lock(out: Path) -> Path:
             json.dump(me, f)
         return lock
     raise RunLockedError(f"{out}: could not take the lock {lock}")
+
+
+@contextlib.contextmanager
+def locked(out: str | os.PathLike) -> Iterator[Path]:
+    """Hold ``out``'s lock (creating the folder) while a run writes into it, as
+    :func:`results_folder` does, without its policy on existing content (``evgrid train``
+    continues into its folder)."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    lock = _take_lock(out)
+    try:
+        yield out
+    finally:
+        lock.unlink(missing_ok=True)
 
 
 def _holds_results(out: Path) -> bool:

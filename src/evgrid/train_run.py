@@ -143,10 +143,21 @@ def run_training(
     """Cache the samples of both sources (rank 0; cached scenes are kept), then train; writes
     ``OUT/config.json`` (this config) and what :func:`evgrid.learn.train.train` writes.
     ``on_cache(split, done, total)`` after each scene cached. Returns the training result."""
+    from evgrid.outdir import locked
+
+    if run.source is None or run.val_source is None:
+        raise ValueError("a training config needs both 'source' and 'val_source' (scenes)")
+    out = Path(out)
+    if int(os.environ.get("RANK", "0")) != 0:  # the other ranks of torchrun share rank 0's lock
+        return _run_training(run, out, resume, on_cache, on_epoch, on_batch)
+    with locked(out):
+        return _run_training(run, out, resume, on_cache, on_epoch, on_batch)
+
+
+def _run_training(run, out, resume, on_cache, on_epoch, on_batch):
     from evgrid.learn.train import build_cache, train
     from evgrid.sources import source_from_dict
 
-    out = Path(out)
     config = run.train
     cache = out / "cache" / config.data_key()
     sources = {"train": source_from_dict(run.source), "val": source_from_dict(run.val_source)}
