@@ -144,6 +144,9 @@ def test_a_scene_that_raises_is_named_while_the_others_finish(tmp_path):
     assert str(bad) in summary["failed"]["sim-000009"]
     assert (out / "sim-000004" / MARKER_NAME).is_file()
     assert not (out / "sim-000009" / MARKER_NAME).exists()
+    # the table is printed whole, not wrapped at 80 columns, when the output is no terminal
+    rows = [ln for ln in r.output.splitlines() if ln.startswith("| `ray_irm` |")]
+    assert all(ln.endswith("|") for ln in rows) and max(map(len, rows)) > 80, r.output
 
 
 def test_resume_after_a_kill_gives_the_summary_of_an_uninterrupted_run(tmp_path):
@@ -266,3 +269,15 @@ def test_the_default_out_is_a_new_timestamped_folder_and_resume_continues_the_la
     assert latest.resolve() != first and (latest.resolve() / "summary.json").is_file()
     r = runner.invoke(app, [*args, "--resume"])
     assert r.exit_code == 0 and "kept: ['sim-000004']" in r.output, r.output
+
+
+def test_help_keeps_extra_names_and_hints_work_from_a_checkout():
+    import evgrid
+    from evgrid.console import error_line
+
+    r = runner.invoke(app, ["simulate", "--help"])
+    assert r.exit_code == 0 and "evgrid[ros]" in r.output, r.output
+    hint = evgrid.install_hint("ros")
+    assert hint.startswith("pip install -e '") and hint.endswith("[ros]'")  # a source checkout
+    line = error_line(ImportError("MCAP needs mcap (pip install 'evgrid[ros]')"))
+    assert hint in line and "'evgrid[ros]'" not in line
