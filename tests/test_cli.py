@@ -154,6 +154,11 @@ def test_sweep_m_u_min(tmp_path, tiny_checkpoint):
     sweep = load_config(tmp_path / "config.json", None)
     assert isinstance(sweep, SweepConfig) and sweep.values == (0.2, 0.6)
     assert sweep.scenes == ("sim-000004",) and sweep.mapper.checkpoint == str(tiny_checkpoint)
+    again = tmp_path / "again"
+    args = ["sweep-m-u-min", "--config", str(tmp_path / "config.json"), "--out", str(again)]
+    r = runner.invoke(app, [*args, "--workers", "1"])
+    assert r.exit_code == 0, r.output
+    assert json.loads((again / "m_u_min_sweep.json").read_text())["rows"] == res["rows"]
 
 
 def test_map_on_a_dataset_in_the_nuscenes_layout(tmp_path, tiny_checkpoint):
