@@ -148,10 +148,22 @@ def test_sweep_m_u_min(tmp_path, tiny_checkpoint):
     assert set(res["rows"][0]["miou"]) == {"deep_replace", "deep_disc", "fused"}
     assert res["chosen"] in (0.2, 0.6) and "highest m_u_min" in res["rule"]
     assert (tmp_path / "m_u_min_sweep.png").stat().st_size > 1000
+    # its config.json reloads: the same sweep again with --config
+    from evgrid.config import SweepConfig, load_config
+
+    sweep = load_config(tmp_path / "config.json", None)
+    assert isinstance(sweep, SweepConfig) and sweep.values == (0.2, 0.6)
+    assert sweep.scenes == ("sim-000004",) and sweep.mapper.checkpoint == str(tiny_checkpoint)
+    again = tmp_path / "again"
+    args = ["sweep-m-u-min", "--config", str(tmp_path / "config.json"), "--out", str(again)]
+    r = runner.invoke(app, [*args, "--workers", "1"])
+    assert r.exit_code == 0, r.output
+    assert json.loads((again / "m_u_min_sweep.json").read_text())["rows"] == res["rows"]
 
 
 def test_map_on_a_dataset_in_the_nuscenes_layout(tmp_path, tiny_checkpoint):
-    """`evgrid map --nuscenes`: the devkit reads a simulated dataset written in the nuScenes layout."""
+    """`evgrid map --nuscenes`: the devkit reads a simulated dataset written in the nuScenes
+    layout."""
     data = tmp_path / "nuscenes"
     r = runner.invoke(
         app,
@@ -194,7 +206,8 @@ def test_map_on_a_dataset_in_the_nuscenes_layout(tmp_path, tiny_checkpoint):
 
 
 def test_demo_writes_the_metrics_contract(tmp_path):
-    """DIR/metrics.json = {"maps": {<six names>: {"free", "occupied", "unknown"}}, ...} with the shipped Ev-Net."""
+    """DIR/metrics.json = {"maps": {<six names>: {"free", "occupied", "unknown"}}, ...} with the
+    shipped Ev-Net."""
     r = runner.invoke(
         app, ["demo", "--scenes", "1", "--duration", "2", "--workers", "1", "--out", str(tmp_path)]
     )

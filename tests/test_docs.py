@@ -1,4 +1,5 @@
-"""The design notes in docs/ stay true to the code: names exist, cited anchors exist, no private citations."""
+"""The design notes in docs/ stay true to the code: names exist, cited anchors exist, no private
+citations."""
 
 from __future__ import annotations
 
@@ -54,7 +55,8 @@ def resolve(dotted: str) -> object:
 
 
 def table_rows(text: str, first_header: str) -> tuple[list[str], list[list[str]]]:
-    """Header cells and body rows of the Markdown table whose first header cell is ``first_header``."""
+    """Header cells and body rows of the Markdown table whose first header cell is
+    ``first_header``."""
     lines = text.splitlines()
     for i, line in enumerate(lines):
         cells = [c.strip() for c in line.strip().strip("|").split("|")]

@@ -41,7 +41,8 @@ def test_iou_hand_computed():
     pred = np.array([FREE, FREE, OCCUPIED, UNKNOWN, UNKNOWN])
     ref = np.array([FREE, OCCUPIED, OCCUPIED, UNKNOWN, FREE])
     got = iou_per_class(pred, ref)
-    # free: inter {0}, union {0, 1, 4} -> 1/3; occupied: inter {2}, union {1, 2} -> 1/2; unknown: {3} / {3, 4}
+    # free: inter {0}, union {0, 1, 4} -> 1/3; occupied: inter {2}, union {1, 2} -> 1/2; unknown:
+    # {3} / {3, 4}
     assert got == {
         "free": pytest.approx(1 / 3),
         "occupied": pytest.approx(0.5),

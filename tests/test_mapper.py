@@ -159,7 +159,8 @@ def test_update_schedule_hand_computed():
     assert schedule(10, range(0, 500, 100)) == [0, 100, 200, 300, 400]  # 10 Hz lidar: every frame
     assert schedule(4, range(0, 1000, 50)) == [0, 250, 500, 750]
     assert schedule(10, range(0, 300, 50), keyframes=(50,)) == [0, 50, 100, 200]  # keyframes always
-    # jitter of a few ms neither drops nor doubles updates; a 13 Hz sensor maps the frame nearest each 100 ms
+    # jitter of a few ms neither drops nor doubles updates; a 13 Hz sensor maps the frame nearest
+    # each 100 ms
     assert schedule(10, [0, 49.8, 99.6, 150.1, 199.7, 250.2, 300.4]) == [0, 99.6, 199.7, 300.4]
     assert schedule(10, [0, 77, 154, 231, 308, 385]) == [0, 77, 231, 308, 385]
     # after a gap the grid catches up: no burst of updates

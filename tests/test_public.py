@@ -9,7 +9,10 @@ import evgrid
 
 
 def test_import_evgrid_is_light():
-    code = "import sys, evgrid; print(sorted(m for m in ('torch', 'numba', 'matplotlib') if m in sys.modules))"
+    code = (
+        "import sys, evgrid; "
+        "print(sorted(m for m in ('torch', 'numba', 'matplotlib') if m in sys.modules))"
+    )
     out = subprocess.run(
         [sys.executable, "-c", code], capture_output=True, text=True, check=True
     ).stdout.strip()

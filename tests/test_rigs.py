@@ -346,17 +346,30 @@ def test_config_round_trip_with_rig_fields():
 
 
 def test_cli_options_reach_the_mapper_config():
-    from evgrid.cli import _mapper_config, _sim_config
+    # the command line's options are overrides of the config (evgrid.config.config_from_args)
+    from evgrid.config import config_from_args
+    from evgrid.sim_writer import SimulateOptions
 
-    cfg = _mapper_config(MapperConfig(), self_returns="off", radar_filter="nuscenes")
+    def mapper(*args):
+        return config_from_args(RunConfig, list(args)).mapper
+
+    cfg = mapper("--self-returns", "off", "--radar-filter", "nuscenes")
     assert cfg.self_returns.mode == "off" and cfg.radar_filter == RadarFilter("nuscenes")
-    cfg = _mapper_config(MapperConfig(), body_box="-1,-1,0,5,1,2.5")
+    cfg = mapper("--body-box", "-1,-1,0,5,1,2.5")
     assert cfg.self_returns.mode == "box" and cfg.self_returns.box == parse_body_box(
         "-1,-1,0,5,1,2.5"
     )
     with pytest.raises(ValueError, match="six numbers"):
         parse_body_box("1,2,3")
-    sim = _sim_config(4.0, "urban", 10.0, "RADAR_FRONT,SIDE=RADAR_FRONT_LEFT", "4,8", False, 0.1)
+    sim = SimulateOptions(
+        duration=4.0,
+        environment="urban",
+        lidar_rate=10.0,
+        radar_channels="RADAR_FRONT,SIDE=RADAR_FRONT_LEFT",
+        radar_rate="4,8",
+        ego_returns=False,
+        sweep_faults=0.1,
+    ).sim_config()
     assert sim.rig.radar_channels == ("RADAR_FRONT", "SIDE") and sim.rig.mounts() == (
         "RADAR_FRONT",
         "RADAR_FRONT_LEFT",

@@ -45,7 +45,20 @@ _PUBLIC = {
     "export_map": "evgrid.export",
 }
 
-__all__ = ["__version__", *_PUBLIC]
+__all__ = ["__version__", "install_hint", *_PUBLIC]
+
+
+def install_hint(extra: str) -> str:
+    """The command that installs an extra: ``pip install -e '.[ros]'`` in a source checkout
+    (what evgrid is installed from, as the README says), else ``pip install 'evgrid[ros]'``."""
+    import os
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    if not (root / "pyproject.toml").is_file():
+        return f"pip install 'evgrid[{extra}]'"
+    here = "." if Path.cwd().resolve() == root else os.path.relpath(root)
+    return f"pip install -e '{here}[{extra}]'"
 
 
 def __getattr__(name: str) -> Any:

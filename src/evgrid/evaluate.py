@@ -48,7 +48,8 @@ PAPER_TABLE_I: dict[str, dict[str, float]] = {
 
 
 def classify(m: np.ndarray) -> np.ndarray:
-    """Class of each cell of masses ``(..., 3)``: FREE, OCCUPIED or UNKNOWN (uint8); ties go to UNKNOWN."""
+    """Class of each cell of masses ``(..., 3)``: FREE, OCCUPIED or UNKNOWN (uint8); ties go to
+    UNKNOWN."""
     a = np.asarray(m)
     if a.ndim == 0 or a.shape[-1] != 3:
         raise ValueError(f"masses must have a last axis of length 3, got shape {a.shape}")
@@ -62,7 +63,8 @@ def classify(m: np.ndarray) -> np.ndarray:
 def iou_per_class(
     pred: np.ndarray, ref: np.ndarray, mask: np.ndarray | None = None
 ) -> dict[str, float]:
-    """IoU of each class between two class rasters over ``mask``; NaN where a class is in neither."""
+    """IoU of each class between two class rasters over ``mask``; NaN where a class is in
+    neither."""
     pred = np.asarray(pred)
     ref = np.asarray(ref)
     if pred.shape != ref.shape:
@@ -82,7 +84,8 @@ def iou_per_class(
 
 @numba.njit(cache=True)
 def _k_confusion(ref_cls, mask, m, out):
-    """out[ref, pred] += cells under ``mask``, pred being the class of ``m`` (largest mass, ties unknown)."""
+    """out[ref, pred] += cells under ``mask``, pred being the class of ``m`` (largest mass, ties
+    unknown)."""
     h, w = ref_cls.shape
     for i in range(h):
         for j in range(w):
@@ -100,7 +103,8 @@ def _k_confusion(ref_cls, mask, m, out):
 
 
 def confusion(ref_cls: np.ndarray, mask: np.ndarray, masses: np.ndarray) -> np.ndarray:
-    """3 x 3 counts (int64) of reference class (rows) against the class of ``masses`` (columns) over ``mask``."""
+    """3 x 3 counts (int64) of reference class (rows) against the class of ``masses`` (columns) over
+    ``mask``."""
     out = np.zeros((3, 3), dtype=np.int64)
     _k_confusion(
         np.ascontiguousarray(ref_cls, dtype=np.uint8),
@@ -112,7 +116,8 @@ def confusion(ref_cls: np.ndarray, mask: np.ndarray, masses: np.ndarray) -> np.n
 
 
 def iou_from_confusion(c: np.ndarray) -> dict[str, float]:
-    """Per-class IoU from confusion counts: |ref = k and pred = k| / |ref = k or pred = k|; NaN where neither."""
+    """Per-class IoU from confusion counts: |ref = k and pred = k| / |ref = k or pred = k|; NaN
+    where neither."""
     out = {}
     for k, name in enumerate(CLASSES):
         inter = int(c[k, k])
@@ -139,7 +144,8 @@ def tile_keys(m: EvidentialMap, r0: int, c0: int, h: int, w: int) -> set[tuple[i
 def tile_confusions_vs_map(
     maps: Mapping[str, EvidentialMap], reference: str, key: tuple[int, int]
 ) -> np.ndarray:
-    """Confusion counts ``(len(maps), 3, 3)`` of every map against ``maps[reference]`` on one tile, over its covered cells."""
+    """Confusion counts ``(len(maps), 3, 3)`` of every map against ``maps[reference]`` on one tile,
+    over its covered cells."""
     out = np.zeros((len(maps), 3, 3), dtype=np.int64)
     ref = _tile(maps[reference], key)
     if ref is None:
@@ -155,7 +161,8 @@ def tile_confusions_vs_map(
 
 
 def observable(cls: np.ndarray) -> np.ndarray:
-    """Free cells and occupied cells with a free 8-neighbour (building interiors are occupied but unobservable)."""
+    """Free cells and occupied cells with a free 8-neighbour (building interiors are occupied but
+    unobservable)."""
     free = cls == FREE
     near = free.copy()
     near[1:] |= free[:-1]
@@ -220,7 +227,8 @@ def compare_maps(
 def compare_truth(
     maps: Mapping[str, EvidentialMap], truth: EvidentialMap, reference: str = "ray_ilm"
 ) -> dict[str, dict[str, float]]:
-    """Per-class IoU (free, occupied) of every map against the accumulated true occupancy (simulation)."""
+    """Per-class IoU (free, occupied) of every map against the accumulated true occupancy
+    (simulation)."""
     reference = reference if reference in maps else next(iter(maps))
     total = sum(
         (tile_confusions_vs_truth(maps, truth, reference, k) for k in list(truth.tiles)),
@@ -233,7 +241,8 @@ def compare_truth(
 
 
 def mean_iou(per_scene: Iterable[Mapping[str, Mapping[str, float]]]) -> dict[str, dict[str, float]]:
-    """Mean over scenes of per-map, per-class IoU (scenes where a class is undefined are skipped)."""
+    """Mean over scenes of per-map, per-class IoU (scenes where a class is undefined are
+    skipped)."""
     acc: dict[str, dict[str, list[float]]] = {}
     for scene in per_scene:
         for name, ious in scene.items():
@@ -287,7 +296,8 @@ def bootstrap_interval(
 def iou_intervals(
     per_scene: Iterable[Mapping[str, Mapping[str, float]]], level: float = 0.95
 ) -> dict[str, dict[str, dict]]:
-    """Per-map, per-class mean IoU over scenes with its bootstrap interval (see :func:`bootstrap_interval`)."""
+    """Per-map, per-class mean IoU over scenes with its bootstrap interval (see
+    :func:`bootstrap_interval`)."""
     acc: dict[str, dict[str, list[float]]] = {}
     for scene in per_scene:
         for name, ious in scene.items():

@@ -27,7 +27,7 @@ Map grid (the first pose's frame)
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -114,27 +114,17 @@ class GridSpec:
         return rows, cols
 
     def to_dict(self) -> dict[str, float | int]:
-        """Plain-JSON form."""
-        return {"n_cells": int(self.n_cells), "length_m": float(self.length_m)}
+        """Plain-JSON form (evgrid.serial, the serialiser of every parameter dataclass)."""
+        from evgrid.serial import to_dict
+
+        return to_dict(self)
 
     @classmethod
     def from_dict(cls, d: dict) -> GridSpec:
-        """Inverse of :meth:`to_dict`; ValueError naming a missing or malformed key."""
-        if not isinstance(d, Mapping):
-            raise ValueError(f"GridSpec.from_dict needs a mapping, got {type(d).__name__}")
-        missing = [k for k in ("n_cells", "length_m") if k not in d]
-        if missing:
-            raise ValueError(
-                f"GridSpec.from_dict: missing key(s) {missing} (a grid needs n_cells and "
-                f"length_m), got keys {sorted(map(str, d))}"
-            )
-        try:
-            n_cells, length_m = d["n_cells"], float(d["length_m"])
-        except (TypeError, ValueError) as e:
-            raise ValueError(f"GridSpec.from_dict: key 'length_m' is not a number ({e})") from e
-        if isinstance(n_cells, float) and n_cells.is_integer():
-            n_cells = int(n_cells)
-        return cls(n_cells=n_cells, length_m=length_m)
+        """Inverse of :meth:`to_dict`; a missing or bad field is a ValueError naming it."""
+        from evgrid.serial import from_dict
+
+        return from_dict(cls, d, "GridSpec", required=("n_cells", "length_m"))
 
 
 def quaternion_to_matrix(q: Sequence[float]) -> np.ndarray:

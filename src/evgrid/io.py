@@ -1,4 +1,5 @@
-"""Small file helpers: atomic writes (write a temporary file next to the target, then rename), JSON."""
+"""Small file helpers: atomic writes (write a temporary file next to the target, then rename),
+JSON."""
 
 from __future__ import annotations
 
@@ -76,7 +77,8 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> None:
 
 
 def jsonable(x: Any) -> Any:
-    """Plain JSON values: numpy numbers to Python numbers, NaN to null, tuples to lists, keys to strings."""
+    """Plain JSON values: numpy numbers to Python numbers, NaN to null, tuples to lists, keys to
+    strings."""
     if isinstance(x, dict):
         return {str(k): jsonable(v) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
@@ -91,7 +93,8 @@ def jsonable(x: Any) -> Any:
 
 
 def write_json(path: str | os.PathLike, obj: Any) -> Path:
-    """Write ``obj`` as indented JSON (see :func:`jsonable`), atomically; the one JSON writer of evgrid."""
+    """Write ``obj`` as indented JSON (see :func:`jsonable`), atomically; the one JSON writer of
+    evgrid."""
     text = json.dumps(jsonable(obj), indent=2)
     atomic_write_text(path, text + "\n")
     return Path(path)

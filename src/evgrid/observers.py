@@ -64,7 +64,8 @@ class TruthTracker:
 
 
 class TileScores:
-    """Confusion counts of several maps, kept per tile and summed; only changed tiles are recounted."""
+    """Confusion counts of several maps, kept per tile and summed; only changed tiles are
+    recounted."""
 
     def __init__(self, names: tuple[str, ...], count_tile: Callable[[tuple[int, int]], np.ndarray]):
         self.names = names
@@ -92,7 +93,8 @@ class TileScores:
 
 
 class SceneScores:
-    """IoU of every map against ``ray_ilm`` and, where the simulator gives it, the truth; at every keyframe if asked.
+    """IoU of every map against ``ray_ilm`` and, where the simulator gives it, the truth; at every
+    keyframe if asked.
 
     Scores are kept per tile: an update dirties the tiles its windows touched, and a keyframe
     recounts only those, so tracking convergence costs the same in the first and the tenth minute.
@@ -158,7 +160,8 @@ class SceneScores:
 
     def perception_field(self) -> dict[str, dict[str, float]]:
         """Per map, against every true cell seen so far: free and occupied IoU, and the area (m^2)
-        classified correctly as free or occupied (the paper claims the deep prior enlarges this perception field)."""
+        classified correctly as free or occupied (the paper claims the deep prior enlarges this
+        perception field)."""
         out = {}
         for i, (n, d) in enumerate(self.field.iou().items()):
             c = self.field.total[i]

@@ -171,16 +171,17 @@ class RadarFilter:
         ), n
 
     def to_dict(self) -> dict[str, Any]:
-        """Plain JSON (lists for the sets), as stored in checkpoints."""
-        sets = {k: getattr(self, k) for k in _NUSCENES}
-        return {"mode": self.mode, **{k: None if v is None else list(v) for k, v in sets.items()}}
+        """Plain JSON (lists for the sets), as stored in checkpoints (evgrid.serial)."""
+        from evgrid.serial import to_dict
+
+        return to_dict(self)
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> RadarFilter:
-        """Inverse of :meth:`to_dict`."""
-        return cls(
-            d.get("mode", "none"), *(None if d.get(k) is None else tuple(d[k]) for k in _NUSCENES)
-        )
+        """Inverse of :meth:`to_dict` (evgrid.serial; missing fields take their defaults)."""
+        from evgrid.serial import from_dict
+
+        return from_dict(cls, d)
 
 
 def check_trained_filter(

@@ -2,17 +2,22 @@
 
 A results folder holds ``config.json`` (the :class:`~evgrid.config.RunConfig` that reproduces it),
 ``summary.json``, ``table.md`` (Table I beside the paper's) and one folder per scene with
-``metrics.json``, figures and the GIF. A run refuses to write into a folder that already holds
-results unless told to overwrite, and a run that fails leaves no empty folder behind.
+``metrics.json``, figures and the GIF, written as each scene finishes (through
+:func:`evgrid.engine.fan_out`), its ``config.json`` naming its own source and scene, and a
+completion marker written last. The folder's policy (refused unless ``overwrite`` or ``resume``,
+locked while the run lasts, no empty folder left by a failed run) is :mod:`evgrid.outdir`'s.
+A scene that fails is reported by name while the others finish; ``summary.json`` lists it.
 """
 
 from __future__ import annotations
 
 import contextlib
+import logging
 import math
 import os
+import sys
 import time
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -20,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from evgrid.classes import CLASSES
-from evgrid.config import MapperConfig, OutputConfig, RunConfig
+from evgrid.config import MapperConfig, OutputConfig, RunConfig, SweepConfig, config_hash
 from evgrid.data.frame import Frame
 from evgrid.evaluate import (
     bootstrap_interval,
@@ -33,6 +38,7 @@ from evgrid.fusion import FusionParams, MapSet
 from evgrid.io import jsonable, write_json
 from evgrid.mapper import OccupancyMapper
 from evgrid.observers import GifRecorder, SceneScores, TruthTracker
+from evgrid.outdir import ResultsExistError, is_complete, mark_complete, results_folder
 
 __all__ = [
     "SceneResult",
@@ -43,44 +49,43 @@ __all__ = [
     "choose_m_u_min",
     "results_folder",
     "ResultsExistError",
+    "RunEvents",
+    "RunInterrupted",
     "convergence_at",
     "convergence_table",
     "frame_time_summary",
 ]
 
 
-class ResultsExistError(FileExistsError):
-    """The results folder already holds another run's results."""
+log = logging.getLogger(__name__)
 
 
-@contextlib.contextmanager
-def results_folder(out: str | os.PathLike, overwrite: bool = False) -> Iterator[Path]:
-    """A results folder for one run: refused if it holds results (unless ``overwrite``); removed again if the run fails empty."""
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise ResultsExistError(f"{out} is a file, not a results folder")
-    if out.is_dir() and any(out.iterdir()) and not overwrite:
-        raise ResultsExistError(
-            f"{out} already holds results; pass --overwrite to replace them or choose another --out"
+class RunEvents:
+    """What a run tells as it goes (the command line shows it); every method may be left out."""
+
+    def start(self, todo: list[str], kept: list[str], dropped: Mapping[str, str]) -> None:
+        """``todo`` scenes to map, ``kept`` complete ones resumed, ``dropped`` by the source."""
+
+    def frame(self, scene: str, done: int, total: int | None) -> None:
+        """One more frame of ``scene`` mapped (only when scenes run in this process)."""
+
+    def scene(self, metrics: dict[str, Any]) -> None:
+        """A scene finished; its results are written."""
+
+    def failed(self, scene: str, error: str) -> None:
+        """A scene raised; the others go on."""
+
+
+class RunInterrupted(KeyboardInterrupt):
+    """Ctrl-C during a run: ``kept`` names the complete scenes left in ``out``."""
+
+    def __init__(self, out: Path, kept: list[str], total: int) -> None:
+        super().__init__(
+            f"interrupted: {len(kept)} of {total} scene(s) complete in {out} "
+            f"({', '.join(kept) or 'none'}); no file is left half-written; "
+            f"continue with --resume --out {out}, or start again with --overwrite"
         )
-    created = not out.exists()
-    out.mkdir(parents=True, exist_ok=True)
-    try:
-        yield out
-    except BaseException:
-        if created:
-            _remove_empty_dirs(out)
-        raise
-
-
-def _remove_empty_dirs(path: Path) -> None:
-    for sub in sorted(
-        (p for p in path.rglob("*") if p.is_dir()), key=lambda p: len(p.parts), reverse=True
-    ):
-        with contextlib.suppress(OSError):
-            sub.rmdir()
-    with contextlib.suppress(OSError):
-        path.rmdir()
+        self.out, self.kept = out, kept
 
 
 @dataclass
@@ -103,11 +108,14 @@ def map_scene(
     progress: Any = None,
     observers: tuple = (),
     overwrite: bool = False,
+    source: dict[str, Any] | None = None,
 ) -> SceneResult:
-    """Map a whole scene; with ``out_dir`` write ``config.json``, ``metrics.json``, figures, the GIF,
-    the exports of ``outputs.exports`` and (optionally) the maps.
+    """Map a whole scene; with ``out_dir`` write ``config.json`` (naming ``source``, a source as
+    :func:`~evgrid.sources.source_to_dict` gives it, and this scene), ``metrics.json``, figures,
+    the GIF, the exports of ``outputs.exports`` and (optionally) the maps.
 
-    ``observers`` (e.g. exporters) see every map update after the built-in ones.
+    ``observers`` (e.g. exporters) see every map update after the built-in ones. Files are
+    written under temporary names and renamed when complete (the exports when closed).
     """
     name = name or getattr(frames, "name", "scene")
     with (
@@ -115,85 +123,123 @@ def map_scene(
         if out_dir is not None
         else contextlib.nullcontext() as out
     ):
-        exporters = _exporters(outputs, out, name)
-        truth = TruthTracker(config.grid, config.tile_cells)
-        mapper = OccupancyMapper(config, deep)
-        scores = SceneScores(mapper.maps.maps, truth, track=outputs.convergence)
-        gif = (
-            GifRecorder(config.grid, outputs.gif_window_m, outputs.gif_step, outputs.gif_max_frames)
-            if out is not None and outputs.figures
-            else None
-        )
-        mapper.observers += [truth, scores, *([gif] if gif else []), *exporters, *observers]
-        t0 = time.perf_counter()
-        frame_ms: list[float] = []  # mapper and observers, without reading the frame
-        for frame in frames:
-            t = time.perf_counter()
-            mapper.process(frame)
-            frame_ms.append((time.perf_counter() - t) * 1e3)
-            if progress is not None:
-                progress()
-        seconds = time.perf_counter() - t0
-        files: dict[str, str] = {}
-        for fmt, exporter in zip(outputs.exports, exporters):
-            written = exporter.close()
-            files[f"export_{fmt}"] = str(written[0] if isinstance(written, list) else written)
-        metrics = _scene_metrics(name, mapper, scores, seconds, frame_ms)
-        metrics.update(_source_report(frames))
-        if out is not None:
-            files["config"] = str(
-                write_json(out / "config.json", RunConfig(config, outputs).to_dict())
+        exporters, partial = _exporters(outputs, out, name)
+        try:
+            return _map_scene(
+                frames,
+                out,
+                config,
+                outputs,
+                deep,
+                name,
+                progress,
+                observers,
+                source,
+                exporters,
+                partial,
             )
-            files["metrics"] = str(write_json(out / "metrics.json", metrics))
-            if outputs.figures and scores.keyframes:
-                from evgrid.render import write_scene_figures
+        finally:
+            for tmp in partial.values():  # an export not renamed is incomplete: never kept
+                tmp.unlink(missing_ok=True)
 
-                files.update(
-                    write_scene_figures(
-                        mapper.maps.maps,
-                        out,
-                        name,
-                        mapper.trajectory,
-                        mapper.last_isms,
-                        scores.keyframes,
-                        gif.frames if gif else (),
-                    )
+
+def _map_scene(
+    frames, out, config, outputs, deep, name, progress, observers, source, exporters, partial
+) -> SceneResult:
+    truth = TruthTracker(config.grid, config.tile_cells)
+    mapper = OccupancyMapper(config, deep)
+    scores = SceneScores(mapper.maps.maps, truth, track=outputs.convergence)
+    gif = (
+        GifRecorder(config.grid, outputs.gif_window_m, outputs.gif_step, outputs.gif_max_frames)
+        if out is not None and outputs.figures
+        else None
+    )
+    mapper.observers += [truth, scores, *([gif] if gif else []), *exporters, *observers]
+    t0 = time.perf_counter()
+    frame_ms: list[float] = []  # mapper and observers, without reading the frame
+    for frame in frames:
+        t = time.perf_counter()
+        mapper.process(frame)
+        frame_ms.append((time.perf_counter() - t) * 1e3)
+        if progress is not None:
+            progress()
+    seconds = time.perf_counter() - t0
+    files: dict[str, str] = {}
+    for fmt, exporter in zip(outputs.exports, exporters):
+        written = exporter.close()
+        if fmt in partial:
+            final = partial[fmt].with_name(partial[fmt].name.removeprefix(".partial-"))
+            os.replace(partial.pop(fmt), final)
+            written = final
+        files[f"export_{fmt}"] = str(written[0] if isinstance(written, list) else written)
+    metrics = _scene_metrics(name, mapper, scores, seconds, frame_ms)
+    metrics.update(_source_report(frames))
+    if out is not None:
+        run = RunConfig(config, outputs, source, (name,) if source is not None else None)
+        files["config"] = str(write_json(out / "config.json", run.to_dict()))
+        files["metrics"] = str(write_json(out / "metrics.json", metrics))
+        if outputs.figures and scores.keyframes:
+            from evgrid.render import write_scene_figures
+
+            files.update(
+                write_scene_figures(
+                    mapper.maps.maps,
+                    out,
+                    name,
+                    mapper.trajectory,
+                    mapper.last_isms,
+                    scores.keyframes,
+                    gif.frames if gif else (),
                 )
-            if outputs.save_maps:
-                from evgrid.grid import save_map
+            )
+        if outputs.save_maps:
+            from evgrid.grid import save_map
 
-                for m_name, m in mapper.maps.maps.items():
-                    files[f"map_{m_name}"] = str(save_map(m, out / "maps" / f"{m_name}.npz"))
+            for m_name, m in mapper.maps.maps.items():
+                files[f"map_{m_name}"] = str(save_map(m, out / "maps" / f"{m_name}.npz"))
     return SceneResult(name, jsonable(metrics), files, metrics["frames_per_second"])
 
 
-def _exporters(outputs: OutputConfig, out: Path | None, name: str) -> list[Any]:
-    """The recorders ``outputs.exports`` asks for (into the scene's folder), and the live viewer."""
+def _exporters(outputs: OutputConfig, out: Path | None, name: str) -> tuple[list[Any], dict]:
+    """The recorders ``outputs.exports`` asks for (into the scene's folder), and the live viewer;
+    and the temporary paths of the files that are renamed to their names when closed."""
     from evgrid.export import make_observer
 
     if outputs.exports and out is None:
         raise ValueError("exports need a results folder (out_dir)")
-    paths = {
-        "nav2": lambda: out / "nav2",
-        "mcap": lambda: out / f"{name}.mcap",
-        "rerun": lambda: out / f"{name}.rrd",
+    # written under a temporary name: Ctrl-C or a full disk never leaves a half file named .mcap
+    partial = {
+        "mcap": out / f".partial-{name}.mcap" if out else None,
+        "rerun": out / f".partial-{name}.rrd" if out else None,
     }
-    # MCAP keeps a fixed window around the vehicle per update, so a long drive's file grows with time, not area x time
+    partial = {f: partial[f] for f in outputs.exports if f in partial}
+    paths = {"nav2": out / "nav2" if out else None, **partial}
+    for tmp in partial.values():
+        tmp.unlink(missing_ok=True)  # left by a killed run
+    # MCAP keeps a fixed window around the vehicle per update, so a long drive's file grows
+    # with time, not area x time
     kwargs = {"mcap": {"window_m": outputs.export_window_m}}
-    found = [make_observer(fmt, paths[fmt](), **kwargs.get(fmt, {})) for fmt in outputs.exports]
+    found = [make_observer(fmt, paths[fmt], **kwargs.get(fmt, {})) for fmt in outputs.exports]
     if outputs.viewer:
+        # rerun spawns its viewer by name: the one installed beside this interpreter (a virtual
+        # environment's bin) is found even when that bin is not on PATH
+        bin_dir = str(Path(sys.executable).parent)
+        if bin_dir not in os.environ.get("PATH", "").split(os.pathsep):
+            os.environ["PATH"] = os.pathsep.join([bin_dir, os.environ.get("PATH", "")])
         found.append(make_observer("rerun", None))
-    return found
+    return found, partial
 
 
 def _source_report(frames: Any) -> dict[str, Any]:
-    """What the data source itself reports about the scene (bags: where a cut recording stopped; loaders: gap counts)."""
+    """What the data source itself reports about the scene (bags: where a cut recording stopped;
+    loaders: gap counts)."""
     found = {k: getattr(frames, k, None) for k in ("stopped", "counts", "stats")}
     report = {k: v for k, v in found.items() if v and not callable(v)}
     return {"source_report": report} if report else {}
 
 
-#: Seconds of driving after which convergence is reported (paper: faster convergence with the deep prior).
+#: Seconds of driving after which convergence is reported (paper: faster convergence with the deep
+#: prior).
 CONVERGENCE_TIMES_S: tuple[float, ...] = (1.0, 2.0, 5.0, 10.0)
 
 
@@ -201,7 +247,8 @@ def convergence_at(
     keyframes: list[dict[str, Any]], times_s: tuple[float, ...] = CONVERGENCE_TIMES_S
 ) -> dict[str, Any]:
     """Each map's perception field (free and occupied IoU against the truth, and the area classified
-    correctly) at the first keyframe at least ``t`` seconds after the scene's first; ``None`` past its end."""
+    correctly) at the first keyframe at least ``t`` seconds after the scene's first; ``None``
+    past its end."""
     kfs = [k for k in keyframes if "field" in k]
     if not kfs:
         return {}
@@ -274,14 +321,34 @@ def _scene_metrics(
 
 
 def _map_one(args: tuple) -> dict[str, Any]:
-    source, name, out_dir, config, outputs = args
+    source, name, out_dir, config, outputs, source_dict, on_frame = args
     scene = source.load(name)
-    res = map_scene(scene, Path(out_dir) / name, config, outputs, name=name, overwrite=True)
+    progress = None
+    if on_frame is not None:  # only in this process (a callback does not cross processes)
+        total = len(scene) if hasattr(scene, "__len__") else None
+        count = iter(range(1, 1 << 62))
+        progress = lambda: on_frame(name, next(count), total)  # noqa: E731
+    res = map_scene(
+        scene,
+        Path(out_dir) / name,
+        config,
+        outputs,
+        name=name,
+        overwrite=True,
+        progress=progress,
+        source=source_dict,
+    )
     return res.metrics
 
 
+def scene_config_hash(run: RunConfig, name: str) -> str:
+    """The hash a scene's completion marker holds: its mapper, outputs, source and name."""
+    return config_hash(replace(run, scenes=(name,)))
+
+
 def summarize(per_scene: list[dict[str, Any]]) -> dict[str, Any]:
-    """mIoU over scenes (against ray_ilm and, where known, the truth), speed and skip counts, from per-scene metrics."""
+    """mIoU over scenes (against ray_ilm and, where known, the truth), speed and skip counts, from
+    per-scene metrics."""
 
     def clean(d: Mapping[str, Mapping[str, Any]]) -> dict:
         return {
@@ -337,7 +404,8 @@ def summarize(per_scene: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def convergence_table(conv: Mapping[str, Any]) -> str:
-    """Markdown: per map, free and occupied IoU against the truth and the area classified correctly after each time."""
+    """Markdown: per map, free and occupied IoU against the truth and the area classified correctly
+    after each time."""
     ts = conv["t_s"]
     head = (
         "| map | "
@@ -383,62 +451,98 @@ def map_scenes(
     outputs: OutputConfig = OutputConfig(),
     names: list[str] | None = None,
     workers: int = 1,
-    on_scene: Any = None,
+    on_scene: Callable[[dict], None] | None = None,
     overwrite: bool = False,
+    *,
+    engine: str = "local",
+    resume: bool = False,
+    events: RunEvents | None = None,
 ) -> dict[str, Any]:
-    """Map every scene of a source (``workers`` processes, one scene each); write config, summary and table.
+    """Map every scene of a source; write config, per-scene results as each scene finishes,
+    summary and table. Returns the summary.
 
-    Writes ``OUT/config.json`` (re-run with ``evgrid map --config``), ``OUT/<scene>/...`` per
-    scene, ``OUT/summary.json`` and ``OUT/table.md``. Returns the summary.
+    Scenes run through :func:`evgrid.engine.fan_out` (``engine``, ``workers`` at once). Writes
+    ``OUT/config.json`` (re-run with ``evgrid map --config``), ``OUT/<scene>/...`` with its own
+    ``config.json`` and a completion marker, ``OUT/summary.json`` (``failed``: the scenes that
+    raised, with their errors) and ``OUT/table.md``. With ``resume``, scenes complete for the
+    same config are kept and the rest redone. Ctrl-C raises :class:`RunInterrupted`.
     """
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
-
+    from evgrid.engine import fan_out
     from evgrid.sources import scenes_of, source_to_dict
 
+    events = events or RunEvents()
+    dropped = getattr(source, "dropped", None)
+    dropped = dropped() if callable(dropped) else {}
     names = scenes_of(source, names)
-    if not names:
-        raise ValueError("no scenes to map")
-    with results_folder(out_dir, overwrite) as out:
-        run = RunConfig(config, outputs, source_to_dict(source), tuple(names))
+    source_dict = source_to_dict(source)
+    run = RunConfig(config, outputs, source_dict, tuple(names))
+    with results_folder(out_dir, overwrite, resume) as out:
         write_json(out / "config.json", run.to_dict())
-        jobs = [(source, n, str(out), config, outputs) for n in names]
-        per_scene: list[dict[str, Any]] = []
-        if workers <= 1 or len(jobs) == 1:
-            results: Iterable[dict[str, Any]] = map(_map_one, jobs)
-            pool = contextlib.nullcontext()
-        else:
-            # spawn: a fresh interpreter per worker, safe with torch's and numba's thread pools
-            pool = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"))
-            results = pool.map(_map_one, jobs)
-        with pool:
-            for m in results:
-                per_scene.append(m)
-                if on_scene:
-                    on_scene(m)
-        summary = summarize(per_scene)
-        write_json(out / "summary.json", summary)
-        table = markdown_table(
-            {k: v for k, v in summary["maps"].items() if k != "ray_ilm"},
-            title=f"{len(names)} scene(s), against ray_ilm; 95% bootstrap interval over scenes",
-            intervals=summary.get("maps_interval"),
+        hashes = {n: scene_config_hash(run, n) for n in names}
+        done: dict[str, dict[str, Any]] = {}
+        if resume:
+            done = {n: m for n in names if (m := is_complete(out / n, hashes[n])) is not None}
+        failed: dict[str, str] = {}
+        todo = [n for n in names if n not in done]
+        events.start(todo, list(done), dropped)
+        on_frame = events.frame if workers <= 1 and engine == "local" else None
+        jobs = [(n, (source, n, str(out), config, outputs, source_dict, on_frame)) for n in todo]
+        try:
+            for o in fan_out(_map_one, jobs, engine=engine, workers=workers):
+                if o.ok:
+                    mark_complete(out / o.key, hashes[o.key])  # last: the scene is whole
+                    done[o.key] = o.result
+                    (on_scene or events.scene)(o.result)
+                else:
+                    failed[o.key] = o.error
+                    log.error("scene %s failed: %s", o.key, o.error)
+                    events.failed(o.key, o.error)
+        except KeyboardInterrupt:
+            raise RunInterrupted(out, [n for n in names if n in done], len(names)) from None
+        return _write_summary(out, [done[n] for n in names if n in done], failed, dropped, outputs)
+
+
+def _write_summary(
+    out: Path,
+    per_scene: list[dict[str, Any]],
+    failed: dict[str, str],
+    dropped: Mapping[str, str],
+    outputs: OutputConfig,
+) -> dict[str, Any]:
+    summary = summarize(per_scene) if per_scene else {"maps": {}, "scenes": []}
+    summary["failed"] = failed
+    summary["dropped"] = dict(dropped)
+    if "ray_ilm" not in summary["maps"] and per_scene:
+        summary["no_reference"] = (
+            "no IoU can be computed: the maps mapped do not include the reference ray_ilm"
         )
-        if "vs_truth" in summary:
-            table += "\n" + markdown_table(
-                summary["vs_truth"],
-                title="against the true occupancy (simulator)",
-                paper=False,
-                intervals=summary.get("vs_truth_interval"),
-            )
-        if "convergence_truth" in summary:
-            table += "\n" + convergence_table(summary["convergence_truth"])
-            if outputs.figures:
-                from evgrid.render import plot_perception_field
+    write_json(out / "summary.json", summary)
+    if not per_scene:
+        return summary
+    n = len(summary["scenes"])
+    table = markdown_table(
+        {k: v for k, v in summary["maps"].items() if k != "ray_ilm"},
+        title=f"{n} scene(s), against ray_ilm; 95% bootstrap interval over scenes",
+        intervals=summary.get("maps_interval"),
+    )
+    if "no_reference" in summary:
+        table = f"{summary['no_reference']} (add it with --maps ray_ilm,...)\n"
+    if "vs_truth" in summary:
+        table += "\n" + markdown_table(
+            summary["vs_truth"],
+            title="against the true occupancy (simulator)",
+            paper=False,
+            intervals=summary.get("vs_truth_interval"),
+        )
+    if "convergence_truth" in summary:
+        table += "\n" + convergence_table(summary["convergence_truth"])
+        if outputs.figures:
+            from evgrid.render import plot_perception_field
 
-                plot_perception_field(summary["convergence_truth"], out / "convergence_truth.png")
-        from evgrid.io import atomic_write_text
+            plot_perception_field(summary["convergence_truth"], out / "convergence_truth.png")
+    from evgrid.io import atomic_write_text
 
-        atomic_write_text(out / "table.md", table)
+    atomic_write_text(out / "table.md", table)
     return summary
 
 
@@ -447,9 +551,10 @@ def map_scenes(
 SWEPT_MAPS: tuple[str, ...] = ("deep_replace", "deep_disc", "fused")  # the maps m_u_min changes
 
 CHOICE_RULE = (
-    "the highest m_u_min whose deep_disc mIoU (mean of the three classes, against ray_ilm) is within "
-    "0.01 of the best value swept: cells known only to the deep IRM stay as clearly apart from verified "
-    "space as accuracy allows; at m_u_min >= 0.5 such cells can never be classified free or occupied"
+    "the highest m_u_min whose deep_disc mIoU (mean of the three classes, against ray_ilm) is "
+    "within 0.01 of the best value swept: cells known only to the deep IRM stay as clearly apart "
+    "from verified space as accuracy allows; at m_u_min >= 0.5 such cells can never be "
+    "classified free or occupied"
 )
 
 
@@ -485,25 +590,37 @@ def sweep_m_u_min(
     names: list[str] | None = None,
     workers: int = 1,
     overwrite: bool = False,
+    *,
+    engine: str = "local",
+    events: RunEvents | None = None,
 ) -> dict[str, Any]:
-    """mIoU against ray_ilm of deep_replace, deep_disc and fused for each ``m_u_min``; writes JSON and a plot.
+    """mIoU against ray_ilm of deep_replace, deep_disc and fused for each ``m_u_min``; writes
+    ``config.json`` (a :class:`~evgrid.config.SweepConfig`: ``evgrid sweep-m-u-min --config``
+    re-runs it), ``m_u_min_sweep.json`` (``failed``: scenes that raised) and a plot.
 
     ISMs are computed and warped once per update and shared by one map set per value.
     """
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
-
+    from evgrid.engine import fan_out
     from evgrid.render import plot_m_u_min_sweep
-    from evgrid.sources import scenes_of
+    from evgrid.sources import scenes_of, source_to_dict
 
+    events = events or RunEvents()
     names = scenes_of(source, names)
-    jobs = [(source, n, list(values), config) for n in names]
+    sweep = SweepConfig(config, source_to_dict(source), tuple(names), tuple(values))
+    jobs = [(n, (source, n, list(values), config)) for n in names]
     with results_folder(out_dir, overwrite) as out:
-        if workers <= 1:
-            per_scene = [_sweep_one(j) for j in jobs]
-        else:
-            with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as ex:
-                per_scene = list(ex.map(_sweep_one, jobs))
+        write_json(out / "config.json", {**sweep_document(sweep)})
+        events.start(names, [], {})
+        per_scene, failed = [], {}
+        for o in fan_out(_sweep_one, jobs, engine=engine, workers=workers):
+            if o.ok:
+                per_scene.append(o.result)
+                events.scene({"scene": o.key})
+            else:
+                failed[o.key] = o.error
+                events.failed(o.key, o.error)
+        if not per_scene:
+            raise RuntimeError(f"every scene of the sweep failed: {failed}")
         rows = []
         for k, v in enumerate(values):
             m = mean_iou(s["values"][k]["vs_ray_ilm"] for s in per_scene)
@@ -517,10 +634,25 @@ def sweep_m_u_min(
                 }
             )
         chosen = choose_m_u_min(rows)
-        result = jsonable({"scenes": names, "rows": rows, "chosen": chosen, "rule": CHOICE_RULE})
+        result = jsonable(
+            {
+                "scenes": [s["scene"] for s in per_scene],
+                "rows": rows,
+                "chosen": chosen,
+                "rule": CHOICE_RULE,
+                "failed": failed,
+            }
+        )
         write_json(out / "m_u_min_sweep.json", result)
         plot_m_u_min_sweep(rows, SWEPT_MAPS, out / "m_u_min_sweep.png", chosen)
     return result
+
+
+def sweep_document(sweep: SweepConfig) -> dict[str, Any]:
+    """A sweep's config as its results folder keeps it."""
+    from evgrid.config import document
+
+    return document(sweep)
 
 
 def choose_m_u_min(rows: list[dict], tolerance: float = 0.01) -> float:

@@ -1,4 +1,5 @@
-"""Where scenes come from, as small picklable descriptions (so one process per scene can load its own).
+"""Where scenes come from, as small picklable descriptions (so one process per scene can load its
+own).
 
 * :class:`SimSource` - the built-in simulator, by seed (the default when no dataset is given);
 * :class:`SimFilesSource` - scenes written by ``evgrid simulate`` (``.npz`` folder);
@@ -8,7 +9,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import json
 import os
@@ -30,11 +30,14 @@ __all__ = [
     "sim_split",
     "source_to_dict",
     "source_from_dict",
+    "scenes_of",
+    "DataOptions",
 ]
 
 
 def sim_split(seed: int) -> str:
-    """Split of a simulated seed: every fifth seed (seed % 5 == 4) is ``val``, the others ``train``."""
+    """Split of a simulated seed: every fifth seed (seed % 5 == 4) is ``val``, the others
+    ``train``."""
     return "val" if seed % 5 == 4 else "train"
 
 
@@ -73,7 +76,8 @@ class SimSource:
         radar: RadarVariant | None = None,
         radar_ranges: RadarRanges | None = None,
     ) -> SimSource:
-        """The first ``n`` seeds from ``first_seed`` on that belong to ``split`` (``train`` or ``val``)."""
+        """The first ``n`` seeds from ``first_seed`` on that belong to ``split`` (``train`` or
+        ``val``)."""
         if split not in ("train", "val"):
             raise ValueError(f"split must be 'train' or 'val', got {split!r}")
         seeds, s = [], first_seed
@@ -140,6 +144,17 @@ class SimFilesSource:
     def names(self) -> list[str]:
         return [e["name"] for e in self._index()]
 
+    def why_empty(self) -> str:
+        """What the folder holds, when the split asked for has no scenes there."""
+        splits: dict[str, int] = {}
+        for e in SimFilesSource(self.folder)._index():
+            splits[str(e.get("split"))] = splits.get(str(e.get("split")), 0) + 1
+        held = ", ".join(f"{n} {s}" for s, n in sorted(splits.items())) or "no scenes"
+        return (
+            f"{self.folder} has no scenes of split {self.split!r}; it holds {held} "
+            "(--split all maps every scene)"
+        )
+
     def load(self, name: str) -> Scene:
         from evgrid.data.sim.store import load_sim_scene
 
@@ -165,7 +180,8 @@ def _nuscenes_scenes(
 
 @dataclass(frozen=True)
 class NuScenesSource:
-    """nuScenes scenes of a split (or the named ones) under ``dataroot``; see :func:`evgrid.data.load_nuscenes`."""
+    """nuScenes scenes of a split (or the named ones) under ``dataroot``; see
+    :func:`evgrid.data.load_nuscenes`."""
 
     dataroot: str
     version: str = "v1.0-trainval"
@@ -181,10 +197,24 @@ class NuScenesSource:
             raise KeyError(f"no nuScenes scene {name!r} in split {self.split!r}")
         return scenes[name]
 
+    def dropped(self) -> dict[str, str]:
+        """Scenes of the split (or named) that the loader left out, each with why."""
+        from evgrid.data.nuscenes import nuscenes_splits
+
+        wanted = set(self.scene_names or ())
+        if self.split is not None:
+            split = set(nuscenes_splits(Path(self.dataroot), self.version).get(self.split, ()))
+            wanted = split & wanted if self.scene_names else split
+        kept = set(self.names())
+        # the loader's only reason to leave a scene out (paper: scenes that barely move)
+        why = "its vehicle travels less than 1 m (left out as in the paper)"
+        return {n: why for n in sorted(wanted - kept)}
+
 
 @dataclass(frozen=True)
 class BagSource:
-    """Recordings (``.bag``, ``.mcap`` or ROS 2 bag folders) sharing one rig file; one scene each, see
+    """Recordings (``.bag``, ``.mcap`` or ROS 2 bag folders) sharing one rig file; one scene each,
+    see
     :func:`evgrid.data.bag.load_bag`. ``paths`` may be one path. A single recording is named by the
     rig file's ``scene`` (else its file name), several by their file names."""
 
@@ -223,12 +253,16 @@ class BagSource:
 def scenes_of(source: SceneSource, names: Sequence[str] | None = None) -> list[str]:
     """The names to run: all of the source's, or those asked for (checked)."""
     known = source.names()
+    if not known:
+        why = getattr(source, "why_empty", None)
+        raise ValueError(why() if why else f"no scenes to map in {source}")
     if names is None:
         return known
     missing = [n for n in names if n not in known]
     if missing:
         raise KeyError(
-            f"unknown scene(s) {missing}; available: {known[:10]}{' ...' if len(known) > 10 else ''}"
+            f"unknown scene(s) {missing}; available: {known[:10]}"
+            + (" ..." if len(known) > 10 else "")
         )
     return list(names)
 
@@ -243,16 +277,13 @@ def _kinds() -> dict[str, type]:
 
 
 def source_to_dict(source: SceneSource) -> dict | None:
-    """A source as plain JSON (``{"kind": ..., fields}``) for a run's config.json; None for sources of other kinds."""
+    """A source as plain JSON (``{"kind": ..., fields}``) for a run's config.json; None for
+    sources of other kinds."""
+    from evgrid.config import to_dict
+
     for kind, cls in _kinds().items():
         if type(source) is cls:
-            return {
-                "kind": kind,
-                **{
-                    k: (list(v) if isinstance(v, tuple) else v)
-                    for k, v in dataclasses.asdict(source).items()
-                },
-            }
+            return {"kind": kind, **to_dict(source)}
     return None
 
 
@@ -263,7 +294,65 @@ def source_from_dict(d: dict) -> SceneSource:
     kinds = _kinds()
     if not isinstance(d, dict) or d.get("kind") not in kinds:
         raise ConfigError(
-            f"config source: 'kind' must be one of {sorted(kinds)}, got {d.get('kind') if isinstance(d, dict) else d!r}"
+            f"config source: 'kind' must be one of {sorted(kinds)}, "
+            f"got {d.get('kind') if isinstance(d, dict) else d!r}"
         )
     fields = {k: v for k, v in d.items() if k != "kind"}
     return from_dict(kinds[d["kind"]], fields, f"config source ({d['kind']})")
+
+
+@dataclass(frozen=True)
+class DataOptions:
+    """The command line's data options, one field each (``--sim-dir`` is ``sim_dir``): the
+    simulator by default, or a folder of simulated scenes, nuScenes, or recordings."""
+
+    nuscenes: str | None = None  # a nuScenes dataroot (needs evgrid[nuscenes])
+    version: str = "v1.0-trainval"
+    split: str = "val"  # train, val (nuScenes: any official split), or all
+    sim_dir: str | None = None  # a folder written by `evgrid simulate`
+    bag: tuple[str, ...] = ()  # recordings, one scene each (needs --rig)
+    rig: str | None = None
+    scenes: int = 3  # simulator: scenes of the split
+    seed: int = 0  # simulator: the first seed drawn from
+    duration: float = 20.0  # simulator: seconds a scene
+    scene: tuple[str, ...] = ()  # only these scenes
+
+    def __post_init__(self) -> None:
+        from evgrid.validation import check_int, check_number
+
+        check_int("", "--scenes", self.scenes, min=1)
+        check_int("", "--seed", self.seed, min=0)
+        check_number("", "--duration", self.duration, min=0.0, min_open=True)
+
+    def source(self) -> SceneSource:
+        """The scene source these options name (the simulator when none is given); paths are
+        made absolute, so that a run's config.json holds where its data is."""
+        given = [
+            n
+            for n, v in (
+                ("--nuscenes", self.nuscenes),
+                ("--sim-dir", self.sim_dir),
+                ("--bag", self.bag),
+            )
+            if v
+        ]
+        if len(given) > 1:
+            raise ValueError(f"give one data source, not {' and '.join(given)}")
+        split = None if self.split == "all" else self.split
+        if self.bag:
+            if self.rig is None:
+                raise ValueError("--bag needs --rig RIG.yaml (topics, frames, fields; docs/ros.md)")
+            return BagSource(tuple(_abs(b) for b in self.bag), _abs(self.rig))
+        if self.rig is not None:
+            raise ValueError("--rig goes with --bag")
+        if self.nuscenes is not None:
+            return NuScenesSource(_abs(self.nuscenes), self.version, split)
+        if self.sim_dir is not None:
+            return SimFilesSource(_abs(self.sim_dir), split)
+        if split is None:
+            return SimSource(tuple(range(self.seed, self.seed + self.scenes)), self.duration)
+        return SimSource.split(split, self.scenes, self.seed, self.duration)
+
+
+def _abs(path: str) -> str:
+    return os.path.abspath(os.path.expanduser(path))

@@ -11,7 +11,7 @@ the same seed gives the same town, drive and lidar whatever the radar.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, replace
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -90,9 +90,9 @@ class RadarVariant:
         return replace(config, radar=radar, rig=rig)
 
     def to_dict(self) -> dict[str, Any]:
-        d = asdict(self)
-        d["channels"] = list(self.channels)
-        return d
+        from evgrid.serial import to_dict
+
+        return to_dict(self)
 
 
 @dataclass(frozen=True)
@@ -174,14 +174,15 @@ class RadarRanges:
         return lo <= x <= hi
 
     def to_dict(self) -> dict[str, Any]:
-        return {k: list(v) for k, v in asdict(self).items()}
+        from evgrid.serial import to_dict
+
+        return to_dict(self)
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> RadarRanges:
-        bad = set(d) - set(asdict(cls()))
-        if bad:
-            raise ValueError(f"unknown RadarRanges field(s) {sorted(bad)!r}")
-        return cls(**{k: tuple(v) for k, v in d.items()})
+        from evgrid.serial import from_dict
+
+        return from_dict(cls, d)
 
 
 #: What the shipped Ev-Net was trained on.

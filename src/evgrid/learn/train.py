@@ -90,10 +90,10 @@ class TrainConfig:
             )
 
     def to_dict(self) -> dict:
-        """Plain-JSON form."""
-        d = asdict(self)
-        d["grid"] = self.grid.to_dict()
-        return d
+        """Plain-JSON form (evgrid.serial, the serialiser of every parameter dataclass)."""
+        from evgrid.serial import to_dict
+
+        return to_dict(self)
 
     def data_key(self) -> str:
         """Hash of the settings that decide the cached samples."""
@@ -348,8 +348,12 @@ def train(
     resume: bool = False,
     on_epoch: Callable[[int, dict], None] | None = None,
     on_batch: Callable[[int, int, int], None] | None = None,
+    config_document: dict | None = None,
 ) -> TrainResult:
     """Train Ev-Net on cached scenes; write ``config.json``, ``metrics.csv``, ``last`` and ``best`` checkpoints.
+
+    ``config.json`` holds ``config_document`` if given (the whole run's config, its data
+    included: evgrid.train_run), else ``config.to_dict()``.
 
     ``on_epoch(epoch, row)`` gets each epoch's logged row, ``on_batch(epoch, batch, n_batches)``
     each finished batch (rank 0 only).
@@ -359,7 +363,8 @@ def train(
     if rank == 0:
         out.mkdir(parents=True, exist_ok=True)
         atomic_write(
-            out / "config.json", lambda f: f.write(json.dumps(config.to_dict(), indent=2).encode())
+            out / "config.json",
+            lambda f: f.write(json.dumps(config_document or config.to_dict(), indent=2).encode()),
         )
     _seed_all(config.seed + rank)
     if config.threads:

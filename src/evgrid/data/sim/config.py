@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 from evgrid.data.frame import RADAR_CHANNELS
@@ -414,10 +414,11 @@ class SimConfig:
         return max(1, int(math.floor(self.duration_s * self.lidar.rate_hz + 1e-9)))
 
     def to_dict(self) -> dict[str, Any]:
-        """Plain-JSON form (nested dicts; tuples become lists)."""
-        d = asdict(self)
-        d["grid"] = self.grid.to_dict()
-        return d
+        """Plain-JSON form (nested dicts; tuples become lists): evgrid.serial, the serialiser
+        of every parameter dataclass."""
+        from evgrid.serial import to_dict
+
+        return to_dict(self)
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> SimConfig:

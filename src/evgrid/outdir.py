@@ -1,0 +1,206 @@
+"""Results folders: where a run writes, who holds it, and which scenes are complete.
+
+One policy for every command that writes a results folder (docs/config.md#results-folders):
+
+* ``--out`` defaults to a new timestamped folder ``out/<command>/<YYYYmmdd-HHMMSS>``, with a
+  ``latest`` link beside it (as KISS-ICP does); ``--resume`` without ``--out`` continues it.
+* A folder that holds anything is refused unless ``--overwrite`` (results go into it, the old
+  run's completion markers and summary are removed first) or ``--resume`` (complete scenes of
+  the same config are kept). A file is never a results folder.
+* A run holds ``OUT/.evgrid.lock`` (pid, host, start), created atomically: a second run into the
+  same folder is refused naming the holder; a lock whose process is gone (a killed run) is taken
+  over with a warning.
+* Each scene folder gets ``.complete`` last, holding the hash of the config it was made with;
+  ``--resume`` skips exactly the scenes whose marker matches.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+import socket
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+from evgrid.io import write_json
+
+__all__ = [
+    "ResultsExistError",
+    "RunLockedError",
+    "LOCK_NAME",
+    "MARKER_NAME",
+    "default_out",
+    "results_folder",
+    "locked",
+    "is_complete",
+    "mark_complete",
+]
+
+log = logging.getLogger(__name__)
+
+LOCK_NAME = ".evgrid.lock"
+MARKER_NAME = ".complete"
+
+
+class ResultsExistError(FileExistsError):
+    """The results folder already holds another run's results (or is a file)."""
+
+
+class RunLockedError(FileExistsError):
+    """Another run, still alive, writes into the same results folder."""
+
+
+def default_out(command: str, resume: bool = False, root: str | os.PathLike = "out") -> Path:
+    """A new ``root/<command>/<timestamp>`` folder with ``latest`` pointing at it; with ``resume``
+    the folder ``latest`` points at."""
+    base = Path(root) / command
+    latest = base / "latest"
+    if resume:
+        if not latest.exists():
+            raise FileNotFoundError(f"{latest}: no earlier `evgrid {command}` run to resume")
+        return latest.resolve()
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    out, k = base / stamp, 1
+    while out.exists():
+        out, k = base / f"{stamp}-{k}", k + 1
+    out.mkdir(parents=True)
+    tmp = base / f".latest.{os.getpid()}"
+    with contextlib.suppress(FileNotFoundError):
+        tmp.unlink()
+    tmp.symlink_to(out.name)
+    os.replace(tmp, latest)  # the link is swapped atomically: never a missing `latest`
+    return out
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's live process
+        return True
+    return True
+
+
+def _take_lock(out: Path) -> Path:
+    lock = out / LOCK_NAME
+    me = {"pid": os.getpid(), "host": socket.gethostname(), "started": time.time()}
+    for _ in range(3):
+        try:
+            fd = os.open(lock, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+        except FileExistsError:
+            try:
+                holder = json.loads(lock.read_text())
+                pid, host = int(holder["pid"]), str(holder["host"])
+            except (OSError, ValueError, KeyError, TypeError):
+                holder, pid, host = None, -1, "?"
+            if holder is None and time.time() - lock.stat().st_mtime < 5:
+                time.sleep(0.2)  # being written by its holder right now
+                continue
+            if holder is not None and (host != me["host"] or _pid_alive(pid)):
+                raise RunLockedError(
+                    f"{out} is in use by another evgrid run (pid {pid} on {host}, lock {lock}); "
+                    "wait for it or choose another --out"
+                ) from None
+            log.warning(
+                "%s: taking over the lock of a run that is gone (pid %s on %s)", out, pid, host
+            )
+            with contextlib.suppress(FileNotFoundError):
+                lock.unlink()
+            continue
+        with os.fdopen(fd, "w") as f:
+            json.dump(me, f)
+        return lock
+    raise RunLockedError(f"{out}: could not take the lock {lock}")
+
+
+@contextlib.contextmanager
+def locked(out: str | os.PathLike) -> Iterator[Path]:
+    """Hold ``out``'s lock (creating the folder) while a run writes into it, as
+    :func:`results_folder` does, without its policy on existing content (``evgrid train``
+    continues into its folder)."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    lock = _take_lock(out)
+    try:
+        yield out
+    finally:
+        lock.unlink(missing_ok=True)
+
+
+def _holds_results(out: Path) -> bool:
+    return any(p.name != LOCK_NAME for p in out.iterdir())
+
+
+@contextlib.contextmanager
+def results_folder(
+    out: str | os.PathLike, overwrite: bool = False, resume: bool = False
+) -> Iterator[Path]:
+    """A results folder for one run, locked while the run lasts (see the module docstring);
+    removed again if the run fails before writing anything into it."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ResultsExistError(f"{out} is a file, not a results folder")
+    created = not out.exists()
+    out.mkdir(parents=True, exist_ok=True)
+    try:
+        lock = _take_lock(out)
+    except BaseException:
+        if created:
+            _remove_empty_dirs(out)
+        raise
+    try:
+        if _holds_results(out) and not (overwrite or resume):
+            raise ResultsExistError(
+                f"{out} already holds results; pass --overwrite to replace them, --resume to "
+                "continue that run, or choose another --out"
+            )
+        if overwrite and not resume:
+            _forget_results(out)
+        yield out
+    except BaseException:
+        lock.unlink(missing_ok=True)
+        if created:
+            _remove_empty_dirs(out)
+        raise
+    lock.unlink(missing_ok=True)
+
+
+def _forget_results(out: Path) -> None:
+    """Before an overwrite: the old run's markers and summary go, so nothing of it counts as
+    complete (its other files are replaced as the new run writes them)."""
+    for marker in out.glob(f"*/{MARKER_NAME}"):
+        marker.unlink(missing_ok=True)
+    for name in ("summary.json", "table.md"):
+        (out / name).unlink(missing_ok=True)
+
+
+def _remove_empty_dirs(path: Path) -> None:
+    for sub in sorted(
+        (p for p in path.rglob("*") if p.is_dir()), key=lambda p: len(p.parts), reverse=True
+    ):
+        with contextlib.suppress(OSError):
+            sub.rmdir()
+    with contextlib.suppress(OSError):
+        path.rmdir()
+
+
+def mark_complete(scene_dir: str | os.PathLike, config_hash: str) -> Path:
+    """Write a scene's completion marker, last of its files."""
+    return write_json(Path(scene_dir) / MARKER_NAME, {"config_sha256": config_hash})
+
+
+def is_complete(scene_dir: str | os.PathLike, config_hash: str) -> dict[str, Any] | None:
+    """A scene's metrics when its marker holds ``config_hash`` (results of the same config)."""
+    scene_dir = Path(scene_dir)
+    try:
+        marker = json.loads((scene_dir / MARKER_NAME).read_text())
+        if marker.get("config_sha256") != config_hash:
+            return None
+        return json.loads((scene_dir / "metrics.json").read_text())
+    except (OSError, ValueError, AttributeError):
+        return None
