@@ -141,31 +141,15 @@ class LidarModel:
         out_t = np.empty((n_az, nb))
         out_id = np.empty((n_az, nb), dtype=np.int64)
         out_cos = np.empty((n_az, nb))
-        idx = world.index
         lidar_cast(
-            ox,
-            oy,
-            oz,
+            (ox, oy, oz),
             az_s + syaw,
             self.slopes,
             self.max_h,
-            world.boxes,
-            world.classes,
-            idx.start,
-            idx.items,
-            idx.x0,
-            idx.y0,
-            idx.cell,
-            idx.nx,
-            idx.ny,
-            dyn_boxes,
-            dyn_classes.astype(np.int32),
-            M.LIDAR_DENSITY,
-            M.LIDAR_PASS,
+            world.cast_scene(dyn_boxes, dyn_classes),
+            (M.LIDAR_DENSITY, M.LIDAR_PASS),
             seed,
-            out_t,
-            out_id,
-            out_cos,
+            (out_t, out_id, out_cos),
         )
         if cfg.self_returns:
             self._add_body(az_s, out_t, out_id, out_cos)

@@ -225,6 +225,24 @@ class World:
         """Number of static boxes."""
         return int(self.boxes.shape[0])
 
+    def cast_scene(self, dyn_boxes: np.ndarray, dyn_classes: np.ndarray) -> tuple:
+        """What the ray casting kernels (``raycast.lidar_cast``, ``radar_cast``) see: the static
+        boxes, their classes and grid index, then the moving boxes and their classes."""
+        idx = self.index
+        return (
+            self.boxes,
+            self.classes,
+            idx.start,
+            idx.items,
+            idx.x0,
+            idx.y0,
+            idx.cell,
+            idx.nx,
+            idx.ny,
+            dyn_boxes,
+            dyn_classes.astype(np.int32),
+        )
+
     def describe(self) -> dict[str, int]:
         """Counts of static boxes and moving objects by class name."""
         out: dict[str, int] = {}
