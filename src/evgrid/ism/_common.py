@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -38,6 +39,29 @@ class IsmResult:
     n_points: int
     n_dropped: int
     n_used: int
+
+
+def check_ism_args(
+    name: str, grid: object, params: object, params_type: type, threads: int, out: object
+) -> int:
+    """Check the arguments every geometric ISM takes; returns ``threads`` as an int."""
+    if not isinstance(grid, GridSpec):
+        raise TypeError(f"{name}: grid must be a GridSpec, got {type(grid).__name__}")
+    if not isinstance(params, params_type):
+        raise TypeError(
+            f"{name}: params must be a {params_type.__name__}, got {type(params).__name__}"
+        )
+    check_out(out, grid)
+    return check_threads(threads)
+
+
+@numba.njit(cache=True, inline="always")
+def point_xyz(pts, i):
+    """Point ``i``'s x, y, z as float64 and whether all three are finite."""
+    x = np.float64(pts[i, 0])
+    y = np.float64(pts[i, 1])
+    z = np.float64(pts[i, 2])
+    return math.isfinite(x) and math.isfinite(y) and math.isfinite(z), x, y, z
 
 
 def check_threads(threads: int) -> int:
@@ -107,13 +131,17 @@ def check_out(out: np.ndarray | None, grid: GridSpec) -> None:
 
 
 def labels_to_masses(
-    labels: np.ndarray, lut: np.ndarray, out: np.ndarray | None, threads: int
+    labels: np.ndarray, m_free: float, m_occupied: float, out: np.ndarray | None, threads: int
 ) -> np.ndarray:
-    """Expand a uint8 label grid to float32 masses ``(n, n, 3)``, into ``out`` when given."""
+    """Expand a uint8 label grid to float32 masses ``(n, n, 3)``: free cells [m_free, 0,
+    1 - m_free], occupied [0, m_occupied, 1 - m_occupied], the rest vacuous; into ``out`` when
+    given, on ``threads`` numba threads."""
+    lut = mass_lut(m_free, m_occupied)
     if out is None:
         out = np.empty(labels.shape + (3,), dtype=np.float32)
     if threads > 1:
-        _k_labels_to_masses_par(labels, lut, out)
+        with numba_threads(threads):
+            _k_labels_to_masses_par(labels, lut, out)
     else:
         _k_labels_to_masses(labels, lut, out)
     return out
