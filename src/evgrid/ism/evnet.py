@@ -129,6 +129,11 @@ _DIGEST_KEY = "tensors_sha256"
 # useful Ev-Net (the shipped one has 0.44 M parameters), far below what would exhaust memory.
 _CONFIG_MAX = {"in_channels": 64, "width": 512, "pool": 64, "depth": 8}
 _MAX_PARAMS = 64_000_000
+#: The largest magnitude a weight (or normalisation statistic) may have. A finite but huge
+#: weight that passes the checksum (a file written that way on purpose) would overflow float32
+#: activations to inf and then masses to NaN, i.e. a silently wrong map; trained weights stay
+#: orders of magnitude below this bound.
+MAX_WEIGHT = 1e6
 _MAX_HEADER_BYTES = 1 << 24
 
 # safetensors dtype codes of the tensors an EvNet holds
@@ -397,6 +402,11 @@ def load_checkpoint(path: str | os.PathLike, config: EvNetConfig | None = None) 
     for k, v in tensors.items():
         if v.is_floating_point() and not torch.isfinite(v).all():
             raise CheckpointError(f"{path}: weight {k} holds NaN or inf")
+        if v.is_floating_point() and v.numel() and float(v.abs().max()) > MAX_WEIGHT:
+            raise CheckpointError(
+                f"{path}: weight {k} holds {float(v.abs().max()):.3g}, beyond the bound of "
+                f"{MAX_WEIGHT:.0e} on any weight's magnitude"
+            )
     model = EvNet(saved)
     model.load_state_dict(tensors)
     model.eval()
