@@ -44,10 +44,10 @@ def test_cache_and_dataset(cache):
     assert x.shape == (6, 512, 512) and t.shape == (512, 512) and irm.shape == (512, 512)
     assert set(torch.unique(t).tolist()) == {FREE, OCCUPIED, UNKNOWN}
     assert x[0].sum() > 0  # radar detections are there
-    # a cached scene is not rebuilt: its files keep their time stamps
-    before = (root / "sim-000000.target.npy").stat().st_mtime_ns
+    # a cached scene is not rebuilt: its shard's files keep their time stamps
+    before = (root / "sim-000000" / "target.npy").stat().st_mtime_ns
     build_cache([simulate_scene(0, SimConfig(duration_s=2.0))], root, CFG)
-    assert (root / "sim-000000.target.npy").stat().st_mtime_ns == before
+    assert (root / "sim-000000" / "target.npy").stat().st_mtime_ns == before
     with pytest.raises(FileNotFoundError, match="build_cache"):
         RadarDataset(root, ["sim-999"], CFG.grid)
 
