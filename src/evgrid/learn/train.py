@@ -72,6 +72,8 @@ __all__ = [
     "cached_scenes",
     "RadarDataset",
     "fine_tune_config",
+    "Precision",
+    "batch_loss",
     "train",
     "TrainResult",
 ]
@@ -546,7 +548,7 @@ class Precision:
         self.scaler.update()
 
 
-def _loss(net: torch.nn.Module, x: torch.Tensor, t: torch.Tensor, precision: Precision):
+def batch_loss(net: torch.nn.Module, x: torch.Tensor, t: torch.Tensor, precision: Precision):
     """Forward pass in ``precision``; the loss in float32 (paper eq. of the expected squared
     error, which sums many small terms)."""
     with precision.autocast():
@@ -738,7 +740,7 @@ def _train_epoch(run: _Run, epoch: int, on_batch) -> list[float]:
     for b, (x, t) in enumerate(run.loader):
         x, t = x.to(run.device), t.to(run.device)
         run.opt.zero_grad(set_to_none=True)
-        loss = _loss(run.net, x, t, run.precision)
+        loss = batch_loss(run.net, x, t, run.precision)
         run.precision.step(loss, run.opt)
         run.sched.step()
         losses.append(loss.item())
