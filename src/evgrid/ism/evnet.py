@@ -306,6 +306,52 @@ class LoadedCheckpoint:
     version: int = _FORMAT_VERSION
 
 
+def _check_entries(
+    entries: dict[str, tuple[str, tuple[int, ...], int, int]],
+    expected: dict[str, tuple[str, tuple[int, ...]]],
+    n_data: int,
+    saved: EvNetConfig,
+    path: Path,
+) -> int:
+    """Every tensor the architecture has, of its dtype and shape, within the file's
+    ``n_data`` bytes of data and filling them; returns ``n_data``."""
+    missing = sorted(set(expected) - set(entries))
+    unexpected = sorted(set(entries) - set(expected))
+    if missing or unexpected:
+        raise CheckpointError(
+            f"{path}: weights do not match {saved}: missing {missing[:3]}, unexpected {unexpected[:3]}"
+        )
+    for k, (dtype, shape, begin, end) in entries.items():
+        want_dtype, want_shape = expected[k]
+        if shape != want_shape:
+            raise CheckpointError(f"{path}: weight {k} has shape {shape}, expected {want_shape}")
+        if dtype != want_dtype:
+            raise CheckpointError(f"{path}: weight {k} has dtype {dtype}, expected {want_dtype}")
+        if not (0 <= begin <= end <= n_data) or end - begin != _tensor_bytes(dtype, shape):
+            raise CheckpointError(
+                f"{path}: weight {k} has data offsets [{begin}, {end}) that do not fit the file; it is truncated or corrupt"
+            )
+    if n_data != sum(_tensor_bytes(d, sh) for d, sh, _, _ in entries.values()):
+        raise CheckpointError(
+            f"{path}: {n_data} bytes of tensor data where the header describes {sum(_tensor_bytes(d, sh) for d, sh, _, _ in entries.values())}"
+        )
+    return n_data
+
+
+def _check_weights(tensors: dict[str, torch.Tensor], path: Path) -> None:
+    """Finite weights, none beyond :data:`MAX_WEIGHT` in magnitude."""
+    for k, v in tensors.items():
+        if not v.is_floating_point() or not v.numel():
+            continue
+        if not torch.isfinite(v).all():
+            raise CheckpointError(f"{path}: weight {k} holds NaN or inf")
+        if float(v.abs().max()) > MAX_WEIGHT:
+            raise CheckpointError(
+                f"{path}: weight {k} holds {float(v.abs().max()):.3g}, beyond the bound of "
+                f"{MAX_WEIGHT:.0e} on any weight's magnitude"
+            )
+
+
 def load_checkpoint(path: str | os.PathLike, config: EvNetConfig | None = None) -> LoadedCheckpoint:
     """Load an Ev-Net from a safetensors file (no code is run); raise CheckpointError naming file and problem.
 
@@ -353,29 +399,8 @@ def load_checkpoint(path: str | os.PathLike, config: EvNetConfig | None = None) 
         raise CheckpointError(f"{path}: checkpoint is for {saved}, but {config} was asked for")
 
     # the header against the architecture, before a byte of tensor data is allocated
-    expected = _expected(saved, path)
     entries = _entries(header, path)
-    missing = sorted(set(expected) - set(entries))
-    unexpected = sorted(set(entries) - set(expected))
-    if missing or unexpected:
-        raise CheckpointError(
-            f"{path}: weights do not match {saved}: missing {missing[:3]}, unexpected {unexpected[:3]}"
-        )
-    n_data = size - start
-    for k, (dtype, shape, begin, end) in entries.items():
-        want_dtype, want_shape = expected[k]
-        if shape != want_shape:
-            raise CheckpointError(f"{path}: weight {k} has shape {shape}, expected {want_shape}")
-        if dtype != want_dtype:
-            raise CheckpointError(f"{path}: weight {k} has dtype {dtype}, expected {want_dtype}")
-        if not (0 <= begin <= end <= n_data) or end - begin != _tensor_bytes(dtype, shape):
-            raise CheckpointError(
-                f"{path}: weight {k} has data offsets [{begin}, {end}) that do not fit the file; it is truncated or corrupt"
-            )
-    if n_data != sum(_tensor_bytes(d, sh) for d, sh, _, _ in entries.values()):
-        raise CheckpointError(
-            f"{path}: {n_data} bytes of tensor data where the header describes {sum(_tensor_bytes(d, sh) for d, sh, _, _ in entries.values())}"
-        )
+    n_data = _check_entries(entries, _expected(saved, path), size - start, saved, path)
     try:
         buf = path.read_bytes()  # now known to be the size of the architecture's weights
     except OSError as e:
@@ -399,14 +424,7 @@ def load_checkpoint(path: str | os.PathLike, config: EvNetConfig | None = None) 
         tensors = load(buf)
     except (SafetensorError, ValueError, RuntimeError) as e:
         raise CheckpointError(f"{path}: not a readable safetensors checkpoint ({e})") from e
-    for k, v in tensors.items():
-        if v.is_floating_point() and not torch.isfinite(v).all():
-            raise CheckpointError(f"{path}: weight {k} holds NaN or inf")
-        if v.is_floating_point() and v.numel() and float(v.abs().max()) > MAX_WEIGHT:
-            raise CheckpointError(
-                f"{path}: weight {k} holds {float(v.abs().max()):.3g}, beyond the bound of "
-                f"{MAX_WEIGHT:.0e} on any weight's magnitude"
-            )
+    _check_weights(tensors, path)
     model = EvNet(saved)
     model.load_state_dict(tensors)
     model.eval()

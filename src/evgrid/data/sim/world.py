@@ -9,6 +9,7 @@ origin) and then moved by one rigid transform into the *global frame* that poses
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -137,39 +138,9 @@ class Movers:
     def transformed(self, tf: SE2) -> Movers:
         """The same movers in the frame ``tf`` maps to."""
         if self.warp is not None:
-            return Movers(
-                self.classes,
-                self.half_length,
-                self.half_width,
-                self.z_min,
-                self.z_max,
-                self.p0,
-                self.heading,
-                self.speed,
-                self.t_begin,
-                self.t_end,
-                self.follow,
-                self.follow_gap,
-                self.follow_lead_s,
-                self.warp,
-                tf @ self.frame,
-            )
+            return replace(self, frame=tf @ self.frame)
         p0 = tf.apply(self.p0) if len(self) else self.p0
-        return Movers(
-            self.classes,
-            self.half_length,
-            self.half_width,
-            self.z_min,
-            self.z_max,
-            p0,
-            self.heading + tf.yaw,
-            self.speed,
-            self.t_begin,
-            self.t_end,
-            self.follow,
-            self.follow_gap,
-            self.follow_lead_s,
-        )
+        return replace(self, p0=p0, heading=self.heading + tf.yaw)
 
 
 @dataclass(frozen=True, eq=False)
@@ -753,18 +724,7 @@ def _open_square(
         # A fountain: a ring of low basin walls.
         rad = rng.uniform(3.0, min(6.0, D / 4))
         n = max(int(2 * math.pi * rad / 1.5), 8)
-        for k in range(n):
-            a = 2 * math.pi * k / n
-            b.add(
-                float(c[0] + rad * math.cos(a)),
-                float(c[1] + rad * math.sin(a)),
-                a + math.pi / 2,
-                math.pi * rad / n + 0.05,
-                0.2,
-                0.0,
-                rng.uniform(0.5, 0.8),
-                M.WALL,
-            )
+        _ring(b, c, rad, n, 0.2, lambda: rng.uniform(0.5, 0.8), M.WALL)
     elif r < 0.75:
         b.add(
             float(c[0]),
@@ -863,12 +823,17 @@ def _park(b: _Builder, rng: np.random.Generator, rect: tuple[float, float, float
         f.box(b, u - 3.0, u + 3.0, v - 3.0, v + 3.0, 0.0, 3.5, M.BUILDING)
 
 
-def _roundabout_island(
-    b: _Builder, rng: np.random.Generator, c: np.ndarray, rad: float, clear: float
+def _ring(
+    b: _Builder,
+    c: np.ndarray,
+    rad: float,
+    n: int,
+    half_width: float,
+    top: Callable[[], float],
+    klass: int,
 ) -> None:
-    """A round central island (curb ring, a hedge ring or bushes, a tree or a monument) and
-    lamps around the circulating carriageway."""
-    n = max(int(2 * math.pi * rad / 1.2), 10)
+    """A ring of ``n`` short boxes around ``c`` at radius ``rad`` (a basin wall, a curb), each
+    as tall as ``top()`` (drawn box by box where it is random)."""
     for k in range(n):
         a = 2 * math.pi * k / n
         b.add(
@@ -876,11 +841,20 @@ def _roundabout_island(
             float(c[1] + rad * math.sin(a)),
             a + math.pi / 2,
             math.pi * rad / n + 0.05,
-            0.15,
+            half_width,
             0.0,
-            0.35,
-            M.BARRIER,
+            top(),
+            klass,
         )
+
+
+def _roundabout_island(
+    b: _Builder, rng: np.random.Generator, c: np.ndarray, rad: float, clear: float
+) -> None:
+    """A round central island (curb ring, a hedge ring or bushes, a tree or a monument) and
+    lamps around the circulating carriageway."""
+    n = max(int(2 * math.pi * rad / 1.2), 10)
+    _ring(b, c, rad, n, 0.15, lambda: 0.35, M.BARRIER)
     if rng.random() < 0.5 and rad > 3.0:
         r2 = rad - 0.8
         n2 = max(int(2 * math.pi * r2 / 1.5), 8)
