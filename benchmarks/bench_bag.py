@@ -1,4 +1,5 @@
-"""Benchmark: mapping a scene from a ROS 2 MCAP bag against the same scene from the simulator's npz file.
+"""Benchmark: mapping a scene from a ROS 2 MCAP bag against the same scene from the simulator's npz
+file.
 
 Run: ``python benchmarks/bench_bag.py [--duration 10] [--seed 0] [--maps ray_ilm,ray_irm,fused]
 [--storage mcap]``. Simulates one scene, writes it both as the simulator's ``.npz`` (what

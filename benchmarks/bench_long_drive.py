@@ -1,4 +1,5 @@
-"""Long drives and odometry glitches: does a frame cost the same in the tenth minute as in the first?
+"""Long drives and odometry glitches: does a frame cost the same in the tenth minute as in the
+first?
 
 Maps simulated drives of 20, 120 and 600 s (six maps, truth scores at every keyframe, figures
 and the GIF, as ``evgrid map`` does), each in its own process, and prints per-frame
@@ -25,7 +26,8 @@ import numpy as np
 
 
 def _glitched(frames, index: int, jump_m: float):
-    """The frames of a scene with frame ``index``'s ego pose (and its sweeps') moved ``jump_m`` metres in x."""
+    """The frames of a scene with frame ``index``'s ego pose (and its sweeps') moved ``jump_m``
+    metres in x."""
     from evgrid.geometry import SE3
 
     for f in frames:

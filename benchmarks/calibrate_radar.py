@@ -19,15 +19,8 @@ os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 
 from evgrid.data.radar_filter import RadarFilter  # noqa: E402
-from evgrid.data.sim import (
-    RADAR_CLUTTER,
-    RADAR_GHOST,
-    RADAR_REAL,
-    RadarConfig,
-    SimConfig,
-    WorldConfig,
-    simulate_scene,
-)  # noqa: E402
+from evgrid.data.sim import RadarConfig, SimConfig, WorldConfig, simulate_scene  # noqa: E402
+from evgrid.data.sim.radar import RADAR_CLUTTER, RADAR_GHOST, RADAR_REAL  # noqa: E402
 
 _NUSC = RadarFilter("nuscenes")
 _SRC_MINI = (
@@ -68,7 +61,8 @@ def _band(x: np.ndarray) -> str:
 
 def front_stats(points: np.ndarray) -> dict[str, float]:
     """CRF-Net's statistics of filtered radar points ``(n, 12)`` in the sensor frame
-    (``RADAR_COLUMNS``): distance, x, y, azimuth, RCS, dyn_prop, vx_comp; shares beyond 50 / 100 m."""
+    (``RADAR_COLUMNS``): distance, x, y, azimuth, RCS, dyn_prop, vx_comp; shares beyond 50 / 100 m.
+    """
     x, y = points[:, 0].astype(np.float64), points[:, 1].astype(np.float64)
     d = np.hypot(x, y)
     return {

@@ -1,4 +1,5 @@
-"""Hostile Ev-Net checkpoints: every problem is a CheckpointError naming the file, found before allocating.
+"""Hostile Ev-Net checkpoints: every problem is a CheckpointError naming the file, found before
+allocating.
 
 Before format 2 (issue 12) a flipped exponent bit loaded silently, int32 weights loaded and
 predicted "free" everywhere, a 200-byte file whose metadata said width 4000 allocated 4.6 GB,

@@ -1,4 +1,5 @@
-"""Training Ev-Net end to end on a tiny simulated set (evgrid.learn.train); kept well under a minute."""
+"""Training Ev-Net end to end on a tiny simulated set (evgrid.learn.train); kept well under a
+minute."""
 
 from __future__ import annotations
 

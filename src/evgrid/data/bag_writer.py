@@ -1,4 +1,5 @@
-"""Write a scene (the simulator's, or any iterable of frames) as a robot recording with its rig file.
+"""Write a scene (the simulator's, or any iterable of frames) as a robot recording with its rig
+file.
 
 The recording holds what a real vehicle would log:
 
@@ -36,7 +37,8 @@ def topic_of(channel: str) -> str:
 
 
 def _radar_scan(sweep: RadarSweep, store) -> object:
-    """``radar_msgs/RadarScan`` of a sweep: spherical positions, the Doppler speed along the line of sight."""
+    """``radar_msgs/RadarScan`` of a sweep: spherical positions, the Doppler speed along the line of
+    sight."""
     from evgrid.ros import header, us_to_stamp
 
     p = sweep.points.astype(np.float64)
@@ -182,7 +184,8 @@ def write_bag(
 
 
 def _keyframe_every(indices: list[int]) -> int:
-    """N such that the keyframes are frames 0, N, 2N, ...; 10 (nuScenes' 2 Hz of 20 Hz) when undecidable."""
+    """N such that the keyframes are frames 0, N, 2N, ...; 10 (nuScenes' 2 Hz of 20 Hz) when
+    undecidable."""
     if len(indices) < 2:
         return 10
     steps = set(np.diff(indices).tolist())

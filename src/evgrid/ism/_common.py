@@ -105,7 +105,8 @@ def _k_labels_to_masses_par(labels, lut, out):
 
 
 def mass_lut(m_free: float, m_occupied: float) -> np.ndarray:
-    """Masses of the three labels, indexed by label: FREE [m_f, 0, 1 - m_f], OCCUPIED [0, m_o, 1 - m_o], UNKNOWN [0, 0, 1]."""
+    """Masses of the three labels, indexed by label: FREE [m_f, 0, 1 - m_f], OCCUPIED [0, m_o, 1 -
+    m_o], UNKNOWN [0, 0, 1]."""
     return np.array(
         [[m_free, 0.0, 1.0 - m_free], [0.0, m_occupied, 1.0 - m_occupied], [0.0, 0.0, 1.0]],
         dtype=np.float32,
@@ -113,7 +114,8 @@ def mass_lut(m_free: float, m_occupied: float) -> np.ndarray:
 
 
 def check_out(out: np.ndarray | None, grid: GridSpec) -> None:
-    """Raise ValueError unless ``out`` is None or a writeable C-contiguous float32 ``(n, n, 3)`` array."""
+    """Raise ValueError unless ``out`` is None or a writeable C-contiguous float32 ``(n, n, 3)``
+    array."""
     if out is None:
         return
     shape = grid.shape + (3,)
@@ -151,7 +153,8 @@ _scratch = threading.local()
 
 
 def label_scratch(grid: GridSpec, name: str, fill: int = UNKNOWN) -> np.ndarray:
-    """A uint8 ``(n, n)`` grid filled with ``fill`` (default UNKNOWN), reused across calls (per thread).
+    """A uint8 ``(n, n)`` grid filled with ``fill`` (default UNKNOWN), reused across calls (per
+    thread).
 
     Reuse means no fresh pages are faulted in on every call.
     """
@@ -167,7 +170,8 @@ def label_scratch(grid: GridSpec, name: str, fill: int = UNKNOWN) -> np.ndarray:
 
 
 def bit_scratch(grid: GridSpec, name: str, count: int = 1) -> tuple[np.ndarray, np.ndarray]:
-    """Two zeroed uint64 bitmap stacks ``(count, n, ceil(n / 64))`` reused across calls (per thread).
+    """Two zeroed uint64 bitmap stacks ``(count, n, ceil(n / 64))`` reused across calls (per
+    thread).
 
     The first holds a grid by rows (bit c of row r), the second by columns (bit r of column c).
     """
@@ -187,7 +191,8 @@ def bit_scratch(grid: GridSpec, name: str, count: int = 1) -> tuple[np.ndarray, 
 
 
 def as_points(points: object, min_cols: int, what: str, max_cols: int | None = None) -> np.ndarray:
-    """Validate a point array ``(n, >= min_cols)`` of real numbers; return it C-contiguous float32 or float64.
+    """Validate a point array ``(n, >= min_cols)`` of real numbers; return it C-contiguous float32
+    or float64.
 
     ``max_cols`` is the most columns a point layout has (default ``min_cols``): an array with
     more columns than that and at most that many rows is the devkit's ``(columns, n)`` layout,

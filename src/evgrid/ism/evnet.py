@@ -1,9 +1,9 @@
 """Ev-Net: the deep inverse radar model (Bauer et al. 2019) and its checkpoint files.
 
-The published interface (paper sec. V-C; docs/decisions.md#ev-net-architecture): an accumulated radar detection image in
-the current ego frame goes in, max-pooled at the input; an encoder-decoder CNN; bilinear
-upsampling at the output; two non-negative evidence channels ``[e_f, e_o]`` come out, turned
-into masses by :func:`evgrid.mass.from_evidence`. The exact layers of Ev-Net are not public:
+The published interface (paper sec. V-C; docs/decisions.md#ev-net-architecture): an accumulated
+radar detection image in the current ego frame goes in, max-pooled at the input; an encoder-decoder
+CNN; bilinear upsampling at the output; two non-negative evidence channels ``[e_f, e_o]`` come out,
+turned into masses by :func:`evgrid.mass.from_evidence`. The exact layers of Ev-Net are not public:
 this is a small U-Net with that interface (0.44 M parameters, 1.8 MB by default).
 
 Checkpoints are safetensors files (plain tensors, never code) with the model configuration
@@ -71,7 +71,8 @@ def _block(c_in: int, c_out: int, dilation: int = 1) -> nn.Sequential:
 
 
 class EvNet(nn.Module):
-    """Encoder-decoder from a radar detection image ``(B, C, H, W)`` to evidence ``(B, 2, H, W)`` >= 0."""
+    """Encoder-decoder from a radar detection image ``(B, C, H, W)`` to evidence ``(B, 2, H, W)`` >=
+    0."""
 
     def __init__(self, config: EvNetConfig = EvNetConfig()):
         super().__init__()
@@ -141,7 +142,8 @@ _DTYPE_CODES = {torch.float32: "F32", torch.int64: "I64"}
 
 
 class CheckpointError(ValueError):
-    """A checkpoint file that cannot be used: unreadable, not an Ev-Net, corrupt, or of another shape."""
+    """A checkpoint file that cannot be used: unreadable, not an Ev-Net, corrupt, or of another
+    shape."""
 
 
 def _parse_header(prefix: bytes, size: int, path: Path) -> tuple[dict[str, Any], int]:
@@ -253,7 +255,8 @@ def _config_from(meta: dict[str, str], path: Path) -> EvNetConfig:
 
 
 def _expected(config: EvNetConfig, path: Path) -> dict[str, tuple[str, tuple[int, ...]]]:
-    """Name -> (dtype code, shape) of every tensor of an EvNet of ``config``, built on the meta device (no memory)."""
+    """Name -> (dtype code, shape) of every tensor of an EvNet of ``config``, built on the meta
+    device (no memory)."""
     with torch.device("meta"):
         sd = EvNet(config).state_dict()
     n = sum(v.numel() for v in sd.values())
@@ -279,7 +282,8 @@ def _serialise(model: EvNet, extra: dict[str, Any] | None) -> bytes:
         "extra": json.dumps(extra or {}),
     }
     tensors = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
-    # the data section does not depend on the metadata: serialise once to hash it, then with the hash
+    # the data section does not depend on the metadata: serialise once to hash it, then with the
+    # hash
     buf = save(tensors, metadata=meta)
     header, start = _parse_header(buf, len(buf), Path("<memory>"))
     meta[_DIGEST_KEY] = _digest(_entries(header, Path("<memory>")), memoryview(buf)[start:])
@@ -289,7 +293,8 @@ def _serialise(model: EvNet, extra: dict[str, Any] | None) -> bytes:
 def save_checkpoint(
     model: EvNet, path: str | os.PathLike, extra: dict[str, Any] | None = None
 ) -> Path:
-    """Write the model's weights and config as a safetensors file (format 2), atomically; ``extra`` goes in its metadata."""
+    """Write the model's weights and config as a safetensors file (format 2), atomically; ``extra``
+    goes in its metadata."""
     from evgrid.io import atomic_write
 
     data = _serialise(model, extra)
@@ -353,7 +358,8 @@ def _check_weights(tensors: dict[str, torch.Tensor], path: Path) -> None:
 
 
 def load_checkpoint(path: str | os.PathLike, config: EvNetConfig | None = None) -> LoadedCheckpoint:
-    """Load an Ev-Net from a safetensors file (no code is run); raise CheckpointError naming file and problem.
+    """Load an Ev-Net from a safetensors file (no code is run); raise CheckpointError naming file
+    and problem.
 
     Format 2 files must match their SHA-256; format 1 files (no digest) load with a warning
     recommending :func:`upgrade_checkpoint`.
@@ -432,7 +438,8 @@ def load_checkpoint(path: str | os.PathLike, config: EvNetConfig | None = None) 
 
 
 def upgrade_checkpoint(src: str | os.PathLike, dst: str | os.PathLike) -> Path:
-    """Rewrite a checkpoint in the current format (with its checksum), same weights and metadata; ``dst`` may be ``src``."""
+    """Rewrite a checkpoint in the current format (with its checksum), same weights and metadata;
+    ``dst`` may be ``src``."""
     loaded = load_checkpoint(src)
     data = _serialise(loaded.model, loaded.extra)
     from safetensors.torch import load

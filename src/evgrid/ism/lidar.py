@@ -99,7 +99,8 @@ _DEFAULT_PARAMS = RayIlmParams()
 
 @numba.njit(cache=True)
 def _k_ilm_points(pts, se, eg, z_min, z_max, min_range, half, inv_res, labels):
-    """Mark detection cells; returns (n_dropped, n_used). ``se``: sensor->ego 3x4, ``eg``: ego->grid 2x4."""
+    """Mark detection cells; returns (n_dropped, n_used). ``se``: sensor->ego 3x4, ``eg``: ego->grid
+    2x4."""
     n_r, n_c = labels.shape
     min_r2 = min_range * min_range
     n_dropped = 0
@@ -254,7 +255,8 @@ def ray_ilm_with_stats(
     threads: int = 1,
     out: np.ndarray | None = None,
 ) -> IsmResult:
-    """Ray ILM (paper sec. V-A) with point counts: masses ``(n, n, 3)`` float32 on ``grid`` (metres).
+    """Ray ILM (paper sec. V-A) with point counts: masses ``(n, n, 3)`` float32 on ``grid``
+    (metres).
 
     ``sweep`` is a :class:`~evgrid.data.frame.LidarSweep`, or raw points ``(n, >= 3)``
     (x, y, z in metres in the sensor frame, further columns ignored) with ``sensor_to_ego``

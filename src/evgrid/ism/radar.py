@@ -1,4 +1,5 @@
-"""The ray casting inverse radar model, "ray IRM" (paper sec. V-B; docs/decisions.md#ray-irm), after Werber et al. 2015.
+"""The ray casting inverse radar model, "ray IRM" (paper sec. V-B; docs/decisions.md#ray-irm), after
+Werber et al. 2015.
 
 Input: the last N = 10 sweeps of each of the 5 radars. Every sweep is moved into the
 *current* ego frame from its own sensor position at its own time::
@@ -672,7 +673,8 @@ def ray_irm_with_stats(
     threads: int = 1,
     out: np.ndarray | None = None,
 ) -> _common.IsmResult:
-    """Ray IRM (paper sec. V-B) with point counts: masses ``(n, n, 3)`` float32 in the frame of ``ego_pose`` (metres).
+    """Ray IRM (paper sec. V-B) with point counts: masses ``(n, n, 3)`` float32 in the frame of
+    ``ego_pose`` (metres).
 
     ``sweeps``: radar sweeps (any order, e.g. a :class:`RadarBuffer`); of each channel the
     last ``params.n_sweeps`` by timestamp are used. ``ego_pose``: the current ego pose
@@ -690,7 +692,8 @@ def ray_irm_with_stats(
     mats = np.empty((len(used), 3, 4), dtype=np.float64)
     apex_xy = np.empty((len(used), 2), dtype=np.float64)
     for k, s in enumerate(used):
-        # local = current_ego_pose^-1 o sweep.ego_pose o sensor_to_ego (paper sec. V-B: own position, own time)
+        # local = current_ego_pose^-1 o sweep.ego_pose o sensor_to_ego (paper sec. V-B: own
+        # position, own time)
         m = cur_inv @ s.ego_pose.matrix() @ s.sensor_to_ego.matrix()
         mats[k] = m[:3, :]
         apex_xy[k] = m[:2, 3]
@@ -737,7 +740,8 @@ def ray_irm_xy(
     threads: int = 1,
     out: np.ndarray | None = None,
 ) -> _common.IsmResult:
-    """Ray IRM on detections already in the grid's frame: ``detections_xy`` ``(n, 2)`` m, cone apexes ``origins_xy`` ``(n, 2)`` or ``(2,)`` m.
+    """Ray IRM on detections already in the grid's frame: ``detections_xy`` ``(n, 2)`` m, cone
+    apexes ``origins_xy`` ``(n, 2)`` or ``(2,)`` m.
 
     ``params.n_sweeps`` plays no part here: every detection given is used.
     """

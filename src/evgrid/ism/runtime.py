@@ -40,7 +40,8 @@ _warned_fallback = False
 
 
 class EvNetRuntime(Protocol):
-    """Runs Ev-Net's trunk on a pooled input ``(1, C, h, w)`` float32; returns evidence ``(2, h, w)`` float32."""
+    """Runs Ev-Net's trunk on a pooled input ``(1, C, h, w)`` float32; returns evidence ``(2, h,
+    w)`` float32."""
 
     name: str
 
@@ -48,7 +49,8 @@ class EvNetRuntime(Protocol):
 
 
 def evnet_trunk(model):
-    """A torch module computing ``model``'s evidence from its max-pooled input, before the final upsample.
+    """A torch module computing ``model``'s evidence from its max-pooled input, before the final
+    upsample.
 
     Ev-Net's forward is ``pool_in -> trunk -> bilinear upsample``; the fast path does the first
     and last steps itself (exactly, in compiled passes), so only the trunk is exported.
@@ -68,7 +70,8 @@ def evnet_trunk(model):
 
 
 def trunk_onnx(model, in_shape: tuple[int, int, int]) -> bytes:
-    """``model``'s trunk as an ONNX graph (opset 17), input ``pooled`` ``(1, *in_shape)``, output ``evidence``."""
+    """``model``'s trunk as an ONNX graph (opset 17), input ``pooled`` ``(1, *in_shape)``, output
+    ``evidence``."""
     import torch
 
     buf = io.BytesIO()
@@ -122,7 +125,8 @@ def ort_available() -> bool:
 
 
 class OrtRuntime:
-    """The trunk on ONNX Runtime (fp32, CPU), exported from the torch model in memory; ``threads`` intra-op threads."""
+    """The trunk on ONNX Runtime (fp32, CPU), exported from the torch model in memory; ``threads``
+    intra-op threads."""
 
     name = "onnxruntime"
 
@@ -133,7 +137,8 @@ class OrtRuntime:
     def from_graph(
         cls, graph: bytes, in_shape: tuple[int, int, int], threads: int = 1
     ) -> OrtRuntime:
-        """The runtime on an ONNX graph of the trunk: :func:`trunk_onnx`'s, or one converted from it (fp16, int8)."""
+        """The runtime on an ONNX graph of the trunk: :func:`trunk_onnx`'s, or one converted from it
+        (fp16, int8)."""
         runtime = cls.__new__(cls)
         runtime._open(graph, in_shape, threads)
         return runtime
@@ -157,7 +162,8 @@ class OrtRuntime:
 def make_runtime(
     model, in_shape: tuple[int, int, int], runtime: str = "auto", threads: int = 1
 ) -> EvNetRuntime:
-    """The runtime named ``runtime`` (see :data:`RUNTIMES`) for ``model``'s trunk on inputs ``in_shape`` ``(C, h, w)``."""
+    """The runtime named ``runtime`` (see :data:`RUNTIMES`) for ``model``'s trunk on inputs
+    ``in_shape`` ``(C, h, w)``."""
     global _warned_fallback
     if runtime not in RUNTIMES:
         raise ValueError(f"runtime must be one of {RUNTIMES}, got {runtime!r}")

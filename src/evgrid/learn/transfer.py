@@ -33,7 +33,8 @@ CALIBRATED = "calibrated radar"
 def transfer_sources(
     n_scenes: int, first_seed: int, duration_s: float, ranges: RadarRanges = TRAINING_RANGES
 ) -> dict[str, SimSource]:
-    """The held-out (``val``) scenes seen through radars in ``ranges``, the calibrated radar, and every out-of-range radar."""
+    """The held-out (``val``) scenes seen through radars in ``ranges``, the calibrated radar, and
+    every out-of-range radar."""
     seeds = SimSource.split("val", n_scenes, first_seed, duration_s).seeds
     sets = {
         IN_RANGE: SimSource(seeds, duration_s, radar_ranges=ranges),

@@ -89,7 +89,8 @@ class RadarConfig:
     #: Azimuth spacing of the simulated near-scan beams, degrees (finer than a resolution cell,
     #: so that cells merge several scatterers as the real sensor does).
     ray_spacing_deg: float = 1.0
-    #: Near scan: +-fov_deg wide; range max_range_m out to +-45 deg, falling to edge_range_m at the edge.
+    # : Near scan: +-fov_deg wide; range max_range_m out to +-45 deg, falling to edge_range_m at the
+    # edge.
     fov_deg: float = 60.0
     max_range_m: float = 70.0
     edge_range_m: float = 25.0
@@ -110,10 +111,12 @@ class RadarConfig:
     far_gain_db: float = 22.0
     #: Width of the logistic detection curve of a resolution cell's summed power, dB.
     detection_softness_db: float = 2.5
-    #: Scales every class's chance that a beam-hit forms a scattering centre (materials.RADAR_SCATTER).
+    # : Scales every class's chance that a beam-hit forms a scattering centre
+    # (materials.RADAR_SCATTER).
     scatter_probability: float = 0.46
     #: Width of surface (m) over which materials.RADAR_SCATTER * scatter_probability is the chance
-    #: of a scattering centre; a beam standing for a wider strip (farther, or spaced wider) more likely holds one.
+    # : of a scattering centre; a beam standing for a wider strip (farther, or spaced wider) more
+    # likely holds one.
     scatter_strip_m: float = 0.44
     #: Swerling I/II fluctuation: each look's power is exponentially distributed about its mean.
     swerling: bool = True
@@ -354,7 +357,8 @@ class SimConfig:
 
     #: Scene length in seconds (nuScenes scenes last about 20 s).
     duration_s: float = 20.0
-    #: One keyframe (a nuScenes sample) every this many lidar sweeps; None: 2 Hz at the lidar's rate.
+    # : One keyframe (a nuScenes sample) every this many lidar sweeps; None: 2 Hz at the lidar's
+    # rate.
     keyframe_every: int | None = None
     #: Unix time of the first lidar sweep, microseconds (the seed adds whole days).
     start_time_us: int = 1_533_000_000_000_000
@@ -403,7 +407,8 @@ class SimConfig:
 
     @property
     def keyframe_step(self) -> int:
-        """Lidar sweeps from one keyframe to the next (``keyframe_every``, or 2 Hz at the lidar's rate)."""
+        """Lidar sweeps from one keyframe to the next (``keyframe_every``, or 2 Hz at the lidar's
+        rate)."""
         if self.keyframe_every is not None:
             return self.keyframe_every
         return max(1, int(round(self.lidar.rate_hz / 2.0)))

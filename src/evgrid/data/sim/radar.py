@@ -71,7 +71,8 @@ class RadarModel:
         self.cfg = cfg
         self.mount = mount
         self.tan_beta = math.tan(math.radians(cfg.elevation_half_deg))
-        #: Per point of the last sweep: true range (m), azimuth (rad) and scan (1 far) of its strongest scatterer.
+        # : Per point of the last sweep: true range (m), azimuth (rad) and scan (1 far) of its
+        # strongest scatterer.
         self.last_truth = np.zeros((0, 3))
 
     def max_range(self, az: np.ndarray) -> np.ndarray:
@@ -448,7 +449,8 @@ class RadarModel:
             a + syaw
         )
         res_r = np.where(far, cfg.far_range_resolution_m, cfg.range_resolution_m)
-        # Beams of a digital beamformer are evenly spaced in sin(azimuth): cells widen off boresight.
+        # Beams of a digital beamformer are evenly spaced in sin(azimuth): cells widen off
+        # boresight.
         res_u = np.radians(
             np.where(far, cfg.far_azimuth_resolution_deg, cfg.azimuth_resolution_deg)
         )

@@ -63,8 +63,9 @@ _AVENUE_REACH_M = 400.0
 
 @dataclass(frozen=True, eq=False)
 class Movers:
-    """Moving objects. Linear movers: ``position(t) = p0 + u(heading) * speed * clip(t, t_begin, t_end)``;
-    followers (``follow``) drive the ego's path at ``s_ego(t + follow_lead_s) + follow_gap``.
+    """Moving objects. Linear movers: ``position(t) = p0 + u(heading) * speed * clip(t, t_begin,
+    t_end)``; followers (``follow``) drive the ego's path at ``s_ego(t + follow_lead_s) +
+    follow_gap``.
 
     With a ``warp`` (curved towns), linear movers drive straight in the unwarped city frame and
     are bent by the warp (heading and velocity by its Jacobian), then moved by ``frame``."""
@@ -98,7 +99,8 @@ class Movers:
         )
 
     def state_at(self, t: float, traj: Trajectory) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Packed boxes (m, 8), velocities (m, 2) in m/s, and yaw (m,) of all movers at ``t`` seconds."""
+        """Packed boxes (m, 8), velocities (m, 2) in m/s, and yaw (m,) of all movers at ``t``
+        seconds."""
         m = len(self)
         tc = np.clip(t, self.t_begin, self.t_end)
         ux, uy = np.cos(self.heading), np.sin(self.heading)
@@ -148,7 +150,8 @@ class TownLayout:
     """The features of an irregular town, in the unwarped city frame (the warp bends them all)."""
 
     warp: Warp | None
-    #: Diagonal avenues through a grid junction: (x, y, direction rad, half width m, curb to property line m).
+    # : Diagonal avenues through a grid junction: (x, y, direction rad, half width m, curb to
+    # property line m).
     avenues: list[tuple[float, float, float, float, float]] = field(default_factory=list)
     #: Blocks given over to open squares, parking lots and parks: (x0, y0, x1, y1) each, metres.
     squares: list[tuple[float, float, float, float]] = field(default_factory=list)
@@ -190,6 +193,29 @@ class World:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "index", GridIndex(self.boxes))
+
+    @classmethod
+    def from_boxes(cls, static: list[tuple], movers: Movers | None = None) -> World:
+        """A hand-made world (tests, examples): boxes ``(cx, cy, yaw, length, width, z0, z1,
+        class)`` in the global frame (m, rad), class materials without per-object variation, and
+        ``movers`` (default none)."""
+        a = np.array([s[:7] for s in static], dtype=np.float64).reshape(-1, 7)
+        boxes = pack_boxes(a[:, 0], a[:, 1], a[:, 2], a[:, 3] / 2, a[:, 4] / 2, a[:, 5], a[:, 6])
+        classes = np.array([s[7] for s in static], dtype=np.int32)
+        mv = movers if movers is not None else Movers.empty()
+        return cls(
+            "urban",
+            boxes,
+            a[:, 2],
+            classes,
+            M.LIDAR_REFLECTIVITY[classes],
+            np.zeros(len(classes)),
+            mv,
+            M.LIDAR_REFLECTIVITY[mv.classes],
+            np.zeros(len(mv)),
+            None,
+            SE2(),
+        )
 
     @property
     def n_static(self) -> int:
@@ -474,7 +500,8 @@ def _irregular_building(
     depth: float,
     h: float,
 ) -> None:
-    """A building that is not one box: a courtyard block, a stepped facade, or a slightly skewed box."""
+    """A building that is not one box: a courtyard block, a stepped facade, or a slightly skewed
+    box."""
     w = u1 - u0
     r = rng.random()
     if r < 0.25 and w > 16.0 and depth > 15.0:
@@ -673,7 +700,8 @@ def _edge_line(
 def _open_square(
     b: _Builder, rng: np.random.Generator, rect: tuple[float, float, float, float]
 ) -> None:
-    """A paved square: lamps and bollards at its edge, trees, benches, and a fountain, statue or kiosk."""
+    """A paved square: lamps and bollards at its edge, trees, benches, and a fountain, statue or
+    kiosk."""
     f = _rect_frame(rect)
     L, D = f.length, f.depth
     for v in (1.5, D - 1.5):
@@ -956,7 +984,8 @@ def _in_grid_streets(rows: np.ndarray, grid: StreetGrid) -> np.ndarray:
 
 
 def _warp_rows(rows: np.ndarray, warp: Warp) -> np.ndarray:
-    """City-frame boxes bent by the warp: centres moved, yaw turned and sides stretched by its Jacobian."""
+    """City-frame boxes bent by the warp: centres moved, yaw turned and sides stretched by its
+    Jacobian."""
     out = rows.copy()
     x, y, yaw = rows[:, 0], rows[:, 1], rows[:, 2]
     out[:, 2], stretch_u = warp.direction(x, y, yaw)
