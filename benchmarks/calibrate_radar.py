@@ -26,7 +26,10 @@ _NUSC = RadarFilter("nuscenes")
 _SRC_MINI = (
     "nuScenes v1.0-mini, devkit default filters (e-com-net.com/article/1610132498308694016.htm)"
 )
-_SRC_CRF = "CRF-Net normalisation, all nuScenes radar data (TUMFTM/CameraRadarFusionNet crfnet/utils/radar.py)"
+_SRC_CRF = (
+    "CRF-Net normalisation, all nuScenes radar data "
+    "(TUMFTM/CameraRadarFusionNet crfnet/utils/radar.py)"
+)
 #: CRF-Net's mean / std of the radar fields over "all radar data from nuScenes" (after the devkit's
 #: default filter: ambig_state 3 and invalid_state 0 with zero spread); by inference RADAR_FRONT
 #: in its own frame (azimuth std 0.41 rad, mean x close to mean distance).
@@ -280,7 +283,8 @@ def main() -> None:
         rows.append(
             (
                 "RADAR_FRONT filtered: share from the far scan / clutter / ghost",
-                f"{np.mean(ftr[:, 2] > 0):.3f} / {np.mean(flab == RADAR_CLUTTER):.3f} / {np.mean(flab == RADAR_GHOST):.3f}",
+                f"{np.mean(ftr[:, 2] > 0):.3f} / {np.mean(flab == RADAR_CLUTTER):.3f} / "
+                f"{np.mean(flab == RADAR_GHOST):.3f}",
                 "not found",
                 "-",
             )
@@ -296,7 +300,8 @@ def main() -> None:
     n_samples = len(d["sample_filt"])
     print(f"RadarConfig overrides: {args.set or 'none'}")
     print(
-        f"seeds {args.seeds}, {args.duration:g} s each, {n_samples} samples, {len(d['sweep_all'])} sweeps, "
+        f"seeds {args.seeds}, {args.duration:g} s each, {n_samples} samples, {len(d['sweep_all'])} "
+        "sweeps, "
         f"{time.perf_counter() - t0:.0f} s"
     )
     print("| statistic | simulated: mean [5-95 %] | published | source |")

@@ -1,4 +1,5 @@
-"""Ray IRM (paper sec. V-B): cone geometry, barriers, moving sensors, a dense reference, bad input."""
+"""Ray IRM (paper sec. V-B): cone geometry, barriers, moving sensors, a dense reference, bad
+input."""
 
 from __future__ import annotations
 

@@ -191,7 +191,8 @@ def _keyframe_every(indices: list[int]) -> int:
     steps = set(np.diff(indices).tolist())
     if indices[0] != 0 or len(steps) != 1:
         raise ValueError(
-            f"keyframes {indices[:5]}... are not every N-th frame from frame 0; a rig file cannot say so"
+            f"keyframes {indices[:5]}... are not every N-th frame from frame 0; a rig file cannot "
+            "say so"
         )
     return int(steps.pop())
 

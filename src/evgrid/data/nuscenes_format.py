@@ -259,12 +259,14 @@ def _read_pcd_records(path: str | os.PathLike) -> np.ndarray:
     need = n * dtype.itemsize
     if len(blob) - pos < need:
         raise ValueError(
-            f"{str(path)!r}: header declares {n} points ({need} bytes) but {len(blob) - pos} bytes follow"
+            f"{str(path)!r}: header declares {n} points ({need} bytes) but {len(blob) - pos} bytes "
+            "follow"
         )
     rec = np.frombuffer(blob, dtype=dtype, count=n, offset=pos)
     if blob[pos + need :].strip(b" \r\n"):  # a trailing newline is harmless; more data is not
         raise ValueError(
-            f"{str(path)!r}: header declares {n} points ({need} bytes) but {len(blob) - pos} bytes follow"
+            f"{str(path)!r}: header declares {n} points ({need} bytes) but {len(blob) - pos} bytes "
+            "follow"
         )
     return rec
 

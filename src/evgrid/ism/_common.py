@@ -202,8 +202,10 @@ def as_points(points: object, min_cols: int, what: str, max_cols: int | None = N
     cols = min_cols if max_cols is None else max_cols
     if a.ndim == 2 and a.shape[0] <= cols < a.shape[1]:
         raise ValueError(
-            f"{what}: points of shape {a.shape} look transposed (one column per point, as the nuScenes devkit "
-            f"stores them); pass one row per point, shape (n, {min_cols if cols == min_cols else f'{min_cols}..{cols}'}), e.g. points.T"
+            f"{what}: points of shape {a.shape} look transposed (one column per point, as the "
+            "nuScenes devkit "
+            "stores them); pass one row per point, shape (n, "
+            f"{min_cols if cols == min_cols else f'{min_cols}..{cols}'}), e.g. points.T"
         )
     if a.ndim != 2 or a.shape[1] < min_cols:
         raise ValueError(

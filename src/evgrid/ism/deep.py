@@ -93,7 +93,8 @@ _PLAIN_LOG = _SweepLog()
 def _log_drops(sweep: RadarSweep, n_nonfinite: int, n_range: int, n_points: int) -> None:
     if n_nonfinite or n_range:
         logger.warning(
-            "deep_irm: %s sweep at t = %d us: dropped %d of %d detections (%d NaN/inf, %d outside the "
+            "deep_irm: %s sweep at t = %d us: dropped %d of %d detections (%d NaN/inf, %d outside "
+            "the "
             "sensor's range: RCS in [%g, %g] dBsm, |v| <= %g m/s)",
             sweep.channel,
             sweep.timestamp,
@@ -532,7 +533,8 @@ class DeepIrm:
             )
         if loaded.model.config.in_channels != len(CHANNELS):
             raise CheckpointError(
-                f"{path}: model takes {loaded.model.config.in_channels} channels, inputs have {len(CHANNELS)}"
+                f"{path}: model takes {loaded.model.config.in_channels} channels, inputs have "
+                f"{len(CHANNELS)}"
             )
         self.grid = grid
         self.params = params

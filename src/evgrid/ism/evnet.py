@@ -47,7 +47,7 @@ logger = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class EvNetConfig:
-    """Architecture of an Ev-Net: input channels, width of the first stage, input max-pool factor."""
+    """Architecture of an Ev-Net: input channels, first stage width, input max-pool factor."""
 
     in_channels: int = 6
     width: int = 12
@@ -154,7 +154,8 @@ def _parse_header(prefix: bytes, size: int, path: Path) -> tuple[dict[str, Any],
     (n,) = struct.unpack("<Q", prefix[:8])
     if n > min(_MAX_HEADER_BYTES, size - 8) or len(prefix) < 8 + n:
         raise CheckpointError(
-            f"{path}: not a safetensors checkpoint, or truncated (header of {n} bytes in a file of {size})"
+            f"{path}: not a safetensors checkpoint, or truncated (header of {n} bytes in a file of "
+            f"{size})"
         )
     try:
         header = json.loads(prefix[8 : 8 + n].decode("utf-8"))
@@ -186,7 +187,7 @@ def _read_header(path: Path) -> tuple[dict[str, Any], int, int]:
 def _entries(
     header: dict[str, Any], path: Path
 ) -> dict[str, tuple[str, tuple[int, ...], int, int]]:
-    """Tensor entries of a header: name -> (dtype code, shape, begin, end) within the data section."""
+    """Tensor entries of a header: name -> (dtype code, shape, begin, end) in the data section."""
     out = {}
     for name, e in header.items():
         if name == "__metadata__":
@@ -246,7 +247,8 @@ def _config_from(meta: dict[str, str], path: Path) -> EvNetConfig:
         v = cfg.get(key)
         if v is not None and (isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= hi):
             raise CheckpointError(
-                f"{path}: checkpoint metadata field 'config.{key}' must be an integer in [1, {hi}], got {v!r:.80}"
+                f"{path}: checkpoint metadata field 'config.{key}' must be an integer in [1, "
+                f"{hi}], got {v!r:.80}"
             )
     try:
         return EvNetConfig(**cfg)
@@ -262,7 +264,8 @@ def _expected(config: EvNetConfig, path: Path) -> dict[str, tuple[str, tuple[int
     n = sum(v.numel() for v in sd.values())
     if n > _MAX_PARAMS:
         raise CheckpointError(
-            f"{path}: checkpoint metadata field 'config' describes {n:,} parameters, more than the {_MAX_PARAMS:,} allowed"
+            f"{path}: checkpoint metadata field 'config' describes {n:,} parameters, more than the "
+            f"{_MAX_PARAMS:,} allowed"
         )
     return {k: (_DTYPE_CODES.get(v.dtype, str(v.dtype)), tuple(v.shape)) for k, v in sd.items()}
 
@@ -272,7 +275,7 @@ def _tensor_bytes(dtype: str, shape: tuple[int, ...]) -> int:
 
 
 def _serialise(model: EvNet, extra: dict[str, Any] | None) -> bytes:
-    """A format-2 checkpoint of ``model``: safetensors bytes with config, extra and tensor digest."""
+    """A format-2 checkpoint of ``model``: safetensors bytes, config, extra, tensor digest."""
     from safetensors.torch import save
 
     meta = {
@@ -303,7 +306,7 @@ def save_checkpoint(
 
 @dataclass
 class LoadedCheckpoint:
-    """A loaded Ev-Net with the metadata saved beside it; ``version`` is the file's format version."""
+    """A loaded Ev-Net and the metadata saved beside it; ``version``: the file's format version."""
 
     model: EvNet
     path: Path
@@ -324,7 +327,8 @@ def _check_entries(
     unexpected = sorted(set(entries) - set(expected))
     if missing or unexpected:
         raise CheckpointError(
-            f"{path}: weights do not match {saved}: missing {missing[:3]}, unexpected {unexpected[:3]}"
+            f"{path}: weights do not match {saved}: missing {missing[:3]}, unexpected "
+            f"{unexpected[:3]}"
         )
     for k, (dtype, shape, begin, end) in entries.items():
         want_dtype, want_shape = expected[k]
@@ -334,11 +338,13 @@ def _check_entries(
             raise CheckpointError(f"{path}: weight {k} has dtype {dtype}, expected {want_dtype}")
         if not (0 <= begin <= end <= n_data) or end - begin != _tensor_bytes(dtype, shape):
             raise CheckpointError(
-                f"{path}: weight {k} has data offsets [{begin}, {end}) that do not fit the file; it is truncated or corrupt"
+                f"{path}: weight {k} has data offsets [{begin}, {end}) that do not fit the file; "
+                "it is truncated or corrupt"
             )
     if n_data != sum(_tensor_bytes(d, sh) for d, sh, _, _ in entries.values()):
         raise CheckpointError(
-            f"{path}: {n_data} bytes of tensor data where the header describes {sum(_tensor_bytes(d, sh) for d, sh, _, _ in entries.values())}"
+            f"{path}: {n_data} bytes of tensor data where the header describes "
+            f"{sum(_tensor_bytes(d, sh) for d, sh, _, _ in entries.values())}"
         )
     return n_data
 
@@ -376,12 +382,14 @@ def load_checkpoint(path: str | os.PathLike, config: EvNetConfig | None = None) 
         raise CheckpointError(f"{path}: checkpoint metadata is not a JSON object")
     if meta.get("format") != _FORMAT:
         raise CheckpointError(
-            f"{path}: not an evgrid Ev-Net checkpoint (metadata field 'format' is {meta.get('format')!r})"
+            f"{path}: not an evgrid Ev-Net checkpoint (metadata field 'format' is "
+            f"{meta.get('format')!r})"
         )
     version = meta.get("version")
     if version not in _READABLE_VERSIONS:
         raise CheckpointError(
-            f"{path}: checkpoint format version {version!r} (metadata field 'version'), this evgrid reads {', '.join(_READABLE_VERSIONS)}"
+            f"{path}: checkpoint format version {version!r} (metadata field 'version'), this "
+            f"evgrid reads {', '.join(_READABLE_VERSIONS)}"
         )
     saved = _config_from(meta, path)
     try:
@@ -390,7 +398,8 @@ def load_checkpoint(path: str | os.PathLike, config: EvNetConfig | None = None) 
         raise CheckpointError(f"{path}: checkpoint metadata field 'extra' is not JSON ({e})") from e
     if not isinstance(extra, dict):
         raise CheckpointError(
-            f"{path}: checkpoint metadata field 'extra' must be a JSON object, got {type(extra).__name__}"
+            f"{path}: checkpoint metadata field 'extra' must be a JSON object, got "
+            f"{type(extra).__name__}"
         )
     if "grid" in extra:  # the grid it was trained on, which DeepIrm compares with its own
         from evgrid.geometry import GridSpec
@@ -424,7 +433,8 @@ def load_checkpoint(path: str | os.PathLike, config: EvNetConfig | None = None) 
         digest = _metadata_field(meta, _DIGEST_KEY, path)
         if _digest(entries, data) != digest:
             raise CheckpointError(
-                f"{path}: the weights do not match the checksum in the metadata (field {_DIGEST_KEY!r}); the file is corrupt"
+                f"{path}: the weights do not match the checksum in the metadata (field "
+                f"{_DIGEST_KEY!r}); the file is corrupt"
             )
     try:
         tensors = load(buf)

@@ -229,7 +229,8 @@ def _resolve_inputs(
     if isinstance(sweep, LidarSweep):
         if sensor_to_ego is not None or ego_pose is not None:
             raise ValueError(
-                "ray_ilm: pass either a LidarSweep or raw points with sensor_to_ego/ego_pose, not both"
+                "ray_ilm: pass either a LidarSweep or raw points with sensor_to_ego/ego_pose, not "
+                "both"
             )
         return sweep.points, sweep.sensor_to_ego, sweep.ego_pose
     pts = as_points(sweep, 3, "ray_ilm", max_cols=len(LIDAR_COLUMNS))

@@ -644,7 +644,7 @@ def _irm_core(
     threads: int,
     out: np.ndarray | None,
 ) -> tuple[np.ndarray, int]:
-    """Steps 1-3 on detections and apexes in continuous cell coordinates; returns (masses, n_used)."""
+    """Steps 1-3 on detections and apexes in continuous cell coordinates -> (masses, n_used)."""
     h = math.radians(params.opening_angle_deg) / 2.0
     barrier = _common.label_scratch(grid, "irm_barrier", fill=0)
     labels = _common.label_scratch(grid, "irm_labels")

@@ -4,11 +4,11 @@ The deep IRM's fast path (:meth:`evgrid.ism.deep.DeepIrm.predict`) builds Ev-Net
 input itself and upsamples the evidence itself, so a runtime runs only the trunk between the
 two: ``(1, C, n/p, n/p)`` pooled input -> ``(2, n/p, n/p)`` evidence ``[e_f, e_o]`` >= 0.
 
-Measured on one core (``evgrid bench``, docs/speed.md): ONNX Runtime fp32 runs the trunk about
-25% faster than torch eager with masses equal within 1e-6; torch stays the training framework
-and the fallback when ``onnxruntime`` is missing (``pip install 'evgrid[fast]'``). The ONNX
-graph is exported from the loaded model in memory on first use, so a checkpoint is the only
-file to ship.
+ONNX Runtime fp32 runs the trunk faster than torch eager on one core, with masses equal within
+1e-6 (the figures, with their commit and machine: docs/speed.md); torch stays the training
+framework and the fallback when ``onnxruntime`` is missing (``pip install 'evgrid[fast]'``).
+The ONNX graph is exported from the loaded model in memory on first use, so a checkpoint is the
+only file to ship.
 """
 
 from __future__ import annotations
@@ -93,8 +93,8 @@ def trunk_onnx(model, in_shape: tuple[int, int, int]) -> bytes:
 class TorchRuntime:
     """The trunk on torch, eager, channels-last: the fallback without ONNX Runtime.
 
-    torch.jit trace + freeze runs it 15-25% faster on one core and torch.compile 15% (after
-    minutes of compiling), both slower than ONNX Runtime (``benchmarks/bench_runtime.py``).
+    torch.jit trace + freeze and torch.compile (after minutes of compiling) run it faster, both
+    slower than ONNX Runtime (``benchmarks/bench_runtime.py``, figures in docs/speed.md).
     """
 
     name = "torch"
@@ -176,7 +176,7 @@ def make_runtime(
         if runtime == "torch" and not _warned_fallback:
             _warned_fallback = True
             logger.info(
-                "onnxruntime is not installed: Ev-Net runs on torch, about 25%% slower "
+                "onnxruntime is not installed: Ev-Net runs on torch, slower than on ONNX Runtime "
                 "(pip install 'evgrid[fast]')"
             )
     if runtime == "onnxruntime":

@@ -97,13 +97,16 @@ def transfer_markdown(results: dict[str, dict]) -> str:
     """The results of :func:`measure_transfer` as a Markdown table (IoU in %)."""
     pct = lambda x: "-" if x != x else f"{100 * x:.1f}"  # noqa: E731  (NaN: a class absent)
     lines = [
-        "| radar | outside training | deep IRM free | occupied | unknown | ray IRM free | occupied | unknown | samples |",
+        "| radar | outside training | deep IRM free | occupied | unknown | ray IRM free | occupied "
+        "| unknown | samples |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for name, r in results.items():
         d, i = r["deep_irm"], r["ray_irm"]
         lines.append(
-            f"| {name} | {', '.join(r['outside_training']) or '-'} | {pct(d['free'])} | {pct(d['occupied'])} | "
-            f"{pct(d['unknown'])} | {pct(i['free'])} | {pct(i['occupied'])} | {pct(i['unknown'])} | {r['samples']} |"
+            f"| {name} | {', '.join(r['outside_training']) or '-'} | {pct(d['free'])} | "
+            f"{pct(d['occupied'])} | "
+            f"{pct(d['unknown'])} | {pct(i['free'])} | {pct(i['occupied'])} | {pct(i['unknown'])} "
+            f"| {r['samples']} |"
         )
     return "\n".join(lines) + "\n"

@@ -10,9 +10,10 @@ shutter).
 The ego vehicle's own body is in the way of the lower beams, as on a roof-mounted HDL-32E
 (``LidarConfig.self_returns``, on by default): :data:`EGO_BODY_BOXES` (ego frame: the body, the
 cabin, a sensor rack whose bars are 0.1 m below the sensor, mirrors) stop the beams that meet them
-before anything else, and their hits are returned like any other (about 6,000 points a sweep within
-3 m of the sensor, 1,500 of them 0.1 m below it). The random numbers drawn do not depend on them, so
-every return that does not meet the body is the same with or without.
+before anything else, and their hits are returned like any other (thousands of points a sweep
+within 3 m of the sensor, many of them just below it; docs/simulator.md). The random numbers
+drawn do not depend on them, so every return that does not meet the body is the same with or
+without.
 """
 
 from __future__ import annotations

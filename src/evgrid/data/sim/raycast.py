@@ -145,7 +145,7 @@ def build_index(
     nx: int,
     ny: int,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """CSR lists of the boxes whose bounding rectangles touch each grid cell (cell = ix * ny + iy)."""
+    """CSR lists of the boxes whose bounding rectangles touch each grid cell (ix * ny + iy)."""
     n = xmin.shape[0]
     counts = np.zeros(nx * ny + 1, dtype=np.int64)
     for b in range(n):

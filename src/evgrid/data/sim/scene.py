@@ -131,7 +131,8 @@ class SimScene:
     @property
     def description(self) -> str:
         """One line saying what this scene is."""
-        return f"evgrid simulated {self.world.environment} scene, seed {self.seed}, {self.config.duration_s:g} s"
+        env, seconds = self.world.environment, self.config.duration_s
+        return f"evgrid simulated {env} scene, seed {self.seed}, {seconds:g} s"
 
     # --- times and poses --------------------------------------------------------------------
     def seconds(self, timestamp_us: int) -> float:
@@ -213,7 +214,7 @@ class SimScene:
         return sweep, hit
 
     def radar_sweep(self, channel: str, j: int) -> tuple[RadarSweep, np.ndarray]:
-        """Sweep ``j`` of a radar channel and its ground-truth labels (0 real, 1 clutter, 2 ghost)."""
+        """Sweep ``j`` of a radar channel, and its true labels (0 real, 1 clutter, 2 ghost)."""
         if channel not in self._radars:
             raise ValueError(
                 f"unknown radar channel {channel!r}; channels are {self.radar_channels}"

@@ -303,7 +303,8 @@ def _require(
     ):
         want = "(" + ", ".join("n" if w is None else str(w) for w in shape) + ")"
         raise SceneFileError(
-            f"{path}: array {name!r} has shape {a.shape} dtype {a.dtype}, expected {want} of kind {kind!r}"
+            f"{path}: array {name!r} has shape {a.shape} dtype {a.dtype}, expected {want} of kind "
+            f"{kind!r}"
         )
     return a
 
@@ -315,7 +316,8 @@ def _check_offsets(path: Path, name: str, off: np.ndarray, n_items: int, total: 
         or (np.diff(off) < 0).any()
     ):
         raise SceneFileError(
-            f"{path}: array {name!r} does not index its {total} points in {n_items} pieces; the file is corrupt"
+            f"{path}: array {name!r} does not index its {total} points in {n_items} pieces; the "
+            "file is corrupt"
         )
 
 
@@ -334,7 +336,8 @@ def _check_scene_arrays(path: Path, d: dict[str, np.ndarray]) -> None:
     occ = _require(path, d, "occupancy", (None, None, None), "u")
     if len(occ) != int(kf.sum()):
         raise SceneFileError(
-            f"{path}: array 'occupancy' holds {len(occ)} keyframes, 'is_keyframe' marks {int(kf.sum())}"
+            f"{path}: array 'occupancy' holds {len(occ)} keyframes, 'is_keyframe' marks "
+            f"{int(kf.sum())}"
         )
     for ch in RADAR_CHANNELS:
         m = len(_require(path, d, f"radar_{ch}_timestamps", (None,), "i"))
@@ -379,7 +382,8 @@ def load_sim_scene(path: str | os.PathLike) -> StoredScene:
         raise SceneFileError(f"{path}: format {meta.get('format')!r}, expected {SIM_NPZ_FORMAT!r}")
     if meta.get("version") != _VERSION:
         raise SceneFileError(
-            f"{path}: version {meta.get('version')!r} of the format; this evgrid reads version {_VERSION}"
+            f"{path}: version {meta.get('version')!r} of the format; this evgrid reads version "
+            f"{_VERSION}"
         )
     if (
         not isinstance(meta.get("name"), str)

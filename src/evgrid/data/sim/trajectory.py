@@ -102,7 +102,7 @@ class Warp:
     def direction(
         self, x: np.ndarray, y: np.ndarray, yaw: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Warped heading (rad, unwrapped next to ``yaw``) and stretch of a unit vector at ``yaw``."""
+        """Warped heading (rad, unwrapped next to ``yaw``), stretch of a unit vector at ``yaw``."""
         a, b = self.jacobian(x, y)
         c, s = np.cos(yaw), np.sin(yaw)
         ex, ey = c + a * s, b * c + s
@@ -375,7 +375,7 @@ class Trajectory:
         return self.pose_at_s(self.s_at(t))
 
     def velocity_at(self, t: np.ndarray | float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """True ego velocity (vx, vy in m/s, frame of the path) and yaw rate (rad/s) at ``t`` (s)."""
+        """True ego velocity (vx, vy m/s, frame of the path) and yaw rate (rad/s) at ``t`` (s)."""
         s = self.s_at(t)
         v = self.speed_at(t)
         yaw = np.interp(s, self.path_s, self.path_yaw)

@@ -1148,7 +1148,7 @@ _SEGMENT = 16
 
 
 def _segment_bounds(box: np.ndarray) -> np.ndarray:
-    """Bounds of each run of ``_SEGMENT`` consecutive sample bounds (the last run may be shorter)."""
+    """Bounds of each run of ``_SEGMENT`` consecutive sample bounds (the last may be shorter)."""
     n = len(box)
     pad = np.concatenate([box, np.repeat(box[-1:], (-n) % _SEGMENT, axis=0)]).reshape(
         -1, _SEGMENT, 4
