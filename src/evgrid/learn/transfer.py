@@ -75,7 +75,7 @@ def measure_transfer(
     results: dict[str, dict] = {}
     for name, src in sources.items():
         root = Path(cache_root) / _slug(name) / config.data_key()
-        names = build_cache((src.load(n) for n in src.names()), root, config, with_irm=True)
+        names = build_cache(src, root, config, with_irm=True)  # engine: config.engine
         ds = RadarDataset(root, names, config.grid, with_irm=True)
         deep, irm, _ = evaluate_model(model, DataLoader(ds, batch_size=4), torch.device("cpu"))
         variant = src.radar
