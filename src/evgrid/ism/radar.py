@@ -439,6 +439,11 @@ def _k_tasks(det_uv, ok, det_apex, apex_uv, h):
     return t_apex[:n_t], t_oct[:n_t], t_start[: n_t + 1], iv_lo[:n_iv], iv_hi[:n_iv], iv_r[:n_iv]
 
 
+# Over 100 lines on purpose (issue 23 allows three such functions, each with its why): this is
+# the ray IRM's innermost loop, run for every column of every cone task. Its state (the open
+# slope intervals in two swapped buffers, the column's cell range, the bitmap words) lives in
+# locals that LLVM keeps in registers; split into functions, that state would cross a call for
+# every cell run of every column.
 @numba.njit(cache=True)
 def _k_cast_task(barrier, brow, bcol, frow, fcol, au, av, o, lo0, hi0, r0):
     """Step 2 for one sensor position and one octant: exact shadow casting of slope intervals.
