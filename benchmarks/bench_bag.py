@@ -1,4 +1,5 @@
-"""Benchmark: mapping a scene from a ROS 2 MCAP bag against the same scene from the simulator's npz file.
+"""Benchmark: mapping a scene from a ROS 2 MCAP bag against the same scene from the simulator's npz
+file.
 
 Run: ``python benchmarks/bench_bag.py [--duration 10] [--seed 0] [--maps ray_ilm,ray_irm,fused]
 [--storage mcap]``. Simulates one scene, writes it both as the simulator's ``.npz`` (what
@@ -63,8 +64,10 @@ def main() -> None:
         t2 = time.perf_counter()
         size = sum(p.stat().st_size for p in (bag.rglob("*") if bag.is_dir() else [bag]))
         print(
-            f"scene {scene.name}: {len(scene)} frames, {args.duration:g} s; npz {npz.stat().st_size / 2**20:.0f} MiB "
-            f"written in {t1 - t0:.1f} s; {args.storage} bag {size / 2**20:.0f} MiB written in {t2 - t1:.1f} s"
+            f"scene {scene.name}: {len(scene)} frames, {args.duration:g} s; npz "
+            f"{npz.stat().st_size / 2**20:.0f} MiB "
+            f"written in {t1 - t0:.1f} s; {args.storage} bag {size / 2**20:.0f} MiB written in "
+            f"{t2 - t1:.1f} s"
         )
         map_fps(load_sim_scene(npz), config)  # warm-up: numba kernels
         rows = []
@@ -80,7 +83,8 @@ def main() -> None:
             m, mapper = map_fps(load(), config)
             rows.append((label, open_s, r, m, mapper))
         print(
-            f"{'source':24s} {'open s':>7s} {'read fps':>9s} {'map fps':>8s}   maps: {', '.join(config.maps)}"
+            f"{'source':24s} {'open s':>7s} {'read fps':>9s} {'map fps':>8s}   maps: "
+            f"{', '.join(config.maps)}"
         )
         for label, open_s, r, m, _ in rows:
             print(f"{label:24s} {open_s:7.2f} {r:9.1f} {m:8.1f}")
@@ -91,7 +95,8 @@ def main() -> None:
             for k in a
         )
         print(
-            f"maps bit-identical: {same}; mapping from the bag at {rows[1][3] / rows[0][3]:.0%} of the npz speed"
+            f"maps bit-identical: {same}; mapping from the bag at {rows[1][3] / rows[0][3]:.0%} of "
+            "the npz speed"
         )
 
 

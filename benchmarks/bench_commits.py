@@ -47,7 +47,8 @@ def _bench(tree: Path, out: Path, extra: list[str]) -> dict:
     done = subprocess.run(cmd, cwd=tree, env=env, capture_output=True, text=True)
     if done.returncode != 0:
         raise SystemExit(
-            f"bench of {tree} failed: {done.stderr.strip().splitlines()[-1] if done.stderr.strip() else done.returncode}"
+            f"bench of {tree} failed: "
+            f"{done.stderr.strip().splitlines()[-1] if done.stderr.strip() else done.returncode}"
         )
     return json.loads(out.read_text())
 

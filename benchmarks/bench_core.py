@@ -99,7 +99,8 @@ def main() -> None:
     width = max(len(k) for k in res)
     # the median is the figure; the minimum shows what the code does when the machine is quiet
     print(
-        f"evgrid core benchmark - {platform.processor() or platform.machine()}, 1 thread, ms per call"
+        f"evgrid core benchmark - {platform.processor() or platform.machine()}, 1 thread, ms per "
+        "call"
     )
     print(f"  {'':<{width}}  {'median':>8}  {'min':>8}")
     for name, ts in res.items():

@@ -47,7 +47,7 @@ def timed(fn: Callable[[], object], repeats: int) -> tuple[float, float]:
 
 
 def open_road(sweeps: list[RadarSweep], seed: int = 1) -> list[RadarSweep]:
-    """The same sweeps with every detection moved to 25-80 m, within +-57 degrees of the boresight."""
+    """The same sweeps, every detection moved to 25-80 m, within +-57 degrees of the boresight."""
     rng = np.random.default_rng(seed)
     out = []
     for s in sweeps:
@@ -128,12 +128,14 @@ def main() -> None:
             tree = octomap.OcTree(0.1)
             tree.insertPointCloud(pts, origin, maxrange=15.0)
 
-        octo_note = f"OcTree(0.1), maxrange 15 m, fresh tree, OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS')}"
+        omp = os.environ.get("OMP_NUM_THREADS")
+        octo_note = f"OcTree(0.1), maxrange 15 m, fresh tree, OMP_NUM_THREADS={omp}"
         octo_ms = row("OctoMap insertPointCloud", insert, octo_note, repeats=args.octomap_repeats)
 
     w = max(len(r[0]) for r in rows)
     print(
-        f"\nISM benchmark: {grid.n_cells}x{grid.n_cells} cells over {grid.length_m:g} m; ms per call over {args.repeats} calls\n"
+        f"\nISM benchmark: {grid.n_cells}x{grid.n_cells} cells over {grid.length_m:g} m; ms per "
+        f"call over {args.repeats} calls\n"
     )
     print(f"{'':{w}}  {'median':>8}  {'min':>8}  notes")
     for name, med, mn, note in rows:

@@ -1,4 +1,5 @@
-"""Long drives and odometry glitches: does a frame cost the same in the tenth minute as in the first?
+"""Long drives and odometry glitches: does a frame cost the same in the tenth minute as in the
+first?
 
 Maps simulated drives of 20, 120 and 600 s (six maps, truth scores at every keyframe, figures
 and the GIF, as ``evgrid map`` does), each in its own process, and prints per-frame
@@ -25,7 +26,8 @@ import numpy as np
 
 
 def _glitched(frames, index: int, jump_m: float):
-    """The frames of a scene with frame ``index``'s ego pose (and its sweeps') moved ``jump_m`` metres in x."""
+    """The frames of a scene with frame ``index``'s ego pose (and its sweeps') moved ``jump_m``
+    metres in x."""
     from evgrid.geometry import SE3
 
     for f in frames:
@@ -92,7 +94,8 @@ def main() -> None:
         return
     print(f"long drives (seed {args.seed}; six maps, truth at keyframes, figures and GIF)")
     print(
-        f"{'drive s':>8} {'frames':>7} {'wall s':>7} {'ms/frame first 10%':>19} {'last 10%':>9} {'last/first':>10} "
+        f"{'drive s':>8} {'frames':>7} {'wall s':>7} {'ms/frame first 10%':>19} {'last 10%':>9} "
+        f"{'last/first':>10} "
         f"{'peak RSS GB':>11} {'area km2':>8} {'GB/km2':>7}"
     )
     for d in args.durations:
@@ -102,13 +105,16 @@ def main() -> None:
             continue
         fm = r["frame_ms"]
         print(
-            f"{d:>8g} {r['frames']:>7d} {r['wall_s']:>7.1f} {fm['first_tenth_mean']:>19.1f} {fm['last_tenth_mean']:>9.1f} "
-            f"{fm['last_tenth_mean'] / fm['first_tenth_mean']:>10.2f} {r['peak_rss_gb']:>11.2f} {r['map_area_km2']:>8.3f} "
+            f"{d:>8g} {r['frames']:>7d} {r['wall_s']:>7.1f} {fm['first_tenth_mean']:>19.1f} "
+            f"{fm['last_tenth_mean']:>9.1f} "
+            f"{fm['last_tenth_mean'] / fm['first_tenth_mean']:>10.2f} {r['peak_rss_gb']:>11.2f} "
+            f"{r['map_area_km2']:>8.3f} "
             f"{r['peak_rss_gb'] / max(r['map_area_km2'], 1e-9):>7.1f}"
         )
     print("\nan odometry glitch: one ego pose of a 20 s drive moved 1 km")
     print(
-        f"{'glitch m':>8} {'wall s':>7} {'peak RSS GB':>11} {'fused free IoU':>14} {'occ IoU':>7}  skipped"
+        f"{'glitch m':>8} {'wall s':>7} {'peak RSS GB':>11} {'fused free IoU':>14} {'occ IoU':>7}  "
+        "skipped"
     )
     for g in (0.0, 1000.0):
         r = _run(args.seed, 20.0, g)
@@ -118,7 +124,8 @@ def main() -> None:
         f = r["fused_vs_truth"]
         skipped = {k: v for k, v in r["counts"].items() if v and k not in ("frames", "updates")}
         print(
-            f"{g:>8g} {r['wall_s']:>7.1f} {r['peak_rss_gb']:>11.2f} {f.get('free', float('nan')):>14.3f} "
+            f"{g:>8g} {r['wall_s']:>7.1f} {r['peak_rss_gb']:>11.2f} "
+            f"{f.get('free', float('nan')):>14.3f} "
             f"{f.get('occupied', float('nan')):>7.3f}  {skipped}"
         )
 

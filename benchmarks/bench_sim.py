@@ -74,33 +74,41 @@ def bench(seed: int, duration: float) -> None:
     n_radar = sum(len(v) for v in counts.values())
     x, y, _ = scene.trajectory.pose_at(np.array([0.0, duration]))
     print(
-        f"\nscene {scene.name} ({scene.world.environment}, {scene.world.n_static} static boxes, {len(scene.world.movers)} movers), "
+        f"\nscene {scene.name} ({scene.world.environment}, {scene.world.n_static} static boxes, "
+        f"{len(scene.world.movers)} movers), "
         f"{duration:g} s, {frames} frames, ego travels {np.hypot(x[1] - x[0], y[1] - y[0]):.0f} m"
     )
     print(f"  world + route generation  {t_world:6.2f} s")
     print(
-        f"  full frame iteration      {t_total:6.2f} s   <- simulated time per {duration:g} s scene (+ world)"
+        f"  full frame iteration      {t_total:6.2f} s   <- simulated time per {duration:g} s "
+        "scene (+ world)"
     )
     print(
-        f"    lidar  {len(scene):4d} sweeps     {t_lidar:6.2f} s  ({1e3 * t_lidar / len(scene):.1f} ms a sweep)"
+        f"    lidar  {len(scene):4d} sweeps     {t_lidar:6.2f} s  "
+        f"({1e3 * t_lidar / len(scene):.1f} ms a sweep)"
     )
     print(
-        f"    radar  {n_radar:4d} sweeps     {t_radar:6.2f} s  ({1e3 * t_radar / max(n_radar, 1):.2f} ms a sweep)"
+        f"    radar  {n_radar:4d} sweeps     {t_radar:6.2f} s  "
+        f"({1e3 * t_radar / max(n_radar, 1):.2f} ms a sweep)"
     )
     print(f"    occupancy {len(scene.keyframe_indices):3d} keyframes {t_occ:6.2f} s")
     print(
-        f"  lidar points a sweep      mean {np.mean(n_lidar):.0f}  min {np.min(n_lidar)}  max {np.max(n_lidar)}"
+        f"  lidar points a sweep      mean {np.mean(n_lidar):.0f}  min {np.min(n_lidar)}  max "
+        f"{np.max(n_lidar)}"
     )
     for ch, c in counts.items():
         print(
-            f"  {ch:18s}        mean {np.mean(c):5.1f} detections a sweep (min {np.min(c)}, max {np.max(c)})"
+            f"  {ch:18s}        mean {np.mean(c):5.1f} detections a sweep (min {np.min(c)}, max "
+            f"{np.max(c)})"
         )
     print(
-        f"  radar labels              real {frac[0]:.3f}  clutter {frac[RADAR_CLUTTER]:.3f}  ghost {frac[RADAR_GHOST]:.3f}"
+        f"  radar labels              real {frac[0]:.3f}  clutter {frac[RADAR_CLUTTER]:.3f}  ghost "
+        f"{frac[RADAR_GHOST]:.3f}"
     )
     print(
         f"  lidar vs true occupancy   band points on obstacles {np.nanmean(stats[:, 0]):.3f}, "
-        f"obstacle outline cells seen {np.nanmean(stats[:, 1]):.3f}, occupied cells seen {np.nanmean(stats[:, 2]):.4f}"
+        f"obstacle outline cells seen {np.nanmean(stats[:, 1]):.3f}, occupied cells seen "
+        f"{np.nanmean(stats[:, 2]):.4f}"
     )
 
 

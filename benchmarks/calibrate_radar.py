@@ -19,21 +19,17 @@ os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 
 from evgrid.data.radar_filter import RadarFilter  # noqa: E402
-from evgrid.data.sim import (
-    RADAR_CLUTTER,
-    RADAR_GHOST,
-    RADAR_REAL,
-    RadarConfig,
-    SimConfig,
-    WorldConfig,
-    simulate_scene,
-)  # noqa: E402
+from evgrid.data.sim import RadarConfig, SimConfig, WorldConfig, simulate_scene  # noqa: E402
+from evgrid.data.sim.radar import RADAR_CLUTTER, RADAR_GHOST, RADAR_REAL  # noqa: E402
 
 _NUSC = RadarFilter("nuscenes")
 _SRC_MINI = (
     "nuScenes v1.0-mini, devkit default filters (e-com-net.com/article/1610132498308694016.htm)"
 )
-_SRC_CRF = "CRF-Net normalisation, all nuScenes radar data (TUMFTM/CameraRadarFusionNet crfnet/utils/radar.py)"
+_SRC_CRF = (
+    "CRF-Net normalisation, all nuScenes radar data "
+    "(TUMFTM/CameraRadarFusionNet crfnet/utils/radar.py)"
+)
 #: CRF-Net's mean / std of the radar fields over "all radar data from nuScenes" (after the devkit's
 #: default filter: ambig_state 3 and invalid_state 0 with zero spread); by inference RADAR_FRONT
 #: in its own frame (azimuth std 0.41 rad, mean x close to mean distance).
@@ -68,7 +64,8 @@ def _band(x: np.ndarray) -> str:
 
 def front_stats(points: np.ndarray) -> dict[str, float]:
     """CRF-Net's statistics of filtered radar points ``(n, 12)`` in the sensor frame
-    (``RADAR_COLUMNS``): distance, x, y, azimuth, RCS, dyn_prop, vx_comp; shares beyond 50 / 100 m."""
+    (``RADAR_COLUMNS``): distance, x, y, azimuth, RCS, dyn_prop, vx_comp; shares beyond 50 / 100 m.
+    """
     x, y = points[:, 0].astype(np.float64), points[:, 1].astype(np.float64)
     d = np.hypot(x, y)
     return {
@@ -286,7 +283,8 @@ def main() -> None:
         rows.append(
             (
                 "RADAR_FRONT filtered: share from the far scan / clutter / ghost",
-                f"{np.mean(ftr[:, 2] > 0):.3f} / {np.mean(flab == RADAR_CLUTTER):.3f} / {np.mean(flab == RADAR_GHOST):.3f}",
+                f"{np.mean(ftr[:, 2] > 0):.3f} / {np.mean(flab == RADAR_CLUTTER):.3f} / "
+                f"{np.mean(flab == RADAR_GHOST):.3f}",
                 "not found",
                 "-",
             )
@@ -302,7 +300,8 @@ def main() -> None:
     n_samples = len(d["sample_filt"])
     print(f"RadarConfig overrides: {args.set or 'none'}")
     print(
-        f"seeds {args.seeds}, {args.duration:g} s each, {n_samples} samples, {len(d['sweep_all'])} sweeps, "
+        f"seeds {args.seeds}, {args.duration:g} s each, {n_samples} samples, {len(d['sweep_all'])} "
+        "sweeps, "
         f"{time.perf_counter() - t0:.0f} s"
     )
     print("| statistic | simulated: mean [5-95 %] | published | source |")

@@ -1,8 +1,8 @@
 """How much of Ev-Net's single-frame score is the street's shape: a prior that never sees radar.
 
-Run: ``PYTHONPATH=src python benchmarks/prior_baseline.py --run out/train [--scenes 40 --val-scenes 8]``
-after ``evgrid train --out out/train ...`` (it reads that run's sample cache). The prior is, for
-each cell of the ego-centred grid, the class the ray ILM target holds most often over the
+Run: ``PYTHONPATH=src python benchmarks/prior_baseline.py --run out/train [--scenes 40 --val-scenes
+8]`` after ``evgrid train --out out/train ...`` (it reads that run's sample cache). The prior is,
+for each cell of the ego-centred grid, the class the ray ILM target holds most often over the
 training samples; it is scored on the validation samples with the same per-class IoU as the
 training's validation (cells pooled over all samples). Beside it, the run's best epoch as
 ``metrics.csv`` gives it. Measures and prints; asserts nothing.

@@ -31,7 +31,6 @@ from evgrid.data.sim.radar import RadarModel
 from evgrid.data.sim.raycast import pack_boxes
 from evgrid.data.sim.store import load_sim_scene, save_sim_scene
 from evgrid.data.sim.world import Movers, World, plan_drive
-from evgrid.geometry import SE2
 from evgrid.ism.self_returns import NUSCENES_BODY
 
 SHORT = 3.0  # seconds: 60 frames, 6 keyframes, about 39 sweeps a radar
@@ -282,23 +281,7 @@ def test_radar_validity_fields(urban):
 # --- physics on hand-made worlds --------------------------------------------------------------
 def _world(static: list[tuple], movers: Movers | None = None) -> World:
     """A world of boxes (cx, cy, yaw, length, width, z0, z1, class) in the global frame."""
-    a = np.array([s[:7] for s in static], dtype=np.float64)
-    boxes = pack_boxes(a[:, 0], a[:, 1], a[:, 2], a[:, 3] / 2, a[:, 4] / 2, a[:, 5], a[:, 6])
-    cls = np.array([s[7] for s in static], dtype=np.int32)
-    mv = movers if movers is not None else Movers.empty()
-    return World(
-        "urban",
-        boxes,
-        a[:, 2],
-        cls,
-        M.LIDAR_REFLECTIVITY[cls],
-        np.zeros(len(cls)),
-        mv,
-        M.LIDAR_REFLECTIVITY[mv.classes],
-        np.zeros(len(mv)),
-        None,
-        SE2(),
-    )
+    return World.from_boxes(static, movers)
 
 
 def test_lidar_sees_a_wall_at_its_distance():

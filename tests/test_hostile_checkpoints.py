@@ -1,4 +1,5 @@
-"""Hostile Ev-Net checkpoints: every problem is a CheckpointError naming the file, found before allocating.
+"""Hostile Ev-Net checkpoints: every problem is a CheckpointError naming the file, found before
+allocating.
 
 Before format 2 (issue 12) a flipped exponent bit loaded silently, int32 weights loaded and
 predicted "free" everywhere, a 200-byte file whose metadata said width 4000 allocated 4.6 GB,
@@ -168,3 +169,21 @@ def test_the_shipped_checkpoint_is_format_2():
     ck = load_checkpoint(default_checkpoint())
     assert ck.version == 2
     assert "tensors_sha256" in _header(default_checkpoint())[0]["__metadata__"]
+
+
+@pytest.mark.parametrize("value", [1e30, -3e7])
+def test_a_huge_weight_with_a_valid_checksum_is_refused(tmp_path, value):
+    """Issue 26: a finite weight of 1e30, written with its checksum, must not load (it would
+    overflow the activations and give NaN masses)."""
+    from evgrid.ism.evnet import MAX_WEIGHT
+
+    net = _net()
+    name = next(k for k, v in net.state_dict().items() if k.endswith("weight"))
+    with torch.no_grad():
+        net.state_dict()[name].reshape(-1)[0] = value
+    path = save_checkpoint(net, tmp_path / "huge.safetensors")
+    with pytest.raises(CheckpointError, match=rf"huge\.safetensors: weight {name} holds .*bound"):
+        load_checkpoint(path)
+    # the bound is far above any weight a training writes: the shipped checkpoint loads
+    shipped = load_checkpoint(default_checkpoint()).model.state_dict()
+    assert max(float(v.abs().max()) for v in shipped.values() if v.is_floating_point()) < MAX_WEIGHT

@@ -130,7 +130,8 @@ def random_scene(rng, n_radars=5, n_sweeps=3):
             p[:, cols["rcs"]] = rng.uniform(-30, 40, n)
             p[:, cols["vx_comp"]] = rng.normal(0, 5, n)
             p[:, cols["vy_comp"]] = rng.normal(0, 5, n)
-            # a dense cluster: a 5 cm lattice fills every cell of some pooled blocks, negative values
+            # a dense cluster: a 5 cm lattice fills every cell of some pooled blocks, negative
+            # values
             m = 256
             gx, gy = np.meshgrid(np.arange(16) * 0.05, np.arange(16) * 0.05)
             p[:m, cols["x"]] = 4.0 + gx.ravel()

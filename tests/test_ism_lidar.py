@@ -52,14 +52,16 @@ def wall_points(x: float, y0: float, y1: float, step: float = 0.02) -> np.ndarra
     )
 
 
-# --- analytic worlds -------------------------------------------------------------------------------
+# --- analytic worlds
+# -------------------------------------------------------------------------------
 
 
 def test_wall_ahead_free_before_occupied_on_unknown_behind():
     # A wall 10 m ahead (x = 10.03 m, |y| <= 4 m), nothing else.
     m = ray_ilm(to_sensor(wall_points(10.03, -4.0, 4.0)), LIDAR)
     x, y = cell_centres()
-    # hand-computed: row floor(256 - 10.03 / 0.078125) = 127, columns of y in [-4, 4) m: 205..307 (y = -4 m -> 307.2)
+    # hand-computed: row floor(256 - 10.03 / 0.078125) = 127, columns of y in [-4, 4) m: 205..307 (y
+    # = -4 m -> 307.2)
     wall_cells = np.zeros(GRID.shape, bool)
     wall_cells[127, 205:308] = True
     assert np.array_equal(m[..., 1] > 0, wall_cells)  # the wall and nothing else is occupied
@@ -302,7 +304,8 @@ def test_bad_arguments_raise_clear_errors():
             RayIlmParams(**kw)
 
 
-# --- output, threads, simplex ----------------------------------------------------------------------
+# --- output, threads, simplex
+# ----------------------------------------------------------------------
 
 
 def test_out_buffer_is_filled_and_returned():

@@ -1,4 +1,5 @@
-"""Ray IRM (paper sec. V-B): cone geometry, barriers, moving sensors, a dense reference, bad input."""
+"""Ray IRM (paper sec. V-B): cone geometry, barriers, moving sensors, a dense reference, bad
+input."""
 
 from __future__ import annotations
 
@@ -32,7 +33,8 @@ def is_mass(m: np.ndarray, ref: np.ndarray) -> np.ndarray:
 
 
 def corners_polar(grid: GridSpec, apex: tuple[float, float], axis_deg: float = 0.0):
-    """Per cell: (min, max) range (m) and (min, max) angle (rad, from ``axis_deg``) over its 4 corners."""
+    """Per cell: (min, max) range (m) and (min, max) angle (rad, from ``axis_deg``) over its 4
+    corners."""
     n, res = grid.n_cells, grid.resolution
     r, c = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
     x0, y0 = grid.cell_to_xy(r, c)
@@ -58,7 +60,8 @@ def inside(polar, r0: float, r1: float, a0_deg: float, a1_deg: float) -> np.ndar
 
 
 def touching(polar, r0: float, r1: float, a0_deg: float, a1_deg: float) -> np.ndarray:
-    """Cells whose corner hull overlaps range [r0, r1] and angle [a0, a1] (a superset of the cells touched)."""
+    """Cells whose corner hull overlaps range [r0, r1] and angle [a0, a1] (a superset of the cells
+    touched)."""
     rmin, rmax, amin, amax = polar
     return (
         (rmax >= r0)
@@ -175,7 +178,8 @@ def test_detection_in_another_sensors_cell_is_occupied_and_does_not_stop_that_se
     assert is_mass(m[lit], FREE).all()
 
 
-# --- sweeps, poses, buffer -------------------------------------------------------------------------
+# --- sweeps, poses, buffer
+# -------------------------------------------------------------------------
 
 
 def radar_sweep(
@@ -409,7 +413,8 @@ def test_bad_arguments_raise_clear_errors():
             RayIrmParams(**kw)
 
 
-# --- realistic input: simplex, threads, parameters ---------------------------------------------------
+# --- realistic input: simplex, threads, parameters
+# ---------------------------------------------------
 
 
 def test_realistic_sweeps_masses_on_simplex_and_threads_agree():

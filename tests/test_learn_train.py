@@ -1,4 +1,5 @@
-"""Training Ev-Net end to end on a tiny simulated set (evgrid.learn.train); kept well under a minute."""
+"""Training Ev-Net end to end on a tiny simulated set (evgrid.learn.train); kept well under a
+minute."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import torch
 
 from evgrid.classes import FREE, OCCUPIED, UNKNOWN
 from evgrid.data import SimConfig, simulate_scene
-from evgrid.ism.evnet import EvNetConfig, load_checkpoint
+from evgrid.ism.evnet import EvNet, EvNetConfig, load_checkpoint
 from evgrid.learn.train import RadarDataset, TrainConfig, build_cache, ilm_classes, train
 
 CFG = TrainConfig(
@@ -44,10 +45,10 @@ def test_cache_and_dataset(cache):
     assert x.shape == (6, 512, 512) and t.shape == (512, 512) and irm.shape == (512, 512)
     assert set(torch.unique(t).tolist()) == {FREE, OCCUPIED, UNKNOWN}
     assert x[0].sum() > 0  # radar detections are there
-    # a cached scene is not rebuilt: its files keep their time stamps
-    before = (root / "sim-000000.target.npy").stat().st_mtime_ns
+    # a cached scene is not rebuilt: its shard's files keep their time stamps
+    before = (root / "sim-000000" / "target.npy").stat().st_mtime_ns
     build_cache([simulate_scene(0, SimConfig(duration_s=2.0))], root, CFG)
-    assert (root / "sim-000000.target.npy").stat().st_mtime_ns == before
+    assert (root / "sim-000000" / "target.npy").stat().st_mtime_ns == before
     with pytest.raises(FileNotFoundError, match="build_cache"):
         RadarDataset(root, ["sim-999"], CFG.grid)
 
@@ -119,3 +120,58 @@ def test_training_runs_under_torchrun_with_two_processes(cache, tmp_path):
     assert (tmp_path / "run" / "best.safetensors").is_file()
     rows = list(csv.DictReader(open(tmp_path / "run" / "metrics.csv")))
     assert len(rows) == 1  # rank 0 alone logs
+
+
+def test_fine_tuning_starts_from_the_parent_and_records_it(cache, tmp_path):
+    import hashlib
+    import json
+
+    from evgrid.config import from_dict
+    from evgrid.learn.train import fine_tune_config
+
+    root, names = cache
+    parent_run = tmp_path / "parent"
+    train(TrainConfig(**{**CFG.__dict__, "epochs": 1}), root, names[:1], names[1:], parent_run)
+    parent = parent_run / "last.safetensors"
+    # a config of another architecture takes the parent's
+    wide = TrainConfig(**{**CFG.__dict__, "model": EvNetConfig(in_channels=6, width=8, depth=2)})
+    with pytest.raises(ValueError, match="fine_tune_config"):
+        train(TrainConfig(**{**wide.__dict__, "init": str(parent)}), root, names, names, tmp_path)
+    cfg = fine_tune_config(TrainConfig(**{**wide.__dict__, "epochs": 1, "lr": 1e-9}), parent)
+    assert cfg.model == CFG.model and cfg.init == str(parent)
+    rig = {"lidar": "/lidar_top/points", "radars": ["/radar_front/points"]}
+    child = tmp_path / "child"
+    train(cfg, root, names[:1], names[1:], child, data={"source": "bag", "rig": rig})
+    ck = load_checkpoint(child / "last.safetensors")
+    assert ck.extra["parent"]["path"] == str(parent)
+    assert ck.extra["parent"]["sha256"] == hashlib.sha256(parent.read_bytes()).hexdigest()
+    assert ck.extra["data"]["rig"] == rig
+    assert ck.extra["radar_filter"] == CFG.radar_filter.to_dict()
+    # with a vanishing learning rate the child's weights are its parent's (the normalisation
+    # statistics move with the data whatever the rate)
+    before = dict(load_checkpoint(parent).model.named_parameters())
+    after = dict(ck.model.named_parameters())
+    assert all(torch.allclose(before[k], after[k], atol=1e-5) for k in before)
+    fresh = dict(EvNet(CFG.model).named_parameters())
+    assert not all(torch.allclose(before[k], fresh[k], atol=1e-5) for k in before)
+    # the run's config.json reloads into the same TrainConfig
+    saved = json.loads((child / "config.json").read_text())
+    assert from_dict(TrainConfig, saved, "config.json") == cfg
+
+
+def test_mixed_precision_is_off_on_the_cpu_and_chosen_on_cuda():
+    from evgrid.learn.train import Precision
+
+    cpu = Precision("bf16", torch.device("cpu"))
+    assert cpu.name == "float32" and not cpu.scaler.is_enabled()
+    with cpu.autocast():
+        assert torch.ones(2, 2).matmul(torch.ones(2, 2)).dtype == torch.float32
+    if torch.cuda.is_available():  # the GPU check (benchmarks/gpu_check.sh) runs this path
+        cuda = torch.device("cuda")
+        assert Precision("fp16", cuda).scaler.is_enabled()
+        assert Precision("bf16", cuda).name == "bfloat16"
+        assert Precision("fp32", cuda).name == "float32"
+    with pytest.raises(ValueError, match="precision"):
+        TrainConfig(precision="fp8")
+    with pytest.raises(ValueError, match="engine"):
+        TrainConfig(engine="spark")

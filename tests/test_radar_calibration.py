@@ -22,9 +22,7 @@ from evgrid.data.sim import (
 )
 from evgrid.data.sim import materials as M
 from evgrid.data.sim.radar import RadarModel
-from evgrid.data.sim.raycast import pack_boxes
-from evgrid.data.sim.world import Movers, World
-from evgrid.geometry import SE2
+from evgrid.data.sim.world import World
 
 #: A radar at the ego origin looking along +x (ego at the global origin), so sensor = global frame.
 _MOUNT = SensorMount("RADAR_FRONT", 0.0, 0.0, 0.5, 0.0)
@@ -51,23 +49,7 @@ _EXACT = dict(
 
 def _world(static: list[tuple]) -> World:
     """Boxes (cx, cy, yaw, length, width, z0, z1, class) in the global frame."""
-    a = np.array([s[:7] for s in static], dtype=np.float64)
-    boxes = pack_boxes(a[:, 0], a[:, 1], a[:, 2], a[:, 3] / 2, a[:, 4] / 2, a[:, 5], a[:, 6])
-    cls = np.array([s[7] for s in static], dtype=np.int32)
-    mv = Movers.empty()
-    return World(
-        "urban",
-        boxes,
-        a[:, 2],
-        cls,
-        M.LIDAR_REFLECTIVITY[cls],
-        np.zeros(len(cls)),
-        mv,
-        M.LIDAR_REFLECTIVITY[mv.classes],
-        np.zeros(0),
-        None,
-        SE2(),
-    )
+    return World.from_boxes(static)
 
 
 def _pole(r: float, az_deg: float, size: float = 0.6) -> tuple:
@@ -125,7 +107,8 @@ def test_two_targets_in_different_cells_give_two_detections(second):
 
 
 def test_swerling_fluctuation_is_exponential_power():
-    # Swerling I/II: power ~ Exp(1); in dB its standard deviation is pi / sqrt(6) * 10 / ln 10 = 5.57 dB.
+    # Swerling I/II: power ~ Exp(1); in dB its standard deviation is pi / sqrt(6) * 10 / ln 10 =
+    # 5.57 dB.
     radar = RadarModel(RadarConfig(rcs_fluctuation_db=0.0), _MOUNT)
     f = radar._fluctuation(np.random.default_rng(0), 200_000)
     assert f.std() == pytest.approx(math.pi / math.sqrt(6) * 10 / math.log(10), rel=0.02)
@@ -220,7 +203,8 @@ def test_multipath_probability_scales_the_ghosts():
 
 def test_far_scan_reports_inside_the_near_reach():
     # A pole 30 m ahead (inside the near scan's 70 m): the far scan reports its own cluster of it,
-    # as the ARS 408's two independent scans do; with far_min_range_m = 70 (the old model) it does not.
+    # as the ARS 408's two independent scans do; with far_min_range_m = 70 (the old model) it does
+    # not.
     world = _world([_pole(30.5, 0.0, 1.2)])
     cfg = {**_EXACT, "far_fov_deg": 9.0}
     scans = []
@@ -240,7 +224,8 @@ def test_far_scan_reports_inside_the_near_reach():
 
 def test_scattering_centres_are_per_metre_of_surface():
     # The chance that a beam-hit holds a centre grows with the strip of surface the beam stands
-    # for (range x beam spacing / cos(incidence)): RADAR_SCATTER * scatter_probability at scatter_strip_m.
+    # for (range x beam spacing / cos(incidence)): RADAR_SCATTER * scatter_probability at
+    # scatter_strip_m.
     cfg = RadarConfig()
     radar = RadarModel(cfg, _MOUNT)
     k = np.array([M.CAR, M.CAR, M.CAR])

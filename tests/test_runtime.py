@@ -1,4 +1,5 @@
-"""Ev-Net's inference runtimes (evgrid.ism.runtime): the trunk they run, ONNX Runtime and the torch fallback."""
+"""Ev-Net's inference runtimes (evgrid.ism.runtime): the trunk they run, ONNX Runtime and the torch
+fallback."""
 
 from __future__ import annotations
 

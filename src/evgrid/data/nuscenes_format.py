@@ -259,12 +259,14 @@ def _read_pcd_records(path: str | os.PathLike) -> np.ndarray:
     need = n * dtype.itemsize
     if len(blob) - pos < need:
         raise ValueError(
-            f"{str(path)!r}: header declares {n} points ({need} bytes) but {len(blob) - pos} bytes follow"
+            f"{str(path)!r}: header declares {n} points ({need} bytes) but {len(blob) - pos} bytes "
+            "follow"
         )
     rec = np.frombuffer(blob, dtype=dtype, count=n, offset=pos)
     if blob[pos + need :].strip(b" \r\n"):  # a trailing newline is harmless; more data is not
         raise ValueError(
-            f"{str(path)!r}: header declares {n} points ({need} bytes) but {len(blob) - pos} bytes follow"
+            f"{str(path)!r}: header declares {n} points ({need} bytes) but {len(blob) - pos} bytes "
+            "follow"
         )
     return rec
 
@@ -344,6 +346,177 @@ def _link(records: list[dict]) -> None:
         r["next"] = records[k + 1]["token"] if k + 1 < len(records) else ""
 
 
+def _sample_data(token: str, cs_token: str, ts: int, is_key: bool, filename: str) -> dict:
+    """One ``sample_data`` record (its sample token is set once the scene's samples are known)."""
+    return {
+        "token": token,
+        "sample_token": "",
+        "ego_pose_token": token,
+        "calibrated_sensor_token": cs_token,
+        "timestamp": ts,
+        "fileformat": "pcd",
+        "is_key_frame": is_key,
+        "height": 0,
+        "width": 0,
+        "filename": filename,
+    }
+
+
+class _SceneWriter:
+    """The records and point files of one scene, frame by frame."""
+
+    def __init__(self, name: str, root: Path, tables: dict[str, list[dict]]) -> None:
+        self.name = name
+        self.root = root
+        self.tables = tables
+        self.cs_token: dict[str, str] = {}
+        self.lidar_sd: list[dict] = []
+        self.samples: list[dict] = []
+        self.radar_sd: dict[str, list[dict]] = {}
+        self.radar_pts: dict[str, list[np.ndarray]] = {}
+        self.log_token = _token(name, "log")
+        tables["log"].append(
+            {
+                "token": self.log_token,
+                "logfile": name,
+                "vehicle": "evgrid-sim",
+                "date_captured": "2018-08-01",
+                "location": "evgrid-sim",
+            }
+        )
+
+    def calib(self, ch: str, s2e) -> str:
+        """The scene's calibrated_sensor token of channel ``ch``, written on first use."""
+        if ch not in self.cs_token:
+            self.cs_token[ch] = _token(self.name, "calibrated_sensor", ch)
+            self.tables["calibrated_sensor"].append(
+                {
+                    "token": self.cs_token[ch],
+                    "sensor_token": _token("sensor", ch),
+                    "translation": [float(v) for v in s2e.translation],
+                    "rotation": [float(v) for v in s2e.quaternion()],
+                    "camera_intrinsic": [],
+                }
+            )
+        return self.cs_token[ch]
+
+    def add_frame(self, i: int, frame: Frame) -> None:
+        """Frame ``i``: its lidar file and record, a sample if it is a keyframe, its radar
+        sweeps (whose files are written once the key sweeps are known)."""
+        name = self.name
+        if not isinstance(frame, Frame):
+            raise TypeError(f"scene {name!r} yielded a {type(frame).__name__}, not a Frame")
+        ts = int(frame.lidar.timestamp)
+        sd_token = _token(name, "sample_data", LIDAR_CHANNEL, i)
+        folder = "samples" if frame.is_keyframe else "sweeps"
+        fname = f"{folder}/{LIDAR_CHANNEL}/{name}__{LIDAR_CHANNEL}__{ts}.pcd.bin"
+        write_lidar_bin(self.root / fname, frame.lidar.points)
+        self.tables["ego_pose"].append(_pose_record(sd_token, ts, frame.lidar.ego_pose))
+        cs = self.calib(LIDAR_CHANNEL, frame.lidar.sensor_to_ego)
+        self.lidar_sd.append(_sample_data(sd_token, cs, ts, bool(frame.is_keyframe), fname))
+        if frame.is_keyframe:
+            self.samples.append(
+                {
+                    "token": _token(name, "sample", len(self.samples)),
+                    "timestamp": ts,
+                    "scene_token": _token(name, "scene"),
+                }
+            )
+        for sweep in frame.radar_sweeps():
+            ch = sweep.channel
+            j = len(self.radar_sd.setdefault(ch, []))
+            self.radar_pts.setdefault(ch, [])
+            rtok = _token(name, "sample_data", ch, j)
+            self.tables["ego_pose"].append(_pose_record(rtok, sweep.timestamp, sweep.ego_pose))
+            cs = self.calib(ch, sweep.sensor_to_ego)
+            self.radar_sd[ch].append(_sample_data(rtok, cs, int(sweep.timestamp), False, ""))
+            self.radar_pts[ch].append(sweep.points)
+
+    def _following_sample(self, ts: int) -> str:
+        k = int(np.searchsorted(self.sample_ts, ts, side="left"))
+        return self.samples[min(k, len(self.samples) - 1)]["token"]
+
+    def _radar_files(self, ch: str, recs: list[dict]) -> None:
+        """Each sample's key sweep of ``ch`` is the one closest in time; then the files."""
+        rts = np.array([r["timestamp"] for r in recs], dtype=np.int64)
+        key_of: dict[int, int] = {}
+        for k, st in enumerate(self.sample_ts):
+            key_of[int(np.argmin(np.abs(rts - st)))] = k
+        for j, rec in enumerate(recs):
+            if j in key_of:
+                rec["is_key_frame"] = True
+                rec["sample_token"] = self.samples[key_of[j]]["token"]
+            else:
+                rec["sample_token"] = self._following_sample(rec["timestamp"])
+            folder = "samples" if rec["is_key_frame"] else "sweeps"
+            rec["filename"] = f"{folder}/{ch}/{self.name}__{ch}__{rec['timestamp']}.pcd"
+            write_radar_pcd(self.root / rec["filename"], self.radar_pts[ch][j])
+
+    def finish(self, description: str) -> None:
+        """Tie sample_data to samples, write the radar files, chain the records, add the scene."""
+        name, samples, tables = self.name, self.samples, self.tables
+        if not samples:
+            raise ValueError(
+                f"scene {name!r} has no keyframe; nuScenes needs at least one sample a scene"
+            )
+        self.sample_ts = np.array([s["timestamp"] for s in samples], dtype=np.int64)
+        for rec in self.lidar_sd:
+            rec["sample_token"] = self._following_sample(rec["timestamp"])
+            if rec["is_key_frame"]:
+                k = int(np.searchsorted(self.sample_ts, rec["timestamp"]))
+                rec["sample_token"] = samples[k]["token"]
+        for ch in sorted(self.radar_sd, key=channel_order):
+            recs = self.radar_sd[ch]
+            if recs:
+                self._radar_files(ch, recs)
+            _link(recs)
+            tables["sample_data"].extend(recs)
+        _link(self.lidar_sd)
+        tables["sample_data"].extend(self.lidar_sd)
+        _link(samples)
+        tables["sample"].extend(samples)
+        tables["scene"].append(
+            {
+                "token": _token(name, "scene"),
+                "log_token": self.log_token,
+                "nbr_samples": len(samples),
+                "first_sample_token": samples[0]["token"],
+                "last_sample_token": samples[-1]["token"],
+                "name": name,
+                "description": description,
+            }
+        )
+
+
+def _vocabulary_tables() -> dict[str, list[dict]]:
+    """Empty tables, but for the category, attribute and visibility vocabularies."""
+    tables: dict[str, list[dict]] = {t: [] for t in NUSCENES_TABLES}
+    for name in _CATEGORIES:
+        tables["category"].append(
+            {"token": _token("category", name), "name": name, "description": name}
+        )
+    for name in _ATTRIBUTES:
+        tables["attribute"].append(
+            {"token": _token("attribute", name), "name": name, "description": name}
+        )
+    for k, (level, desc) in enumerate(_VISIBILITY):
+        tables["visibility"].append({"token": str(k + 1), "level": level, "description": desc})
+    return tables
+
+
+def _write_splits(
+    table_root: Path, splits: Mapping[str, Sequence[str]] | None, names: set[str], overwrite: bool
+) -> None:
+    if splits is not None:
+        bad = {s: [n for n in v if n not in names] for s, v in splits.items()}
+        bad = {s: v for s, v in bad.items() if v}
+        if bad:
+            raise ValueError(f"splits name scenes that were not written: {bad}")
+        write_json(table_root / "splits.json", {k: list(v) for k, v in splits.items()})
+    elif (table_root / "splits.json").exists() and overwrite:
+        os.unlink(table_root / "splits.json")
+
+
 def write_nuscenes(
     scenes: Iterable[Scene],
     dataroot: str | os.PathLike,
@@ -365,19 +538,10 @@ def write_nuscenes(
     table_root = root / version
     if (table_root / "scene.json").exists() and not overwrite:
         raise FileExistsError(
-            f"{str(table_root)!r} already holds a nuScenes database; choose another output folder or overwrite it"
+            f"{str(table_root)!r} already holds a nuScenes database; choose another output "
+            "folder or overwrite it"
         )
-    tables: dict[str, list[dict]] = {t: [] for t in NUSCENES_TABLES}
-    for name in _CATEGORIES:
-        tables["category"].append(
-            {"token": _token("category", name), "name": name, "description": name}
-        )
-    for name in _ATTRIBUTES:
-        tables["attribute"].append(
-            {"token": _token("attribute", name), "name": name, "description": name}
-        )
-    for k, (level, desc) in enumerate(_VISIBILITY):
-        tables["visibility"].append({"token": str(k + 1), "level": level, "description": desc})
+    tables = _vocabulary_tables()
     radar_channels: set[str] = set()
     map_token = _token("map", version)
     map_file = f"maps/{map_token}.png"
@@ -388,144 +552,16 @@ def write_nuscenes(
         if name in names_seen:
             raise ValueError(f"scene name {name!r} appears twice")
         names_seen.add(name)
-        log_token = _token(name, "log")
-        tables["log"].append(
-            {
-                "token": log_token,
-                "logfile": name,
-                "vehicle": "evgrid-sim",
-                "date_captured": "2018-08-01",
-                "location": "evgrid-sim",
-            }
-        )
-        cs_token: dict[str, str] = {}
-        lidar_sd: list[dict] = []
-        samples: list[dict] = []
-        radar_sd: dict[str, list[dict]] = {}
-        radar_pts: dict[str, list[np.ndarray]] = {}
-
-        def calib(ch: str, s2e) -> str:
-            if ch not in cs_token:
-                cs_token[ch] = _token(name, "calibrated_sensor", ch)
-                tables["calibrated_sensor"].append(
-                    {
-                        "token": cs_token[ch],
-                        "sensor_token": _token("sensor", ch),
-                        "translation": [float(v) for v in s2e.translation],
-                        "rotation": [float(v) for v in s2e.quaternion()],
-                        "camera_intrinsic": [],
-                    }
-                )
-            return cs_token[ch]
-
+        writer = _SceneWriter(name, root, tables)
         for i, frame in enumerate(scene):
-            if not isinstance(frame, Frame):
-                raise TypeError(f"scene {name!r} yielded a {type(frame).__name__}, not a Frame")
-            ts = int(frame.lidar.timestamp)
-            sd_token = _token(name, "sample_data", LIDAR_CHANNEL, i)
-            folder = "samples" if frame.is_keyframe else "sweeps"
-            fname = f"{folder}/{LIDAR_CHANNEL}/{name}__{LIDAR_CHANNEL}__{ts}.pcd.bin"
-            write_lidar_bin(root / fname, frame.lidar.points)
-            tables["ego_pose"].append(_pose_record(sd_token, ts, frame.lidar.ego_pose))
-            lidar_sd.append(
-                {
-                    "token": sd_token,
-                    "sample_token": "",
-                    "ego_pose_token": sd_token,
-                    "calibrated_sensor_token": calib(LIDAR_CHANNEL, frame.lidar.sensor_to_ego),
-                    "timestamp": ts,
-                    "fileformat": "pcd",
-                    "is_key_frame": bool(frame.is_keyframe),
-                    "height": 0,
-                    "width": 0,
-                    "filename": fname,
-                }
-            )
-            if frame.is_keyframe:
-                samples.append(
-                    {
-                        "token": _token(name, "sample", len(samples)),
-                        "timestamp": ts,
-                        "scene_token": _token(name, "scene"),
-                    }
-                )
-            for sweep in frame.radar_sweeps():
-                ch = sweep.channel
-                radar_channels.add(ch)
-                j = len(radar_sd.setdefault(ch, []))
-                radar_pts.setdefault(ch, [])
-                rtok = _token(name, "sample_data", ch, j)
-                tables["ego_pose"].append(_pose_record(rtok, sweep.timestamp, sweep.ego_pose))
-                radar_sd[ch].append(
-                    {
-                        "token": rtok,
-                        "sample_token": "",
-                        "ego_pose_token": rtok,
-                        "calibrated_sensor_token": calib(ch, sweep.sensor_to_ego),
-                        "timestamp": int(sweep.timestamp),
-                        "fileformat": "pcd",
-                        "is_key_frame": False,
-                        "height": 0,
-                        "width": 0,
-                        "filename": "",
-                    }
-                )
-                radar_pts[ch].append(sweep.points)
+            writer.add_frame(i, frame)
             if on_frame is not None:
                 on_frame(name, i)
-        if not samples:
-            raise ValueError(
-                f"scene {name!r} has no keyframe; nuScenes needs at least one sample a scene"
-            )
-        sample_ts = np.array([s["timestamp"] for s in samples], dtype=np.int64)
-
-        def following_sample(ts: int) -> str:
-            k = int(np.searchsorted(sample_ts, ts, side="left"))
-            return samples[min(k, len(samples) - 1)]["token"]
-
-        for rec in lidar_sd:
-            rec["sample_token"] = following_sample(rec["timestamp"])
-            if rec["is_key_frame"]:
-                rec["sample_token"] = samples[int(np.searchsorted(sample_ts, rec["timestamp"]))][
-                    "token"
-                ]
-        for ch in sorted(radar_sd, key=channel_order):
-            recs = radar_sd[ch]
-            if recs:
-                rts = np.array([r["timestamp"] for r in recs], dtype=np.int64)
-                key_of: dict[int, int] = {}
-                for k, st in enumerate(sample_ts):
-                    key_of[int(np.argmin(np.abs(rts - st)))] = k
-                for j, rec in enumerate(recs):
-                    if j in key_of:
-                        rec["is_key_frame"] = True
-                        rec["sample_token"] = samples[key_of[j]]["token"]
-                    else:
-                        rec["sample_token"] = following_sample(rec["timestamp"])
-                    folder = "samples" if rec["is_key_frame"] else "sweeps"
-                    rec["filename"] = f"{folder}/{ch}/{name}__{ch}__{rec['timestamp']}.pcd"
-                    write_radar_pcd(root / rec["filename"], radar_pts[ch][j])
-            _link(recs)
-            tables["sample_data"].extend(recs)
-        _link(lidar_sd)
-        tables["sample_data"].extend(lidar_sd)
-        _link(samples)
-        tables["sample"].extend(samples)
-        desc = (
+        radar_channels.update(writer.radar_sd)
+        writer.finish(
             (descriptions or {}).get(name)
             or str(getattr(scene, "description", ""))
             or f"evgrid scene {name}"
-        )
-        tables["scene"].append(
-            {
-                "token": _token(name, "scene"),
-                "log_token": log_token,
-                "nbr_samples": len(samples),
-                "first_sample_token": samples[0]["token"],
-                "last_sample_token": samples[-1]["token"],
-                "name": name,
-                "description": desc,
-            }
         )
     for ch, mod in [(LIDAR_CHANNEL, "lidar")] + [
         (c, "radar") for c in sorted(radar_channels, key=channel_order)
@@ -543,12 +579,5 @@ def write_nuscenes(
     for t, recs in tables.items():
         with atomic_open(table_root / f"{t}.json", "w") as f:
             json.dump(recs, f, indent=0)
-    if splits is not None:
-        bad = {s: [n for n in v if n not in names_seen] for s, v in splits.items()}
-        bad = {s: v for s, v in bad.items() if v}
-        if bad:
-            raise ValueError(f"splits name scenes that were not written: {bad}")
-        write_json(table_root / "splits.json", {k: list(v) for k, v in splits.items()})
-    elif (table_root / "splits.json").exists() and overwrite:
-        os.unlink(table_root / "splits.json")
+    _write_splits(table_root, splits, names_seen, overwrite)
     return table_root

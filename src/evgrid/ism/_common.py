@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -38,6 +39,29 @@ class IsmResult:
     n_points: int
     n_dropped: int
     n_used: int
+
+
+def check_ism_args(
+    name: str, grid: object, params: object, params_type: type, threads: int, out: object
+) -> int:
+    """Check the arguments every geometric ISM takes; returns ``threads`` as an int."""
+    if not isinstance(grid, GridSpec):
+        raise TypeError(f"{name}: grid must be a GridSpec, got {type(grid).__name__}")
+    if not isinstance(params, params_type):
+        raise TypeError(
+            f"{name}: params must be a {params_type.__name__}, got {type(params).__name__}"
+        )
+    check_out(out, grid)
+    return check_threads(threads)
+
+
+@numba.njit(cache=True, inline="always")
+def point_xyz(pts, i):
+    """Point ``i``'s x, y, z as float64 and whether all three are finite."""
+    x = np.float64(pts[i, 0])
+    y = np.float64(pts[i, 1])
+    z = np.float64(pts[i, 2])
+    return math.isfinite(x) and math.isfinite(y) and math.isfinite(z), x, y, z
 
 
 def check_threads(threads: int) -> int:
@@ -81,7 +105,8 @@ def _k_labels_to_masses_par(labels, lut, out):
 
 
 def mass_lut(m_free: float, m_occupied: float) -> np.ndarray:
-    """Masses of the three labels, indexed by label: FREE [m_f, 0, 1 - m_f], OCCUPIED [0, m_o, 1 - m_o], UNKNOWN [0, 0, 1]."""
+    """Masses of the three labels, indexed by label: FREE [m_f, 0, 1 - m_f], OCCUPIED [0, m_o, 1 -
+    m_o], UNKNOWN [0, 0, 1]."""
     return np.array(
         [[m_free, 0.0, 1.0 - m_free], [0.0, m_occupied, 1.0 - m_occupied], [0.0, 0.0, 1.0]],
         dtype=np.float32,
@@ -89,7 +114,8 @@ def mass_lut(m_free: float, m_occupied: float) -> np.ndarray:
 
 
 def check_out(out: np.ndarray | None, grid: GridSpec) -> None:
-    """Raise ValueError unless ``out`` is None or a writeable C-contiguous float32 ``(n, n, 3)`` array."""
+    """Raise ValueError unless ``out`` is None or a writeable C-contiguous float32 ``(n, n, 3)``
+    array."""
     if out is None:
         return
     shape = grid.shape + (3,)
@@ -107,13 +133,17 @@ def check_out(out: np.ndarray | None, grid: GridSpec) -> None:
 
 
 def labels_to_masses(
-    labels: np.ndarray, lut: np.ndarray, out: np.ndarray | None, threads: int
+    labels: np.ndarray, m_free: float, m_occupied: float, out: np.ndarray | None, threads: int
 ) -> np.ndarray:
-    """Expand a uint8 label grid to float32 masses ``(n, n, 3)``, into ``out`` when given."""
+    """Expand a uint8 label grid to float32 masses ``(n, n, 3)``: free cells [m_free, 0,
+    1 - m_free], occupied [0, m_occupied, 1 - m_occupied], the rest vacuous; into ``out`` when
+    given, on ``threads`` numba threads."""
+    lut = mass_lut(m_free, m_occupied)
     if out is None:
         out = np.empty(labels.shape + (3,), dtype=np.float32)
     if threads > 1:
-        _k_labels_to_masses_par(labels, lut, out)
+        with numba_threads(threads):
+            _k_labels_to_masses_par(labels, lut, out)
     else:
         _k_labels_to_masses(labels, lut, out)
     return out
@@ -123,7 +153,8 @@ _scratch = threading.local()
 
 
 def label_scratch(grid: GridSpec, name: str, fill: int = UNKNOWN) -> np.ndarray:
-    """A uint8 ``(n, n)`` grid filled with ``fill`` (default UNKNOWN), reused across calls (per thread).
+    """A uint8 ``(n, n)`` grid filled with ``fill`` (default UNKNOWN), reused across calls (per
+    thread).
 
     Reuse means no fresh pages are faulted in on every call.
     """
@@ -139,7 +170,8 @@ def label_scratch(grid: GridSpec, name: str, fill: int = UNKNOWN) -> np.ndarray:
 
 
 def bit_scratch(grid: GridSpec, name: str, count: int = 1) -> tuple[np.ndarray, np.ndarray]:
-    """Two zeroed uint64 bitmap stacks ``(count, n, ceil(n / 64))`` reused across calls (per thread).
+    """Two zeroed uint64 bitmap stacks ``(count, n, ceil(n / 64))`` reused across calls (per
+    thread).
 
     The first holds a grid by rows (bit c of row r), the second by columns (bit r of column c).
     """
@@ -159,7 +191,8 @@ def bit_scratch(grid: GridSpec, name: str, count: int = 1) -> tuple[np.ndarray, 
 
 
 def as_points(points: object, min_cols: int, what: str, max_cols: int | None = None) -> np.ndarray:
-    """Validate a point array ``(n, >= min_cols)`` of real numbers; return it C-contiguous float32 or float64.
+    """Validate a point array ``(n, >= min_cols)`` of real numbers; return it C-contiguous float32
+    or float64.
 
     ``max_cols`` is the most columns a point layout has (default ``min_cols``): an array with
     more columns than that and at most that many rows is the devkit's ``(columns, n)`` layout,
@@ -169,8 +202,10 @@ def as_points(points: object, min_cols: int, what: str, max_cols: int | None = N
     cols = min_cols if max_cols is None else max_cols
     if a.ndim == 2 and a.shape[0] <= cols < a.shape[1]:
         raise ValueError(
-            f"{what}: points of shape {a.shape} look transposed (one column per point, as the nuScenes devkit "
-            f"stores them); pass one row per point, shape (n, {min_cols if cols == min_cols else f'{min_cols}..{cols}'}), e.g. points.T"
+            f"{what}: points of shape {a.shape} look transposed (one column per point, as the "
+            "nuScenes devkit "
+            "stores them); pass one row per point, shape (n, "
+            f"{min_cols if cols == min_cols else f'{min_cols}..{cols}'}), e.g. points.T"
         )
     if a.ndim != 2 or a.shape[1] < min_cols:
         raise ValueError(

@@ -1,8 +1,8 @@
 """Deep IRM: Ev-Net on an accumulated radar detection image, used like the geometric ISMs.
 
-The input image (docs/decisions.md#radar-image-channels) holds the detections of the last ``n_sweeps`` sweeps
-of every radar, each moved into the *current* ego frame with its own ego pose and extrinsics,
-on the local grid. Its channels, one value a cell (0 where a cell has no detection):
+The input image (docs/decisions.md#radar-image-channels) holds the detections of the last
+``n_sweeps`` sweeps of every radar, each moved into the *current* ego frame with its own ego pose
+and extrinsics, on the local grid. Its channels, one value a cell (0 where a cell has no detection):
 
 =============  ============================================================================
 ``log_count``  log(1 + number of detections in the cell)
@@ -70,7 +70,8 @@ MAX_SPEED_MPS: float = 128.0
 
 
 class _SweepLog:
-    """Remembers the last sweeps whose drops were reported, so each sweep is logged once, not once per update."""
+    """Remembers the last sweeps whose drops were reported, so each sweep is logged once, not once
+    per update."""
 
     def __init__(self, size: int = 1024):
         self._seen: collections.OrderedDict[tuple[str, int], None] = collections.OrderedDict()
@@ -92,7 +93,8 @@ _PLAIN_LOG = _SweepLog()
 def _log_drops(sweep: RadarSweep, n_nonfinite: int, n_range: int, n_points: int) -> None:
     if n_nonfinite or n_range:
         logger.warning(
-            "deep_irm: %s sweep at t = %d us: dropped %d of %d detections (%d NaN/inf, %d outside the "
+            "deep_irm: %s sweep at t = %d us: dropped %d of %d detections (%d NaN/inf, %d outside "
+            "the "
             "sensor's range: RCS in [%g, %g] dBsm, |v| <= %g m/s)",
             sweep.channel,
             sweep.timestamp,
@@ -106,7 +108,8 @@ def _log_drops(sweep: RadarSweep, n_nonfinite: int, n_range: int, n_points: int)
 
 
 def _valid_detections(p: np.ndarray) -> tuple[np.ndarray, int, int]:
-    """Mask of the usable rows of a sweep's points, and the numbers dropped as non-finite and out of range."""
+    """Mask of the usable rows of a sweep's points, and the numbers dropped as non-finite and out of
+    range."""
     finite = np.isfinite(p[:, [_X, _Y, 2, _RCS, _VX, _VY]]).all(axis=1)
     with np.errstate(invalid="ignore"):
         in_range = (
@@ -164,7 +167,8 @@ def radar_detections(
     now_us: int | None = None,
     params: RadarImageParams = RadarImageParams(),
 ) -> np.ndarray:
-    """Detections ``(k, 6)`` float32 in the ego frame at ``ego_pose``, columns ``DETECTION_COLUMNS`` (scaled).
+    """Detections ``(k, 6)`` float32 in the ego frame at ``ego_pose``, columns ``DETECTION_COLUMNS``
+    (scaled).
 
     Each sweep is moved with its own ego pose and extrinsics; Doppler is rotated into the ego
     frame. ``now_us`` (µs) defaults to the newest sweep's time. NaN/inf detections and values
@@ -197,7 +201,8 @@ def radar_detections(
 
 
 def detections_to_image(det: np.ndarray, grid: GridSpec = GridSpec()) -> np.ndarray:
-    """The Ev-Net input ``(len(CHANNELS), n, n)`` float32 from a detection table of :func:`radar_detections`."""
+    """The Ev-Net input ``(len(CHANNELS), n, n)`` float32 from a detection table of
+    :func:`radar_detections`."""
     det = np.asarray(det)
     if det.ndim != 2 or det.shape[1] != len(DETECTION_COLUMNS):
         raise ValueError(
@@ -225,7 +230,8 @@ def radar_image(
     now_us: int | None = None,
     params: RadarImageParams = RadarImageParams(),
 ) -> np.ndarray:
-    """The Ev-Net input ``(len(CHANNELS), n, n)`` float32 from radar sweeps, in the ego frame at ``ego_pose``.
+    """The Ev-Net input ``(len(CHANNELS), n, n)`` float32 from radar sweeps, in the ego frame at
+    ``ego_pose``.
 
     The caller chooses which sweeps to pass (e.g. the last ``params.n_sweeps`` of each radar).
     """
@@ -237,7 +243,8 @@ def radar_image(
 
 @numba.njit(cache=True)
 def _k_sweep_rows(p, rot, trans, recency, rcs_lo, rcs_hi, v_max, out, start, drops):
-    """Append a sweep's usable detections as rows of ``DETECTION_COLUMNS`` to ``out`` from ``start``.
+    """Append a sweep's usable detections as rows of ``DETECTION_COLUMNS`` to ``out`` from
+    ``start``.
 
     The same arithmetic as :func:`radar_detections` (float64, rounded to float32 once);
     ``drops`` += [non-finite, out of range]. Returns the next free row.
@@ -273,7 +280,8 @@ def _k_sweep_rows(p, rot, trans, recency, rcs_lo, rcs_hi, v_max, out, start, dro
 def _k_pooled_image(
     det, half, inv_res, pool, log1p_table, acc, count, fine_idx, pmax, occ, pooled_idx, out
 ):
-    """Ev-Net's max-pooled input ``out`` ``(C, n/pool, n/pool)`` from detections, without the full image.
+    """Ev-Net's max-pooled input ``out`` ``(C, n/pool, n/pool)`` from detections, without the full
+    image.
 
     Each touched fine cell gets the value :func:`detections_to_image` gives it (the same float32
     sums and divisions); a pooled cell is the max over its ``pool x pool`` fine cells, where an
@@ -344,8 +352,8 @@ def _k_pooled_image(
 @numba.njit(cache=True)
 def _k_upsample_masses(ef, eo, out):
     """Bilinear upsampling of evidence ``ef, eo`` ``(h, w)`` to ``out``'s ``(H, W)`` (torch's
-    ``align_corners=False`` arithmetic, float32), turned into masses ``[e_f/S, e_o/S, 2/S]``,
-    ``S = 2 + e_f + e_o`` (paper eqs. (9), (10), (14); float64, as :func:`evgrid.mass.from_evidence`).
+    ``align_corners=False`` arithmetic, float32), turned into masses ``[e_f/S, e_o/S, 2/S]``, ``S =
+    2 + e_f + e_o`` (paper eqs. (9), (10), (14); float64, as :func:`evgrid.mass.from_evidence`).
 
     Returns the number of cells whose evidence is negative or not finite.
     """
@@ -397,7 +405,8 @@ def _pooled_range(grid: GridSpec, pool: int) -> np.ndarray:
 
 
 class _PooledInput:
-    """Reused buffers of the fast path (fresh multi-megabyte arrays cost more in page faults than the work)."""
+    """Reused buffers of the fast path (fresh multi-megabyte arrays cost more in page faults than
+    the work)."""
 
     def __init__(self, grid: GridSpec, pool: int):
         n = grid.n_cells
@@ -472,7 +481,8 @@ class _PooledInput:
 
 
 def evidence_to_masses(evidence: np.ndarray, grid: GridSpec) -> np.ndarray:
-    """Masses ``(n, n, 3)`` float32 from Ev-Net's trunk output ``(2, m, m)``: bilinear upsampling and eq. (9)-(14) in one pass."""
+    """Masses ``(n, n, 3)`` float32 from Ev-Net's trunk output ``(2, m, m)``: bilinear upsampling
+    and eq. (9)-(14) in one pass."""
     e = np.asarray(evidence, dtype=np.float32)
     if e.ndim != 3 or e.shape[0] != 2:
         raise ValueError(f"evidence must have shape (2, h, w), got {e.shape}")
@@ -523,7 +533,8 @@ class DeepIrm:
             )
         if loaded.model.config.in_channels != len(CHANNELS):
             raise CheckpointError(
-                f"{path}: model takes {loaded.model.config.in_channels} channels, inputs have {len(CHANNELS)}"
+                f"{path}: model takes {loaded.model.config.in_channels} channels, inputs have "
+                f"{len(CHANNELS)}"
             )
         self.grid = grid
         self.params = params
@@ -542,7 +553,8 @@ class DeepIrm:
 
     @property
     def runtime(self):
-        """The runtime of the fast path's network (see :mod:`evgrid.ism.runtime`), built on first use."""
+        """The runtime of the fast path's network (see :mod:`evgrid.ism.runtime`), built on first
+        use."""
         if self._runtime is None:
             from evgrid.ism.runtime import make_runtime
 
@@ -553,7 +565,8 @@ class DeepIrm:
         return self._runtime
 
     def predict_image(self, image: np.ndarray) -> np.ndarray:
-        """Masses ``(n, n, 3)`` float32 from an input image ``(C, n, n)`` (see :func:`radar_image`): the plain path."""
+        """Masses ``(n, n, 3)`` float32 from an input image ``(C, n, n)`` (see :func:`radar_image`):
+        the plain path."""
         from evgrid.mass import from_evidence
 
         torch = self._torch
@@ -589,7 +602,8 @@ class DeepIrm:
     def predict(
         self, sweeps: Sequence[RadarSweep], ego_pose: SE3, now_us: int | None = None
     ) -> np.ndarray:
-        """Local mass grid ``(n, n, 3)`` float32 from radar sweeps, in the ego frame at ``ego_pose``: the fast path.
+        """Local mass grid ``(n, n, 3)`` float32 from radar sweeps, in the ego frame at
+        ``ego_pose``: the fast path.
 
         The same masses as ``predict_image(radar_image(...))`` within float rounding (2e-6 on
         torch, about 1e-5 on ONNX Runtime, whose convolutions round differently).

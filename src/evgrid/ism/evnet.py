@@ -1,9 +1,9 @@
 """Ev-Net: the deep inverse radar model (Bauer et al. 2019) and its checkpoint files.
 
-The published interface (paper sec. V-C; docs/decisions.md#ev-net-architecture): an accumulated radar detection image in
-the current ego frame goes in, max-pooled at the input; an encoder-decoder CNN; bilinear
-upsampling at the output; two non-negative evidence channels ``[e_f, e_o]`` come out, turned
-into masses by :func:`evgrid.mass.from_evidence`. The exact layers of Ev-Net are not public:
+The published interface (paper sec. V-C; docs/decisions.md#ev-net-architecture): an accumulated
+radar detection image in the current ego frame goes in, max-pooled at the input; an encoder-decoder
+CNN; bilinear upsampling at the output; two non-negative evidence channels ``[e_f, e_o]`` come out,
+turned into masses by :func:`evgrid.mass.from_evidence`. The exact layers of Ev-Net are not public:
 this is a small U-Net with that interface (0.44 M parameters, 1.8 MB by default).
 
 Checkpoints are safetensors files (plain tensors, never code) with the model configuration
@@ -47,7 +47,7 @@ logger = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class EvNetConfig:
-    """Architecture of an Ev-Net: input channels, width of the first stage, input max-pool factor."""
+    """Architecture of an Ev-Net: input channels, first stage width, input max-pool factor."""
 
     in_channels: int = 6
     width: int = 12
@@ -71,7 +71,8 @@ def _block(c_in: int, c_out: int, dilation: int = 1) -> nn.Sequential:
 
 
 class EvNet(nn.Module):
-    """Encoder-decoder from a radar detection image ``(B, C, H, W)`` to evidence ``(B, 2, H, W)`` >= 0."""
+    """Encoder-decoder from a radar detection image ``(B, C, H, W)`` to evidence ``(B, 2, H, W)`` >=
+    0."""
 
     def __init__(self, config: EvNetConfig = EvNetConfig()):
         super().__init__()
@@ -129,6 +130,11 @@ _DIGEST_KEY = "tensors_sha256"
 # useful Ev-Net (the shipped one has 0.44 M parameters), far below what would exhaust memory.
 _CONFIG_MAX = {"in_channels": 64, "width": 512, "pool": 64, "depth": 8}
 _MAX_PARAMS = 64_000_000
+#: The largest magnitude a weight (or normalisation statistic) may have. A finite but huge
+#: weight that passes the checksum (a file written that way on purpose) would overflow float32
+#: activations to inf and then masses to NaN, i.e. a silently wrong map; trained weights stay
+#: orders of magnitude below this bound.
+MAX_WEIGHT = 1e6
 _MAX_HEADER_BYTES = 1 << 24
 
 # safetensors dtype codes of the tensors an EvNet holds
@@ -136,7 +142,8 @@ _DTYPE_CODES = {torch.float32: "F32", torch.int64: "I64"}
 
 
 class CheckpointError(ValueError):
-    """A checkpoint file that cannot be used: unreadable, not an Ev-Net, corrupt, or of another shape."""
+    """A checkpoint file that cannot be used: unreadable, not an Ev-Net, corrupt, or of another
+    shape."""
 
 
 def _parse_header(prefix: bytes, size: int, path: Path) -> tuple[dict[str, Any], int]:
@@ -147,7 +154,8 @@ def _parse_header(prefix: bytes, size: int, path: Path) -> tuple[dict[str, Any],
     (n,) = struct.unpack("<Q", prefix[:8])
     if n > min(_MAX_HEADER_BYTES, size - 8) or len(prefix) < 8 + n:
         raise CheckpointError(
-            f"{path}: not a safetensors checkpoint, or truncated (header of {n} bytes in a file of {size})"
+            f"{path}: not a safetensors checkpoint, or truncated (header of {n} bytes in a file of "
+            f"{size})"
         )
     try:
         header = json.loads(prefix[8 : 8 + n].decode("utf-8"))
@@ -179,7 +187,7 @@ def _read_header(path: Path) -> tuple[dict[str, Any], int, int]:
 def _entries(
     header: dict[str, Any], path: Path
 ) -> dict[str, tuple[str, tuple[int, ...], int, int]]:
-    """Tensor entries of a header: name -> (dtype code, shape, begin, end) within the data section."""
+    """Tensor entries of a header: name -> (dtype code, shape, begin, end) in the data section."""
     out = {}
     for name, e in header.items():
         if name == "__metadata__":
@@ -239,7 +247,8 @@ def _config_from(meta: dict[str, str], path: Path) -> EvNetConfig:
         v = cfg.get(key)
         if v is not None and (isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= hi):
             raise CheckpointError(
-                f"{path}: checkpoint metadata field 'config.{key}' must be an integer in [1, {hi}], got {v!r:.80}"
+                f"{path}: checkpoint metadata field 'config.{key}' must be an integer in [1, "
+                f"{hi}], got {v!r:.80}"
             )
     try:
         return EvNetConfig(**cfg)
@@ -248,13 +257,15 @@ def _config_from(meta: dict[str, str], path: Path) -> EvNetConfig:
 
 
 def _expected(config: EvNetConfig, path: Path) -> dict[str, tuple[str, tuple[int, ...]]]:
-    """Name -> (dtype code, shape) of every tensor of an EvNet of ``config``, built on the meta device (no memory)."""
+    """Name -> (dtype code, shape) of every tensor of an EvNet of ``config``, built on the meta
+    device (no memory)."""
     with torch.device("meta"):
         sd = EvNet(config).state_dict()
     n = sum(v.numel() for v in sd.values())
     if n > _MAX_PARAMS:
         raise CheckpointError(
-            f"{path}: checkpoint metadata field 'config' describes {n:,} parameters, more than the {_MAX_PARAMS:,} allowed"
+            f"{path}: checkpoint metadata field 'config' describes {n:,} parameters, more than the "
+            f"{_MAX_PARAMS:,} allowed"
         )
     return {k: (_DTYPE_CODES.get(v.dtype, str(v.dtype)), tuple(v.shape)) for k, v in sd.items()}
 
@@ -264,7 +275,7 @@ def _tensor_bytes(dtype: str, shape: tuple[int, ...]) -> int:
 
 
 def _serialise(model: EvNet, extra: dict[str, Any] | None) -> bytes:
-    """A format-2 checkpoint of ``model``: safetensors bytes with config, extra and tensor digest."""
+    """A format-2 checkpoint of ``model``: safetensors bytes, config, extra, tensor digest."""
     from safetensors.torch import save
 
     meta = {
@@ -274,7 +285,8 @@ def _serialise(model: EvNet, extra: dict[str, Any] | None) -> bytes:
         "extra": json.dumps(extra or {}),
     }
     tensors = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
-    # the data section does not depend on the metadata: serialise once to hash it, then with the hash
+    # the data section does not depend on the metadata: serialise once to hash it, then with the
+    # hash
     buf = save(tensors, metadata=meta)
     header, start = _parse_header(buf, len(buf), Path("<memory>"))
     meta[_DIGEST_KEY] = _digest(_entries(header, Path("<memory>")), memoryview(buf)[start:])
@@ -284,7 +296,8 @@ def _serialise(model: EvNet, extra: dict[str, Any] | None) -> bytes:
 def save_checkpoint(
     model: EvNet, path: str | os.PathLike, extra: dict[str, Any] | None = None
 ) -> Path:
-    """Write the model's weights and config as a safetensors file (format 2), atomically; ``extra`` goes in its metadata."""
+    """Write the model's weights and config as a safetensors file (format 2), atomically; ``extra``
+    goes in its metadata."""
     from evgrid.io import atomic_write
 
     data = _serialise(model, extra)
@@ -293,7 +306,7 @@ def save_checkpoint(
 
 @dataclass
 class LoadedCheckpoint:
-    """A loaded Ev-Net with the metadata saved beside it; ``version`` is the file's format version."""
+    """A loaded Ev-Net and the metadata saved beside it; ``version``: the file's format version."""
 
     model: EvNet
     path: Path
@@ -301,8 +314,58 @@ class LoadedCheckpoint:
     version: int = _FORMAT_VERSION
 
 
+def _check_entries(
+    entries: dict[str, tuple[str, tuple[int, ...], int, int]],
+    expected: dict[str, tuple[str, tuple[int, ...]]],
+    n_data: int,
+    saved: EvNetConfig,
+    path: Path,
+) -> int:
+    """Every tensor the architecture has, of its dtype and shape, within the file's
+    ``n_data`` bytes of data and filling them; returns ``n_data``."""
+    missing = sorted(set(expected) - set(entries))
+    unexpected = sorted(set(entries) - set(expected))
+    if missing or unexpected:
+        raise CheckpointError(
+            f"{path}: weights do not match {saved}: missing {missing[:3]}, unexpected "
+            f"{unexpected[:3]}"
+        )
+    for k, (dtype, shape, begin, end) in entries.items():
+        want_dtype, want_shape = expected[k]
+        if shape != want_shape:
+            raise CheckpointError(f"{path}: weight {k} has shape {shape}, expected {want_shape}")
+        if dtype != want_dtype:
+            raise CheckpointError(f"{path}: weight {k} has dtype {dtype}, expected {want_dtype}")
+        if not (0 <= begin <= end <= n_data) or end - begin != _tensor_bytes(dtype, shape):
+            raise CheckpointError(
+                f"{path}: weight {k} has data offsets [{begin}, {end}) that do not fit the file; "
+                "it is truncated or corrupt"
+            )
+    if n_data != sum(_tensor_bytes(d, sh) for d, sh, _, _ in entries.values()):
+        raise CheckpointError(
+            f"{path}: {n_data} bytes of tensor data where the header describes "
+            f"{sum(_tensor_bytes(d, sh) for d, sh, _, _ in entries.values())}"
+        )
+    return n_data
+
+
+def _check_weights(tensors: dict[str, torch.Tensor], path: Path) -> None:
+    """Finite weights, none beyond :data:`MAX_WEIGHT` in magnitude."""
+    for k, v in tensors.items():
+        if not v.is_floating_point() or not v.numel():
+            continue
+        if not torch.isfinite(v).all():
+            raise CheckpointError(f"{path}: weight {k} holds NaN or inf")
+        if float(v.abs().max()) > MAX_WEIGHT:
+            raise CheckpointError(
+                f"{path}: weight {k} holds {float(v.abs().max()):.3g}, beyond the bound of "
+                f"{MAX_WEIGHT:.0e} on any weight's magnitude"
+            )
+
+
 def load_checkpoint(path: str | os.PathLike, config: EvNetConfig | None = None) -> LoadedCheckpoint:
-    """Load an Ev-Net from a safetensors file (no code is run); raise CheckpointError naming file and problem.
+    """Load an Ev-Net from a safetensors file (no code is run); raise CheckpointError naming file
+    and problem.
 
     Format 2 files must match their SHA-256; format 1 files (no digest) load with a warning
     recommending :func:`upgrade_checkpoint`.
@@ -319,12 +382,14 @@ def load_checkpoint(path: str | os.PathLike, config: EvNetConfig | None = None) 
         raise CheckpointError(f"{path}: checkpoint metadata is not a JSON object")
     if meta.get("format") != _FORMAT:
         raise CheckpointError(
-            f"{path}: not an evgrid Ev-Net checkpoint (metadata field 'format' is {meta.get('format')!r})"
+            f"{path}: not an evgrid Ev-Net checkpoint (metadata field 'format' is "
+            f"{meta.get('format')!r})"
         )
     version = meta.get("version")
     if version not in _READABLE_VERSIONS:
         raise CheckpointError(
-            f"{path}: checkpoint format version {version!r} (metadata field 'version'), this evgrid reads {', '.join(_READABLE_VERSIONS)}"
+            f"{path}: checkpoint format version {version!r} (metadata field 'version'), this "
+            f"evgrid reads {', '.join(_READABLE_VERSIONS)}"
         )
     saved = _config_from(meta, path)
     try:
@@ -333,7 +398,8 @@ def load_checkpoint(path: str | os.PathLike, config: EvNetConfig | None = None) 
         raise CheckpointError(f"{path}: checkpoint metadata field 'extra' is not JSON ({e})") from e
     if not isinstance(extra, dict):
         raise CheckpointError(
-            f"{path}: checkpoint metadata field 'extra' must be a JSON object, got {type(extra).__name__}"
+            f"{path}: checkpoint metadata field 'extra' must be a JSON object, got "
+            f"{type(extra).__name__}"
         )
     if "grid" in extra:  # the grid it was trained on, which DeepIrm compares with its own
         from evgrid.geometry import GridSpec
@@ -348,29 +414,8 @@ def load_checkpoint(path: str | os.PathLike, config: EvNetConfig | None = None) 
         raise CheckpointError(f"{path}: checkpoint is for {saved}, but {config} was asked for")
 
     # the header against the architecture, before a byte of tensor data is allocated
-    expected = _expected(saved, path)
     entries = _entries(header, path)
-    missing = sorted(set(expected) - set(entries))
-    unexpected = sorted(set(entries) - set(expected))
-    if missing or unexpected:
-        raise CheckpointError(
-            f"{path}: weights do not match {saved}: missing {missing[:3]}, unexpected {unexpected[:3]}"
-        )
-    n_data = size - start
-    for k, (dtype, shape, begin, end) in entries.items():
-        want_dtype, want_shape = expected[k]
-        if shape != want_shape:
-            raise CheckpointError(f"{path}: weight {k} has shape {shape}, expected {want_shape}")
-        if dtype != want_dtype:
-            raise CheckpointError(f"{path}: weight {k} has dtype {dtype}, expected {want_dtype}")
-        if not (0 <= begin <= end <= n_data) or end - begin != _tensor_bytes(dtype, shape):
-            raise CheckpointError(
-                f"{path}: weight {k} has data offsets [{begin}, {end}) that do not fit the file; it is truncated or corrupt"
-            )
-    if n_data != sum(_tensor_bytes(d, sh) for d, sh, _, _ in entries.values()):
-        raise CheckpointError(
-            f"{path}: {n_data} bytes of tensor data where the header describes {sum(_tensor_bytes(d, sh) for d, sh, _, _ in entries.values())}"
-        )
+    n_data = _check_entries(entries, _expected(saved, path), size - start, saved, path)
     try:
         buf = path.read_bytes()  # now known to be the size of the architecture's weights
     except OSError as e:
@@ -388,15 +433,14 @@ def load_checkpoint(path: str | os.PathLike, config: EvNetConfig | None = None) 
         digest = _metadata_field(meta, _DIGEST_KEY, path)
         if _digest(entries, data) != digest:
             raise CheckpointError(
-                f"{path}: the weights do not match the checksum in the metadata (field {_DIGEST_KEY!r}); the file is corrupt"
+                f"{path}: the weights do not match the checksum in the metadata (field "
+                f"{_DIGEST_KEY!r}); the file is corrupt"
             )
     try:
         tensors = load(buf)
     except (SafetensorError, ValueError, RuntimeError) as e:
         raise CheckpointError(f"{path}: not a readable safetensors checkpoint ({e})") from e
-    for k, v in tensors.items():
-        if v.is_floating_point() and not torch.isfinite(v).all():
-            raise CheckpointError(f"{path}: weight {k} holds NaN or inf")
+    _check_weights(tensors, path)
     model = EvNet(saved)
     model.load_state_dict(tensors)
     model.eval()
@@ -404,7 +448,8 @@ def load_checkpoint(path: str | os.PathLike, config: EvNetConfig | None = None) 
 
 
 def upgrade_checkpoint(src: str | os.PathLike, dst: str | os.PathLike) -> Path:
-    """Rewrite a checkpoint in the current format (with its checksum), same weights and metadata; ``dst`` may be ``src``."""
+    """Rewrite a checkpoint in the current format (with its checksum), same weights and metadata;
+    ``dst`` may be ``src``."""
     loaded = load_checkpoint(src)
     data = _serialise(loaded.model, loaded.extra)
     from safetensors.torch import load

@@ -46,13 +46,12 @@ from evgrid.ism._common import (
     OCCUPIED,
     IsmResult,
     as_points,
-    check_out,
-    check_threads,
+    check_ism_args,
     label_scratch,
     labels_to_masses,
     log_dropped,
-    mass_lut,
     numba_threads,
+    point_xyz,
 )
 from evgrid.validation import check_mass, check_number
 
@@ -100,16 +99,15 @@ _DEFAULT_PARAMS = RayIlmParams()
 
 @numba.njit(cache=True)
 def _k_ilm_points(pts, se, eg, z_min, z_max, min_range, half, inv_res, labels):
-    """Mark detection cells; returns (n_dropped, n_used). ``se``: sensor->ego 3x4, ``eg``: ego->grid 2x4."""
+    """Mark detection cells; returns (n_dropped, n_used). ``se``: sensor->ego 3x4, ``eg``: ego->grid
+    2x4."""
     n_r, n_c = labels.shape
     min_r2 = min_range * min_range
     n_dropped = 0
     n_used = 0
     for i in range(pts.shape[0]):
-        x = np.float64(pts[i, 0])
-        y = np.float64(pts[i, 1])
-        z = np.float64(pts[i, 2])
-        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
+        finite, x, y, z = point_xyz(pts, i)
+        if not finite:
             n_dropped += 1
             continue
         ex = se[0, 0] * x + se[0, 1] * y + se[0, 2] * z + se[0, 3]
@@ -231,7 +229,8 @@ def _resolve_inputs(
     if isinstance(sweep, LidarSweep):
         if sensor_to_ego is not None or ego_pose is not None:
             raise ValueError(
-                "ray_ilm: pass either a LidarSweep or raw points with sensor_to_ego/ego_pose, not both"
+                "ray_ilm: pass either a LidarSweep or raw points with sensor_to_ego/ego_pose, not "
+                "both"
             )
         return sweep.points, sweep.sensor_to_ego, sweep.ego_pose
     pts = as_points(sweep, 3, "ray_ilm", max_cols=len(LIDAR_COLUMNS))
@@ -257,7 +256,8 @@ def ray_ilm_with_stats(
     threads: int = 1,
     out: np.ndarray | None = None,
 ) -> IsmResult:
-    """Ray ILM (paper sec. V-A) with point counts: masses ``(n, n, 3)`` float32 on ``grid`` (metres).
+    """Ray ILM (paper sec. V-A) with point counts: masses ``(n, n, 3)`` float32 on ``grid``
+    (metres).
 
     ``sweep`` is a :class:`~evgrid.data.frame.LidarSweep`, or raw points ``(n, >= 3)``
     (x, y, z in metres in the sensor frame, further columns ignored) with ``sensor_to_ego``
@@ -268,12 +268,7 @@ def ray_ilm_with_stats(
     on that many numba threads. ``out``: a float32 ``(n, n, 3)`` array to write into.
     NaN/inf points are dropped, counted and logged once per call.
     """
-    if not isinstance(grid, GridSpec):
-        raise TypeError(f"ray_ilm: grid must be a GridSpec, got {type(grid).__name__}")
-    if not isinstance(params, RayIlmParams):
-        raise TypeError(f"ray_ilm: params must be a RayIlmParams, got {type(params).__name__}")
-    threads = check_threads(threads)
-    check_out(out, grid)
+    threads = check_ism_args("ray_ilm", grid, params, RayIlmParams, threads, out)
     pts, sensor_to_ego, ego_pose = _resolve_inputs(sweep, sensor_to_ego, ego_pose)
 
     se = np.ascontiguousarray(sensor_to_ego.matrix()[:3, :])
@@ -311,34 +306,11 @@ def ray_ilm_with_stats(
                 _k_ilm_rays_par(labels, u0, v0, params.n_rays, t_end)
         else:
             _k_ilm_rays(labels, u0, v0, params.n_rays, t_end)
-    lut = mass_lut(params.m_free, params.m_occupied)
-    if threads > 1:
-        with numba_threads(threads):
-            masses = labels_to_masses(labels, lut, out, threads)
-    else:
-        masses = labels_to_masses(labels, lut, out, threads)
+    masses = labels_to_masses(labels, params.m_free, params.m_occupied, out, threads)
     return IsmResult(masses, n_points, int(n_dropped), int(n_used))
 
 
-def ray_ilm(
-    sweep: LidarSweep | np.ndarray,
-    sensor_to_ego: SE3 | None = None,
-    ego_pose: SE3 | None = None,
-    *,
-    reference_pose: SE3 | None = None,
-    grid: GridSpec = _DEFAULT_GRID,
-    params: RayIlmParams = _DEFAULT_PARAMS,
-    threads: int = 1,
-    out: np.ndarray | None = None,
-) -> np.ndarray:
-    """Ray ILM (paper sec. V-A): masses ``(n, n, 3)`` float32 [m_f, m_o, m_u] on ``grid`` (metres); see :func:`ray_ilm_with_stats`."""
-    return ray_ilm_with_stats(
-        sweep,
-        sensor_to_ego,
-        ego_pose,
-        reference_pose=reference_pose,
-        grid=grid,
-        params=params,
-        threads=threads,
-        out=out,
-    ).masses
+def ray_ilm(sweep: LidarSweep | np.ndarray, *args, **kwargs) -> np.ndarray:
+    """Ray ILM (paper sec. V-A): masses ``(n, n, 3)`` float32 [m_f, m_o, m_u] on ``grid``
+    (metres); the parameters of :func:`ray_ilm_with_stats`, which also counts the points."""
+    return ray_ilm_with_stats(sweep, *args, **kwargs).masses

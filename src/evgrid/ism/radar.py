@@ -1,4 +1,5 @@
-"""The ray casting inverse radar model, "ray IRM" (paper sec. V-B; docs/decisions.md#ray-irm), after Werber et al. 2015.
+"""The ray casting inverse radar model, "ray IRM" (paper sec. V-B; docs/decisions.md#ray-irm), after
+Werber et al. 2015.
 
 Input: the last N = 10 sweeps of each of the 5 radars. Every sweep is moved into the
 *current* ego frame from its own sensor position at its own time::
@@ -49,20 +50,7 @@ import numpy as np
 from evgrid.data.frame import RadarSweep
 from evgrid.data.sweeps import last_sweeps
 from evgrid.geometry import SE3, GridSpec
-from evgrid.ism._common import (
-    FREE,
-    OCCUPIED,
-    IsmResult,
-    as_points,
-    bit_scratch,
-    check_out,
-    check_threads,
-    label_scratch,
-    labels_to_masses,
-    log_dropped,
-    mass_lut,
-    numba_threads,
-)
+from evgrid.ism import _common
 from evgrid.validation import check_int, check_mass, check_number
 
 __all__ = ["RayIrmParams", "ray_irm", "ray_irm_with_stats", "ray_irm_xy"]
@@ -103,10 +91,8 @@ def _k_transform(pts, sweep_of, mats, half, inv_res, det_uv, ok):
     """Move points (sensor frame, metres) into the grid's (u, v); returns the non-finite count."""
     n_dropped = 0
     for i in range(pts.shape[0]):
-        x = np.float64(pts[i, 0])
-        y = np.float64(pts[i, 1])
-        z = np.float64(pts[i, 2])
-        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
+        finite, x, y, z = _common.point_xyz(pts, i)
+        if not finite:
             n_dropped += 1
             ok[i] = False
             continue
@@ -318,25 +304,37 @@ def _octant_of(x, y):
     return 6 if -y > x else 7
 
 
-@numba.njit(cache=True)
-def _k_tasks(det_uv, ok, det_apex, apex_uv, h):
-    """Split every cone into octant pieces of slope intervals; merge them per (apex, octant).
+@numba.njit(cache=True, inline="always")
+def _add_piece(pieces, m, a, o, s1, s2, r):
+    """Record piece ``m``: apex ``a``, octant ``o``, slopes between s1 and s2, range ``r``;
+    its sort key groups the pieces by (apex, octant), then by lower slope."""
+    p_key, p_apex, p_oct, p_lo, p_hi, p_r = pieces
+    p_apex[m] = a
+    p_oct[m] = o
+    p_lo[m] = min(s1, s2)
+    p_hi[m] = max(s1, s2)
+    p_r[m] = r
+    p_key[m] = (a * 8 + o) + 0.5 * p_lo[m]
+    return m + 1
 
-    Returns (task_apex, task_octant, task_start (T + 1), iv_lo, iv_hi, iv_r): task t owns
-    the merged, sorted, disjoint intervals iv[task_start[t]:task_start[t + 1]]; iv_r is the
-    largest cone range (cells) in the interval.
-    """
+
+@numba.njit(cache=True)
+def _k_pieces(det_uv, ok, det_apex, apex_uv, h):
+    """Split every cone into octant pieces of slope intervals -> (number of pieces, pieces =
+    (key, apex, octant, lower slope, upper slope, range in cells))."""
     n = det_uv.shape[0]
     max_pieces = int(2.0 * h / _QUARTER) + 2
     cos_h = math.cos(h)
     sin_h = math.sin(h)
     narrow = 2.0 * h < _QUARTER
-    p_key = np.empty(n * max_pieces, dtype=np.float64)
-    p_apex = np.empty(n * max_pieces, dtype=np.int64)
-    p_oct = np.empty(n * max_pieces, dtype=np.int64)
-    p_lo = np.empty(n * max_pieces, dtype=np.float64)
-    p_hi = np.empty(n * max_pieces, dtype=np.float64)
-    p_r = np.empty(n * max_pieces, dtype=np.float64)
+    pieces = (
+        np.empty(n * max_pieces, dtype=np.float64),
+        np.empty(n * max_pieces, dtype=np.int64),
+        np.empty(n * max_pieces, dtype=np.int64),
+        np.empty(n * max_pieces, dtype=np.float64),
+        np.empty(n * max_pieces, dtype=np.float64),
+        np.empty(n * max_pieces, dtype=np.float64),
+    )
     m = 0
     for i in range(n):
         if not ok[i]:
@@ -378,13 +376,7 @@ def _k_tasks(det_uv, ok, det_apex, apex_uv, h):
                         o = o2
                         s1 = bnd
                         s2 = _slope_vec(o, x2, y2)
-                    p_apex[m] = a
-                    p_oct[m] = o
-                    p_lo[m] = min(s1, s2)
-                    p_hi[m] = max(s1, s2)
-                    p_r[m] = r
-                    p_key[m] = (a * 8 + o) + 0.5 * p_lo[m]
-                    m += 1
+                    m = _add_piece(pieces, m, a, o, s1, s2, r)
                 continue
         phi = math.atan2(dv, du)
         start = phi - h
@@ -400,15 +392,22 @@ def _k_tasks(det_uv, ok, det_apex, apex_uv, h):
                 o = k % 8
                 s1 = _slope_vec(o, math.cos(x), math.sin(x))
                 s2 = _slope_vec(o, math.cos(y), math.sin(y))
-                p_apex[m] = a
-                p_oct[m] = o
-                p_lo[m] = min(s1, s2)
-                p_hi[m] = max(s1, s2)
-                p_r[m] = r
-                p_key[m] = (a * 8 + o) + 0.5 * p_lo[m]
-                m += 1
+                m = _add_piece(pieces, m, a, o, s1, s2, r)
             x = y
             k += 1
+    return m, pieces
+
+
+@numba.njit(cache=True)
+def _k_tasks(det_uv, ok, det_apex, apex_uv, h):
+    """Split every cone into octant pieces of slope intervals; merge them per (apex, octant).
+
+    Returns (task_apex, task_octant, task_start (T + 1), iv_lo, iv_hi, iv_r): task t owns
+    the merged, sorted, disjoint intervals iv[task_start[t]:task_start[t + 1]]; iv_r is the
+    largest cone range (cells) in the interval.
+    """
+    m, pieces = _k_pieces(det_uv, ok, det_apex, apex_uv, h)
+    p_key, p_apex, p_oct, p_lo, p_hi, p_r = pieces
     order = np.argsort(p_key[:m])
     t_apex = np.empty(m, dtype=np.int64)
     t_oct = np.empty(m, dtype=np.int64)
@@ -440,6 +439,11 @@ def _k_tasks(det_uv, ok, det_apex, apex_uv, h):
     return t_apex[:n_t], t_oct[:n_t], t_start[: n_t + 1], iv_lo[:n_iv], iv_hi[:n_iv], iv_r[:n_iv]
 
 
+# Over 100 lines on purpose (issue 23 allows three such functions, each with its why): this is
+# the ray IRM's innermost loop, run for every column of every cone task. Its state (the open
+# slope intervals in two swapped buffers, the column's cell range, the bitmap words) lives in
+# locals that LLVM keeps in registers; split into functions, that state would cross a call for
+# every cell run of every column.
 @numba.njit(cache=True)
 def _k_cast_task(barrier, brow, bcol, frow, fcol, au, av, o, lo0, hi0, r0):
     """Step 2 for one sensor position and one octant: exact shadow casting of slope intervals.
@@ -567,57 +571,39 @@ def _k_cast_task(barrier, brow, bcol, frow, fcol, au, av, o, lo0, hi0, r0):
         n_cur = n_nxt
 
 
+@numba.njit(cache=True, inline="always")
+def _cast_one(t, barrier, brow, bcol, frow_w, fcol_w, apex_uv, tasks):
+    """Task ``t`` of ``tasks`` (as :func:`_k_tasks` returns them) into one worker's bitmaps."""
+    t_apex, t_oct, t_start, iv_lo, iv_hi, iv_r = tasks
+    a = t_apex[t]
+    s0 = t_start[t]
+    s1 = t_start[t + 1]
+    au = apex_uv[a, 0]
+    av = apex_uv[a, 1]
+    lo, hi, r = iv_lo[s0:s1], iv_hi[s0:s1], iv_r[s0:s1]
+    _k_cast_task(barrier, brow, bcol, frow_w, fcol_w, au, av, t_oct[t], lo, hi, r)
+
+
 @numba.njit(cache=True)
-def _k_cast(barrier, brow, bcol, frow, fcol, apex_uv, t_apex, t_oct, t_start, iv_lo, iv_hi, iv_r):
-    for t in range(t_apex.shape[0]):
-        a = t_apex[t]
-        s0 = t_start[t]
-        s1 = t_start[t + 1]
-        _k_cast_task(
-            barrier,
-            brow,
-            bcol,
-            frow[0],
-            fcol[0],
-            apex_uv[a, 0],
-            apex_uv[a, 1],
-            t_oct[t],
-            iv_lo[s0:s1],
-            iv_hi[s0:s1],
-            iv_r[s0:s1],
-        )
+def _k_cast(barrier, brow, bcol, frow, fcol, apex_uv, tasks):
+    for t in range(tasks[0].shape[0]):
+        _cast_one(t, barrier, brow, bcol, frow[0], fcol[0], apex_uv, tasks)
 
 
 @numba.njit(cache=True, parallel=True)
-def _k_cast_par(
-    barrier, brow, bcol, frow, fcol, apex_uv, t_apex, t_oct, t_start, iv_lo, iv_hi, iv_r
-):
+def _k_cast_par(barrier, brow, bcol, frow, fcol, apex_uv, tasks):
     # Worker w takes tasks w, w + W, w + 2W, ... and owns free bitmaps frow[w], fcol[w]
     # (bit OR into shared words would race); they are OR-ed together afterwards.
     n_w = frow.shape[0]
     for w in numba.prange(n_w):
-        for t in range(w, t_apex.shape[0], n_w):
-            a = t_apex[t]
-            s0 = t_start[t]
-            s1 = t_start[t + 1]
-            _k_cast_task(
-                barrier,
-                brow,
-                bcol,
-                frow[w],
-                fcol[w],
-                apex_uv[a, 0],
-                apex_uv[a, 1],
-                t_oct[t],
-                iv_lo[s0:s1],
-                iv_hi[s0:s1],
-                iv_r[s0:s1],
-            )
+        for t in range(w, tasks[0].shape[0], n_w):
+            _cast_one(t, barrier, brow, bcol, frow[w], fcol[w], apex_uv, tasks)
 
 
 @numba.njit(cache=True)
 def _k_merge_free(frow, fcol, labels):
-    """labels[r, c] = FREE where any worker's row-wise or column-wise free bitmap has the cell."""
+    """labels[r, c] = FREE where any worker's row-wise or column-wise free bitmap has the
+    cell."""
     n_r, n_c = labels.shape
     for w in range(1, frow.shape[0]):
         frow[0] |= frow[w]
@@ -631,7 +617,7 @@ def _k_merge_free(frow, fcol, labels):
         for c in range(n_c):
             bit = ((fr[r, c >> 6] >> np.uint64(c & 63)) | (fc[c, wr] >> br)) & one
             if bit:
-                labels[r, c] = FREE
+                labels[r, c] = _common.FREE
 
 
 @numba.njit(cache=True)
@@ -646,7 +632,7 @@ def _k_mark_detections(det_uv, ok, labels):
         fr = math.floor(det_uv[i, 0])
         fc = math.floor(det_uv[i, 1])
         if fr >= 0 and fr < n_r and fc >= 0 and fc < n_c:
-            labels[int(fr), int(fc)] = OCCUPIED
+            labels[int(fr), int(fc)] = _common.OCCUPIED
     return n_used
 
 
@@ -663,40 +649,24 @@ def _irm_core(
     threads: int,
     out: np.ndarray | None,
 ) -> tuple[np.ndarray, int]:
-    """Steps 1-3 on detections and apexes in continuous cell coordinates; returns (masses, n_used)."""
+    """Steps 1-3 on detections and apexes in continuous cell coordinates -> (masses, n_used)."""
     h = math.radians(params.opening_angle_deg) / 2.0
-    barrier = label_scratch(grid, "irm_barrier", fill=0)
-    labels = label_scratch(grid, "irm_labels")
-    brow, bcol = bit_scratch(grid, "irm_barrier_bits")
-    frow, fcol = bit_scratch(grid, "irm_free_bits", threads)
+    barrier = _common.label_scratch(grid, "irm_barrier", fill=0)
+    labels = _common.label_scratch(grid, "irm_labels")
+    brow, bcol = _common.bit_scratch(grid, "irm_barrier_bits")
+    frow, fcol = _common.bit_scratch(grid, "irm_free_bits", threads)
     if det_uv.shape[0]:
         _k_caps(det_uv, ok, det_apex, apex_uv, h, barrier, brow[0], bcol[0])
         tasks = _k_tasks(det_uv, ok, det_apex, apex_uv, h)
         if threads > 1:
-            with numba_threads(threads):
-                _k_cast_par(barrier, brow[0], bcol[0], frow, fcol, apex_uv, *tasks)
+            with _common.numba_threads(threads):
+                _k_cast_par(barrier, brow[0], bcol[0], frow, fcol, apex_uv, tasks)
         else:
-            _k_cast(barrier, brow[0], bcol[0], frow, fcol, apex_uv, *tasks)
+            _k_cast(barrier, brow[0], bcol[0], frow, fcol, apex_uv, tasks)
         _k_merge_free(frow, fcol, labels)
     n_used = int(_k_mark_detections(det_uv, ok, labels))
-    lut = mass_lut(params.m_free, params.m_occupied)
-    if threads > 1:
-        with numba_threads(threads):
-            masses = labels_to_masses(labels, lut, out, threads)
-    else:
-        masses = labels_to_masses(labels, lut, out, threads)
+    masses = _common.labels_to_masses(labels, params.m_free, params.m_occupied, out, threads)
     return masses, n_used
-
-
-def _check_common(
-    grid: GridSpec, params: RayIrmParams, threads: int, out: np.ndarray | None
-) -> int:
-    if not isinstance(grid, GridSpec):
-        raise TypeError(f"ray_irm: grid must be a GridSpec, got {type(grid).__name__}")
-    if not isinstance(params, RayIrmParams):
-        raise TypeError(f"ray_irm: params must be a RayIrmParams, got {type(params).__name__}")
-    check_out(out, grid)
-    return check_threads(threads)
 
 
 def ray_irm_with_stats(
@@ -707,15 +677,16 @@ def ray_irm_with_stats(
     params: RayIrmParams = _DEFAULT_PARAMS,
     threads: int = 1,
     out: np.ndarray | None = None,
-) -> IsmResult:
-    """Ray IRM (paper sec. V-B) with point counts: masses ``(n, n, 3)`` float32 in the frame of ``ego_pose`` (metres).
+) -> _common.IsmResult:
+    """Ray IRM (paper sec. V-B) with point counts: masses ``(n, n, 3)`` float32 in the frame of
+    ``ego_pose`` (metres).
 
     ``sweeps``: radar sweeps (any order, e.g. a :class:`RadarBuffer`); of each channel the
     last ``params.n_sweeps`` by timestamp are used. ``ego_pose``: the current ego pose
     (ego -> global) whose ego frame the grid is. ``threads > 1`` casts the cones on that
     many numba threads. NaN/inf points are dropped, counted and logged once per call.
     """
-    threads = _check_common(grid, params, threads, out)
+    threads = _common.check_ism_args("ray_irm", grid, params, RayIrmParams, threads, out)
     if not isinstance(ego_pose, SE3):
         raise TypeError(f"ray_irm: ego_pose must be an SE3, got {type(ego_pose).__name__}")
     used = last_sweeps(sweeps, params.n_sweeps)
@@ -726,7 +697,8 @@ def ray_irm_with_stats(
     mats = np.empty((len(used), 3, 4), dtype=np.float64)
     apex_xy = np.empty((len(used), 2), dtype=np.float64)
     for k, s in enumerate(used):
-        # local = current_ego_pose^-1 o sweep.ego_pose o sensor_to_ego (paper sec. V-B: own position, own time)
+        # local = current_ego_pose^-1 o sweep.ego_pose o sensor_to_ego (paper sec. V-B: own
+        # position, own time)
         m = cur_inv @ s.ego_pose.matrix() @ s.sensor_to_ego.matrix()
         mats[k] = m[:3, :]
         apex_xy[k] = m[:2, 3]
@@ -752,41 +724,34 @@ def ray_irm_with_stats(
         np.stack([half - uniq[:, 0] * inv_res, half - uniq[:, 1] * inv_res], axis=1)
     )
     n_points = int(pts.shape[0])
-    log_dropped(logger, "ray_irm", n_dropped, n_points)
+    _common.log_dropped(logger, "ray_irm", n_dropped, n_points)
     masses, n_used = _irm_core(det_uv, ok, det_apex, apex_uv, grid, params, threads, out)
-    return IsmResult(masses, n_points, n_dropped, n_used)
+    return _common.IsmResult(masses, n_points, n_dropped, n_used)
 
 
-def ray_irm(
-    sweeps: Iterable[RadarSweep],
-    ego_pose: SE3,
-    *,
-    grid: GridSpec = _DEFAULT_GRID,
-    params: RayIrmParams = _DEFAULT_PARAMS,
-    threads: int = 1,
-    out: np.ndarray | None = None,
-) -> np.ndarray:
-    """Ray IRM (paper sec. V-B): masses ``(n, n, 3)`` float32 [m_f, m_o, m_u] in the frame of ``ego_pose``; see :func:`ray_irm_with_stats`."""
-    return ray_irm_with_stats(
-        sweeps, ego_pose, grid=grid, params=params, threads=threads, out=out
-    ).masses
+def ray_irm(sweeps: Iterable[RadarSweep], ego_pose: SE3, **options) -> np.ndarray:
+    """Ray IRM (paper sec. V-B): masses ``(n, n, 3)`` float32 [m_f, m_o, m_u] in the frame of
+    ``ego_pose``; the options (``grid``, ``params``, ``threads``, ``out``) of
+    :func:`ray_irm_with_stats`, which also counts the points."""
+    return ray_irm_with_stats(sweeps, ego_pose, **options).masses
 
 
 def ray_irm_xy(
     detections_xy: np.ndarray,
     origins_xy: np.ndarray,
     *,
-    grid: GridSpec = _DEFAULT_GRID,
     params: RayIrmParams = _DEFAULT_PARAMS,
+    grid: GridSpec = _DEFAULT_GRID,
     threads: int = 1,
     out: np.ndarray | None = None,
-) -> IsmResult:
-    """Ray IRM on detections already in the grid's frame: ``detections_xy`` ``(n, 2)`` m, cone apexes ``origins_xy`` ``(n, 2)`` or ``(2,)`` m.
+) -> _common.IsmResult:
+    """Ray IRM on detections already in the grid's frame: ``detections_xy`` ``(n, 2)`` m, cone
+    apexes ``origins_xy`` ``(n, 2)`` or ``(2,)`` m.
 
     ``params.n_sweeps`` plays no part here: every detection given is used.
     """
-    threads = _check_common(grid, params, threads, out)
-    det = as_points(detections_xy, 2, "ray_irm_xy", max_cols=2)
+    threads = _common.check_ism_args("ray_irm_xy", grid, params, RayIrmParams, threads, out)
+    det = _common.as_points(detections_xy, 2, "ray_irm_xy", max_cols=2)
     if det.shape[1] != 2:
         raise ValueError(f"ray_irm_xy: detections_xy must have shape (n, 2), got {det.shape}")
     org = np.asarray(origins_xy, dtype=np.float64)
@@ -810,7 +775,7 @@ def ray_irm_xy(
     else:
         uniq, inverse = np.empty((0, 2)), np.empty(0, dtype=np.int64)
     apex_uv = np.ascontiguousarray(half - uniq * inv_res)
-    log_dropped(logger, "ray_irm_xy", n_dropped, int(det.shape[0]))
+    _common.log_dropped(logger, "ray_irm_xy", n_dropped, int(det.shape[0]))
     masses, n_used = _irm_core(
         det_uv,
         ok,
@@ -821,4 +786,4 @@ def ray_irm_xy(
         threads,
         out,
     )
-    return IsmResult(masses, int(det.shape[0]), n_dropped, n_used)
+    return _common.IsmResult(masses, int(det.shape[0]), n_dropped, n_used)

@@ -4,11 +4,11 @@ The deep IRM's fast path (:meth:`evgrid.ism.deep.DeepIrm.predict`) builds Ev-Net
 input itself and upsamples the evidence itself, so a runtime runs only the trunk between the
 two: ``(1, C, n/p, n/p)`` pooled input -> ``(2, n/p, n/p)`` evidence ``[e_f, e_o]`` >= 0.
 
-Measured on one core (``evgrid bench``, docs/speed.md): ONNX Runtime fp32 runs the trunk about
-25% faster than torch eager with masses equal within 1e-6; torch stays the training framework
-and the fallback when ``onnxruntime`` is missing (``pip install 'evgrid[fast]'``). The ONNX
-graph is exported from the loaded model in memory on first use, so a checkpoint is the only
-file to ship.
+ONNX Runtime fp32 runs the trunk faster than torch eager on one core, with masses equal within
+1e-6 (the figures, with their commit and machine: docs/speed.md); torch stays the training
+framework and the fallback when ``onnxruntime`` is missing (``pip install 'evgrid[fast]'``).
+The ONNX graph is exported from the loaded model in memory on first use, so a checkpoint is the
+only file to ship.
 """
 
 from __future__ import annotations
@@ -40,7 +40,8 @@ _warned_fallback = False
 
 
 class EvNetRuntime(Protocol):
-    """Runs Ev-Net's trunk on a pooled input ``(1, C, h, w)`` float32; returns evidence ``(2, h, w)`` float32."""
+    """Runs Ev-Net's trunk on a pooled input ``(1, C, h, w)`` float32; returns evidence ``(2, h,
+    w)`` float32."""
 
     name: str
 
@@ -48,7 +49,8 @@ class EvNetRuntime(Protocol):
 
 
 def evnet_trunk(model):
-    """A torch module computing ``model``'s evidence from its max-pooled input, before the final upsample.
+    """A torch module computing ``model``'s evidence from its max-pooled input, before the final
+    upsample.
 
     Ev-Net's forward is ``pool_in -> trunk -> bilinear upsample``; the fast path does the first
     and last steps itself (exactly, in compiled passes), so only the trunk is exported.
@@ -68,7 +70,8 @@ def evnet_trunk(model):
 
 
 def trunk_onnx(model, in_shape: tuple[int, int, int]) -> bytes:
-    """``model``'s trunk as an ONNX graph (opset 17), input ``pooled`` ``(1, *in_shape)``, output ``evidence``."""
+    """``model``'s trunk as an ONNX graph (opset 17), input ``pooled`` ``(1, *in_shape)``, output
+    ``evidence``."""
     import torch
 
     buf = io.BytesIO()
@@ -90,8 +93,8 @@ def trunk_onnx(model, in_shape: tuple[int, int, int]) -> bytes:
 class TorchRuntime:
     """The trunk on torch, eager, channels-last: the fallback without ONNX Runtime.
 
-    torch.jit trace + freeze runs it 15-25% faster on one core and torch.compile 15% (after
-    minutes of compiling), both slower than ONNX Runtime (``benchmarks/bench_runtime.py``).
+    torch.jit trace + freeze and torch.compile (after minutes of compiling) run it faster, both
+    slower than ONNX Runtime (``benchmarks/bench_runtime.py``, figures in docs/speed.md).
     """
 
     name = "torch"
@@ -122,7 +125,8 @@ def ort_available() -> bool:
 
 
 class OrtRuntime:
-    """The trunk on ONNX Runtime (fp32, CPU), exported from the torch model in memory; ``threads`` intra-op threads."""
+    """The trunk on ONNX Runtime (fp32, CPU), exported from the torch model in memory; ``threads``
+    intra-op threads."""
 
     name = "onnxruntime"
 
@@ -133,7 +137,8 @@ class OrtRuntime:
     def from_graph(
         cls, graph: bytes, in_shape: tuple[int, int, int], threads: int = 1
     ) -> OrtRuntime:
-        """The runtime on an ONNX graph of the trunk: :func:`trunk_onnx`'s, or one converted from it (fp16, int8)."""
+        """The runtime on an ONNX graph of the trunk: :func:`trunk_onnx`'s, or one converted from it
+        (fp16, int8)."""
         runtime = cls.__new__(cls)
         runtime._open(graph, in_shape, threads)
         return runtime
@@ -157,7 +162,8 @@ class OrtRuntime:
 def make_runtime(
     model, in_shape: tuple[int, int, int], runtime: str = "auto", threads: int = 1
 ) -> EvNetRuntime:
-    """The runtime named ``runtime`` (see :data:`RUNTIMES`) for ``model``'s trunk on inputs ``in_shape`` ``(C, h, w)``."""
+    """The runtime named ``runtime`` (see :data:`RUNTIMES`) for ``model``'s trunk on inputs
+    ``in_shape`` ``(C, h, w)``."""
     global _warned_fallback
     if runtime not in RUNTIMES:
         raise ValueError(f"runtime must be one of {RUNTIMES}, got {runtime!r}")
@@ -170,7 +176,7 @@ def make_runtime(
         if runtime == "torch" and not _warned_fallback:
             _warned_fallback = True
             logger.info(
-                "onnxruntime is not installed: Ev-Net runs on torch, about 25%% slower "
+                "onnxruntime is not installed: Ev-Net runs on torch, slower than on ONNX Runtime "
                 "(pip install 'evgrid[fast]')"
             )
     if runtime == "onnxruntime":

@@ -64,7 +64,8 @@ def street_boxes(seed: int = 0) -> np.ndarray:
 def _ray_boxes(
     origins: np.ndarray, dirs: np.ndarray, boxes: np.ndarray, max_range: float
 ) -> np.ndarray:
-    """Range (m) of the first hit of rays ``origins + t dirs`` (2-D or 3-D) with boxes ``[lo, hi]`` (and the ground z = 0 in 3-D); inf: none."""
+    """Range (m) of the first hit of rays ``origins + t dirs`` (2-D or 3-D) with boxes ``[lo, hi]``
+    (and the ground z = 0 in 3-D); inf: none."""
     best = np.full(len(dirs), np.inf)
     if origins.shape[1] == 3:
         dz = dirs[:, 2]
@@ -94,7 +95,8 @@ def cast_lidar(
     range_noise: float = 0.02,
     seed: int = 0,
 ) -> np.ndarray:
-    """Spin a 32-beam lidar at ``sensor_to_global`` in a box world: returns ``(n, 5)`` float32 sensor-frame points."""
+    """Spin a 32-beam lidar at ``sensor_to_global`` in a box world: returns ``(n, 5)`` float32
+    sensor-frame points."""
     rng = np.random.default_rng(seed)
     if elevations_deg is None:
         elevations_deg = np.linspace(-30.67, 10.67, 32)
@@ -121,7 +123,8 @@ def cast_lidar(
 def street_lidar_sweep(
     ego_pose: SE3 | None = None, seed: int = 0, timestamp: int = 0
 ) -> LidarSweep:
-    """A ~34,000-point 32-beam lidar sweep of :func:`street_boxes` from ``ego_pose`` (default identity)."""
+    """A ~34,000-point 32-beam lidar sweep of :func:`street_boxes` from ``ego_pose`` (default
+    identity)."""
     ego_pose = SE3.identity() if ego_pose is None else ego_pose
     pts = cast_lidar(ego_pose @ LIDAR_TOP_EXTRINSICS, street_boxes(seed), seed=seed)
     return LidarSweep(pts, LIDAR_TOP_EXTRINSICS, ego_pose, timestamp)
@@ -135,7 +138,8 @@ def street_radar_sweeps(
     fov_deg: float = 120.0,
     max_range: float = 80.0,
 ) -> tuple[list[RadarSweep], SE3]:
-    """The last ``n_sweeps`` sweeps (13 Hz) of each of the 5 radars, ego driving +x; returns (sweeps, current ego pose).
+    """The last ``n_sweeps`` sweeps (13 Hz) of each of the 5 radars, ego driving +x; returns
+    (sweeps, current ego pose).
 
     Each sweep has ``n_detections`` detections: box footprints hit by 2-D rays at random
     azimuths in the field of view (range noise 0.15 m, azimuth noise 0.3 degrees), 10 %

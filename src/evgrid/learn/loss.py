@@ -25,7 +25,8 @@ def evidential_loss(
         raise ValueError(f"evidence must be (B, 2, H, W), got {tuple(evidence.shape)}")
     if target.shape != evidence.shape[:1] + evidence.shape[2:]:
         raise ValueError(
-            f"target must be (B, H, W) = {tuple(evidence.shape[:1] + evidence.shape[2:])}, got {tuple(target.shape)}"
+            f"target must be (B, H, W) = {tuple(evidence.shape[:1] + evidence.shape[2:])}, got "
+            f"{tuple(target.shape)}"
         )
     alpha = evidence + 1.0
     s = alpha.sum(dim=1)

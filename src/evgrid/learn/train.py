@@ -1,32 +1,47 @@
-"""Training Ev-Net on scenes (simulated or nuScenes): dataset cache, training loop, validation.
+"""Training Ev-Net on scenes (simulated, nuScenes or recordings): sample cache, training loop,
+validation.
 
-Samples (paper sec. V-C, docs/decisions.md#ev-net-targets-and-loss): at every ``frame_stride``-th lidar frame, the
-input is the radar detection image of the last ``n_sweeps`` sweeps of each radar in the
-current ego frame, the target the ray ILM of the same frame (m_o > 0 occupied, m_f > 0 free,
-else unknown). Inputs are cached sparse (detection tables, a few kB a sample) and rasterised
-in the DataLoader workers; targets as uint8 rasters, memory-mapped.
+Samples (paper sec. V-C, docs/decisions.md#ev-net-targets-and-loss): at every
+``frame_stride``-th lidar frame, the input is the radar detection image of the last
+``n_sweeps`` sweeps of each radar in the current ego frame, the target the ray ILM of the same
+frame (m_o > 0 occupied, m_f > 0 free, else unknown). Inputs are cached sparse (detection
+tables, a few kB a sample) and rasterised in the DataLoader workers; targets as uint8 rasters,
+memory-mapped.
+
+The cache is one *shard* a scene (a folder of ``.npy`` files and its ``meta.json``) and an
+``index.json``. Shards are computed in parallel through :func:`evgrid.engine.fan_out` (the
+local pool or Ray); the driver alone writes them, each into a temporary folder renamed into
+place once complete, so a shard is complete or absent, and an interrupted build resumes with
+the scenes it lacks (docs/training.md).
 
 The radar detections pass ``TrainConfig.radar_filter`` and the lidar sweeps
 ``TrainConfig.self_returns`` exactly as in mapping (:class:`~evgrid.mapper.OccupancyMapper`);
 the checkpoint records the radar filter (metadata ``extra["radar_filter"]``) so that mapping
-with another one warns.
+with another one warns, and, when fine-tuned (``TrainConfig.init``), its parent checkpoint.
 
 Runs unchanged under ``torchrun --nproc_per_node=K`` (DistributedDataParallel, NCCL on GPUs,
-gloo on CPUs); rank 0 validates, logs and writes checkpoints.
+gloo on CPUs); rank 0 validates, logs and writes checkpoints. On CUDA the forward pass runs
+in mixed precision (``TrainConfig.precision``); on the CPU in float32.
 """
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import hashlib
+import io
 import json
+import logging
 import math
 import os
 import random
+import re
+import shutil
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -36,24 +51,38 @@ from evgrid.classes import FREE, OCCUPIED, UNKNOWN
 from evgrid.data.frame import Frame
 from evgrid.data.radar_filter import RadarFilter
 from evgrid.data.radar_variants import RadarRanges
+from evgrid.engine import ENGINES, fan_out
 from evgrid.evaluate import CLASSES
 from evgrid.geometry import GridSpec
 from evgrid.io import atomic_write, write_json
 from evgrid.ism.deep import CHANNELS, RadarImageParams, detections_to_image, radar_detections
-from evgrid.ism.evnet import EvNet, EvNetConfig, save_checkpoint
+from evgrid.ism.evnet import EvNet, EvNetConfig, load_checkpoint, save_checkpoint
 from evgrid.ism.self_returns import SelfReturnParams
 from evgrid.learn.loss import evidential_loss
-from evgrid.validation import check_int, check_number
+from evgrid.validation import check_choice, check_int, check_number
 
 __all__ = [
     "TrainConfig",
+    "PRECISIONS",
+    "CacheError",
     "ilm_classes",
     "scene_samples",
+    "scene_shard",
     "build_cache",
+    "cached_scenes",
     "RadarDataset",
+    "fine_tune_config",
+    "Precision",
+    "batch_loss",
     "train",
     "TrainResult",
 ]
+
+logger = logging.getLogger(__name__)
+
+#: ``TrainConfig.precision``: ``auto`` = bf16 on a CUDA device that has it, else fp16 on CUDA;
+#: float32 on the CPU whatever the setting (mixed precision is a GPU feature).
+PRECISIONS: tuple[str, ...] = ("auto", "fp32", "bf16", "fp16")
 
 
 @dataclass(frozen=True)
@@ -65,6 +94,7 @@ class TrainConfig:
     lr: float = 2e-3
     weight_decay: float = 1e-4
     seed: int = 0
+    #: DataLoader worker processes
     workers: int = 2
     frame_stride: int = 4
     flip: bool = True
@@ -73,20 +103,33 @@ class TrainConfig:
     model: EvNetConfig = field(default_factory=lambda: EvNetConfig(in_channels=len(CHANNELS)))
     image: RadarImageParams = field(default_factory=RadarImageParams)
     radar_filter: RadarFilter = field(default_factory=RadarFilter)  # as in mapping
-    self_returns: SelfReturnParams = field(
-        default_factory=SelfReturnParams
-    )  # the targets' ray ILM, as in mapping
-    #: Simulated data only: a radar drawn per scene from these ranges (None: the calibrated radar).
+    #: the targets' ray ILM filter of the vehicle's own returns, as in mapping
+    self_returns: SelfReturnParams = field(default_factory=SelfReturnParams)
+    #: Simulated data only: a radar drawn per scene from these ranges (None: the calibrated
+    #: radar).
     radar_ranges: RadarRanges | None = None
+    #: Checkpoint to fine-tune from (None: train from scratch); see :func:`fine_tune_config`.
+    init: str | None = None
+    #: What builds the sample cache: ``local`` (a process pool) or ``ray``
+    #: (:mod:`evgrid.engine`), with ``cache_workers`` jobs at once.
+    engine: str = "local"
+    cache_workers: int = 1
+    #: Mixed precision on CUDA (:data:`PRECISIONS`).
+    precision: str = "auto"
 
     def __post_init__(self) -> None:
-        for name in ("epochs", "batch_size", "frame_stride"):
+        for name in ("epochs", "batch_size", "frame_stride", "cache_workers"):
             check_int(self, name, min=1)
         check_int(self, "workers", min=0)
         check_number(self, "lr", min=0.0, min_open=True)
+        check_choice("TrainConfig", "engine", self.engine, choices=ENGINES)
+        check_choice("TrainConfig", "precision", self.precision, choices=PRECISIONS)
+        if self.init is not None and not isinstance(self.init, str):
+            raise ValueError(f"TrainConfig.init must be a path or None, got {self.init!r}")
         if self.model.in_channels != len(CHANNELS):
             raise ValueError(
-                f"the model must take {len(CHANNELS)} input channels ({CHANNELS}), got {self.model.in_channels}"
+                f"the model must take {len(CHANNELS)} input channels ({CHANNELS}), got "
+                f"{self.model.in_channels}"
             )
 
     def to_dict(self) -> dict:
@@ -96,13 +139,13 @@ class TrainConfig:
         return to_dict(self)
 
     def data_key(self) -> str:
-        """Hash of the settings that decide the cached samples."""
+        """Hash of the settings that decide the cached samples (and the cache's layout)."""
         key = json.dumps(
             {
                 "grid": self.grid.to_dict(),
                 "image": asdict(self.image),
                 "stride": self.frame_stride,
-                "v": 2,
+                "v": 3,
                 "radar_filter": self.radar_filter.to_dict(),
                 "self_returns": asdict(self.self_returns),
                 "radar_ranges": self.radar_ranges.to_dict() if self.radar_ranges else None,
@@ -110,6 +153,22 @@ class TrainConfig:
             sort_keys=True,
         )
         return hashlib.sha1(key.encode()).hexdigest()[:12]
+
+
+def fine_tune_config(config: TrainConfig, init: str | os.PathLike) -> TrainConfig:
+    """``config`` set to fine-tune from checkpoint ``init``: its architecture, and (when the
+    checkpoint saved its training config) its grid and input image, since the inputs must be
+    made as the parent's were. The rest (epochs, learning rate, data, filters) is ``config``'s.
+    """
+    ck = load_checkpoint(init)
+    out = replace(config, init=str(init), model=ck.model.config)
+    saved = ck.extra.get("config")
+    if isinstance(saved, dict):
+        from evgrid.config import from_dict
+
+        parent = from_dict(TrainConfig, saved, f"{init}: training config")
+        out = replace(out, grid=parent.grid, image=parent.image)
+    return out
 
 
 # --- samples ------------------------------------------------------------------------------------
@@ -129,7 +188,8 @@ def ilm_classes(masses: np.ndarray) -> np.ndarray:
 def scene_samples(
     frames: Iterable[Frame], config: TrainConfig, with_irm: bool = False
 ) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray | None]]:
-    """Yield ``(detections, target classes, ray-IRM classes or None)`` for every ``frame_stride``-th frame."""
+    """Yield ``(detections, target classes, ray-IRM classes or None)`` for every
+    ``frame_stride``-th frame."""
     from evgrid.data.sweeps import RadarBuffer
     from evgrid.ism import ray_ilm, ray_irm
     from evgrid.ism.self_returns import SelfReturnFilter
@@ -148,61 +208,211 @@ def scene_samples(
         yield det, target, irm
 
 
-def _scene_files(root: Path, name: str) -> dict[str, Path]:
-    return {k: root / f"{name}.{k}.npy" for k in ("det", "offsets", "target", "irm")} | {
-        "done": root / f"{name}.done.json"
+def scene_shard(
+    frames: Iterable[Frame], config: TrainConfig, with_irm: bool = False, name: str = "scene"
+) -> dict[str, np.ndarray]:
+    """The cached form of one scene's samples: detections of all samples (``det``), where
+    each sample's rows start (``offsets``), target classes (``target``) and, with
+    ``with_irm``, the ray IRM's classes (``irm``)."""
+    dets, targets, irms = [], [], []
+    for det, target, irm in scene_samples(frames, config, with_irm):
+        dets.append(det)
+        targets.append(target)
+        if irm is not None:
+            irms.append(irm)
+    if not dets:
+        raise ValueError(f"scene {name!r} gave no samples (is it empty?)")
+    arrays = {
+        "det": np.concatenate(dets).astype(np.float32),
+        "offsets": np.cumsum([0] + [len(d) for d in dets]).astype(np.int64),
+        "target": np.stack(targets),
     }
+    if with_irm:
+        arrays["irm"] = np.stack(irms)
+    return arrays
+
+
+# --- the cache: one shard a scene, an index -----------------------------------------------------
+
+_INDEX = "index.json"
+_LAYOUT = 3
+
+
+class CacheError(ValueError):
+    """Scenes that could not be cached (each named with its error), or a cache that does not
+    match the settings."""
+
+
+def _shard_dir(root: Path, name: str) -> Path:
+    """A scene's shard folder: its name where that is a safe file name, else a safe form of it
+    with a hash (so that two names never share a folder)."""
+    safe = re.sub(r"[^A-Za-z0-9._-]", "_", name)
+    if safe != name or safe.startswith("."):
+        safe = f"{safe.lstrip('.')}-{hashlib.sha1(name.encode()).hexdigest()[:8]}"
+    return root / safe
+
+
+def _shard_meta(root: Path, name: str) -> dict | None:
+    """A complete shard's ``meta.json`` (None where the scene has no shard)."""
+    path = _shard_dir(root, name) / "meta.json"
+    if not path.is_file():
+        return None
+    try:
+        meta = json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        raise CacheError(f"{path}: unreadable shard metadata ({e}); delete the folder") from e
+    if not isinstance(meta, dict) or meta.get("scene") != name:
+        raise CacheError(f"{path}: not the shard of scene {name!r}; delete the folder")
+    return meta
+
+
+def _fsynced_save(path: Path, array: np.ndarray) -> None:
+    with open(path, "wb") as f:
+        np.save(f, array)
+        f.flush()
+        os.fsync(f.fileno())
+
+
+def _write_shard(root: Path, name: str, arrays: dict[str, np.ndarray], key: str) -> dict:
+    """Write a scene's shard: every file into a temporary folder, ``meta.json`` last, then the
+    folder renamed into place (a rename is atomic), so a reader sees all of it or none."""
+    final = _shard_dir(root, name)
+    tmp = root / f".{final.name}.tmp-{os.getpid()}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    for k, a in arrays.items():
+        _fsynced_save(tmp / f"{k}.npy", a)
+    meta = {
+        "scene": name,
+        "samples": int(len(arrays["offsets"]) - 1),
+        "irm": "irm" in arrays,
+        "data_key": key,
+    }
+    write_json(tmp / "meta.json", meta)
+    if final.exists():  # a shard without the ray IRM's classes, replaced by one with them
+        old = root / f".{final.name}.old-{os.getpid()}"
+        os.rename(final, old)
+        os.rename(tmp, final)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        os.rename(tmp, final)
+    return meta
+
+
+def _read_index(root: Path, key: str) -> dict[str, dict]:
+    path = root / _INDEX
+    if not path.is_file():
+        return {}
+    try:
+        index = json.loads(path.read_text())
+        shards, layout, data_key = index["shards"], index["layout"], index["data_key"]
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise CacheError(f"{path}: unreadable cache index ({e}); delete it to rebuild it") from e
+    if layout != _LAYOUT or data_key != key:
+        raise CacheError(
+            f"{path}: the cache holds samples of other settings (data key {data_key!r}, layout "
+            f"{layout!r}; these settings: {key!r}, layout {_LAYOUT}); use another folder"
+        )
+    return dict(shards)
+
+
+def _write_index(root: Path, shards: dict[str, dict], key: str) -> None:
+    write_json(root / _INDEX, {"layout": _LAYOUT, "data_key": key, "shards": shards})
+
+
+def _cache_job(args: tuple) -> dict[str, np.ndarray]:
+    """One scene's shard arrays, computed in a worker (which loads the scene itself)."""
+    source, name, config, with_irm = args
+    return scene_shard(source.load(name), config, with_irm, name)
+
+
+def _is_source(scenes: object) -> bool:
+    return callable(getattr(scenes, "names", None)) and callable(getattr(scenes, "load", None))
 
 
 def build_cache(
-    scenes: Iterable,
+    scenes: Iterable | Any,
     root: str | os.PathLike,
     config: TrainConfig,
     with_irm: bool = False,
     progress: Callable[[str], None] | None = None,
+    *,
+    engine: str | None = None,
+    workers: int | None = None,
 ) -> list[str]:
-    """Write the samples of each scene (an iterable of Frames with a ``name``) under ``root``; skip cached scenes.
+    """Cache the samples of each scene under ``root`` (one shard a scene and an index); skip
+    scenes already cached. Returns the scene names in order.
 
-    Returns the scene names. A scene's files count only once its ``.done.json`` is written
-    (last), so an interrupted build is redone, never half-read.
+    ``scenes``: a scene source (``names()`` and ``load(name)``, :mod:`evgrid.sources`), whose
+    scenes are loaded and computed by ``workers`` jobs at once on ``engine`` (defaults:
+    ``config.engine`` and ``config.cache_workers``); or an iterable of scenes (Frames with a
+    ``name``), computed here one after another. The driver writes every file. A scene that
+    fails is reported by name once the others are done (:class:`CacheError`); the shards that
+    were written stay, so running again computes only what is missing.
     """
     root = Path(root)
     root.mkdir(parents=True, exist_ok=True)
-    names = []
-    for scene in scenes:
-        name = str(scene.name)
-        names.append(name)
-        files = _scene_files(root, name)
-        if files["done"].exists() and (not with_irm or files["irm"].exists()):
-            if progress:
-                progress(name)
-            continue
-        dets, targets, irms = [], [], []
-        for det, target, irm in scene_samples(scene, config, with_irm):
-            dets.append(det)
-            targets.append(target)
-            if irm is not None:
-                irms.append(irm)
-        if not dets:
-            raise ValueError(f"scene {name!r} gave no samples (is it empty?)")
-        offsets = np.cumsum([0] + [len(d) for d in dets]).astype(np.int64)
-        arrays = {
-            "det": np.concatenate(dets).astype(np.float32),
-            "offsets": offsets,
-            "target": np.stack(targets),
-        }
-        if with_irm:
-            arrays["irm"] = np.stack(irms)
-        for key, arr in arrays.items():
-            atomic_write(files[key], lambda f, a=arr: np.save(f, a))
-        write_json(files["done"], {"samples": len(dets)})
+    key = config.data_key()
+    shards = _read_index(root, key)
+    for pattern in (".*.tmp-*", ".*.old-*"):  # left by a build killed while writing a shard
+        for stale in root.glob(pattern):
+            shutil.rmtree(stale, ignore_errors=True)
+
+    def cached(name: str) -> bool:
+        meta = _shard_meta(root, name)
+        if meta is None or (with_irm and not meta.get("irm")):
+            return False
+        shards[name] = meta
+        return True
+
+    def done(name: str, arrays: dict[str, np.ndarray]) -> None:
+        shards[name] = _write_shard(root, name, arrays, key)
+        _write_index(root, shards, key)
         if progress:
             progress(name)
+
+    errors: dict[str, str] = {}
+    if _is_source(scenes):
+        names = [str(n) for n in scenes.names()]
+        todo = [n for n in names if not cached(n)]
+        for name in names:
+            if name not in todo and progress:
+                progress(name)
+        jobs = [(n, (scenes, n, config, with_irm)) for n in todo]
+        engine = engine or config.engine
+        n_workers = workers if workers is not None else config.cache_workers
+        for outcome in fan_out(_cache_job, jobs, engine=engine, workers=n_workers):
+            if outcome.ok:
+                done(outcome.key, outcome.result)
+            else:
+                errors[outcome.key] = outcome.error
+    else:
+        names = []
+        for scene in scenes:
+            name = str(scene.name)
+            names.append(name)
+            if cached(name):
+                if progress:
+                    progress(name)
+                continue
+            done(name, scene_shard(scene, config, with_irm, name))
+    _write_index(root, shards, key)
+    if errors:
+        listed = "; ".join(f"{n}: {e}" for n, e in errors.items())
+        raise CacheError(f"{len(errors)} of {len(names)} scenes could not be cached: {listed}")
     return names
 
 
+def cached_scenes(root: str | os.PathLike, config: TrainConfig) -> dict[str, int]:
+    """Scene name -> number of samples of every complete shard under ``root``."""
+    root = Path(root)
+    shards = _read_index(root, config.data_key())
+    return {n: int(m["samples"]) for n, m in shards.items() if _shard_meta(root, n) is not None}
+
+
 class RadarDataset(Dataset):
-    """Cached samples of some scenes: ``(input (C, n, n) float32, target (n, n) int64)`` pairs."""
+    """Cached samples of some scenes: ``(input (C, n, n) float32, target (n, n) int64)`` pairs
+    (and the ray IRM's classes with ``with_irm``)."""
 
     def __init__(
         self,
@@ -219,19 +429,19 @@ class RadarDataset(Dataset):
         self._index: list[tuple[int, int]] = []
         self._scenes = []
         for si, name in enumerate(scenes):
-            files = _scene_files(self.root, name)
-            if not files["done"].exists():
+            meta = _shard_meta(self.root, name)
+            if meta is None:
                 raise FileNotFoundError(
                     f"scene {name!r} is not cached under {self.root} (run build_cache first)"
                 )
-            offsets = np.load(files["offsets"])
-            entry = {
-                "det": files["det"],
-                "offsets": offsets,
-                "target": files["target"],
-                "irm": files["irm"],
-            }
-            self._scenes.append(entry)
+            if with_irm and not meta.get("irm"):
+                raise FileNotFoundError(
+                    f"scene {name!r} is cached under {self.root} without the ray IRM's classes "
+                    "(run build_cache with with_irm=True)"
+                )
+            folder = _shard_dir(self.root, name)
+            offsets = np.load(folder / "offsets.npy")
+            self._scenes.append({"folder": folder, "offsets": offsets})
             self._index += [(si, k) for k in range(len(offsets) - 1)]
         self._open: dict[int, dict[str, np.ndarray]] = {}
 
@@ -241,14 +451,9 @@ class RadarDataset(Dataset):
     def _arrays(self, si: int) -> dict[str, np.ndarray]:
         # memory-mapped lazily in each worker process
         if si not in self._open:
-            e = self._scenes[si]
-            d = {
-                "det": np.load(e["det"], mmap_mode="r"),
-                "target": np.load(e["target"], mmap_mode="r"),
-            }
-            if self.with_irm:
-                d["irm"] = np.load(e["irm"], mmap_mode="r")
-            self._open[si] = d
+            folder = self._scenes[si]["folder"]
+            keys = ("det", "target", "irm") if self.with_irm else ("det", "target")
+            self._open[si] = {k: np.load(folder / f"{k}.npy", mmap_mode="r") for k in keys}
         return self._open[si]
 
     def __getitem__(self, i: int):
@@ -282,6 +487,9 @@ class TrainResult:
     best: dict[str, float]
     ray_irm_baseline: dict[str, float]
     seconds_per_epoch: float
+    #: the forward pass's dtype: ``float32``, or ``bfloat16`` / ``float16`` on CUDA
+    precision: str = "float32"
+    samples_per_second: float = math.nan
 
 
 def _seed_all(seed: int) -> None:
@@ -308,11 +516,52 @@ def _dist() -> tuple[int, int, int]:
     return dist.get_rank(), world, int(os.environ.get("LOCAL_RANK", "0"))
 
 
+class Precision:
+    """Mixed precision of the forward pass: ``torch.autocast`` to bf16 or fp16 on CUDA, with a
+    gradient scaler for fp16 (whose range is too small for small gradients); float32 on the
+    CPU (mixed precision is a GPU feature: on the CPU bf16 runs slower than float32)."""
+
+    def __init__(self, setting: str, device: torch.device):
+        self.device = device
+        self.dtype: torch.dtype | None = None
+        if device.type == "cuda" and setting != "fp32":
+            bf16 = setting == "bf16" or (setting == "auto" and torch.cuda.is_bf16_supported())
+            self.dtype = torch.bfloat16 if bf16 else torch.float16
+        elif setting in ("bf16", "fp16"):
+            logger.info("precision %s asked for on %s: training in float32", setting, device)
+        self.scaler = torch.amp.GradScaler("cuda", enabled=self.dtype == torch.float16)
+
+    @property
+    def name(self) -> str:
+        return str(self.dtype or torch.float32).removeprefix("torch.")
+
+    def autocast(self) -> contextlib.AbstractContextManager:
+        if self.dtype is None:
+            return contextlib.nullcontext()
+        return torch.autocast(device_type=self.device.type, dtype=self.dtype)
+
+    def step(self, loss: torch.Tensor, opt: torch.optim.Optimizer) -> None:
+        """Backward pass and optimiser step (scaled for fp16; a step with inf gradients is
+        skipped by the scaler)."""
+        self.scaler.scale(loss).backward()
+        self.scaler.step(opt)
+        self.scaler.update()
+
+
+def batch_loss(net: torch.nn.Module, x: torch.Tensor, t: torch.Tensor, precision: Precision):
+    """Forward pass in ``precision``; the loss in float32 (paper eq. of the expected squared
+    error, which sums many small terms)."""
+    with precision.autocast():
+        e = net(x)
+    return evidential_loss(e.float(), t)
+
+
 @torch.no_grad()
 def evaluate_model(
     model: torch.nn.Module, loader: DataLoader, device: torch.device
 ) -> tuple[dict[str, float], dict[str, float], float]:
-    """Per-class IoU of the model's cell classes and of the ray IRM's, against the ray ILM targets; mean loss."""
+    """Per-class IoU of the model's cell classes and of the ray IRM's, against the ray ILM
+    targets; mean loss. Always in float32."""
     from evgrid.evaluate import classify
     from evgrid.mass import from_evidence
 
@@ -339,38 +588,50 @@ def evaluate_model(
     return out["deep"], out["irm"], float(np.mean(losses)) if losses else math.nan
 
 
-def train(
+_FIELDS = (
+    ["epoch", "train_loss", "val_loss"]
+    + [f"val_{c}" for c in CLASSES]
+    + [f"ray_irm_{c}" for c in CLASSES]
+    + ["lr", "seconds"]
+)
+
+
+@dataclass
+class _Run:
+    """One training run's state, as the steps of :func:`train` pass it on."""
+
+    config: TrainConfig
+    out: Path
+    rank: int
+    world: int
+    device: torch.device
+    model: EvNet
+    net: torch.nn.Module
+    opt: torch.optim.Optimizer
+    sched: torch.optim.lr_scheduler.LRScheduler
+    precision: Precision
+    loader: DataLoader
+    val_loader: DataLoader
+    sampler: Any = None
+    start_epoch: int = 0
+    best_score: float = -math.inf
+    best_epoch: int = -1
+    best: dict = field(default_factory=dict)
+    baseline: dict = field(default_factory=dict)
+    extra: dict = field(default_factory=dict)
+    epoch_times: list = field(default_factory=list)
+    samples: int = 0
+
+
+def _loaders(
     config: TrainConfig,
     cache_dir: str | os.PathLike,
     train_scenes: Sequence[str],
     val_scenes: Sequence[str],
-    out_dir: str | os.PathLike,
-    resume: bool = False,
-    on_epoch: Callable[[int, dict], None] | None = None,
-    on_batch: Callable[[int, int, int], None] | None = None,
-    config_document: dict | None = None,
-) -> TrainResult:
-    """Train Ev-Net on cached scenes; write ``config.json``, ``metrics.csv``, ``last`` and ``best`` checkpoints.
-
-    ``config.json`` holds ``config_document`` if given (the whole run's config, its data
-    included: evgrid.train_run), else ``config.to_dict()``.
-
-    ``on_epoch(epoch, row)`` gets each epoch's logged row, ``on_batch(epoch, batch, n_batches)``
-    each finished batch (rank 0 only).
-    """
-    rank, world, local_rank = _dist()
-    out = Path(out_dir)
-    if rank == 0:
-        out.mkdir(parents=True, exist_ok=True)
-        atomic_write(
-            out / "config.json",
-            lambda f: f.write(json.dumps(config_document or config.to_dict(), indent=2).encode()),
-        )
-    _seed_all(config.seed + rank)
-    if config.threads:
-        torch.set_num_threads(config.threads)
-    device = torch.device(f"cuda:{local_rank}" if torch.cuda.is_available() else "cpu")
-
+    rank: int,
+    world: int,
+) -> tuple[DataLoader, DataLoader, Any]:
+    """Shuffled training batches (a rank's share under torchrun) and validation batches."""
     train_ds = RadarDataset(cache_dir, train_scenes, config.grid, flip=config.flip)
     val_ds = RadarDataset(cache_dir, val_scenes, config.grid, with_irm=True)
     sampler = None
@@ -399,140 +660,254 @@ def train(
         num_workers=config.workers,
         worker_init_fn=_worker_init,
     )
+    return loader, val_loader, sampler
 
-    model = EvNet(config.model).to(device)
-    opt = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
-    total = config.epochs * max(1, len(loader))
+
+def _initial_model(config: TrainConfig, device: torch.device) -> tuple[EvNet, dict]:
+    """A fresh Ev-Net, or the parent checkpoint's (``config.init``) -> (model, what the
+    checkpoints record of the parent)."""
+    if config.init is None:
+        return EvNet(config.model).to(device), {}
+    ck = load_checkpoint(config.init)
+    if ck.model.config != config.model:
+        raise ValueError(
+            f"TrainConfig.model is {config.model}, but the checkpoint to fine-tune from "
+            f"({config.init}) is a {ck.model.config}; build the config with fine_tune_config"
+        )
+    parent = {
+        "path": str(config.init),
+        "sha256": hashlib.sha256(Path(config.init).read_bytes()).hexdigest(),
+        "epoch": ck.extra.get("epoch"),
+        "radar_filter": ck.extra.get("radar_filter"),
+        "data": ck.extra.get("data"),
+    }
+    return ck.model.train().to(device), parent
+
+
+def _schedule(opt: torch.optim.Optimizer, total: int) -> torch.optim.lr_scheduler.LambdaLR:
     warm = max(1, total // 20)
 
     def lr_factor(step: int) -> float:
-        # linear warm-up, then cosine to 2 % of lr; from the config, so a resumed run may add epochs
+        # linear warm-up, then cosine down to 0.02 of lr; from the config, so a resumed run may
+        # add epochs
         if step < warm:
             return (step + 1) / warm
         q = min(1.0, (step - warm) / max(1, total - warm))
         return 0.02 + 0.98 * 0.5 * (1.0 + math.cos(math.pi * q))
 
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, lr_factor)
-    start_epoch, best_score, best_epoch, best, baseline = 0, -math.inf, -1, {}, {}
-    state_path = out / "resume.pt"
-    if resume and state_path.exists():
-        st = torch.load(state_path, map_location=device, weights_only=True)  # data only, never code
-        model.load_state_dict(st["model"])
-        opt.load_state_dict(st["optimizer"])
-        sched.load_state_dict(st["scheduler"])
-        start_epoch, best_score, best_epoch = (
-            int(st["epoch"]) + 1,
-            float(st["best_score"]),
-            int(st["best_epoch"]),
-        )
-        best = json.loads(st["best"])
-        baseline = json.loads(st["baseline"])
-        torch.set_rng_state(st["rng"])
+    return torch.optim.lr_scheduler.LambdaLR(opt, lr_factor)
+
+
+def _resume(run: _Run, state_path: Path) -> None:
+    """Continue from the last epoch's state (data only, never code)."""
+    st = torch.load(state_path, map_location=run.device, weights_only=True)
+    run.model.load_state_dict(st["model"])
+    run.opt.load_state_dict(st["optimizer"])
+    run.sched.load_state_dict(st["scheduler"])
+    if "scaler" in st:
+        run.precision.scaler.load_state_dict(st["scaler"])
+    run.start_epoch = int(st["epoch"]) + 1
+    run.best_score, run.best_epoch = float(st["best_score"]), int(st["best_epoch"])
+    run.best = json.loads(st["best"])
+    run.baseline = json.loads(st["baseline"])
+    torch.set_rng_state(st["rng"])
+
+
+def _save_state(run: _Run, epoch: int, state_path: Path) -> None:
+    st = {
+        "model": run.model.state_dict(),
+        "optimizer": run.opt.state_dict(),
+        "scheduler": run.sched.state_dict(),
+        "scaler": run.precision.scaler.state_dict(),
+        "epoch": epoch,
+        "best_score": run.best_score,
+        "best_epoch": run.best_epoch,
+        "best": json.dumps(run.best),
+        "baseline": json.dumps(run.baseline),
+        "rng": torch.get_rng_state(),
+    }
+    buf = io.BytesIO()
+    torch.save(st, buf)
+    atomic_write(state_path, lambda f: f.write(buf.getvalue()))
+
+
+def _train_epoch(run: _Run, epoch: int, on_batch) -> list[float]:
+    """One pass over the training batches -> the batches' losses."""
+    if run.sampler is not None:
+        run.sampler.set_epoch(epoch)
+    run.net.train()
+    losses = []
+    for b, (x, t) in enumerate(run.loader):
+        x, t = x.to(run.device), t.to(run.device)
+        run.opt.zero_grad(set_to_none=True)
+        loss = batch_loss(run.net, x, t, run.precision)
+        run.precision.step(loss, run.opt)
+        run.sched.step()
+        losses.append(loss.item())
+        run.samples += len(x)
+        if on_batch and run.rank == 0:
+            on_batch(epoch, b + 1, len(run.loader))
+    if run.world > 1:
+        import torch.distributed as dist
+
+        dist.barrier()
+    return losses
+
+
+def _log_epoch(run: _Run, epoch: int, losses: list[float], seconds: float, writer) -> dict:
+    """Validate, append the epoch's row to ``metrics.csv`` (and tensorboard), write the
+    ``last`` and ``best`` checkpoints -> the row."""
+    config = run.config
+    val, irm, val_loss = evaluate_model(run.model, run.val_loader, run.device)
+    run.baseline = irm
+    row = {
+        "epoch": epoch,
+        "train_loss": float(np.mean(losses)) if losses else math.nan,
+        "val_loss": val_loss,
+        **{f"val_{c}": val[c] for c in CLASSES},
+        **{f"ray_irm_{c}": irm[c] for c in CLASSES},
+        "lr": run.sched.get_last_lr()[0],
+        "seconds": seconds,
+    }
+    csv_path = run.out / "metrics.csv"
+    new = not csv_path.exists() or epoch == 0
+    with open(csv_path, "w" if new else "a", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=_FIELDS)
+        if new:
+            w.writeheader()
+        w.writerow(row)
+    if writer:
+        for k, v in row.items():
+            if k != "epoch":
+                writer.add_scalar(k, v, epoch)
+    extra = {
+        "epoch": epoch,
+        "val_iou": val,
+        "ray_irm_iou": irm,
+        "grid": config.grid.to_dict(),
+        "config": config.to_dict(),
+        "radar_filter": config.radar_filter.to_dict(),
+        "precision": run.precision.name,
+        **run.extra,
+    }
+    save_checkpoint(run.model, run.out / "last.safetensors", extra)
+    score = float(np.nanmean([val[c] for c in CLASSES]))
+    if score > run.best_score:
+        run.best_score, run.best_epoch, run.best = score, epoch, val
+        save_checkpoint(run.model, run.out / "best.safetensors", extra)
+    return row
+
+
+def _tensorboard(out: Path):
+    try:
+        from torch.utils.tensorboard import SummaryWriter
+
+        return SummaryWriter(str(out / "tensorboard"))
+    except Exception:  # tensorboard is optional; the CSV log always exists
+        return None
+
+
+def _setup(
+    config: TrainConfig,
+    cache_dir: str | os.PathLike,
+    train_scenes: Sequence[str],
+    val_scenes: Sequence[str],
+    out: Path,
+    data: dict | None,
+    config_document: dict | None = None,
+) -> _Run:
+    """Process group, seeds, device, data, model (fresh or the parent's), optimiser."""
+    rank, world, local_rank = _dist()
+    if rank == 0:
+        out.mkdir(parents=True, exist_ok=True)
+        write_json(out / "config.json", config_document or config.to_dict())
+    _seed_all(config.seed + rank)
+    if config.threads:
+        torch.set_num_threads(config.threads)
+    device = torch.device(f"cuda:{local_rank}" if torch.cuda.is_available() else "cpu")
+    loader, val_loader, sampler = _loaders(config, cache_dir, train_scenes, val_scenes, rank, world)
+    model, parent = _initial_model(config, device)
+    opt = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
     net = model
     if world > 1:
         net = torch.nn.parallel.DistributedDataParallel(
             model, device_ids=[local_rank] if device.type == "cuda" else None
         )
-
-    writer = None
-    if rank == 0:
-        try:
-            from torch.utils.tensorboard import SummaryWriter
-
-            writer = SummaryWriter(str(out / "tensorboard"))
-        except Exception:  # tensorboard is optional; the CSV log always exists
-            writer = None
-    csv_path = out / "metrics.csv"
-    fields = (
-        ["epoch", "train_loss", "val_loss"]
-        + [f"val_{c}" for c in CLASSES]
-        + [f"ray_irm_{c}" for c in CLASSES]
-        + ["lr", "seconds"]
+    extra = {"parent": parent} if parent else {}
+    if data:
+        extra["data"] = data
+    return _Run(
+        config=config,
+        out=out,
+        rank=rank,
+        world=world,
+        device=device,
+        model=model,
+        net=net,
+        opt=opt,
+        sched=_schedule(opt, config.epochs * max(1, len(loader))),
+        precision=Precision(config.precision, device),
+        loader=loader,
+        val_loader=val_loader,
+        sampler=sampler,
+        extra=extra,
     )
-    epoch_times = []
-    for epoch in range(start_epoch, config.epochs):
-        if sampler is not None:
-            sampler.set_epoch(epoch)
-        net.train()
+
+
+def train(
+    config: TrainConfig,
+    cache_dir: str | os.PathLike,
+    train_scenes: Sequence[str],
+    val_scenes: Sequence[str],
+    out_dir: str | os.PathLike,
+    resume: bool = False,
+    on_epoch: Callable[[int, dict], None] | None = None,
+    on_batch: Callable[[int, int, int], None] | None = None,
+    data: dict | None = None,
+    config_document: dict | None = None,
+) -> TrainResult:
+    """Train Ev-Net on cached scenes; write ``config.json`` (which reloads into a
+    :class:`TrainConfig` with :func:`evgrid.config.from_dict`), ``metrics.csv``, ``last`` and
+    ``best`` checkpoints. ``config.json`` holds ``config_document`` if given (the whole run's
+    config, its data included: evgrid.train_run).
+
+    With ``config.init`` the run fine-tunes that checkpoint, and the checkpoints record it
+    (``extra["parent"]``: path, SHA-256, epoch, radar filter, data). ``data`` says what the
+    samples came from (e.g. the source, the recording rig, the recordings) and is recorded as
+    ``extra["data"]``. ``on_epoch(epoch, row)`` gets each epoch's logged row,
+    ``on_batch(epoch, batch, n_batches)`` each finished batch (rank 0 only).
+    """
+    out = Path(out_dir)
+    run = _setup(config, cache_dir, train_scenes, val_scenes, out, data, config_document)
+    state_path = out / "resume.pt"
+    if resume and state_path.exists():
+        _resume(run, state_path)
+    writer = _tensorboard(out) if run.rank == 0 else None
+    for epoch in range(run.start_epoch, config.epochs):
         t0 = time.perf_counter()
-        losses = []
-        for b, (x, t) in enumerate(loader):
-            x, t = x.to(device), t.to(device)
-            opt.zero_grad(set_to_none=True)
-            loss = evidential_loss(net(x), t)
-            loss.backward()
-            opt.step()
-            sched.step()
-            losses.append(loss.item())
-            if on_batch and rank == 0:
-                on_batch(epoch, b + 1, len(loader))
-        if world > 1:
-            import torch.distributed as dist
-
-            dist.barrier()
+        losses = _train_epoch(run, epoch, on_batch)
         seconds = time.perf_counter() - t0
-        epoch_times.append(seconds)
-        if rank != 0:
+        run.epoch_times.append(seconds)
+        if run.rank != 0:
             continue
-        val, irm, val_loss = evaluate_model(model, val_loader, device)
-        baseline = irm
-        row = {
-            "epoch": epoch,
-            "train_loss": float(np.mean(losses)) if losses else math.nan,
-            "val_loss": val_loss,
-            **{f"val_{c}": val[c] for c in CLASSES},
-            **{f"ray_irm_{c}": irm[c] for c in CLASSES},
-            "lr": sched.get_last_lr()[0],
-            "seconds": seconds,
-        }
-        new = not csv_path.exists() or epoch == 0
-        with open(csv_path, "w" if new else "a", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=fields)
-            if new:
-                w.writeheader()
-            w.writerow(row)
-        if writer:
-            for k, v in row.items():
-                if k != "epoch":
-                    writer.add_scalar(k, v, epoch)
-        score = float(np.nanmean([val[c] for c in CLASSES]))
-        extra = {
-            "epoch": epoch,
-            "val_iou": val,
-            "ray_irm_iou": irm,
-            "grid": config.grid.to_dict(),
-            "config": config.to_dict(),
-            "radar_filter": config.radar_filter.to_dict(),
-        }
-        save_checkpoint(model, out / "last.safetensors", extra)
-        if score > best_score:
-            best_score, best_epoch, best = score, epoch, val
-            save_checkpoint(model, out / "best.safetensors", extra)
-        st = {
-            "model": model.state_dict(),
-            "optimizer": opt.state_dict(),
-            "scheduler": sched.state_dict(),
-            "epoch": epoch,
-            "best_score": best_score,
-            "best_epoch": best_epoch,
-            "best": json.dumps(best),
-            "baseline": json.dumps(baseline),
-            "rng": torch.get_rng_state(),
-        }
-        import io
-
-        buf = io.BytesIO()
-        torch.save(st, buf)
-        atomic_write(state_path, lambda f: f.write(buf.getvalue()))
+        row = _log_epoch(run, epoch, losses, seconds, writer)
+        _save_state(run, epoch, state_path)
         if on_epoch:
             on_epoch(epoch, row)
     if writer:
         writer.close()
-    if world > 1:
+    if run.world > 1:
         import torch.distributed as dist
 
         dist.barrier()
         dist.destroy_process_group()
+    seconds = float(np.sum(run.epoch_times)) if run.epoch_times else math.nan
     return TrainResult(
-        out, best_epoch, best, baseline, float(np.mean(epoch_times)) if epoch_times else math.nan
+        out,
+        run.best_epoch,
+        run.best,
+        run.baseline,
+        float(np.mean(run.epoch_times)) if run.epoch_times else math.nan,
+        run.precision.name,
+        run.samples / seconds if run.epoch_times else math.nan,
     )

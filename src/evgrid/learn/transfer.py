@@ -33,7 +33,8 @@ CALIBRATED = "calibrated radar"
 def transfer_sources(
     n_scenes: int, first_seed: int, duration_s: float, ranges: RadarRanges = TRAINING_RANGES
 ) -> dict[str, SimSource]:
-    """The held-out (``val``) scenes seen through radars in ``ranges``, the calibrated radar, and every out-of-range radar."""
+    """The held-out (``val``) scenes seen through radars in ``ranges``, the calibrated radar, and
+    every out-of-range radar."""
     seeds = SimSource.split("val", n_scenes, first_seed, duration_s).seeds
     sets = {
         IN_RANGE: SimSource(seeds, duration_s, radar_ranges=ranges),
@@ -74,7 +75,7 @@ def measure_transfer(
     results: dict[str, dict] = {}
     for name, src in sources.items():
         root = Path(cache_root) / _slug(name) / config.data_key()
-        names = build_cache((src.load(n) for n in src.names()), root, config, with_irm=True)
+        names = build_cache(src, root, config, with_irm=True)  # engine: config.engine
         ds = RadarDataset(root, names, config.grid, with_irm=True)
         deep, irm, _ = evaluate_model(model, DataLoader(ds, batch_size=4), torch.device("cpu"))
         variant = src.radar
@@ -96,13 +97,16 @@ def transfer_markdown(results: dict[str, dict]) -> str:
     """The results of :func:`measure_transfer` as a Markdown table (IoU in %)."""
     pct = lambda x: "-" if x != x else f"{100 * x:.1f}"  # noqa: E731  (NaN: a class absent)
     lines = [
-        "| radar | outside training | deep IRM free | occupied | unknown | ray IRM free | occupied | unknown | samples |",
+        "| radar | outside training | deep IRM free | occupied | unknown | ray IRM free | occupied "
+        "| unknown | samples |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for name, r in results.items():
         d, i = r["deep_irm"], r["ray_irm"]
         lines.append(
-            f"| {name} | {', '.join(r['outside_training']) or '-'} | {pct(d['free'])} | {pct(d['occupied'])} | "
-            f"{pct(d['unknown'])} | {pct(i['free'])} | {pct(i['occupied'])} | {pct(i['unknown'])} | {r['samples']} |"
+            f"| {name} | {', '.join(r['outside_training']) or '-'} | {pct(d['free'])} | "
+            f"{pct(d['occupied'])} | "
+            f"{pct(d['unknown'])} | {pct(i['free'])} | {pct(i['occupied'])} | {pct(i['unknown'])} "
+            f"| {r['samples']} |"
         )
     return "\n".join(lines) + "\n"

@@ -1,4 +1,5 @@
-"""The built-in nuScenes-like driving simulator (docs/decisions.md#simulated-data): seeded, deterministic, numba-fast.
+"""The built-in nuScenes-like driving simulator (docs/decisions.md#simulated-data): seeded,
+deterministic, numba-fast.
 
 >>> from evgrid.data.sim import simulate_scene, SimConfig
 >>> scene = simulate_scene(seed=0, config=SimConfig(duration_s=1.0))

@@ -67,13 +67,15 @@ class LidarConfig:
         check_int(o, "n_azimuth", self.n_azimuth, min=8, max=8192)
         if not (-89.0 < self.elev_min_deg <= self.elev_max_deg < 89.0):
             raise ValueError(
-                f"{o} needs -89 < elev_min_deg <= elev_max_deg < 89, got {self.elev_min_deg!r}, {self.elev_max_deg!r}"
+                f"{o} needs -89 < elev_min_deg <= elev_max_deg < 89, got {self.elev_min_deg!r}, "
+                f"{self.elev_max_deg!r}"
             )
         _positive(o, "max_range_m", self.max_range_m)
         _positive(o, "min_range_m", self.min_range_m, allow_zero=True)
         if self.min_range_m >= self.max_range_m:
             raise ValueError(
-                f"{o}.min_range_m ({self.min_range_m!r}) must be below max_range_m ({self.max_range_m!r})"
+                f"{o}.min_range_m ({self.min_range_m!r}) must be below max_range_m "
+                f"({self.max_range_m!r})"
             )
         _positive(o, "range_noise_m", self.range_noise_m, allow_zero=True)
         _fraction(o, "dropout", self.dropout)
@@ -89,7 +91,8 @@ class RadarConfig:
     #: Azimuth spacing of the simulated near-scan beams, degrees (finer than a resolution cell,
     #: so that cells merge several scatterers as the real sensor does).
     ray_spacing_deg: float = 1.0
-    #: Near scan: +-fov_deg wide; range max_range_m out to +-45 deg, falling to edge_range_m at the edge.
+    # : Near scan: +-fov_deg wide; range max_range_m out to +-45 deg, falling to edge_range_m at the
+    # edge.
     fov_deg: float = 60.0
     max_range_m: float = 70.0
     edge_range_m: float = 25.0
@@ -110,10 +113,12 @@ class RadarConfig:
     far_gain_db: float = 22.0
     #: Width of the logistic detection curve of a resolution cell's summed power, dB.
     detection_softness_db: float = 2.5
-    #: Scales every class's chance that a beam-hit forms a scattering centre (materials.RADAR_SCATTER).
+    # : Scales every class's chance that a beam-hit forms a scattering centre
+    # (materials.RADAR_SCATTER).
     scatter_probability: float = 0.46
     #: Width of surface (m) over which materials.RADAR_SCATTER * scatter_probability is the chance
-    #: of a scattering centre; a beam standing for a wider strip (farther, or spaced wider) more likely holds one.
+    # : of a scattering centre; a beam standing for a wider strip (farther, or spaced wider) more
+    # likely holds one.
     scatter_strip_m: float = 0.44
     #: Swerling I/II fluctuation: each look's power is exponentially distributed about its mean.
     swerling: bool = True
@@ -195,15 +200,18 @@ class RadarConfig:
             raise ValueError(f"{o}.swerling must be True or False, got {self.swerling!r}")
         if self.fov_deg > 90.0 or self.far_fov_deg > self.fov_deg:
             raise ValueError(
-                f"{o} needs far_fov_deg <= fov_deg <= 90, got {self.far_fov_deg!r}, {self.fov_deg!r}"
+                f"{o} needs far_fov_deg <= fov_deg <= 90, got {self.far_fov_deg!r}, "
+                f"{self.fov_deg!r}"
             )
         if self.edge_range_m > self.max_range_m:
             raise ValueError(
-                f"{o}.edge_range_m ({self.edge_range_m!r}) must not exceed max_range_m ({self.max_range_m!r})"
+                f"{o}.edge_range_m ({self.edge_range_m!r}) must not exceed max_range_m "
+                f"({self.max_range_m!r})"
             )
         if self.far_min_range_m >= self.far_range_m:
             raise ValueError(
-                f"{o}.far_min_range_m ({self.far_min_range_m!r}) must be below far_range_m ({self.far_range_m!r})"
+                f"{o}.far_min_range_m ({self.far_min_range_m!r}) must be below far_range_m "
+                f"({self.far_range_m!r})"
             )
         check_int(o, "max_detections", self.max_detections, min=1)
 
@@ -234,7 +242,8 @@ class EgoConfig:
         lo, hi = self.cruise_speed_mps
         if not (math.isfinite(lo) and math.isfinite(hi) and 0 < lo <= hi <= 30):
             raise ValueError(
-                f"{o}.cruise_speed_mps must be (lo, hi) with 0 < lo <= hi <= 30, got {self.cruise_speed_mps!r}"
+                f"{o}.cruise_speed_mps must be (lo, hi) with 0 < lo <= hi <= 30, got "
+                f"{self.cruise_speed_mps!r}"
             )
         for name in ("max_accel_mps2", "max_decel_mps2", "max_lateral_accel_mps2"):
             _positive(o, name, getattr(self, name))
@@ -243,7 +252,8 @@ class EgoConfig:
         a, b = self.stop_duration_s
         if not (math.isfinite(a) and math.isfinite(b) and 0 <= a <= b):
             raise ValueError(
-                f"{o}.stop_duration_s must be (lo, hi) with 0 <= lo <= hi, got {self.stop_duration_s!r}"
+                f"{o}.stop_duration_s must be (lo, hi) with 0 <= lo <= hi, got "
+                f"{self.stop_duration_s!r}"
             )
         _positive(
             o, "odometry_yaw_bias_std_deg_s", self.odometry_yaw_bias_std_deg_s, allow_zero=True
@@ -322,16 +332,19 @@ class SimRadarRig:
             raise ValueError(f"{o}.radar_channels must be distinct non-empty names, got {chans!r}")
         if self.radar_mounts and len(self.radar_mounts) != len(chans):
             raise ValueError(
-                f"{o}.radar_mounts must name one mount per channel ({len(chans)}), got {self.radar_mounts!r}"
+                f"{o}.radar_mounts must name one mount per channel ({len(chans)}), got "
+                f"{self.radar_mounts!r}"
             )
         for m in self.mounts():
             if m not in RADAR_MOUNTS:
                 raise ValueError(
-                    f"{o}: no radar mount {m!r}; mounts are {tuple(RADAR_MOUNTS)} (set radar_mounts)"
+                    f"{o}: no radar mount {m!r}; mounts are {tuple(RADAR_MOUNTS)} (set "
+                    "radar_mounts)"
                 )
         if len(self.radar_rates_hz) not in (0, 1, len(chans)):
             raise ValueError(
-                f"{o}.radar_rates_hz must give one rate or one per channel, got {self.radar_rates_hz!r}"
+                f"{o}.radar_rates_hz must give one rate or one per channel, got "
+                f"{self.radar_rates_hz!r}"
             )
         for r in self.radar_rates_hz:
             _positive(o, "radar_rates_hz", r)
@@ -354,7 +367,8 @@ class SimConfig:
 
     #: Scene length in seconds (nuScenes scenes last about 20 s).
     duration_s: float = 20.0
-    #: One keyframe (a nuScenes sample) every this many lidar sweeps; None: 2 Hz at the lidar's rate.
+    # : One keyframe (a nuScenes sample) every this many lidar sweeps; None: 2 Hz at the lidar's
+    # rate.
     keyframe_every: int | None = None
     #: Unix time of the first lidar sweep, microseconds (the seed adds whole days).
     start_time_us: int = 1_533_000_000_000_000
@@ -387,7 +401,8 @@ class SimConfig:
             raise ValueError(f"{o}.grid must be a GridSpec, got {type(self.grid).__name__}")
         if not (0.0 <= self.occupancy_z_min_m < self.occupancy_z_max_m):
             raise ValueError(
-                f"{o} needs 0 <= occupancy_z_min_m < occupancy_z_max_m, got {self.occupancy_z_min_m!r}, {self.occupancy_z_max_m!r}"
+                f"{o} needs 0 <= occupancy_z_min_m < occupancy_z_max_m, got "
+                f"{self.occupancy_z_min_m!r}, {self.occupancy_z_max_m!r}"
             )
         for name, typ in (
             ("lidar", LidarConfig),
@@ -403,7 +418,8 @@ class SimConfig:
 
     @property
     def keyframe_step(self) -> int:
-        """Lidar sweeps from one keyframe to the next (``keyframe_every``, or 2 Hz at the lidar's rate)."""
+        """Lidar sweeps from one keyframe to the next (``keyframe_every``, or 2 Hz at the lidar's
+        rate)."""
         if self.keyframe_every is not None:
             return self.keyframe_every
         return max(1, int(round(self.lidar.rate_hz / 2.0)))

@@ -8,11 +8,12 @@ range gets Gaussian noise. The whole sweep is taken at the sweep's timestamp (no
 shutter).
 
 The ego vehicle's own body is in the way of the lower beams, as on a roof-mounted HDL-32E
-(``LidarConfig.self_returns``, on by default): :data:`EGO_BODY_BOXES` (ego frame: the body,
-the cabin, a sensor rack whose bars are 0.1 m below the sensor, mirrors) stop
-the beams that meet them before anything else, and their hits are returned like any other
-(about 6,000 points a sweep within 3 m of the sensor, 1,500 of them 0.1 m below it). The random numbers drawn do
-not depend on them, so every return that does not meet the body is the same with or without.
+(``LidarConfig.self_returns``, on by default): :data:`EGO_BODY_BOXES` (ego frame: the body, the
+cabin, a sensor rack whose bars are 0.1 m below the sensor, mirrors) stop the beams that meet them
+before anything else, and their hits are returned like any other (thousands of points a sweep
+within 3 m of the sensor, many of them just below it; docs/simulator.md). The random numbers
+drawn do not depend on them, so every return that does not meet the body is the same with or
+without.
 """
 
 from __future__ import annotations
@@ -108,8 +109,8 @@ class LidarModel:
         rng: np.random.Generator,
     ) -> tuple[np.ndarray, np.ndarray]:
         """One sweep at the ego pose ``(x, y, yaw)`` (m, rad) -> (points ``(n, 5)`` float32 in the
-        sensor frame [x, y, z, intensity, ring], what each point hit: static box index, -3 (EGO_HIT) the ego body,
-        ``n_static + k`` for moving object k, -1 ground)."""
+        sensor frame [x, y, z, intensity, ring], what each point hit: static box index, -3 (EGO_HIT)
+        the ego body, ``n_static + k`` for moving object k, -1 ground)."""
         cfg = self.cfg
         ex, ey, eyaw = ego_xy_yaw
         c, s = math.cos(eyaw), math.sin(eyaw)
@@ -127,31 +128,15 @@ class LidarModel:
         out_t = np.empty((n_az, nb))
         out_id = np.empty((n_az, nb), dtype=np.int64)
         out_cos = np.empty((n_az, nb))
-        idx = world.index
         lidar_cast(
-            ox,
-            oy,
-            oz,
+            (ox, oy, oz),
             az_s + syaw,
             self.slopes,
             self.max_h,
-            world.boxes,
-            world.classes,
-            idx.start,
-            idx.items,
-            idx.x0,
-            idx.y0,
-            idx.cell,
-            idx.nx,
-            idx.ny,
-            dyn_boxes,
-            dyn_classes.astype(np.int32),
-            M.LIDAR_DENSITY,
-            M.LIDAR_PASS,
+            world.cast_scene(dyn_boxes, dyn_classes),
+            (M.LIDAR_DENSITY, M.LIDAR_PASS),
             seed,
-            out_t,
-            out_id,
-            out_cos,
+            (out_t, out_id, out_cos),
         )
         if cfg.self_returns:
             self._add_body(az_s, out_t, out_id, out_cos)

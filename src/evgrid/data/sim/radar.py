@@ -35,6 +35,7 @@ and its source: docs/radar-calibration.md.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -70,7 +71,8 @@ class RadarModel:
         self.cfg = cfg
         self.mount = mount
         self.tan_beta = math.tan(math.radians(cfg.elevation_half_deg))
-        #: Per point of the last sweep: true range (m), azimuth (rad) and scan (1 far) of its strongest scatterer.
+        # : Per point of the last sweep: true range (m), azimuth (rad) and scan (1 far) of its
+        # strongest scatterer.
         self.last_truth = np.zeros((0, 3))
 
     def max_range(self, az: np.ndarray) -> np.ndarray:
@@ -149,11 +151,37 @@ class RadarModel:
         odo_speed_yawrate: tuple[float, float],
         rng: np.random.Generator,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """One sweep at ego pose ``(x, y, yaw)`` (m, rad), true and odometry (speed m/s, yaw rate
-        rad/s) -> (points ``(n, 12)`` float32 in the sensor frame, ``RADAR_COLUMNS``; labels (n,) uint8).
+        """One sweep at ego pose ``(x, y, yaw)`` (m, rad), true and odometry (speed m/s, yaw
+        rate rad/s) -> (points ``(n, 12)`` float32 in the sensor frame, ``RADAR_COLUMNS``;
+        labels (n,) uint8).
 
         ``self.last_truth`` then holds, per point, the true range (m), azimuth (rad) and scan
-        (1 far) of its strongest scatterer, for calibration."""
+        (1 far) of its strongest scatterer, for calibration. The random numbers are drawn in
+        the order of the steps below, so a seed gives the same sweep."""
+        beams = self._beams(ego_xy_yaw, ego_speed_yawrate, odo_speed_yawrate, rng)
+        scene = world.cast_scene(dyn_boxes, dyn_classes)
+        hits = self._cast(scene, beams, beams.gdx, beams.gdy, beams.reach, None)
+        targets = _Targets(world, scene, dyn_vel, dyn_rcs_offset)
+        sc = _Scatterers()
+        self._real_scatterers(sc, beams, hits, targets, rng)
+        self._ghosts(sc, beams, hits, targets, scene, rng)
+        self._false_alarms(sc, beams, rng)
+        self._road_clutter(sc, beams, hits, rng)
+        self.last_truth = np.zeros((0, 3))
+        if not sc:
+            return np.zeros((0, 12), np.float32), np.zeros(0, np.uint8)
+        return self._report(sc, beams, rng)
+
+    def _beams(
+        self,
+        ego_xy_yaw: tuple[float, float, float],
+        ego_speed_yawrate: tuple[float, float],
+        odo_speed_yawrate: tuple[float, float],
+        rng: np.random.Generator,
+    ) -> _Beams:
+        """The sensor's pose and velocity, and the sweep's beams: the near scan, then the far
+        scan (which reports from ``far_min_range_m`` on), each beam at a random azimuth in its
+        bin."""
         cfg = self.cfg
         mt = self.mount
         ex, ey, eyaw = ego_xy_yaw
@@ -168,8 +196,6 @@ class RadarModel:
         # The same from odometry, in the ego frame, for the Doppler compensation.
         vo, wo = odo_speed_yawrate
         vs_odo_ego = np.array([vo - wo * mt.y, wo * mt.x])
-
-        # Beams: near scan, then the far scan (which reports from far_min_range_m on).
         fov = math.radians(cfg.fov_deg)
         step = math.radians(cfg.ray_spacing_deg)
         n_near = int(math.floor(2 * fov / step))
@@ -180,264 +206,215 @@ class RadarModel:
         az_far = -ffov + (np.arange(n_far) + rng.random(n_far)) * fstep
         az = np.concatenate([az_near, az_far])
         far = np.concatenate([np.zeros(n_near, bool), np.ones(n_far, bool)])
-        reach = np.where(far, cfg.far_range_m, self.max_range(az))
-        n_rays = len(az)
-        gdx, gdy = np.cos(az + syaw), np.sin(az + syaw)
-        out = [np.empty((n_rays, _K_HITS)) for _ in range(3)] + [
-            np.empty((n_rays, _K_HITS), np.int64)
-        ]
-        out_t, out_cos, out_nx, out_id = out
-        out_ny = np.empty((n_rays, _K_HITS))
-        idx = world.index
-        dcls = dyn_classes.astype(np.int32)
-        radar_cast(
-            np.full(n_rays, sx),
-            np.full(n_rays, sy),
-            np.full(n_rays, mt.z),
-            gdx,
-            gdy,
-            reach,
-            np.full(n_rays, -1, np.int64),
-            self.tan_beta,
-            world.boxes,
-            world.classes,
-            idx.start,
-            idx.items,
-            idx.x0,
-            idx.y0,
-            idx.cell,
-            idx.nx,
-            idx.ny,
-            dyn_boxes,
-            dcls,
-            M.RADAR_OPAQUE,
-            out_t,
-            out_id,
-            out_cos,
-            out_nx,
-            out_ny,
+        return _Beams(
+            sx=sx,
+            sy=sy,
+            syaw=syaw,
+            vs=vs,
+            vs_odo_ego=vs_odo_ego,
+            fov=fov,
+            n_near=n_near,
+            az=az,
+            far=far,
+            reach=np.where(far, cfg.far_range_m, self.max_range(az)),
+            near_reach=self.max_range(az),
+            gdx=np.cos(az + syaw),
+            gdy=np.sin(az + syaw),
         )
-        n_static = world.n_static
-        cls_all = np.concatenate([world.classes, dcls, [0]]).astype(np.int64)
-        off_all = np.concatenate([world.rcs_offset_db, dyn_rcs_offset, [0.0]])
-        vel_all = np.concatenate([np.zeros((n_static, 2)), dyn_vel, np.zeros((1, 2))])
-        box_all = np.concatenate([world.boxes, dyn_boxes, np.zeros((1, 8))])
 
-        def corner_gain(
-            li: np.ndarray, kk: np.ndarray, px: np.ndarray, py: np.ndarray
-        ) -> np.ndarray:
-            # Vertical edges of flat-faced objects (building corners, vehicle corners) are the
-            # strongest radar scatterers: dihedral returns and edge diffraction.
-            b = box_all[li]
-            qx, qy = px - b[:, 0], py - b[:, 1]
-            lx = b[:, 2] * qx + b[:, 3] * qy
-            ly = -b[:, 3] * qx + b[:, 2] * qy
-            d = np.hypot(b[:, 4] - np.abs(lx), b[:, 5] - np.abs(ly))
-            return np.where(
-                M.RADAR_SPECULAR[kk] > 0, cfg.corner_gain_db * np.exp(-((d / 0.6) ** 2)), 0.0
-            )
+    def _cast(
+        self,
+        scene: tuple,
+        beams: _Beams,
+        dx: np.ndarray,
+        dy: np.ndarray,
+        reach: np.ndarray,
+        bounce: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
+    ) -> tuple[np.ndarray, ...]:
+        """Cast beams along ``(dx, dy)`` -> per beam its nearest hits (t, id, cos, nx, ny):
+        ``_K_HITS`` from the sensor, or one from ``bounce`` = (x, y, mirror box id)."""
+        n, k = len(dx), (_K_HITS if bounce is None else 1)
+        out = (np.empty((n, k)), np.empty((n, k), np.int64), *(np.empty((n, k)) for _ in range(3)))
+        if bounce is None:
+            ox, oy, exclude = np.full(n, beams.sx), np.full(n, beams.sy), np.full(n, -1, np.int64)
+        else:
+            ox, oy, exclude = bounce
+        rays = (ox, oy, np.full(n, self.mount.z), dx, dy, reach)
+        radar_cast(rays, exclude, self.tan_beta, scene, M.RADAR_OPAQUE, out)
+        return out
 
-        def lookup(ids: np.ndarray) -> np.ndarray:
-            return np.where(ids >= 0, ids, len(cls_all) - 1)
-
-        near_reach = self.max_range(az)
-        # Scatterers: every candidate return before the resolution cells merge them.
-        sc = _Scatterers()
+    def _real_scatterers(
+        self,
+        sc: _Scatterers,
+        beams: _Beams,
+        hits: tuple[np.ndarray, ...],
+        targets: _Targets,
+        rng: np.random.Generator,
+    ) -> None:
+        """The returns of the objects along each beam, in range order: a beam goes on past an
+        object with the class's transmission probability."""
+        cfg = self.cfg
+        out_t, out_id, out_cos = hits[0], hits[1], hits[2]
+        az, far, gdx, gdy = beams.az, beams.far, beams.gdx, beams.gdy
+        n_rays = len(az)
         alive = np.ones(n_rays, dtype=bool)
-        first_ids, first_t = out_id[:, 0].copy(), out_t[:, 0].copy()
-        first_valid = first_ids >= 0
         for k in range(_K_HITS):
             ids = out_id[:, k]
             valid = alive & (ids >= 0)
             if not valid.any():
                 break
-            li = lookup(ids)
-            kk = cls_all[li]
+            li = targets.lookup(ids)
+            kk = targets.classes[li]
             t = out_t[:, k]
+            px = beams.sx + gdx * np.where(valid, t, 0.0)
+            py = beams.sy + gdy * np.where(valid, t, 0.0)
             rcs = (
                 M.RADAR_RCS_DB[kk]
-                + off_all[li]
+                + targets.rcs_offset[li]
                 + M.RADAR_SPECULAR[kk] * 20.0 * np.log10(np.maximum(out_cos[:, k], 0.05))
-                + corner_gain(
-                    li, kk, sx + gdx * np.where(valid, t, 0.0), sy + gdy * np.where(valid, t, 0.0)
-                )
+                + targets.corner_gain(li, kk, px, py, cfg.corner_gain_db)
                 + self._fluctuation(rng, n_rays)
             )
-            in_band = np.where(far, t >= cfg.far_min_range_m, t <= near_reach)
-            size = 2.0 * np.maximum(box_all[li, 4], box_all[li, 5])
-            hit = (
-                valid
-                & in_band
-                & (rng.random(n_rays) < self._centre_probability(kk, t, far, out_cos[:, k], size))
-            )
+            in_band = np.where(far, t >= cfg.far_min_range_m, t <= beams.near_reach)
+            size = 2.0 * np.maximum(targets.boxes[li, 4], targets.boxes[li, 5])
+            p_centre = self._centre_probability(kk, t, far, out_cos[:, k], size)
+            hit = valid & in_band & (rng.random(n_rays) < p_centre)
             if hit.any():
-                vt = vel_all[li[hit]]
-                sc.add(
-                    t[hit],
-                    az[hit],
-                    rcs[hit],
-                    far[hit],
-                    vt,
-                    RADAR_REAL,
-                    np.hypot(vt[:, 0], vt[:, 1]) > 0.2,
-                )
+                vt = targets.velocity[li[hit]]
+                moving = np.hypot(vt[:, 0], vt[:, 1]) > 0.2
+                sc.add(t[hit], az[hit], rcs[hit], far[hit], vt, RADAR_REAL, moving)
             alive = valid & (rng.random(n_rays) < M.RADAR_TRANSMIT[kk])
 
-        # Multipath ghosts: bounce the first hit on a mirroring surface once, specularly.
-        if n_rays:
-            fk = cls_all[lookup(first_ids)]
-            mirror = first_valid & (M.RADAR_MIRROR[fk] > 0) & ~far
-            g = np.nonzero(mirror)[0]
-            if len(g):
-                nx, ny = out_nx[g, 0], out_ny[g, 0]
-                dxg, dyg = gdx[g], gdy[g]
-                dn = dxg * nx + dyg * ny
-                rdx, rdy = dxg - 2 * dn * nx, dyg - 2 * dn * ny
-                wx = sx + dxg * first_t[g] + 0.02 * rdx
-                wy = sy + dyg * first_t[g] + 0.02 * rdy
-                rem = np.maximum(near_reach[g] - first_t[g], 0.0)
-                gt = np.empty((len(g), 1))
-                gid = np.empty((len(g), 1), np.int64)
-                gcos = np.empty((len(g), 1))
-                gnx = np.empty((len(g), 1))
-                gny = np.empty((len(g), 1))
-                radar_cast(
-                    wx,
-                    wy,
-                    np.full(len(g), mt.z),
-                    rdx,
-                    rdy,
-                    rem,
-                    first_ids[g],
-                    self.tan_beta,
-                    world.boxes,
-                    world.classes,
-                    idx.start,
-                    idx.items,
-                    idx.x0,
-                    idx.y0,
-                    idx.cell,
-                    idx.nx,
-                    idx.ny,
-                    dyn_boxes,
-                    dcls,
-                    M.RADAR_OPAQUE,
-                    gt,
-                    gid,
-                    gcos,
-                    gnx,
-                    gny,
-                )
-                hitg = gid[:, 0] >= 0
-                li = lookup(gid[:, 0])
-                kk = cls_all[li]
-                total = first_t[g] + gt[:, 0]
-                rcs = (
-                    M.RADAR_RCS_DB[kk]
-                    + off_all[li]
-                    + M.RADAR_SPECULAR[kk] * 20.0 * np.log10(np.maximum(gcos[:, 0], 0.05))
-                    + self._fluctuation(rng, len(g))
-                    - cfg.multipath_loss_db
-                )
-                p = (
-                    M.RADAR_MIRROR[fk[g]]
-                    * cfg.multipath_probability
-                    * M.RADAR_SCATTER[kk]
-                    * cfg.scatter_probability
-                )
-                det = hitg & (total <= near_reach[g]) & (rng.random(len(g)) < p)
-                if det.any():
-                    # The mirror image of the target moves with the mirrored velocity.
-                    vt = vel_all[li[det]]
-                    vn = vt[:, 0] * nx[det] + vt[:, 1] * ny[det]
-                    vg = np.stack([vt[:, 0] - 2 * vn * nx[det], vt[:, 1] - 2 * vn * ny[det]], 1)
-                    sc.add(
-                        total[det],
-                        az[g][det],
-                        rcs[det],
-                        far[g][det],
-                        vg,
-                        RADAR_GHOST,
-                        np.hypot(vg[:, 0], vg[:, 1]) > 0.2,
-                    )
+    def _ghosts(
+        self,
+        sc: _Scatterers,
+        beams: _Beams,
+        hits: tuple[np.ndarray, ...],
+        targets: _Targets,
+        scene: tuple,
+        rng: np.random.Generator,
+    ) -> None:
+        """Multipath ghosts: bounce each near beam's first hit on a mirroring surface once,
+        specularly; an object the bounced beam meets appears at its mirror image."""
+        cfg = self.cfg
+        if not len(beams.az):
+            return
+        first_t, first_ids, out_nx, out_ny = hits[0][:, 0], hits[1][:, 0], hits[3], hits[4]
+        fk = targets.classes[targets.lookup(first_ids)]
+        mirror = (first_ids >= 0) & (M.RADAR_MIRROR[fk] > 0) & ~beams.far
+        g = np.nonzero(mirror)[0]
+        if not len(g):
+            return
+        nx, ny = out_nx[g, 0], out_ny[g, 0]
+        dxg, dyg = beams.gdx[g], beams.gdy[g]
+        dn = dxg * nx + dyg * ny
+        rdx, rdy = dxg - 2 * dn * nx, dyg - 2 * dn * ny
+        wx = beams.sx + dxg * first_t[g] + 0.02 * rdx
+        wy = beams.sy + dyg * first_t[g] + 0.02 * rdy
+        near_reach = beams.near_reach[g]
+        rem = np.maximum(near_reach - first_t[g], 0.0)
+        gt, gid, gcos = self._cast(scene, beams, rdx, rdy, rem, (wx, wy, first_ids[g]))[:3]
+        li = targets.lookup(gid[:, 0])
+        kk = targets.classes[li]
+        total = first_t[g] + gt[:, 0]
+        rcs = (
+            M.RADAR_RCS_DB[kk]
+            + targets.rcs_offset[li]
+            + M.RADAR_SPECULAR[kk] * 20.0 * np.log10(np.maximum(gcos[:, 0], 0.05))
+            + self._fluctuation(rng, len(g))
+            - cfg.multipath_loss_db
+        )
+        p = (
+            M.RADAR_MIRROR[fk[g]]
+            * cfg.multipath_probability
+            * M.RADAR_SCATTER[kk]
+            * cfg.scatter_probability
+        )
+        det = (gid[:, 0] >= 0) & (total <= near_reach) & (rng.random(len(g)) < p)
+        if det.any():
+            # The mirror image of the target moves with the mirrored velocity.
+            vt = targets.velocity[li[det]]
+            vn = vt[:, 0] * nx[det] + vt[:, 1] * ny[det]
+            vg = np.stack([vt[:, 0] - 2 * vn * nx[det], vt[:, 1] - 2 * vn * ny[det]], 1)
+            moving = np.hypot(vg[:, 0], vg[:, 1]) > 0.2
+            az, far = beams.az[g][det], beams.far[g][det]
+            sc.add(total[det], az, rcs[det], far, vg, RADAR_GHOST, moving)
 
-        # False alarms: noise over the threshold, uniform over the range-azimuth cells, mostly
-        # without ground speed (CFAR on a static scene), some with a random Doppler.
-        n_c = int(rng.poisson(cfg.clutter_rate))
-        if n_c:
-            caz = rng.uniform(-fov, fov, n_c)
-            cr = 0.5 + rng.random(n_c) * (self.max_range(caz) - 0.5)
-            moving = rng.random(n_c) < 0.2
-            u = np.stack([np.cos(caz + syaw), np.sin(caz + syaw)], 1)
-            vrad = np.where(moving, rng.normal(0.0, 3.0, n_c), 0.0)
+    def _false_alarms(self, sc: _Scatterers, beams: _Beams, rng: np.random.Generator) -> None:
+        """Noise over the threshold, uniform over the range-azimuth cells, mostly without
+        ground speed (CFAR on a static scene), some with a random Doppler."""
+        n_c = int(rng.poisson(self.cfg.clutter_rate))
+        if not n_c:
+            return
+        caz = rng.uniform(-beams.fov, beams.fov, n_c)
+        cr = 0.5 + rng.random(n_c) * (self.max_range(caz) - 0.5)
+        moving = rng.random(n_c) < 0.2
+        u = np.stack([np.cos(caz + beams.syaw), np.sin(caz + beams.syaw)], 1)
+        vrad = np.where(moving, rng.normal(0.0, 3.0, n_c), 0.0)
+        rcs = rng.normal(-8.0, 4.0, n_c)
+        vel = u * vrad[:, None]
+        sc.add(cr, caz, rcs, np.zeros(n_c, bool), vel, RADAR_CLUTTER, moving, forced=True)
+
+    def _road_clutter(
+        self,
+        sc: _Scatterers,
+        beams: _Beams,
+        hits: tuple[np.ndarray, ...],
+        rng: np.random.Generator,
+    ) -> None:
+        """Returns of the road surface, kerbs, drain covers and debris in the free space in
+        front of each near beam's first obstacle; static, strongest near the sensor (grazing
+        angle)."""
+        n_g = int(rng.poisson(self.cfg.road_clutter_rate)) if beams.n_near else 0
+        if not n_g:
+            return
+        first_t, first_valid = hits[0][:, 0], hits[1][:, 0] >= 0
+        gi = rng.integers(0, beams.n_near, n_g)
+        near_reach = beams.near_reach[gi]
+        rmax = np.minimum(np.where(first_valid[gi], first_t[gi], near_reach), near_reach)
+        gr = 1.0 + (rmax - 1.0) * rng.random(n_g) ** 2
+        ok = rmax > 1.5
+        if ok.any():
+            m = int(ok.sum())
+            rcs = rng.normal(-10.0, 3.0, m)
             sc.add(
-                cr,
-                caz,
-                rng.normal(-8.0, 4.0, n_c),
-                np.zeros(n_c, bool),
-                u * vrad[:, None],
+                gr[ok],
+                beams.az[gi][ok],
+                rcs,
+                np.zeros(m, bool),
+                np.zeros((m, 2)),
                 RADAR_CLUTTER,
-                moving,
+                np.zeros(m, bool),
                 forced=True,
+                real_flags=True,
             )
-        # Road clutter: returns of the road surface, kerbs, drain covers and debris in the free
-        # space in front of the first obstacle; static, strongest near the sensor (grazing angle).
-        n_g = int(rng.poisson(cfg.road_clutter_rate)) if n_near else 0
-        if n_g:
-            gi = rng.integers(0, n_near, n_g)
-            rmax = np.minimum(
-                np.where(first_valid[gi], first_t[gi], near_reach[gi]), near_reach[gi]
-            )
-            gr = 1.0 + (rmax - 1.0) * rng.random(n_g) ** 2
-            ok = rmax > 1.5
-            if ok.any():
-                m = int(ok.sum())
-                sc.add(
-                    gr[ok],
-                    az[gi][ok],
-                    rng.normal(-10.0, 3.0, m),
-                    np.zeros(m, bool),
-                    np.zeros((m, 2)),
-                    RADAR_CLUTTER,
-                    np.zeros(m, bool),
-                    forced=True,
-                    real_flags=True,
-                )
 
-        self.last_truth = np.zeros((0, 3))
-        if not sc:
-            return np.zeros((0, 12), np.float32), np.zeros(0, np.uint8)
-        cl = self._merge(sc.arrays(), syaw, vs, rng)
+    def _report(
+        self, sc: _Scatterers, beams: _Beams, rng: np.random.Generator
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The cluster list the sensor reports: merged cells, at most ``max_detections`` (the
+        strongest), with measurement noise, Doppler and the validity fields; sorted by range."""
+        cfg = self.cfg
+        mt = self.mount
+        cl = self._merge(sc.arrays(), beams.syaw, beams.vs, rng)
         r, a, rcs, snr, vt, lab, is_mover, real_flags, truth = cl
-        # The sensor reports at most max_detections clusters: the strongest.
         if len(r) > cfg.max_detections:
             keep = np.argsort(-snr, kind="stable")[: cfg.max_detections]
-            r, a, rcs, vt, lab, is_mover, real_flags, truth = (
-                r[keep],
-                a[keep],
-                rcs[keep],
-                vt[keep],
-                lab[keep],
-                is_mover[keep],
-                real_flags[keep],
-                truth[keep],
-            )
+            r, a, rcs, vt, lab = r[keep], a[keep], rcs[keep], vt[keep], lab[keep]
+            is_mover, real_flags, truth = is_mover[keep], real_flags[keep], truth[keep]
         n = len(r)
         # Radial velocities along the line of sight to the cluster.
-        ug = np.stack([np.cos(a + syaw), np.sin(a + syaw)], 1)
-        v_raw = ((vt - vs[None, :]) * ug).sum(1) + rng.normal(0.0, cfg.doppler_noise_mps, n)
+        ug = np.stack([np.cos(a + beams.syaw), np.sin(a + beams.syaw)], 1)
+        v_raw = ((vt - beams.vs[None, :]) * ug).sum(1) + rng.normal(0.0, cfg.doppler_noise_mps, n)
         # Measurement noise (datasheet accuracies, 1 sigma).
         sig_r, sig_az = self.noise_sigmas(a, truth[:, 2] > 0)
         am = a + rng.normal(0.0, 1.0, n) * sig_az
         rm = np.maximum(r + rng.normal(0.0, 1.0, n) * sig_r, 0.2)
         # Compensation with the odometry's sensor velocity, in the sensor frame.
         ca, sa = np.cos(am), np.sin(am)
-        vs_sensor = np.array(
-            [
-                math.cos(mt.yaw) * vs_odo_ego[0] + math.sin(mt.yaw) * vs_odo_ego[1],
-                -math.sin(mt.yaw) * vs_odo_ego[0] + math.cos(mt.yaw) * vs_odo_ego[1],
-            ]
-        )
+        vo = beams.vs_odo_ego
+        cy, sy = math.cos(mt.yaw), math.sin(mt.yaw)
+        vs_sensor = np.array([cy * vo[0] + sy * vo[1], -sy * vo[0] + cy * vo[1]])
         v_comp = v_raw + vs_sensor[0] * ca + vs_sensor[1] * sa
         rcs_q = np.clip(np.round(rcs * 2.0) / 2.0, -64.0, 63.5)
 
@@ -450,9 +427,8 @@ class RadarModel:
         pts[:, 6] = v_comp * ca
         pts[:, 7] = v_comp * sa
         # Road clutter is a real reflection to the sensor: flagged like real detections.
-        pts[:, 8:12] = self._flags(
-            rng, np.where(real_flags, RADAR_REAL, lab).astype(np.uint8), v_comp, is_mover, rcs_q, rm
-        )
+        flag_lab = np.where(real_flags, RADAR_REAL, lab).astype(np.uint8)
+        pts[:, 8:12] = self._flags(rng, flag_lab, v_comp, is_mover, rcs_q, rm)
         order = np.argsort(rm, kind="stable")
         self.last_truth = truth[order]
         return pts[order], lab[order]
@@ -473,7 +449,8 @@ class RadarModel:
             a + syaw
         )
         res_r = np.where(far, cfg.far_range_resolution_m, cfg.range_resolution_m)
-        # Beams of a digital beamformer are evenly spaced in sin(azimuth): cells widen off boresight.
+        # Beams of a digital beamformer are evenly spaced in sin(azimuth): cells widen off
+        # boresight.
         res_u = np.radians(
             np.where(far, cfg.far_azimuth_resolution_deg, cfg.azimuth_resolution_deg)
         )
@@ -610,3 +587,58 @@ class _Scatterers:
 
     def arrays(self) -> dict[str, np.ndarray]:
         return {f: np.concatenate(v) for f, v in self._parts.items()}
+
+
+@dataclass(frozen=True)
+class _Beams:
+    """One sweep's sensor state (global frame) and beams (sensor azimuths, rad)."""
+
+    sx: float
+    sy: float
+    syaw: float
+    #: true sensor velocity (global, m/s) and the odometry's (ego frame)
+    vs: np.ndarray
+    vs_odo_ego: np.ndarray
+    fov: float
+    n_near: int
+    az: np.ndarray
+    #: whether a beam belongs to the far scan
+    far: np.ndarray
+    #: each beam's reach (m), and the near scan's reach at its azimuth
+    reach: np.ndarray
+    near_reach: np.ndarray
+    #: global direction of each beam
+    gdx: np.ndarray
+    gdy: np.ndarray
+
+
+class _Targets:
+    """What a beam can hit, static boxes then moving objects then "nothing" (one row each):
+    class, RCS offset (dB), velocity (m/s) and packed box."""
+
+    def __init__(
+        self, world: World, scene: tuple, dyn_vel: np.ndarray, dyn_rcs_offset: np.ndarray
+    ) -> None:
+        dyn_boxes, dcls = scene[9], scene[10]
+        n_static = world.n_static
+        self.classes = np.concatenate([world.classes, dcls, [0]]).astype(np.int64)
+        self.rcs_offset = np.concatenate([world.rcs_offset_db, dyn_rcs_offset, [0.0]])
+        self.velocity = np.concatenate([np.zeros((n_static, 2)), dyn_vel, np.zeros((1, 2))])
+        self.boxes = np.concatenate([world.boxes, dyn_boxes, np.zeros((1, 8))])
+
+    def lookup(self, ids: np.ndarray) -> np.ndarray:
+        """Rows of hit ids, "nothing" (-1) the last row."""
+        return np.where(ids >= 0, ids, len(self.classes) - 1)
+
+    def corner_gain(
+        self, li: np.ndarray, kk: np.ndarray, px: np.ndarray, py: np.ndarray, gain_db: float
+    ) -> np.ndarray:
+        """Extra RCS (dB) of a hit at ``(px, py)`` near a vertical edge of a flat-faced object
+        (building corners, vehicle corners): the strongest radar scatterers, by dihedral
+        returns and edge diffraction."""
+        b = self.boxes[li]
+        qx, qy = px - b[:, 0], py - b[:, 1]
+        lx = b[:, 2] * qx + b[:, 3] * qy
+        ly = -b[:, 3] * qx + b[:, 2] * qy
+        d = np.hypot(b[:, 4] - np.abs(lx), b[:, 5] - np.abs(ly))
+        return np.where(M.RADAR_SPECULAR[kk] > 0, gain_db * np.exp(-((d / 0.6) ** 2)), 0.0)

@@ -123,6 +123,16 @@ class GridIndex:
         )
 
 
+@numba.njit(cache=True, inline="always")
+def _index_cells(b, xmin, ymin, xmax, ymax, x0, y0, cell, nx, ny):
+    """The index cells (i0, i1, j0, j1, inclusive) that box ``b``'s bounding rectangle touches."""
+    i0 = max(int((xmin[b] - x0) / cell), 0)
+    i1 = min(int((xmax[b] - x0) / cell), nx - 1)
+    j0 = max(int((ymin[b] - y0) / cell), 0)
+    j1 = min(int((ymax[b] - y0) / cell), ny - 1)
+    return i0, i1, j0, j1
+
+
 @numba.njit(cache=True)
 def build_index(
     xmin: np.ndarray,
@@ -135,14 +145,11 @@ def build_index(
     nx: int,
     ny: int,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """CSR lists of the boxes whose bounding rectangles touch each grid cell (cell = ix * ny + iy)."""
+    """CSR lists of the boxes whose bounding rectangles touch each grid cell (ix * ny + iy)."""
     n = xmin.shape[0]
     counts = np.zeros(nx * ny + 1, dtype=np.int64)
     for b in range(n):
-        i0 = max(int((xmin[b] - x0) / cell), 0)
-        i1 = min(int((xmax[b] - x0) / cell), nx - 1)
-        j0 = max(int((ymin[b] - y0) / cell), 0)
-        j1 = min(int((ymax[b] - y0) / cell), ny - 1)
+        i0, i1, j0, j1 = _index_cells(b, xmin, ymin, xmax, ymax, x0, y0, cell, nx, ny)
         for i in range(i0, i1 + 1):
             for j in range(j0, j1 + 1):
                 counts[i * ny + j + 1] += 1
@@ -150,10 +157,7 @@ def build_index(
     fill = start[:-1].copy()
     items = np.empty(start[-1], dtype=np.int64)
     for b in range(n):
-        i0 = max(int((xmin[b] - x0) / cell), 0)
-        i1 = min(int((xmax[b] - x0) / cell), nx - 1)
-        j0 = max(int((ymin[b] - y0) / cell), 0)
-        j1 = min(int((ymax[b] - y0) / cell), ny - 1)
+        i0, i1, j0, j1 = _index_cells(b, xmin, ymin, xmax, ymax, x0, y0, cell, nx, ny)
         for i in range(i0, i1 + 1):
             for j in range(j0, j1 + 1):
                 c = i * ny + j
@@ -200,27 +204,26 @@ def _slab2d(
     return t_in, t_out, axis, ldx, ldy
 
 
+@numba.njit(cache=True, inline="always")
+def _off_ray(ox: float, oy: float, dx: float, dy: float, box: np.ndarray) -> bool:
+    """Bounding-circle rejection: whether ``box`` lies wholly behind or beside the ray."""
+    qx = box[0] - ox
+    qy = box[1] - oy
+    rad = box[4] + box[5]
+    return qx * dx + qy * dy < -rad or abs(qy * dx - qx * dy) > rad
+
+
 @numba.njit(cache=True)
-def _lidar_box(
-    ox: float,
-    oy: float,
-    oz: float,
-    dx: float,
-    dy: float,
-    box: np.ndarray,
-    klass: int,
-    box_id: int,
-    density: np.ndarray,
-    pass_prob: np.ndarray,
-    seed: np.uint64,
-    col: int,
-    slopes: np.ndarray,
-    cos_e: np.ndarray,
-    sin_abs_e: np.ndarray,
-    best_t: np.ndarray,
-    best_id: np.ndarray,
-    best_c: np.ndarray,
-) -> None:
+def _lidar_box(ray, box: np.ndarray, klass: int, box_id: int, materials, beams, best) -> None:
+    """Intersect one box with all beams of a firing, keeping each beam's nearest hit.
+
+    ``ray`` = (ox, oy, oz, dx, dy, seed, col); ``materials`` = (density, pass_prob) per class;
+    ``beams`` = (slopes, cos_e, sin_abs_e); ``best`` = (t, id, cos) per beam, updated in place.
+    """
+    ox, oy, oz, dx, dy, seed, col = ray
+    density, pass_prob = materials
+    slopes, cos_e, sin_abs_e = beams
+    best_t, best_id, best_c = best
     t_in, t_out, axis, ldx, ldy = _slab2d(ox, oy, dx, dy, box)
     t0 = t_in if t_in > 0.0 else 0.0
     if t_out < t0:
@@ -335,39 +338,92 @@ def _dda_start(ox, oy, dx, dy, t_end, gx0, gy0, gx1, gy1, cell, gnx, gny):
     return t0, t1, ix, iy, stepx, stepy, tmx, tmy, tdx, tdy
 
 
+@numba.njit(cache=True, inline="always")
+def _dda_step(ix, iy, stepx, stepy, tmx, tmy, tdx, tdy, gnx, gny):
+    """One cell step of the walk -> (t where the next cell is entered, ix, iy, tmx, tmy, left).
+
+    ``left``: the walk has left the index rectangle.
+    """
+    if tmx < tmy:
+        tcur = tmx
+        tmx += tdx
+        ix += stepx
+        return tcur, ix, iy, tmx, tmy, ix < 0 or ix >= gnx
+    tcur = tmy
+    tmy += tdy
+    iy += stepy
+    return tcur, ix, iy, tmx, tmy, iy < 0 or iy >= gny
+
+
+@numba.njit(cache=True, inline="always")
+def _max_reach(best_t: np.ndarray) -> float:
+    """The farthest any beam of a firing may still find something (m)."""
+    tlim = 0.0
+    for j in range(best_t.shape[0]):
+        tlim = max(tlim, best_t[j])
+    return tlim
+
+
+@numba.njit(cache=True)
+def _lidar_start(oz: float, max_h: np.ndarray, beams, best) -> None:
+    """Start every beam of a firing at its reach, or at the ground where it meets it first."""
+    slopes, cos_e, sin_abs_e = beams
+    best_t, best_id, best_c = best
+    for j in range(slopes.shape[0]):
+        best_t[j] = max_h[j]
+        best_id[j] = HIT_NONE
+        best_c[j] = 0.0
+        if slopes[j] < 0.0:
+            tg = oz / -slopes[j]
+            if tg < max_h[j]:
+                best_t[j] = tg
+                best_id[j] = HIT_GROUND
+                best_c[j] = sin_abs_e[j]
+
+
+@numba.njit(cache=True)
+def _lidar_walk(ray, scene, stamp: np.ndarray, materials, beams, best) -> None:
+    """Walk the static index along a firing's footprint (Amanatides & Woo) up to the farthest
+    beam's current hit, intersecting each box met once with all beams."""
+    ox, oy, oz, dx, dy, seed, col = ray
+    boxes, classes, idx_start, idx_items, gx0, gy0, cell, gnx, gny, dboxes, dclasses = scene
+    tlim = _max_reach(best[0])
+    t0, t1, ix, iy, stepx, stepy, tmx, tmy, tdx, tdy = _dda_start(
+        ox, oy, dx, dy, tlim, gx0, gy0, gx0 + gnx * cell, gy0 + gny * cell, cell, gnx, gny
+    )
+    if t0 > t1:
+        return
+    tcur = t0
+    while tcur <= tlim:
+        c = ix * gny + iy
+        for p in range(idx_start[c], idx_start[c + 1]):
+            b = idx_items[p]
+            if stamp[b] == col:
+                continue
+            stamp[b] = col
+            _lidar_box(ray, boxes[b], classes[b], b, materials, beams, best)
+        tlim = _max_reach(best[0])
+        tcur, ix, iy, tmx, tmy, left = _dda_step(ix, iy, stepx, stepy, tmx, tmy, tdx, tdy, gnx, gny)
+        if left:
+            break
+
+
 @numba.njit(cache=True)
 def lidar_cast(
-    ox: float,
-    oy: float,
-    oz: float,
-    az: np.ndarray,
-    slopes: np.ndarray,
-    max_h: np.ndarray,
-    boxes: np.ndarray,
-    classes: np.ndarray,
-    idx_start: np.ndarray,
-    idx_items: np.ndarray,
-    gx0: float,
-    gy0: float,
-    cell: float,
-    gnx: int,
-    gny: int,
-    dboxes: np.ndarray,
-    dclasses: np.ndarray,
-    density: np.ndarray,
-    pass_prob: np.ndarray,
-    seed: np.uint64,
-    out_t: np.ndarray,
-    out_id: np.ndarray,
-    out_cos: np.ndarray,
+    origin, az: np.ndarray, slopes: np.ndarray, max_h: np.ndarray, scene, materials, seed, out
 ) -> None:
-    """Cast a rotating multi-beam lidar from ``(ox, oy, oz)`` (m, global frame).
+    """Cast a rotating multi-beam lidar from ``origin`` = (ox, oy, oz) (m, global frame).
 
     ``az`` (global azimuths, rad) x ``slopes`` (tan of beam elevations) rays; ``max_h`` the
-    horizontal reach of each beam (m). Writes per ray the horizontal hit distance ``out_t``
-    (m), what was hit ``out_id`` (static box index, ``n_static + k`` for moving box k, -1
-    ground, -2 nothing) and the cosine of the incidence angle ``out_cos``.
+    horizontal reach of each beam (m). ``scene``: :meth:`World.cast_scene`; ``materials`` =
+    (density, pass probability) per class; ``seed`` the hash seed of the sweep. Writes into
+    ``out`` = (t, id, cos), per ray, the horizontal hit distance (m), what was hit (static box
+    index, ``n_static + k`` for moving box k, -1 ground, -2 nothing) and the cosine of the
+    incidence angle.
     """
+    ox, oy, oz = origin
+    boxes, dboxes, dclasses = scene[0], scene[9], scene[10]
+    out_t, out_id, out_cos = out
     nb = slopes.shape[0]
     n = boxes.shape[0]
     stamp = np.full(n, -1, dtype=np.int64)
@@ -376,126 +432,30 @@ def lidar_cast(
     for j in range(nb):
         cos_e[j] = 1.0 / math.sqrt(1.0 + slopes[j] * slopes[j])
         sin_abs_e[j] = abs(slopes[j]) * cos_e[j]
-    best_t = np.empty(nb)
-    best_id = np.empty(nb, dtype=np.int64)
-    best_c = np.empty(nb)
-    gx1 = gx0 + gnx * cell
-    gy1 = gy0 + gny * cell
+    beams = (slopes, cos_e, sin_abs_e)
+    best = (np.empty(nb), np.empty(nb, dtype=np.int64), np.empty(nb))
     for col in range(az.shape[0]):
-        dx = math.cos(az[col])
-        dy = math.sin(az[col])
-        for j in range(nb):
-            best_t[j] = max_h[j]
-            best_id[j] = HIT_NONE
-            best_c[j] = 0.0
-            if slopes[j] < 0.0:
-                tg = oz / -slopes[j]
-                if tg < max_h[j]:
-                    best_t[j] = tg
-                    best_id[j] = HIT_GROUND
-                    best_c[j] = sin_abs_e[j]
+        ray = (ox, oy, oz, math.cos(az[col]), math.sin(az[col]), seed, col)
+        _lidar_start(oz, max_h, beams, best)
         for k in range(dboxes.shape[0]):
             # Bounding-circle rejection first: most moving objects are far from most rays.
-            qx = dboxes[k, 0] - ox
-            qy = dboxes[k, 1] - oy
-            rad = dboxes[k, 4] + dboxes[k, 5]
-            if qx * dx + qy * dy < -rad or abs(qy * dx - qx * dy) > rad:
-                continue
-            _lidar_box(
-                ox,
-                oy,
-                oz,
-                dx,
-                dy,
-                dboxes[k],
-                dclasses[k],
-                n + k,
-                density,
-                pass_prob,
-                seed,
-                col,
-                slopes,
-                cos_e,
-                sin_abs_e,
-                best_t,
-                best_id,
-                best_c,
-            )
-        tlim = 0.0
+            if not _off_ray(ox, oy, ray[3], ray[4], dboxes[k]):
+                _lidar_box(ray, dboxes[k], dclasses[k], n + k, materials, beams, best)
+        _lidar_walk(ray, scene, stamp, materials, beams, best)
         for j in range(nb):
-            tlim = max(tlim, best_t[j])
-        # Clip the ray to the index rectangle, then walk its cells (Amanatides & Woo).
-        t0, t1, ix, iy, stepx, stepy, tmx, tmy, tdx, tdy = _dda_start(
-            ox, oy, dx, dy, tlim, gx0, gy0, gx1, gy1, cell, gnx, gny
-        )
-        if t0 <= t1:
-            tcur = t0
-            while tcur <= tlim:
-                c = ix * gny + iy
-                for p in range(idx_start[c], idx_start[c + 1]):
-                    b = idx_items[p]
-                    if stamp[b] == col:
-                        continue
-                    stamp[b] = col
-                    _lidar_box(
-                        ox,
-                        oy,
-                        oz,
-                        dx,
-                        dy,
-                        boxes[b],
-                        classes[b],
-                        b,
-                        density,
-                        pass_prob,
-                        seed,
-                        col,
-                        slopes,
-                        cos_e,
-                        sin_abs_e,
-                        best_t,
-                        best_id,
-                        best_c,
-                    )
-                tlim = 0.0
-                for j in range(nb):
-                    tlim = max(tlim, best_t[j])
-                if tmx < tmy:
-                    tcur = tmx
-                    tmx += tdx
-                    ix += stepx
-                    if ix < 0 or ix >= gnx:
-                        break
-                else:
-                    tcur = tmy
-                    tmy += tdy
-                    iy += stepy
-                    if iy < 0 or iy >= gny:
-                        break
-        for j in range(nb):
-            out_t[col, j] = best_t[j]
-            out_id[col, j] = best_id[j]
-            out_cos[col, j] = best_c[j]
+            out_t[col, j] = best[0][j]
+            out_id[col, j] = best[1][j]
+            out_cos[col, j] = best[2][j]
 
 
 @numba.njit(cache=True)
-def _radar_box(
-    ox: float,
-    oy: float,
-    oz: float,
-    dx: float,
-    dy: float,
-    tmax: float,
-    tan_beta: float,
-    box: np.ndarray,
-    box_id: int,
-    r: int,
-    out_t: np.ndarray,
-    out_id: np.ndarray,
-    out_cos: np.ndarray,
-    out_nx: np.ndarray,
-    out_ny: np.ndarray,
-) -> None:
+def _radar_box(ray, box: np.ndarray, box_id: int, out) -> None:
+    """Insert one box's footprint entry into ray ``r``'s distance-sorted hits, if it is met.
+
+    ``ray`` = (ox, oy, oz, dx, dy, tmax, tan_beta, r); ``out`` = (t, id, cos, nx, ny).
+    """
+    ox, oy, oz, dx, dy, tmax, tan_beta, r = ray
+    out_t, out_id, out_cos, out_nx, out_ny = out
     t_in, t_out, axis, ldx, ldy = _slab2d(ox, oy, dx, dy, box)
     if t_in < 0.0 or t_out < t_in or t_in > tmax:
         return  # behind, missed, too far, or the sensor is inside the footprint
@@ -530,151 +490,98 @@ def _radar_box(
     out_ny[r, i] = s * lnx + c * lny
 
 
-@numba.njit(cache=True)
-def radar_cast(
-    ox: np.ndarray,
-    oy: np.ndarray,
-    oz: np.ndarray,
-    dx: np.ndarray,
-    dy: np.ndarray,
-    tmax: np.ndarray,
-    exclude: np.ndarray,
-    tan_beta: float,
-    boxes: np.ndarray,
-    classes: np.ndarray,
-    idx_start: np.ndarray,
-    idx_items: np.ndarray,
-    gx0: float,
-    gy0: float,
-    cell: float,
-    gnx: int,
-    gny: int,
-    dboxes: np.ndarray,
-    dclasses: np.ndarray,
-    opaque: np.ndarray,
-    out_t: np.ndarray,
-    out_id: np.ndarray,
-    out_cos: np.ndarray,
-    out_nx: np.ndarray,
-    out_ny: np.ndarray,
-) -> None:
-    """Cast horizontal radar beams (per-ray origin, unit 2-D direction, reach ``tmax`` m).
+@numba.njit(cache=True, inline="always")
+def _opaque_hit(h: int, scene, opaque: np.ndarray) -> bool:
+    """Whether hit ``h`` (static index, or ``n_static + k`` for moving box k) stops a beam."""
+    classes, dclasses = scene[1], scene[10]
+    n = scene[0].shape[0]
+    kk = classes[h] if h < n else dclasses[h - n]
+    return opaque[kk]
 
-    Keeps, sorted by distance, the ``K = out_t.shape[1]`` nearest footprint entries whose
-    height range meets the beam's vertical opening (``tan_beta``), up to the first opaque
-    object. Writes distance (m, inf where fewer hits), box id (static index, ``n + k`` for
-    moving box k, -1 none), cosine of incidence and the entered face's outward normal.
-    ``exclude`` names one box per ray to ignore (the mirror of a bounced ray), or -1.
-    """
-    n = boxes.shape[0]
+
+@numba.njit(cache=True)
+def _radar_walk(ray, exclude: int, scene, stamp: np.ndarray, opaque: np.ndarray, out) -> None:
+    """Walk the static index along one beam (Amanatides & Woo) until its first opaque hit or
+    a full hit buffer, inserting each box met once."""
+    ox, oy, oz, dx, dy, tmax, tan_beta, r = ray
+    boxes, classes, idx_start, idx_items, gx0, gy0, cell, gnx, gny, dboxes, dclasses = scene
+    out_t, out_id = out[0], out[1]
     K = out_t.shape[1]
-    stamp = np.full(n, -1, dtype=np.int64)
-    gx1 = gx0 + gnx * cell
-    gy1 = gy0 + gny * cell
-    for r in range(ox.shape[0]):
-        for k in range(K):
-            out_t[r, k] = np.inf
-            out_id[r, k] = -1
-            out_cos[r, k] = 0.0
-            out_nx[r, k] = 0.0
-            out_ny[r, k] = 0.0
-        px0 = ox[r]
-        py0 = oy[r]
-        pz0 = oz[r]
-        ddx = dx[r]
-        ddy = dy[r]
-        for k in range(dboxes.shape[0]):
-            if n + k == exclude[r]:
+    t0, t1, ix, iy, stepx, stepy, tmx, tmy, tdx, tdy = _dda_start(
+        ox, oy, dx, dy, tmax, gx0, gy0, gx0 + gnx * cell, gy0 + gny * cell, cell, gnx, gny
+    )
+    if t0 > t1:
+        return
+    tcur = t0
+    while tcur <= t1:
+        c = ix * gny + iy
+        for p in range(idx_start[c], idx_start[c + 1]):
+            b = idx_items[p]
+            if stamp[b] == r or b == exclude:
                 continue
-            qx = dboxes[k, 0] - px0
-            qy = dboxes[k, 1] - py0
-            rad = dboxes[k, 4] + dboxes[k, 5]
-            if qx * ddx + qy * ddy < -rad or abs(qy * ddx - qx * ddy) > rad:
-                continue
-            _radar_box(
-                px0,
-                py0,
-                pz0,
-                ddx,
-                ddy,
-                tmax[r],
-                tan_beta,
-                dboxes[k],
-                n + k,
-                r,
-                out_t,
-                out_id,
-                out_cos,
-                out_nx,
-                out_ny,
-            )
-        t0, t1, ix, iy, stepx, stepy, tmx, tmy, tdx, tdy = _dda_start(
-            px0, py0, ddx, ddy, tmax[r], gx0, gy0, gx1, gy1, cell, gnx, gny
-        )
-        if t0 > t1:
-            continue
-        tcur = t0
-        while tcur <= t1:
-            c = ix * gny + iy
-            for p in range(idx_start[c], idx_start[c + 1]):
-                b = idx_items[p]
-                if stamp[b] == r or b == exclude[r]:
-                    continue
-                stamp[b] = r
-                _radar_box(
-                    px0,
-                    py0,
-                    pz0,
-                    ddx,
-                    ddy,
-                    tmax[r],
-                    tan_beta,
-                    boxes[b],
-                    b,
-                    r,
-                    out_t,
-                    out_id,
-                    out_cos,
-                    out_nx,
-                    out_ny,
-                )
-            # Nothing beyond the first opaque hit, or beyond a full buffer, can matter.
-            lim = out_t[r, K - 1]
-            for k in range(K):
-                h = out_id[r, k]
-                if h < 0:
-                    break
-                kk = classes[h] if h < n else dclasses[h - n]
-                if opaque[kk]:
-                    lim = out_t[r, k]
-                    break
-            if tcur > lim:
-                break
-            if tmx < tmy:
-                tcur = tmx
-                tmx += tdx
-                ix += stepx
-                if ix < 0 or ix >= gnx:
-                    break
-            else:
-                tcur = tmy
-                tmy += tdy
-                iy += stepy
-                if iy < 0 or iy >= gny:
-                    break
-        # Drop hits behind the first opaque one (they were only kept while searching).
-        cut = False
+            stamp[b] = r
+            _radar_box(ray, boxes[b], b, out)
+        # Nothing beyond the first opaque hit, or beyond a full buffer, can matter.
+        lim = out_t[r, K - 1]
         for k in range(K):
             h = out_id[r, k]
             if h < 0:
                 break
-            if cut:
-                out_t[r, k] = np.inf
-                out_id[r, k] = -1
-                continue
-            kk = classes[h] if h < n else dclasses[h - n]
-            if opaque[kk]:
-                cut = True
+            if _opaque_hit(h, scene, opaque):
+                lim = out_t[r, k]
+                break
+        if tcur > lim:
+            break
+        tcur, ix, iy, tmx, tmy, left = _dda_step(ix, iy, stepx, stepy, tmx, tmy, tdx, tdy, gnx, gny)
+        if left:
+            break
+
+
+@numba.njit(cache=True)
+def _radar_drop_occluded(r: int, scene, opaque: np.ndarray, out) -> None:
+    """Drop ray ``r``'s hits behind its first opaque one (kept only while searching)."""
+    out_t, out_id = out[0], out[1]
+    cut = False
+    for k in range(out_t.shape[1]):
+        h = out_id[r, k]
+        if h < 0:
+            break
+        if cut:
+            out_t[r, k] = np.inf
+            out_id[r, k] = -1
+            continue
+        if _opaque_hit(h, scene, opaque):
+            cut = True
+
+
+@numba.njit(cache=True)
+def radar_cast(rays, exclude: np.ndarray, tan_beta: float, scene, opaque: np.ndarray, out) -> None:
+    """Cast horizontal radar beams: ``rays`` = (ox, oy, oz, dx, dy, tmax) arrays, per ray its
+    origin, unit 2-D direction and reach (m).
+
+    Keeps, sorted by distance, the ``K = out[0].shape[1]`` nearest footprint entries whose
+    height range meets the beam's vertical opening (``tan_beta``), up to the first opaque
+    object. Writes into ``out`` = (t, id, cos, nx, ny) the distance (m, inf where fewer hits),
+    box id (static index, ``n + k`` for moving box k, -1 none), cosine of incidence and the
+    entered face's outward normal. ``scene``: :meth:`World.cast_scene`. ``exclude`` names one
+    box per ray to ignore (the mirror of a bounced ray), or -1.
+    """
+    ox, oy, oz, dx, dy, tmax = rays
+    dboxes = scene[9]
+    n = scene[0].shape[0]
+    stamp = np.full(n, -1, dtype=np.int64)
+    for r in range(ox.shape[0]):
+        out[0][r, :] = np.inf
+        out[1][r, :] = -1
+        out[2][r, :] = 0.0
+        out[3][r, :] = 0.0
+        out[4][r, :] = 0.0
+        ray = (ox[r], oy[r], oz[r], dx[r], dy[r], tmax[r], tan_beta, r)
+        for k in range(dboxes.shape[0]):
+            if n + k != exclude[r] and not _off_ray(ox[r], oy[r], dx[r], dy[r], dboxes[k]):
+                _radar_box(ray, dboxes[k], n + k, out)
+        _radar_walk(ray, exclude[r], scene, stamp, opaque, out)
+        _radar_drop_occluded(r, scene, opaque, out)
 
 
 @numba.njit(cache=True)

@@ -78,7 +78,8 @@ class SimScene:
         if frng is not None and faults.lidar_drop > 0:
             lost = (frng.random(n) < faults.lidar_drop) & (ids % config.keyframe_step != 0)
             ids = ids[~lost]
-        #: Index of each frame's lidar sweep among all the sweeps the lidar took (missing ones skipped).
+        # : Index of each frame's lidar sweep among all the sweeps the lidar took (missing ones
+        # skipped).
         self.lidar_sweep_ids = ids
         #: Timestamps (us) of the lidar sweeps, one frame each.
         self.lidar_timestamps = all_ts[ids]
@@ -130,7 +131,8 @@ class SimScene:
     @property
     def description(self) -> str:
         """One line saying what this scene is."""
-        return f"evgrid simulated {self.world.environment} scene, seed {self.seed}, {self.config.duration_s:g} s"
+        env, seconds = self.world.environment, self.config.duration_s
+        return f"evgrid simulated {env} scene, seed {self.seed}, {seconds:g} s"
 
     # --- times and poses --------------------------------------------------------------------
     def seconds(self, timestamp_us: int) -> float:
@@ -175,7 +177,8 @@ class SimScene:
         return self.trajectory.se2_at(self.seconds(timestamp_us))
 
     def odometry_pose(self, timestamp_us: int) -> SE2:
-        """The odometry ego pose (what frames report) at a timestamp (us); equals the true pose without drift."""
+        """The odometry ego pose (what frames report) at a timestamp (us); equals the true pose
+        without drift."""
         if self._odo is None:
             return self.true_pose(timestamp_us)
         t = self.seconds(timestamp_us)
@@ -213,7 +216,7 @@ class SimScene:
         return sweep, hit
 
     def radar_sweep(self, channel: str, j: int) -> tuple[RadarSweep, np.ndarray]:
-        """Sweep ``j`` of a radar channel and its ground-truth labels (0 real, 1 clutter, 2 ghost)."""
+        """Sweep ``j`` of a radar channel, and its true labels (0 real, 1 clutter, 2 ghost)."""
         if channel not in self._radars:
             raise ValueError(
                 f"unknown radar channel {channel!r}; channels are {self.radar_channels}"
@@ -249,8 +252,8 @@ class SimScene:
         ), labels
 
     def radar_sweep_indices(self, i: int) -> dict[str, np.ndarray]:
-        """For frame ``i``, the indices of each channel's sweeps delivered with it (oldest first, unless
-        the rig's faults repeat or delay some)."""
+        """For frame ``i``, the indices of each channel's sweeps delivered with it (oldest first,
+        unless the rig's faults repeat or delay some)."""
         return {
             ch: np.array([j for f, j in d if f == i], dtype=np.int64)
             for ch, d in self._delivery.items()

@@ -39,15 +39,8 @@ from pathlib import Path
 
 import numpy as np
 
-from evgrid.data.frame import (
-    LIDAR_CHANNEL,
-    LIDAR_COLUMNS,
-    RADAR_CHANNELS,
-    RADAR_COLUMNS,
-    Frame,
-    LidarSweep,
-    RadarSweep,
-)
+from evgrid.data import frame as contract
+from evgrid.data.frame import LIDAR_CHANNEL, RADAR_CHANNELS, Frame, LidarSweep, RadarSweep
 from evgrid.data.sim.materials import CLASS_NAMES
 from evgrid.data.sim.scene import SimScene
 from evgrid.geometry import SE3
@@ -62,7 +55,8 @@ _VERSION = 1
 def save_sim_scene(
     scene: SimScene, path: str | os.PathLike, on_frame: Callable[[int], None] | None = None
 ) -> Path:
-    """Simulate every frame of ``scene`` and write it to ``path`` (``.npz``, atomically); returns the path."""
+    """Simulate every frame of ``scene`` and write it to ``path`` (``.npz``, atomically); returns
+    the path."""
     if not isinstance(scene, SimScene):
         raise TypeError(f"save_sim_scene needs a SimScene, got {type(scene).__name__}")
     path = Path(path)
@@ -110,8 +104,8 @@ def save_sim_scene(
         "config": scene.config.to_dict(),
         "lidar_channel": LIDAR_CHANNEL,
         "radar_channels": list(channels),
-        "lidar_columns": list(LIDAR_COLUMNS),
-        "radar_columns": list(RADAR_COLUMNS),
+        "lidar_columns": list(contract.LIDAR_COLUMNS),
+        "radar_columns": list(contract.RADAR_COLUMNS),
         "class_names": list(CLASS_NAMES),
     }
     g = scene.config.grid
@@ -262,11 +256,13 @@ class StoredScene:
 
 
 class SceneFileError(ValueError):
-    """A simulated scene file that cannot be used (empty, truncated, corrupt, foreign or inconsistent)."""
+    """A simulated scene file that cannot be used (empty, truncated, corrupt, foreign or
+    inconsistent)."""
 
 
 def _read_arrays(path: Path) -> dict[str, np.ndarray]:
-    """Every array of an ``.npz``; SceneFileError naming the file (and the array) for anything unreadable."""
+    """Every array of an ``.npz``; SceneFileError naming the file (and the array) for anything
+    unreadable."""
     if path.stat().st_size == 0:
         raise SceneFileError(
             f"{path}: the scene file is empty (0 bytes); simulate it again with `evgrid simulate`"
@@ -293,7 +289,8 @@ def _read_arrays(path: Path) -> dict[str, np.ndarray]:
 def _require(
     path: Path, d: dict[str, np.ndarray], name: str, shape: tuple, kind: str
 ) -> np.ndarray:
-    """Array ``name`` with ``shape`` (None for any length) of numpy kind ``kind``; SceneFileError otherwise."""
+    """Array ``name`` with ``shape`` (None for any length) of numpy kind ``kind``; SceneFileError
+    otherwise."""
     a = d.get(name)
     if a is None:
         raise SceneFileError(
@@ -306,7 +303,8 @@ def _require(
     ):
         want = "(" + ", ".join("n" if w is None else str(w) for w in shape) + ")"
         raise SceneFileError(
-            f"{path}: array {name!r} has shape {a.shape} dtype {a.dtype}, expected {want} of kind {kind!r}"
+            f"{path}: array {name!r} has shape {a.shape} dtype {a.dtype}, expected {want} of kind "
+            f"{kind!r}"
         )
     return a
 
@@ -318,17 +316,19 @@ def _check_offsets(path: Path, name: str, off: np.ndarray, n_items: int, total: 
         or (np.diff(off) < 0).any()
     ):
         raise SceneFileError(
-            f"{path}: array {name!r} does not index its {total} points in {n_items} pieces; the file is corrupt"
+            f"{path}: array {name!r} does not index its {total} points in {n_items} pieces; the "
+            "file is corrupt"
         )
 
 
 def _check_scene_arrays(path: Path, d: dict[str, np.ndarray]) -> None:
-    """Every array StoredScene reads, with consistent shapes, so that a broken file fails here, named."""
+    """Every array StoredScene reads, with consistent shapes, so that a broken file fails here,
+    named."""
     n = len(_require(path, d, "timestamps", (None,), "i"))
     _require(path, d, "ego_poses", (n, 4, 4), "f")
     _require(path, d, "true_poses", (n, 3), "f")
     kf = _require(path, d, "is_keyframe", (n,), "b")
-    pts = _require(path, d, "lidar_points", (None, len(LIDAR_COLUMNS)), "f")
+    pts = _require(path, d, "lidar_points", (None, len(contract.LIDAR_COLUMNS)), "f")
     _check_offsets(
         path, "lidar_offsets", _require(path, d, "lidar_offsets", (None,), "i"), n, len(pts)
     )
@@ -336,12 +336,13 @@ def _check_scene_arrays(path: Path, d: dict[str, np.ndarray]) -> None:
     occ = _require(path, d, "occupancy", (None, None, None), "u")
     if len(occ) != int(kf.sum()):
         raise SceneFileError(
-            f"{path}: array 'occupancy' holds {len(occ)} keyframes, 'is_keyframe' marks {int(kf.sum())}"
+            f"{path}: array 'occupancy' holds {len(occ)} keyframes, 'is_keyframe' marks "
+            f"{int(kf.sum())}"
         )
     for ch in RADAR_CHANNELS:
         m = len(_require(path, d, f"radar_{ch}_timestamps", (None,), "i"))
         _require(path, d, f"radar_{ch}_ego_poses", (m, 4, 4), "f")
-        rp = _require(path, d, f"radar_{ch}_points", (None, len(RADAR_COLUMNS)), "f")
+        rp = _require(path, d, f"radar_{ch}_points", (None, len(contract.RADAR_COLUMNS)), "f")
         _check_offsets(
             path,
             f"radar_{ch}_offsets",
@@ -381,7 +382,8 @@ def load_sim_scene(path: str | os.PathLike) -> StoredScene:
         raise SceneFileError(f"{path}: format {meta.get('format')!r}, expected {SIM_NPZ_FORMAT!r}")
     if meta.get("version") != _VERSION:
         raise SceneFileError(
-            f"{path}: version {meta.get('version')!r} of the format; this evgrid reads version {_VERSION}"
+            f"{path}: version {meta.get('version')!r} of the format; this evgrid reads version "
+            f"{_VERSION}"
         )
     if (
         not isinstance(meta.get("name"), str)

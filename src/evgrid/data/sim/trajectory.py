@@ -57,8 +57,8 @@ class StreetGrid:
 
 @dataclass(frozen=True)
 class Warp:
-    """A smooth shear of the city frame that bends straight streets into curves and makes
-    junction angles differ from 90 deg: ``w(x, y) = (x + ax sin(kx y + px), y + ay sin(ky x + py))``.
+    """A smooth shear of the city frame that bends straight streets into curves and makes junction
+    angles differ from 90 deg: ``w(x, y) = (x + ax sin(kx y + px), y + ay sin(ky x + py))``.
 
     Its Jacobian ``[[1, ax kx cos(kx y + px)], [ay ky cos(ky x + py), 1]]`` has determinant
     ``>= 1 - slope_x slope_y > 0`` when both slopes ``|ax kx|, |ay ky|`` stay below 1, so the map
@@ -102,7 +102,7 @@ class Warp:
     def direction(
         self, x: np.ndarray, y: np.ndarray, yaw: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Warped heading (rad, unwrapped next to ``yaw``) and stretch of a unit vector at ``yaw``."""
+        """Warped heading (rad, unwrapped next to ``yaw``), stretch of a unit vector at ``yaw``."""
         a, b = self.jacobian(x, y)
         c, s = np.cos(yaw), np.sin(yaw)
         ex, ey = c + a * s, b * c + s
@@ -110,7 +110,8 @@ class Warp:
         return yaw + turn, np.hypot(ex, ey)
 
     def inverse(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """City-frame points that warp to ``(x, y)`` (fixed-point iteration, a contraction by the slopes)."""
+        """City-frame points that warp to ``(x, y)`` (fixed-point iteration, a contraction by the
+        slopes)."""
         ux, uy = np.array(x, dtype=np.float64), np.array(y, dtype=np.float64)
         for _ in range(30):
             ux = x - self.ax * np.sin(self.kx * uy + self.px)
@@ -118,7 +119,8 @@ class Warp:
         return ux, uy
 
     def path(self, path: tuple[np.ndarray, ...]) -> tuple[np.ndarray, ...]:
-        """A dense path ``(s, x, y, yaw, kappa)`` warped, with its arc length and curvature recomputed."""
+        """A dense path ``(s, x, y, yaw, kappa)`` warped, with its arc length and curvature
+        recomputed."""
         _, x, y, yaw, _ = path
         wx, wy = self.apply(x, y)
         wyaw, _ = self.direction(x, y, yaw)
@@ -145,8 +147,9 @@ def make_street_grid(
 ) -> StreetGrid:
     """Random street positions and widths covering ``[-extent_m, extent_m]^2`` (metres).
 
-    ``irregular``: widths vary more from street to street (half widths 0.2 m narrower to 0.5 m wider, a fifth of the
-    streets with a second lane each way, bands of 3-7 m to the property line)."""
+    ``irregular``: widths vary more from street to street (half widths 0.2 m narrower to 0.5 m
+    wider, a fifth of the streets with a second lane each way, bands of 3-7 m to the property line).
+    """
     if environment == "urban":
         block, hw_lane, park_p, park_w, shoulder, sw = (60.0, 110.0), 3.3, 0.7, 2.4, 0.5, (3.0, 5.0)
     elif environment == "suburban":
@@ -309,7 +312,8 @@ def _dense_path(
 
 
 class Trajectory:
-    """The ego's path (city or global frame) and its time profile ``s(t)``; poses are rear-axle poses."""
+    """The ego's path (city or global frame) and its time profile ``s(t)``; poses are rear-axle
+    poses."""
 
     def __init__(
         self,
@@ -371,7 +375,7 @@ class Trajectory:
         return self.pose_at_s(self.s_at(t))
 
     def velocity_at(self, t: np.ndarray | float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """True ego velocity (vx, vy in m/s, frame of the path) and yaw rate (rad/s) at ``t`` (s)."""
+        """True ego velocity (vx, vy m/s, frame of the path) and yaw rate (rad/s) at ``t`` (s)."""
         s = self.s_at(t)
         v = self.speed_at(t)
         yaw = np.interp(s, self.path_s, self.path_yaw)

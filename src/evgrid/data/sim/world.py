@@ -9,6 +9,7 @@ origin) and then moved by one rigid transform into the *global frame* that poses
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -62,8 +63,9 @@ _AVENUE_REACH_M = 400.0
 
 @dataclass(frozen=True, eq=False)
 class Movers:
-    """Moving objects. Linear movers: ``position(t) = p0 + u(heading) * speed * clip(t, t_begin, t_end)``;
-    followers (``follow``) drive the ego's path at ``s_ego(t + follow_lead_s) + follow_gap``.
+    """Moving objects. Linear movers: ``position(t) = p0 + u(heading) * speed * clip(t, t_begin,
+    t_end)``; followers (``follow``) drive the ego's path at ``s_ego(t + follow_lead_s) +
+    follow_gap``.
 
     With a ``warp`` (curved towns), linear movers drive straight in the unwarped city frame and
     are bent by the warp (heading and velocity by its Jacobian), then moved by ``frame``."""
@@ -97,7 +99,8 @@ class Movers:
         )
 
     def state_at(self, t: float, traj: Trajectory) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Packed boxes (m, 8), velocities (m, 2) in m/s, and yaw (m,) of all movers at ``t`` seconds."""
+        """Packed boxes (m, 8), velocities (m, 2) in m/s, and yaw (m,) of all movers at ``t``
+        seconds."""
         m = len(self)
         tc = np.clip(t, self.t_begin, self.t_end)
         ux, uy = np.cos(self.heading), np.sin(self.heading)
@@ -137,39 +140,9 @@ class Movers:
     def transformed(self, tf: SE2) -> Movers:
         """The same movers in the frame ``tf`` maps to."""
         if self.warp is not None:
-            return Movers(
-                self.classes,
-                self.half_length,
-                self.half_width,
-                self.z_min,
-                self.z_max,
-                self.p0,
-                self.heading,
-                self.speed,
-                self.t_begin,
-                self.t_end,
-                self.follow,
-                self.follow_gap,
-                self.follow_lead_s,
-                self.warp,
-                tf @ self.frame,
-            )
+            return replace(self, frame=tf @ self.frame)
         p0 = tf.apply(self.p0) if len(self) else self.p0
-        return Movers(
-            self.classes,
-            self.half_length,
-            self.half_width,
-            self.z_min,
-            self.z_max,
-            p0,
-            self.heading + tf.yaw,
-            self.speed,
-            self.t_begin,
-            self.t_end,
-            self.follow,
-            self.follow_gap,
-            self.follow_lead_s,
-        )
+        return replace(self, p0=p0, heading=self.heading + tf.yaw)
 
 
 @dataclass(frozen=True, eq=False)
@@ -177,7 +150,8 @@ class TownLayout:
     """The features of an irregular town, in the unwarped city frame (the warp bends them all)."""
 
     warp: Warp | None
-    #: Diagonal avenues through a grid junction: (x, y, direction rad, half width m, curb to property line m).
+    # : Diagonal avenues through a grid junction: (x, y, direction rad, half width m, curb to
+    # property line m).
     avenues: list[tuple[float, float, float, float, float]] = field(default_factory=list)
     #: Blocks given over to open squares, parking lots and parks: (x0, y0, x1, y1) each, metres.
     squares: list[tuple[float, float, float, float]] = field(default_factory=list)
@@ -220,10 +194,51 @@ class World:
     def __post_init__(self) -> None:
         object.__setattr__(self, "index", GridIndex(self.boxes))
 
+    @classmethod
+    def from_boxes(cls, static: list[tuple], movers: Movers | None = None) -> World:
+        """A hand-made world (tests, examples): boxes ``(cx, cy, yaw, length, width, z0, z1,
+        class)`` in the global frame (m, rad), class materials without per-object variation, and
+        ``movers`` (default none)."""
+        a = np.array([s[:7] for s in static], dtype=np.float64).reshape(-1, 7)
+        boxes = pack_boxes(a[:, 0], a[:, 1], a[:, 2], a[:, 3] / 2, a[:, 4] / 2, a[:, 5], a[:, 6])
+        classes = np.array([s[7] for s in static], dtype=np.int32)
+        mv = movers if movers is not None else Movers.empty()
+        return cls(
+            "urban",
+            boxes,
+            a[:, 2],
+            classes,
+            M.LIDAR_REFLECTIVITY[classes],
+            np.zeros(len(classes)),
+            mv,
+            M.LIDAR_REFLECTIVITY[mv.classes],
+            np.zeros(len(mv)),
+            None,
+            SE2(),
+        )
+
     @property
     def n_static(self) -> int:
         """Number of static boxes."""
         return int(self.boxes.shape[0])
+
+    def cast_scene(self, dyn_boxes: np.ndarray, dyn_classes: np.ndarray) -> tuple:
+        """What the ray casting kernels (``raycast.lidar_cast``, ``radar_cast``) see: the static
+        boxes, their classes and grid index, then the moving boxes and their classes."""
+        idx = self.index
+        return (
+            self.boxes,
+            self.classes,
+            idx.start,
+            idx.items,
+            idx.x0,
+            idx.y0,
+            idx.cell,
+            idx.nx,
+            idx.ny,
+            dyn_boxes,
+            dyn_classes.astype(np.int32),
+        )
 
     def describe(self) -> dict[str, int]:
         """Counts of static boxes and moving objects by class name."""
@@ -485,7 +500,8 @@ def _irregular_building(
     depth: float,
     h: float,
 ) -> None:
-    """A building that is not one box: a courtyard block, a stepped facade, or a slightly skewed box."""
+    """A building that is not one box: a courtyard block, a stepped facade, or a slightly skewed
+    box."""
     w = u1 - u0
     r = rng.random()
     if r < 0.25 and w > 16.0 and depth > 15.0:
@@ -684,7 +700,8 @@ def _edge_line(
 def _open_square(
     b: _Builder, rng: np.random.Generator, rect: tuple[float, float, float, float]
 ) -> None:
-    """A paved square: lamps and bollards at its edge, trees, benches, and a fountain, statue or kiosk."""
+    """A paved square: lamps and bollards at its edge, trees, benches, and a fountain, statue or
+    kiosk."""
     f = _rect_frame(rect)
     L, D = f.length, f.depth
     for v in (1.5, D - 1.5):
@@ -735,18 +752,7 @@ def _open_square(
         # A fountain: a ring of low basin walls.
         rad = rng.uniform(3.0, min(6.0, D / 4))
         n = max(int(2 * math.pi * rad / 1.5), 8)
-        for k in range(n):
-            a = 2 * math.pi * k / n
-            b.add(
-                float(c[0] + rad * math.cos(a)),
-                float(c[1] + rad * math.sin(a)),
-                a + math.pi / 2,
-                math.pi * rad / n + 0.05,
-                0.2,
-                0.0,
-                rng.uniform(0.5, 0.8),
-                M.WALL,
-            )
+        _ring(b, c, rad, n, 0.2, lambda: rng.uniform(0.5, 0.8), M.WALL)
     elif r < 0.75:
         b.add(
             float(c[0]),
@@ -845,12 +851,17 @@ def _park(b: _Builder, rng: np.random.Generator, rect: tuple[float, float, float
         f.box(b, u - 3.0, u + 3.0, v - 3.0, v + 3.0, 0.0, 3.5, M.BUILDING)
 
 
-def _roundabout_island(
-    b: _Builder, rng: np.random.Generator, c: np.ndarray, rad: float, clear: float
+def _ring(
+    b: _Builder,
+    c: np.ndarray,
+    rad: float,
+    n: int,
+    half_width: float,
+    top: Callable[[], float],
+    klass: int,
 ) -> None:
-    """A round central island (curb ring, a hedge ring or bushes, a tree or a monument) and
-    lamps around the circulating carriageway."""
-    n = max(int(2 * math.pi * rad / 1.2), 10)
+    """A ring of ``n`` short boxes around ``c`` at radius ``rad`` (a basin wall, a curb), each
+    as tall as ``top()`` (drawn box by box where it is random)."""
     for k in range(n):
         a = 2 * math.pi * k / n
         b.add(
@@ -858,11 +869,20 @@ def _roundabout_island(
             float(c[1] + rad * math.sin(a)),
             a + math.pi / 2,
             math.pi * rad / n + 0.05,
-            0.15,
+            half_width,
             0.0,
-            0.35,
-            M.BARRIER,
+            top(),
+            klass,
         )
+
+
+def _roundabout_island(
+    b: _Builder, rng: np.random.Generator, c: np.ndarray, rad: float, clear: float
+) -> None:
+    """A round central island (curb ring, a hedge ring or bushes, a tree or a monument) and
+    lamps around the circulating carriageway."""
+    n = max(int(2 * math.pi * rad / 1.2), 10)
+    _ring(b, c, rad, n, 0.15, lambda: 0.35, M.BARRIER)
     if rng.random() < 0.5 and rad > 3.0:
         r2 = rad - 0.8
         n2 = max(int(2 * math.pi * r2 / 1.5), 8)
@@ -964,7 +984,8 @@ def _in_grid_streets(rows: np.ndarray, grid: StreetGrid) -> np.ndarray:
 
 
 def _warp_rows(rows: np.ndarray, warp: Warp) -> np.ndarray:
-    """City-frame boxes bent by the warp: centres moved, yaw turned and sides stretched by its Jacobian."""
+    """City-frame boxes bent by the warp: centres moved, yaw turned and sides stretched by its
+    Jacobian."""
     out = rows.copy()
     x, y, yaw = rows[:, 0], rows[:, 1], rows[:, 2]
     out[:, 2], stretch_u = warp.direction(x, y, yaw)
@@ -1127,7 +1148,7 @@ _SEGMENT = 16
 
 
 def _segment_bounds(box: np.ndarray) -> np.ndarray:
-    """Bounds of each run of ``_SEGMENT`` consecutive sample bounds (the last run may be shorter)."""
+    """Bounds of each run of ``_SEGMENT`` consecutive sample bounds (the last may be shorter)."""
     n = len(box)
     pad = np.concatenate([box, np.repeat(box[-1:], (-n) % _SEGMENT, axis=0)]).reshape(
         -1, _SEGMENT, 4
@@ -1382,33 +1403,79 @@ def _avenue_traffic(
                 movers.offer(_mover(k, length, width, z0, z1, p0, math.atan2(h[1], h[0]), speed))
 
 
-def generate_world(seed: int, config: SimConfig) -> tuple[World, Trajectory, Trajectory]:
-    """Build the world around a random route -> (world, true trajectory (global), same in the city frame)."""
-    rng, env, grid, route, warp, traj = _plan(seed, config)
-    wc = config.world
-    urban = env == "urban"
-    irregular = warp is not None
+class _Near:
+    """Whether a rectangle comes within ``r`` (m) of the driven path's samples ``pts``."""
 
-    # The driven part of the path, sampled every 2 m, decides what to populate (in the unwarped
-    # city frame, where the streets are straight).
-    s_lo = float(traj.s_at(-0.5))
-    s_hi = float(traj.s_at(config.duration_s + 0.5))
-    ss = np.arange(s_lo, s_hi + 2.0, 2.0)
-    px, py, _ = traj.pose_at_s(ss)
-    if irregular:
-        px, py = warp.inverse(px, py)
-    pts = np.stack([px, py], 1)
+    def __init__(self, pts: np.ndarray) -> None:
+        self.pts = pts
 
-    def near(x0: float, y0: float, x1: float, y1: float, r: float = _POPULATE_RADIUS_M) -> bool:
+    def __call__(
+        self, x0: float, y0: float, x1: float, y1: float, r: float = _POPULATE_RADIUS_M
+    ) -> bool:
+        pts = self.pts
         dx = np.maximum(np.maximum(x0 - pts[:, 0], 0.0), pts[:, 0] - x1)
         dy = np.maximum(np.maximum(y0 - pts[:, 1], 0.0), pts[:, 1] - y1)
         return bool((dx * dx + dy * dy).min() <= r * r)
 
-    b = _Builder()
-    density = wc.traffic_density
-    sides: list[_Side] = []
-    layout = TownLayout(warp)
-    use = _BLOCK_USE[env]
+
+@dataclass
+class _Town:
+    """What :func:`generate_world` builds up, step by step, in the city frame."""
+
+    rng: np.random.Generator
+    env: str
+    grid: StreetGrid
+    warp: object
+    density: float
+    #: the driven path sampled every 2 m (unwarped city frame)
+    pts: np.ndarray
+    layout: TownLayout
+    sides: list = field(default_factory=list)
+    avenue_spans: list = field(default_factory=list)
+
+    @property
+    def urban(self) -> bool:
+        return self.env == "urban"
+
+    @property
+    def irregular(self) -> bool:
+        return self.warp is not None
+
+    def line_side(self, b: _Builder, side: _Side) -> None:
+        """Line a street side with the environment's buildings, fences and furniture."""
+        fill = _urban_side if self.urban else _suburban_side
+        fill(b, self.rng, side, self.density, self.irregular)
+
+
+def _driven_path(traj: Trajectory, config: SimConfig, warp) -> np.ndarray:
+    """The driven part of the path, sampled every 2 m, which decides what to populate (in the
+    unwarped city frame, where the streets are straight)."""
+    s_lo = float(traj.s_at(-0.5))
+    s_hi = float(traj.s_at(config.duration_s + 0.5))
+    ss = np.arange(s_lo, s_hi + 2.0, 2.0)
+    px, py, _ = traj.pose_at_s(ss)
+    if warp is not None:
+        px, py = warp.inverse(px, py)
+    return np.stack([px, py], 1)
+
+
+def _block_kind(town: _Town) -> str:
+    """What a block near the route holds: street sides, or (irregular towns) an open square,
+    a parking lot or a park."""
+    if not town.irregular:
+        return "sides"
+    use = _BLOCK_USE[town.env]
+    r = town.rng.random()
+    if r < use[0]:
+        return "square"
+    if r < use[0] + use[1]:
+        return "lot"
+    return "park" if r < sum(use) else "sides"
+
+
+def _populate_blocks(town: _Town, b: _Builder, near: _Near) -> None:
+    """Fill the blocks near the route and line their sides."""
+    rng, grid, layout = town.rng, town.grid, town.layout
     for i in range(len(grid.xs) - 1):
         if not near(grid.xs[i], -1e9, grid.xs[i + 1], 1e9):
             continue
@@ -1418,18 +1485,7 @@ def generate_world(seed: int, config: SimConfig) -> tuple[World, Trajectory, Tra
             blk = _block_sides(grid, i, j)
             if blk is None:
                 continue
-            kind = "sides"
-            if irregular:
-                r = rng.random()
-                kind = (
-                    "square"
-                    if r < use[0]
-                    else "lot"
-                    if r < use[0] + use[1]
-                    else "park"
-                    if r < sum(use)
-                    else "sides"
-                )
+            kind = _block_kind(town)
             if kind != "sides":
                 p0, p1 = blk[0].origin, blk[1].origin
                 rect = (float(p0[0]), float(p0[1]), float(p1[0]), float(p1[1]))
@@ -1437,221 +1493,201 @@ def generate_world(seed: int, config: SimConfig) -> tuple[World, Trajectory, Tra
                     _open_square(b, rng, rect)
                     layout.squares.append(rect)
                 elif kind == "lot":
-                    _parking_lot(b, rng, rect, density)
+                    _parking_lot(b, rng, rect, town.density)
                     layout.parking_lots.append(rect)
                 else:
                     _park(b, rng, rect)
                     layout.parks.append(rect)
             for side in blk:
                 if kind == "sides":
-                    (_urban_side if urban else _suburban_side)(b, rng, side, density, irregular)
+                    town.line_side(b, side)
                 else:
-                    _street_furniture(b, rng, side, urban=urban, density=density)
+                    _street_furniture(b, rng, side, urban=town.urban, density=town.density)
                     if side.parking:
-                        _parked_cars(
-                            b, rng, side, empty_p=(0.22 if urban else 0.6) / max(density, 0.2)
-                        )
-                sides.append(side)
-    rows = _rows_array(b.rows)
-    avenue_spans: list[tuple[float, float]] = []
-    if irregular:
-        rows = _split_rows(rows)
-        avenues = _choose_avenues(rng, grid, pts, env)
-        ab = _Builder()
-        for x, y, angle, hw, sw in avenues:
-            p, d = np.array([x, y]), np.array([math.cos(angle), math.sin(angle)])
-            rows = rows[~_in_strip(rows, p, d, hw + sw)]
-            dist = np.abs(-d[1] * (pts[:, 0] - x) + d[0] * (pts[:, 1] - y))
-            u = (pts[:, 0] - x) * d[0] + (pts[:, 1] - y) * d[1]
-            # Populated where it passes the route, at most _AVENUE_REACH_M from its junction (so a
-            # long drive's world stays linear in its length).
-            close = (dist < _POPULATE_RADIUS_M) & (np.abs(u) < _AVENUE_REACH_M)
-            u_lo = float(u[close].min()) - 60.0 if close.any() else -60.0
-            u_hi = float(u[close].max()) + 60.0 if close.any() else 60.0
-            avenue_spans.append((u_lo, u_hi))
-            for side in _avenue_sides(grid, p, d, hw, sw, u_lo, u_hi, parking=hw > 8.3):
-                (_urban_side if urban else _suburban_side)(ab, rng, side, density, irregular)
-                sides.append(side)
-        arows = _split_rows(_rows_array(ab.rows))
-        arows = arows[~_in_grid_streets(arows, grid)]
-        for x0, y0, x1, y1 in layout.squares + layout.parking_lots + layout.parks:
-            # An avenue through an open block keeps it open.
-            arows = arows[
-                ~((arows[:, 0] > x0) & (arows[:, 0] < x1) & (arows[:, 1] > y0) & (arows[:, 1] < y1))
-            ]
-        for x, y, angle, hw, sw in avenues:
-            d = np.array([math.cos(angle), math.sin(angle)])
-            arows = arows[~_in_strip(arows, np.array([x, y]), d, hw)]
-        layout.avenues.extend(avenues)
-        # Roundabouts: clear a round junction and put an island in its middle.
-        flat = _dense_path(route.points, route.radii)
-        path = np.stack([flat[1][::4], flat[2][::4]], 1)
-        rb = _Builder()
-        rows = np.concatenate([rows, arows])
-        for x, y, rad in _choose_roundabouts(rng, grid, near, path, avenues):
-            c = np.array([x, y])
-            reach = np.hypot(rows[:, 3], rows[:, 4])
-            rows = rows[np.hypot(rows[:, 0] - x, rows[:, 1] - y) > rad + 7.5 + reach]
-            _roundabout_island(rb, rng, c, rad, rad + 7.5)
-            layout.roundabouts.append((x, y, rad))
-        rows = _warp_rows(np.concatenate([rows, _rows_array(rb.rows)]), warp)
-    static = pack_boxes(
-        rows[:, 0], rows[:, 1], rows[:, 2], rows[:, 3], rows[:, 4], rows[:, 5], rows[:, 6]
-    )
-    static_cls = rows[:, 7].astype(np.int32)
+                        empty_p = (0.22 if town.urban else 0.6) / max(town.density, 0.2)
+                        _parked_cars(b, rng, side, empty_p=empty_p)
+                town.sides.append(side)
 
-    movers = _MoverSet(traj, config.duration_s, static, warp)
-    # A vehicle ahead of the ego and one behind, driving its path (time-shifted).
-    if rng.random() < 0.55 * min(density, 1.0):
-        k, length, width, z0, z1 = _vehicle_dims(rng, moving=True)
-        movers.offer(
-            _mover(
-                k,
-                length,
-                width,
-                z0,
-                z1,
-                np.zeros(2),
-                0.0,
-                0.0,
-                follow=True,
-                gap=rng.uniform(8.0, 14.0) + (length - 4.5) / 2,
-                lead=rng.uniform(0.8, 2.0),
+
+def _avenue_rows(town: _Town, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, list]:
+    """Diagonal avenues across the grid: clear their strips in ``rows`` and line their sides
+    -> (rows, the avenues' own rows, the avenues)."""
+    rng, grid, pts, layout = town.rng, town.grid, town.pts, town.layout
+    avenues = _choose_avenues(rng, grid, pts, town.env)
+    ab = _Builder()
+    for x, y, angle, hw, sw in avenues:
+        p, d = np.array([x, y]), np.array([math.cos(angle), math.sin(angle)])
+        rows = rows[~_in_strip(rows, p, d, hw + sw)]
+        dist = np.abs(-d[1] * (pts[:, 0] - x) + d[0] * (pts[:, 1] - y))
+        u = (pts[:, 0] - x) * d[0] + (pts[:, 1] - y) * d[1]
+        # Populated where it passes the route, at most _AVENUE_REACH_M from its junction (so a
+        # long drive's world stays linear in its length).
+        close = (dist < _POPULATE_RADIUS_M) & (np.abs(u) < _AVENUE_REACH_M)
+        u_lo = float(u[close].min()) - 60.0 if close.any() else -60.0
+        u_hi = float(u[close].max()) + 60.0 if close.any() else 60.0
+        town.avenue_spans.append((u_lo, u_hi))
+        for side in _avenue_sides(grid, p, d, hw, sw, u_lo, u_hi, parking=hw > 8.3):
+            town.line_side(ab, side)
+            town.sides.append(side)
+    arows = _split_rows(_rows_array(ab.rows))
+    arows = arows[~_in_grid_streets(arows, grid)]
+    for x0, y0, x1, y1 in layout.squares + layout.parking_lots + layout.parks:
+        # An avenue through an open block keeps it open.
+        inside = (arows[:, 0] > x0) & (arows[:, 0] < x1) & (arows[:, 1] > y0) & (arows[:, 1] < y1)
+        arows = arows[~inside]
+    for x, y, angle, hw, _sw in avenues:
+        d = np.array([math.cos(angle), math.sin(angle)])
+        arows = arows[~_in_strip(arows, np.array([x, y]), d, hw)]
+    layout.avenues.extend(avenues)
+    return rows, arows, avenues
+
+
+def _irregular_rows(town: _Town, rows: np.ndarray, route: Route, near: _Near) -> np.ndarray:
+    """An irregular town's extras: avenues, then roundabouts (a round junction cleared, an
+    island in its middle); all rows warped into the curved city frame."""
+    rows, arows, avenues = _avenue_rows(town, _split_rows(rows))
+    flat = _dense_path(route.points, route.radii)
+    path = np.stack([flat[1][::4], flat[2][::4]], 1)
+    rb = _Builder()
+    rows = np.concatenate([rows, arows])
+    for x, y, rad in _choose_roundabouts(town.rng, town.grid, near, path, avenues):
+        c = np.array([x, y])
+        reach = np.hypot(rows[:, 3], rows[:, 4])
+        rows = rows[np.hypot(rows[:, 0] - x, rows[:, 1] - y) > rad + 7.5 + reach]
+        _roundabout_island(rb, town.rng, c, rad, rad + 7.5)
+        town.layout.roundabouts.append((x, y, rad))
+    return _warp_rows(np.concatenate([rows, _rows_array(rb.rows)]), town.warp)
+
+
+def _following_vehicles(town: _Town, movers: _MoverSet) -> None:
+    """A vehicle ahead of the ego and one behind, driving its path (time-shifted)."""
+    rng = town.rng
+    for p, sign in ((0.55, 1.0), (0.45, -1.0)):
+        if rng.random() < p * min(town.density, 1.0):
+            k, length, width, z0, z1 = _vehicle_dims(rng, moving=True)
+            gap = sign * (rng.uniform(8.0, 14.0) + (length - 4.5) / 2)
+            lead = sign * rng.uniform(0.8, 2.0)
+            movers.offer(
+                _mover(
+                    k, length, width, z0, z1, np.zeros(2), 0.0, 0.0, follow=True, gap=gap, lead=lead
+                )
             )
-        )
-    if rng.random() < 0.45 * min(density, 1.0):
+
+
+def _lane_traffic(
+    town: _Town, movers: _MoverSet, axis: int, c: float, d: int, span: tuple[float, float]
+) -> None:
+    """Vehicles at one speed in one lane (direction ``d``) of the street at ``c`` along
+    ``axis``, and now and then a cyclist at the lane's right edge."""
+    rng, urban, density = town.rng, town.urban, town.density
+    a_lo, a_hi = span
+    speed = float(rng.uniform(6.0, 12.5)) * (1.0 if urban else 1.15)
+    n = rng.poisson(density * (a_hi - a_lo) / (45.0 if urban else 90.0))
+    pos = np.sort(rng.uniform(a_lo, a_hi, size=n))
+    if n > 1:
+        keep = np.concatenate([[True], np.diff(pos) > 12.0])
+        pos = pos[keep]
+    lane = c - d * LANE_OFFSET_M if axis == 0 else c + d * LANE_OFFSET_M
+    if axis == 0:
+        heading = 0.0 if d > 0 else math.pi
+    else:
+        heading = math.pi / 2 if d > 0 else -math.pi / 2
+    for p in pos:
         k, length, width, z0, z1 = _vehicle_dims(rng, moving=True)
-        movers.offer(
-            _mover(
-                k,
-                length,
-                width,
-                z0,
-                z1,
-                np.zeros(2),
-                0.0,
-                0.0,
-                follow=True,
-                gap=-rng.uniform(8.0, 14.0) - (length - 4.5) / 2,
-                lead=-rng.uniform(0.8, 2.0),
-            )
-        )
-    # Traffic on the streets near the route: both directions, one speed a lane.
-    spacing = 45.0 if urban else 90.0
+        p0 = np.array([p, lane]) if axis == 0 else np.array([lane, p])
+        movers.offer(_mover(k, length, width, z0, z1, p0, heading, speed))
+    # Cyclists keep to the right edge of the lane.
+    if rng.random() < (0.25 if urban else 0.15) * density:
+        off = LANE_OFFSET_M + 1.1
+        lane_c = c - d * off if axis == 0 else c + d * off
+        p = rng.uniform(a_lo, a_hi)
+        p0 = np.array([p, lane_c]) if axis == 0 else np.array([lane_c, p])
+        v = float(rng.uniform(3.5, 6.0))
+        movers.offer(_mover(M.CYCLIST, 1.8, 0.6, 0.0, 1.75, p0, heading, v))
+
+
+def _street_traffic(town: _Town, movers: _MoverSet) -> None:
+    """Traffic on the streets near the route: both directions, one speed a lane."""
+    grid, pts = town.grid, town.pts
     xlo, xhi = pts[:, 0].min() - 120.0, pts[:, 0].max() + 120.0
     ylo, yhi = pts[:, 1].min() - 120.0, pts[:, 1].max() + 120.0
     for axis in (0, 1):
         centres = grid.ys if axis == 0 else grid.xs
         hws = grid.y_hw if axis == 0 else grid.x_hw
-        a_lo, a_hi = (xlo, xhi) if axis == 0 else (ylo, yhi)
-        for c, hw in zip(centres, hws):
+        span = (xlo, xhi) if axis == 0 else (ylo, yhi)
+        for c, _hw in zip(centres, hws):
             if not ((ylo if axis == 0 else xlo) <= c <= (yhi if axis == 0 else xhi)):
                 continue
             for d in (1, -1):
-                speed = float(rng.uniform(6.0, 12.5)) * (1.0 if urban else 1.15)
-                n = rng.poisson(density * (a_hi - a_lo) / spacing)
-                pos = np.sort(rng.uniform(a_lo, a_hi, size=n))
-                if n > 1:
-                    keep = np.concatenate([[True], np.diff(pos) > 12.0])
-                    pos = pos[keep]
-                lane = c - d * LANE_OFFSET_M if axis == 0 else c + d * LANE_OFFSET_M
-                heading = (
-                    (0.0 if d > 0 else math.pi)
-                    if axis == 0
-                    else (math.pi / 2 if d > 0 else -math.pi / 2)
-                )
-                for p in pos:
-                    k, length, width, z0, z1 = _vehicle_dims(rng, moving=True)
-                    p0 = np.array([p, lane]) if axis == 0 else np.array([lane, p])
-                    movers.offer(_mover(k, length, width, z0, z1, p0, heading, speed))
-                # Cyclists keep to the right edge of the lane.
-                if rng.random() < (0.25 if urban else 0.15) * density:
-                    off = LANE_OFFSET_M + 1.1
-                    lane_c = c - d * off if axis == 0 else c + d * off
-                    p = rng.uniform(a_lo, a_hi)
-                    p0 = np.array([p, lane_c]) if axis == 0 else np.array([lane_c, p])
-                    movers.offer(
-                        _mover(
-                            M.CYCLIST,
-                            1.8,
-                            0.6,
-                            0.0,
-                            1.75,
-                            p0,
-                            heading,
-                            float(rng.uniform(3.5, 6.0)),
-                        )
-                    )
-    for avenue, (u_lo, u_hi) in zip(layout.avenues, avenue_spans):
-        _avenue_traffic(rng, movers, avenue, u_lo, u_hi, urban, density)
-    # Pedestrians walking along sidewalks, and some crossing at corners.
-    for side in sides:
+                _lane_traffic(town, movers, axis, c, d, span)
+    for avenue, (u_lo, u_hi) in zip(town.layout.avenues, town.avenue_spans):
+        _avenue_traffic(town.rng, movers, avenue, u_lo, u_hi, town.urban, town.density)
+
+
+def _pedestrians(town: _Town, movers: _MoverSet, duration_s: float) -> None:
+    """Pedestrians walking along sidewalks, and some crossing at corners."""
+    rng, urban, density = town.rng, town.urban, town.density
+    for side in town.sides:
         sw = side.sidewalk
         for _ in range(rng.poisson(density * side.length / (45.0 if urban else 150.0))):
             u = rng.uniform(0.0, side.length)
             v = -sw * rng.uniform(0.22, 0.42)
             fwd = rng.random() < 0.5
             heading = side.yaw if fwd else side.yaw + math.pi
-            movers.offer(
-                _mover(
-                    M.PEDESTRIAN,
-                    0.5,
-                    0.6,
-                    0.0,
-                    float(rng.uniform(1.5, 1.9)),
-                    side.point(u, v),
-                    heading,
-                    float(rng.uniform(0.9, 1.6)),
-                )
-            )
+            height = float(rng.uniform(1.5, 1.9))
+            speed = float(rng.uniform(0.9, 1.6))
+            p0 = side.point(u, v)
+            movers.offer(_mover(M.PEDESTRIAN, 0.5, 0.6, 0.0, height, p0, heading, speed))
         if rng.random() < (0.3 if urban else 0.08) * density:
             speed = float(rng.uniform(1.1, 1.5))
             start = side.point(-1.0, -sw + 0.2)
             dist = 2 * side.half_width + 0.4
-            tb = float(rng.uniform(-2.0, config.duration_s))
+            tb = float(rng.uniform(-2.0, duration_s))
             heading = math.atan2(-side.n[1], -side.n[0])
             p0 = start - np.array([math.cos(heading), math.sin(heading)]) * speed * tb
+            height = float(rng.uniform(1.5, 1.9))
+            te = tb + dist / speed
             movers.offer(
-                _mover(
-                    M.PEDESTRIAN,
-                    0.5,
-                    0.6,
-                    0.0,
-                    float(rng.uniform(1.5, 1.9)),
-                    p0,
-                    heading,
-                    speed,
-                    tb=tb,
-                    te=tb + dist / speed,
-                )
+                _mover(M.PEDESTRIAN, 0.5, 0.6, 0.0, height, p0, heading, speed, tb=tb, te=te)
             )
-    mv = movers.movers()
 
-    # Into the global frame: a random rotation, the start a few hundred metres from the origin.
-    theta = float(rng.uniform(-math.pi, math.pi)) if wc.random_orientation else 0.0
+
+def _city_to_global(rng: np.random.Generator, config: SimConfig, traj: Trajectory) -> SE2:
+    """A random rotation, the start a few hundred metres from the origin."""
+    theta = float(rng.uniform(-math.pi, math.pi)) if config.world.random_orientation else 0.0
     start = np.array([float(traj.pose_at(0.0)[0]), float(traj.pose_at(0.0)[1])])
     target = rng.uniform(300.0, 1700.0, size=2)
     c, s = math.cos(theta), math.sin(theta)
-    tf = SE2(
+    return SE2(
         float(target[0] - (c * start[0] - s * start[1])),
         float(target[1] - (s * start[0] + c * start[1])),
         theta,
     )
+
+
+def _global_world(town: _Town, rows: np.ndarray, mv, tf: SE2) -> World:
+    """The world in the global frame, with per-object material variation."""
+    rng = town.rng
+    static = pack_boxes(
+        rows[:, 0], rows[:, 1], rows[:, 2], rows[:, 3], rows[:, 4], rows[:, 5], rows[:, 6]
+    )
+    static_cls = rows[:, 7].astype(np.int32)
     gxy = tf.apply(static[:, :2]) if len(static) else np.zeros((0, 2))
-    yaw_g = rows[:, 2] + theta
+    yaw_g = rows[:, 2] + tf.yaw
     static_g = pack_boxes(
         gxy[:, 0], gxy[:, 1], yaw_g, static[:, 4], static[:, 5], static[:, 6], static[:, 7]
     )
+    n_static = len(static_cls)
     refl = np.clip(
-        M.LIDAR_REFLECTIVITY[static_cls] * rng.uniform(0.7, 1.3, size=len(static_cls)), 0.02, 1.0
+        M.LIDAR_REFLECTIVITY[static_cls] * rng.uniform(0.7, 1.3, size=n_static), 0.02, 1.0
     )
-    rcs_off = rng.normal(0.0, 2.0, size=len(static_cls))
+    rcs_off = rng.normal(0.0, 2.0, size=n_static)
     m_refl = np.clip(
         M.LIDAR_REFLECTIVITY[mv.classes] * rng.uniform(0.7, 1.3, size=len(mv)), 0.02, 1.0
     )
     m_rcs = rng.normal(0.0, 2.0, size=len(mv))
-    world = World(
-        env,
+    return World(
+        town.env,
         static_g,
         yaw_g,
         static_cls,
@@ -1660,8 +1696,31 @@ def generate_world(seed: int, config: SimConfig) -> tuple[World, Trajectory, Tra
         mv.transformed(tf),
         m_refl,
         m_rcs,
-        grid,
+        town.grid,
         tf,
-        layout if irregular else None,
+        town.layout if town.irregular else None,
     )
-    return world, traj.transformed(tf), traj
+
+
+def generate_world(seed: int, config: SimConfig) -> tuple[World, Trajectory, Trajectory]:
+    """Build the world around a random route -> (world, true trajectory (global), same in the
+    city frame). The steps draw from one generator in this order, so a seed gives one world."""
+    rng, env, grid, route, warp, traj = _plan(seed, config)
+    pts = _driven_path(traj, config, warp)
+    near = _Near(pts)
+    town = _Town(rng, env, grid, warp, config.world.traffic_density, pts, TownLayout(warp))
+    b = _Builder()
+    _populate_blocks(town, b, near)
+    rows = _rows_array(b.rows)
+    if town.irregular:
+        rows = _irregular_rows(town, rows, route, near)
+    static = pack_boxes(
+        rows[:, 0], rows[:, 1], rows[:, 2], rows[:, 3], rows[:, 4], rows[:, 5], rows[:, 6]
+    )
+    movers = _MoverSet(traj, config.duration_s, static, warp)
+    _following_vehicles(town, movers)
+    _street_traffic(town, movers)
+    _pedestrians(town, movers, config.duration_s)
+    mv = movers.movers()
+    tf = _city_to_global(rng, config, traj)
+    return _global_world(town, rows, mv, tf), traj.transformed(tf), traj
