@@ -41,6 +41,25 @@ def masses_to_rgb(m: np.ndarray) -> np.ndarray:
     return np.clip(np.rint(a * 255.0), 0, 255).astype(np.uint8)
 
 
+#: The map palette's colours (map_server's PGM greys: free 254, occupied 0, unknown 205).
+MAP_COLOURS = {"free": (1.0, 1.0, 1.0), "occupied": (0.0, 0.0, 0.0), "unknown": (0.8, 0.8, 0.8)}
+
+
+def map_rgb(m: np.ndarray) -> np.ndarray:
+    """Masses ``(..., 3)`` to a uint8 RGB map picture: free white, occupied black, unknown grey.
+
+    Each pixel mixes the three colours of :data:`MAP_COLOURS` by the masses (a mass is a convex
+    weight), so confidence reads as shade: a cell with ``m_f = 0.3, m_u = 0.7`` is a lighter
+    grey than unknown, one with ``m_o = 0.3, m_u = 0.7`` a darker one, as in a nav2 map.
+    """
+    a = np.asarray(m, dtype=np.float32)
+    if a.ndim < 1 or a.shape[-1] != 3:
+        raise ValueError(f"masses must have a last axis of length 3, got shape {a.shape}")
+    grey = a[..., 0] * MAP_COLOURS["free"][0] + a[..., 2] * MAP_COLOURS["unknown"][0]
+    v = np.clip(np.rint(grey * 255.0), 0, 255).astype(np.uint8)
+    return np.repeat(v[..., None], 3, axis=-1)
+
+
 def _pyplot():
     """matplotlib.pyplot on the non-interactive Agg backend (no display needed)."""
     import matplotlib
