@@ -99,21 +99,56 @@ def _whole(m: EvidentialMap, max_cells: int = 2048) -> tuple[np.ndarray, np.ndar
     return pic, quad_corners(r0, c0, hh * step, ww * step, m.grid.resolution)
 
 
+#: rerun's stream framing (rerun-sdk 0.23, the pinned version): each read of a binary stream
+#: is a whole stream, a 12-byte header (``RRF2``, version, options) and messages ending with
+#: an end-of-stream message (16 zero bytes).
+_RRD_MAGIC, _RRD_HEADER, _RRD_END = b"RRF2", 12, bytes(16)
+
+
+#: Points of the trajectory logged with each picture (the whole path is logged at the end).
+_TRAJECTORY_POINTS = 500
+
+
 class _RrdFile:
-    """A rerun binary stream drained into an :class:`AtomicFile`."""
+    """A rerun binary stream drained into an :class:`AtomicFile` as one ``.rrd`` stream.
+
+    Each drain is a complete stream; the pieces are joined into one by keeping the first
+    header and the last end-of-stream message only, so the file on disk grows as the run goes
+    instead of the recording waiting in memory until the end.
+    """
 
     def __init__(self, rec: Any, path: Path, overwrite: bool):
         self.file = AtomicFile(path, overwrite)
+        self._header: bytes | None = None
         try:
             self.stream = rec.binary_stream()
         except BaseException as e:
             self.file.abort()
             raise _named(path, e) from e
 
-    def drain(self, flush: bool = False) -> None:
-        data = self.stream.read(flush=flush)
-        if data:
-            self.file.write(data)
+    def drain(self) -> None:
+        data = self.stream.read(flush=True)
+        if not data:
+            return
+        head = data[:_RRD_HEADER]
+        if (
+            not head.startswith(_RRD_MAGIC)
+            or not data.endswith(_RRD_END)
+            or (self._header is not None and head != self._header)
+        ):
+            raise ValueError(
+                f"{self.file.path}: rerun's stream framing is not the one evgrid joins "
+                "(rerun-sdk 0.23.1, pinned in the rerun extra)"
+            )
+        if self._header is None:
+            self._header = head
+            self.file.write(head)
+        self.file.write(data[_RRD_HEADER : -len(_RRD_END)])
+
+    def commit(self) -> Path:
+        self.drain()
+        self.file.write(_RRD_END)
+        return self.file.commit()
 
 
 class RerunRecorder:
@@ -166,8 +201,6 @@ class RerunRecorder:
         pose = update.pose
         c, s = math.cos(pose.yaw), math.sin(pose.yaw)
         self.trajectory.append((pose.x, pose.y))
-        xyz = np.c_[np.asarray(self.trajectory), np.zeros(len(self.trajectory))]
-        rec.log("trajectory", rr.LineStrips3D([xyz], colors=[[230, 60, 30]]))
         rec.log(
             "ego",
             # float32 arrays and a matrix: with numpy 1.x (the nuscenes extra's), rerun 0.23
@@ -180,6 +213,7 @@ class RerunRecorder:
         rec.log("ego/position", rr.Points3D([[0.0, 0.0, 0.0]], radii=0.5, colors=[[230, 60, 30]]))
         self._maps = update.maps.maps
         if not (p.keyframes_only and not update.frame.is_keyframe):
+            self._log_trajectory(_TRAJECTORY_POINTS)
             if p.isms:
                 for name, ism in update.isms.items():
                     n = ism.shape[0]
@@ -196,27 +230,36 @@ class RerunRecorder:
                 hh, ww = pic.shape[:2]
                 corners = quad_corners(r0, c0, hh * p.step, ww * p.step, m.grid.resolution)
                 rec.log(f"maps/{name}", _quad(rr, pic, corners))
-        if self._out is not None:
-            self._out.drain()
+            if self._out is not None:
+                self._out.drain()  # with the pictures: the trajectory alone is small
 
     def on_update(self, update: Any) -> None:
         self._guarded(self._on_update, update)
 
+    def _log_trajectory(self, max_points: int | None) -> None:
+        """The path so far (at most ``max_points``, evenly spaced, the last one included), so
+        that the pictures' updates cost the same on any drive instead of growing with it."""
+        xy = np.asarray(self.trajectory, dtype=np.float64)
+        if max_points is not None and len(xy) > max_points:
+            xy = xy[np.unique(np.linspace(0, len(xy) - 1, max_points).astype(np.int64))]
+        xyz = np.c_[xy, np.zeros(len(xy))].astype(np.float32)
+        self.rec.log("trajectory", self.rr.LineStrips3D([xyz], colors=[[230, 60, 30]]))
+
     def _close(self) -> None:
+        if self.trajectory:
+            self._log_trajectory(None)  # the whole path, at the last update's time
         for name, m in self._maps.items():
             if m.covered_bounds()[2]:
                 pic, corners = _whole(m)
                 self.rec.log(f"final/{name}", _quad(self.rr, pic, corners), static=True)
         self.rec.flush()
-        if self._out is not None:
-            self._out.drain(flush=True)
 
     def close(self) -> Path | None:
         """Log the whole final maps and finish; returns the ``.rrd`` path (None for a viewer)."""
         self._guarded(self._close)
         if self._out is None:
             return None
-        return self._guarded(self._out.file.commit)
+        return self._guarded(self._out.commit)
 
     def abort(self) -> None:
         """Drop the file being written (nothing is left under ``path``)."""
@@ -241,8 +284,7 @@ def write_map_rrd(
             f"final/{name or m.metadata.get('rule', 'map')}", _quad(rr, pic, corners), static=True
         )
         rec.flush()
-        out.drain(flush=True)
-        return out.file.commit()
+        return out.commit()
     except BaseException as e:
         out.file.abort()
         raise _named(out.file.path, e) from e
