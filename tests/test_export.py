@@ -127,7 +127,8 @@ def run(tmp_path_factory):
 
 
 def _decoded(path, start_ns: int = 0):
-    """Messages from ``start_ns`` on, decoded by mcap-ros2-support (pure Python: slow on big grids)."""
+    """Messages from ``start_ns`` on, decoded by mcap-ros2-support (pure Python: slow on big
+    grids)."""
     pytest.importorskip("mcap_ros2")
     from mcap.reader import make_reader
     from mcap_ros2.decoder import DecoderFactory

@@ -232,7 +232,8 @@ def plot_convergence(
     times_s: Sequence[float] | None = None,
     title: str = "",
 ) -> Path:
-    """IoU over time of each map, one subplot per class (paper: faster convergence with the deep prior)."""
+    """IoU over time of each map, one subplot per class (paper: faster convergence with the
+    deep prior)."""
     plt = _pyplot()
 
     fig, axes = plt.subplots(1, 3, figsize=(12, 3.4), dpi=110)
@@ -251,8 +252,9 @@ def plot_convergence(
 
 
 def plot_perception_field(conv: Mapping, path: str | os.PathLike, title: str = "") -> Path:
-    """Free and occupied IoU against the truth and the area classified correctly after 1, 2, 5, 10 s of
-    driving, mean over scenes with 95% bootstrap intervals (``summary["convergence_truth"]``)."""
+    """Free and occupied IoU against the truth and the area classified correctly after 1, 2,
+    5, 10 s of driving, mean over scenes with 95% bootstrap intervals
+    (``summary["convergence_truth"]``)."""
     plt = _pyplot()
 
     t = np.asarray(conv["t_s"], dtype=float)
@@ -312,7 +314,8 @@ def write_gif(frames: Sequence[np.ndarray], path: str | os.PathLike, fps: float 
 
 
 def trajectory_cells(xy: np.ndarray, resolution: float, r0: int, c0: int) -> np.ndarray:
-    """Trajectory points in the first pose's frame (m) to (column, row) image coordinates of a map crop."""
+    """Trajectory points in the first pose's frame (m) to (column, row) image coordinates of a
+    map crop."""
     xy = np.asarray(xy, dtype=np.float64)
     rows = -xy[:, 0] / resolution - r0 - 0.5
     cols = -xy[:, 1] / resolution - c0 - 0.5
@@ -320,7 +323,8 @@ def trajectory_cells(xy: np.ndarray, resolution: float, r0: int, c0: int) -> np.
 
 
 def sample_map(m, r0: int, c0: int, h: int, w: int, step: int = 1) -> tuple[np.ndarray, np.ndarray]:
-    """Every ``step``-th map cell of ``[r0, r0+h) x [c0, c0+w)``: masses and coverage, read tile by tile.
+    """Every ``step``-th map cell of ``[r0, r0+h) x [c0, c0+w)``: masses and coverage, read
+    tile by tile.
 
     Only tiles that exist are touched (at most those the box meets), so a picture of a window
     costs the same anywhere on a long drive, and a picture of a whole map grows with its area.
@@ -407,7 +411,8 @@ def label_panels(
     return np.concatenate([np.asarray(strip), grid], axis=0)
 
 
-#: Longest side, in map cells read, of the whole-map figure (a figure has a few hundred pixels a panel).
+#: Longest side, in map cells read, of the whole-map figure (a figure has a few hundred
+#: pixels a panel).
 _FIGURE_CELLS = 1024
 
 
@@ -420,7 +425,8 @@ def write_scene_figures(
     keyframes: Sequence[Mapping] = (),
     gif_frames: Sequence[np.ndarray] = (),
 ) -> dict[str, str]:
-    """The maps side by side, the ISMs of the last update, convergence curves and the GIF; returns the files."""
+    """The maps side by side, the ISMs of the last update, convergence curves and the GIF;
+    returns the files."""
     files: dict[str, str] = {}
     ref = maps.get("ray_ilm") or next(iter(maps.values()))
     r0, c0, h, w = ref.covered_bounds()
@@ -472,7 +478,8 @@ def plot_m_u_min_sweep(
     path: str | os.PathLike,
     chosen: float | None = None,
 ) -> Path:
-    """mIoU of the swept maps against m_u_min, per class and averaged, with the chosen value marked."""
+    """mIoU of the swept maps against m_u_min, per class and averaged, with the chosen value
+    marked."""
     plt = _pyplot()
 
     xs = [r["m_u_min"] for r in rows]

@@ -12,8 +12,11 @@ The image is written as map_saver writes trinary maps (occupied 0, free 254, unk
 ``negate: 0`` and the same thresholds in the YAML, so map_server's trinary rule
 (``p = (255 - pixel) / 255``; occupied if ``p > occupied_thresh``, free if ``p < free_thresh``,
 else unknown) gives back exactly these classes. Image rows run top-down (the first row is the
-largest y); ``origin`` is the map-frame pose of the lower-left pixel's outer corner. The map
-frame is the first ego pose's (x forward, y left).
+largest y); ``origin`` is the map-frame pose of the lower-left pixel's outer corner.
+
+:class:`Nav2Exporter` writes the navigation map as ``map.pgm`` + ``map.yaml`` (map_saver's
+names), other maps beside it, and says in the YAML's comments which map it is and where the
+map frame lies in the recording's fixed frame (the first ego pose there).
 """
 
 from __future__ import annotations
@@ -85,7 +88,8 @@ class Nav2Thresholds:
 def classify(
     masses: np.ndarray, covered: np.ndarray | None = None, th: Nav2Thresholds = Nav2Thresholds()
 ) -> np.ndarray:
-    """Masses ``(..., 3)`` -> int8 classes FREE / OCCUPIED / UNKNOWN (see the module's docstring)."""
+    """Masses ``(..., 3)`` -> int8 classes FREE / OCCUPIED / UNKNOWN (see the module's
+    docstring)."""
     m = np.asarray(masses, dtype=np.float32)
     p = m[..., 1] + 0.5 * m[..., 2]  # pignistic P(occ), eq. (13)
     out = np.full(m.shape[:-1], UNKNOWN, dtype=np.int8)
@@ -151,7 +155,8 @@ def occupancy_values(
 def map_to_occupancy(
     masses: np.ndarray, r0: int, c0: int, resolution: float
 ) -> tuple[np.ndarray, tuple[float, float]]:
-    """Re-index map-grid arrays ``a[R - r0, C - c0]`` in ROS order: ``out[j, i]`` with i along +x, j along +y.
+    """Re-index map-grid arrays ``a[R - r0, C - c0]`` in ROS order: ``out[j, i]`` with i along
+    +x, j along +y.
 
     Returns the array and the map-frame (x, y) of the outer corner of its cell [0, 0]. evgrid's
     map rows grow towards -x and columns towards -y (:mod:`evgrid.geometry`), so both axes flip
@@ -244,12 +249,13 @@ def write_nav2(
 
 
 def read_nav2(yaml_path: str | os.PathLike) -> tuple[np.ndarray, float, tuple[float, float, float]]:
-    """Load a map as map_server does: (OccupancyGrid data ``(height, width)`` int8 rows bottom-up, resolution, origin).
+    """Load a map as map_server does: (OccupancyGrid data ``(height, width)`` int8 rows
+    bottom-up, resolution, origin).
 
-    Implements the ``trinary`` and ``scale`` modes' rule for 8-bit grey images: ``p = (255 - v) / 255``
-    (``v / 255`` with ``negate``); occupied (100) if ``p > occupied_thresh``, free (0) if
-    ``p < free_thresh``, else unknown (-1) in trinary mode or ``99 * (p - free) / (occ - free)``
-    in scale mode.
+    Implements the ``trinary`` and ``scale`` modes' rule for 8-bit grey images:
+    ``p = (255 - v) / 255`` (``v / 255`` with ``negate``); occupied (100) if
+    ``p > occupied_thresh``, free (0) if ``p < free_thresh``, else unknown (-1) in trinary mode
+    or ``99 * (p - free) / (occ - free)`` in scale mode.
     """
     from evgrid.ros import require
 
