@@ -51,7 +51,7 @@ class RerunParams:
     trajectory is logged at every update), ``isms`` whether to log them; ``map_frame`` and
     ``fixed_frame`` name the frames in ``info``."""
 
-    window_m: float = 80.0
+    window_m: float = 40.0
     step: int = 2
     keyframes_only: bool = True
     isms: bool = True
