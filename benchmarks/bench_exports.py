@@ -3,7 +3,9 @@
 Maps one simulated scene as ``evgrid map`` does (six maps, figures, GIF), in turns without
 exports and with ``nav2,mcap,rerun`` at their defaults, and prints each file's size, the best
 wall time of each and their ratio. Runs on any evgrid commit that has ``evgrid.runs.map_scene``
-(put that commit's ``src`` first on PYTHONPATH), so the same script measures before and after:
+(put that commit's ``src`` first on PYTHONPATH), so the same script measures before and after
+(with the current code, the MCAP at ``McapParams``' defaults, whatever window the run's
+``OutputConfig.export_window_m`` still says):
 
     git archive 6e6d98d src | tar -x -C /tmp/before
     PYTHONPATH=/tmp/before/src python benchmarks/bench_exports.py      # before
@@ -48,11 +50,19 @@ def run(frames, exports: tuple[str, ...], tmp: Path, k: int) -> tuple[float, dic
 
     out = tmp / f"run{k}-{'-'.join(exports) or 'none'}"
     last = _Last()
+    outputs = dataclasses.replace(OutputConfig(), exports=exports)
+    try:  # the exporter's own default window, where the run's config still carries another
+        from evgrid.export.mcap import McapParams
+
+        if hasattr(outputs, "export_window_m"):
+            outputs = dataclasses.replace(outputs, export_window_m=McapParams().window_m)
+    except ImportError:
+        pass  # an older evgrid: its run's defaults as they were
     t0 = time.perf_counter()
     map_scene(
         frames,
         out,
-        outputs=dataclasses.replace(OutputConfig(), exports=exports),
+        outputs=outputs,
         name="scene",
         observers=(last,),
     )
