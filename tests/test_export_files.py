@@ -264,7 +264,7 @@ def test_a_map_asked_for_that_the_run_lacks_is_named_at_the_first_update(tmp_pat
     obs = make_observer("nav2", tmp_path / "nav2", maps=("deep_acc",))
     with pytest.raises(ValueError, match="deep_acc"):
         obs.on_update(_update(0))
-    obs = make_observer("nav2", tmp_path / "nav2", navigation=("nav",))
+    obs = make_observer("nav2", tmp_path / "nav2", navigation=("nav", "deep_acc"))
     with pytest.raises(ValueError, match="navigation maps"):
         obs.on_update(_update(0))
 

@@ -26,6 +26,7 @@ the frames' timestamps.
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 from collections.abc import Sequence
@@ -45,6 +46,8 @@ from evgrid.export.nav2 import (
 )
 from evgrid.geometry import SE2, SE3
 from evgrid.grid import EvidentialMap
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "McapExporter",
@@ -157,8 +160,9 @@ class McapParams:
 
     ``window_m``: side of the square around the vehicle written while mapping (0: none).
     ``rate_hz``: how often the window is written (None: at every keyframe). ``maps``: the
-    windowed maps (None: the first of ``navigation`` the run has). ``final_maps``: the maps
-    written whole at the end (None: every map of the run; ``()``: none). ``layers``:
+    windowed maps (None: the first of ``navigation`` the run has, else its first map).
+    ``final_maps``: the maps written whole at the end (None: every map of the run; ``()``:
+    none). ``layers``:
     ``occupancy`` (OccupancyGrid) and any of :data:`LAYERS` (one GridMap with those layers).
     ``occupancy_values``: ``trinary`` or ``scale`` (:func:`~evgrid.export.nav2.occupancy_values`).
     ``compression``: the chunks' (:data:`COMPRESSIONS`). ``map_frame``, ``fixed_frame``: the
@@ -172,7 +176,7 @@ class McapParams:
     layers: tuple[str, ...] = ("occupancy",)
     occupancy_values: str = "trinary"
     compression: str = "zstd"
-    navigation: tuple[str, ...] = ("nav", "fused")
+    navigation: tuple[str, ...] = ("nav", "fused", "ray_ilm")
     thresholds: Nav2Thresholds = field(default_factory=Nav2Thresholds)
     map_frame: str = "map"
     fixed_frame: str = "odom"
@@ -328,11 +332,13 @@ class McapExporter:
         p = self.params
         maps = update.maps.maps
         if p.maps is None:
-            found = [n for n in p.navigation if n in maps]
-            if not found:
-                raise ValueError(
-                    f"{self.path}: none of the navigation maps {list(p.navigation)} is in this "
-                    f"run (it has {sorted(maps)}); name the maps to export"
+            found = [n for n in p.navigation if n in maps] or list(maps)[:1]
+            if found[0] not in p.navigation:
+                log.info(
+                    "MCAP export %s: no navigation map %s in this run; the window shows %s",
+                    self.path,
+                    list(p.navigation),
+                    found[0],
                 )
             self._window_maps = (found[0],)
         else:

@@ -287,12 +287,13 @@ class Nav2Params:
     ``maps``: other maps written beside the navigation map, as ``NAME.pgm`` + ``NAME.yaml``.
     ``navigation``: the maps to look for, in order, for ``map.pgm`` + ``map.yaml`` (the
     navigation map ``nav`` when the map set has it, else ``fused``: radar-only rigs, with a
-    note in the YAML and the log). ``map_frame`` / ``fixed_frame`` name the frames in the YAML's
-    comment (the map frame and the recording's fixed frame, e.g. the rig's ``world_frame``).
+    note in the YAML and the log; else the lidar map, for runs that asked for neither).
+    ``map_frame`` / ``fixed_frame`` name the frames in the YAML's comment (the map frame and
+    the recording's fixed frame, e.g. the rig's ``world_frame``).
     """
 
     maps: tuple[str, ...] = ()
-    navigation: tuple[str, ...] = ("nav", "fused")
+    navigation: tuple[str, ...] = ("nav", "fused", "ray_ilm")
     thresholds: Nav2Thresholds = Nav2Thresholds()
     map_frame: str = "map"
     fixed_frame: str = "odom"
@@ -375,10 +376,15 @@ class Nav2Exporter:
     def _comments(self, name: str) -> list[str]:
         notes = self.placement.comments() if self.placement else []
         if name == self.navigation and name != self.params.navigation[0]:
+            why = (
+                "e.g. a radar-only rig; radar free space can pass through walls"
+                if name == "fused"
+                else "the maps of this run were chosen without it"
+            )
             notes.insert(
                 0,
                 f"the navigation map: '{name}' (this run has no '{self.params.navigation[0]}' "
-                "map, e.g. a radar-only rig; radar free space can pass through walls)",
+                f"map: {why})",
             )
         elif name == self.navigation:
             notes.insert(0, f"the navigation map: '{name}'")
