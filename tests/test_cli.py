@@ -413,7 +413,8 @@ def test_a_simulated_recording_maps_through_bag_and_rig_and_exports(tmp_path, ti
     )
     assert r.exit_code == 0, r.output
     scene = tmp_path / "out" / "sim-000004"
-    assert (scene / "nav2" / "fused.pgm").is_file() and (scene / "sim-000004.mcap").is_file()
+    # the navigation map (fused: this run has no nav map) under map_saver's names
+    assert (scene / "nav2" / "map.pgm").is_file() and (scene / "sim-000004.mcap").is_file()
     metrics = json.loads((scene / "metrics.json").read_text())
     assert metrics["counts"]["updates"] > 0 and "vs_ray_ilm" in metrics
     run = json.loads((tmp_path / "out" / "config.json").read_text())

@@ -10,16 +10,18 @@ import pytest
 from evgrid.config import MapperConfig
 from evgrid.data import SimConfig, simulate_scene
 from evgrid.export import FORMATS, export_map, make_observer
+from evgrid.export.mcap import LAYERS, McapParams
 from evgrid.export.nav2 import (
     FREE,
     OCCUPIED,
     UNKNOWN,
     Nav2Thresholds,
     classify,
+    occupancy_values,
     read_nav2,
     write_nav2,
 )
-from evgrid.geometry import GridSpec
+from evgrid.geometry import SE2, GridSpec
 from evgrid.grid import EvidentialMap
 from evgrid.mapper import OccupancyMapper
 
@@ -99,8 +101,13 @@ def run(tmp_path_factory):
     pytest.importorskip("mcap")
     out = tmp_path_factory.mktemp("run")
     obs = [
-        make_observer("mcap", out / "run.mcap"),
-        make_observer("nav2", out / "nav2", maps=("fused",)),
+        make_observer("mcap", out / "run.mcap"),  # the defaults
+        make_observer(
+            "mcap",
+            out / "full.mcap",
+            McapParams(layers=("occupancy", *LAYERS), occupancy_values="scale", maps=("ray_ilm",)),
+        ),
+        make_observer("nav2", out / "nav2", maps=("ray_ilm",)),
     ]
     try:
         import rerun  # noqa: F401
@@ -120,7 +127,8 @@ def run(tmp_path_factory):
 
 
 def _decoded(path, start_ns: int = 0):
-    """Messages from ``start_ns`` on, decoded by mcap-ros2-support (pure Python: slow on big grids)."""
+    """Messages from ``start_ns`` on, decoded by mcap-ros2-support (pure Python: slow on big
+    grids)."""
     pytest.importorskip("mcap_ros2")
     from mcap.reader import make_reader
     from mcap_ros2.decoder import DecoderFactory
@@ -146,49 +154,83 @@ def _topic_counts(path) -> dict[str, int]:
 def test_mcap_run_reads_back_with_the_reference_reader(run):
     mapper, frames, out = run
     counts = _topic_counts(out / "run.mcap")
-    assert counts["/tf"] == mapper.n_updates
+    assert counts["/tf"] == counts["/evgrid/ego_pose"] == mapper.n_updates
+    assert counts["/evgrid/path"] == 1
     msgs = _decoded(
         out / "run.mcap", frames[-2].timestamp * 1000
     )  # the last pose (updates: every other frame), final maps
     tfs = [d for t, _, _, d in msgs if t == "/tf"]
-    x, y, yaw = mapper.trajectory[-1]
     tr = tfs[-1].transforms[0]
-    assert (tr.header.frame_id, tr.child_frame_id) == ("map", "base_link")
-    assert (tr.transform.translation.x, tr.transform.translation.y) == pytest.approx((x, y))
-    assert 2 * np.arctan2(tr.transform.rotation.z, tr.transform.rotation.w) == pytest.approx(yaw)
+    # the map frame is a parent of the recording's fixed frame, not of base_link
+    assert (tr.header.frame_id, tr.child_frame_id) == ("map", "odom")
+    # map -> odom, then the recording's odom -> base_link, is the ego pose in the map
+    t = tr.transform
+    yaw = 2 * np.arctan2(t.rotation.z, t.rotation.w)
+    fixed = SE2(t.translation.x, t.translation.y, yaw)
+    stamp = tr.header.stamp
+    by_ns = {f.timestamp * 1000: f for f in frames}
+    last = by_ns[stamp.sec * 10**9 + stamp.nanosec]
+    ego = fixed @ last.ego_pose.to_se2()
+    x, y, yaw = mapper.trajectory[-1]
+    assert (ego.x, ego.y) == pytest.approx((x, y), abs=1e-6)
+    assert ego.yaw == pytest.approx(yaw, abs=1e-9)
     n_kf = sum(f.is_keyframe for f in frames)
     for name, m in mapper.maps.maps.items():
-        # each keyframe, and the final map at close()
-        assert counts[f"/evgrid/{name}/occupancy"] == counts[f"/evgrid/{name}/grid_map"] == n_kf + 1
-        grids = [d for t, s, _, d in msgs if t == f"/evgrid/{name}/occupancy"]
-        gms = [d for t, s, _, d in msgs if t == f"/evgrid/{name}/grid_map"]
-        assert len(grids) == len(gms) == 1
+        # the navigation map (fused: no nav map here) at each keyframe, every map at close()
+        assert counts[f"/evgrid/{name}/occupancy"] == (n_kf + 1 if name == "fused" else 1)
+        assert f"/evgrid/{name}/grid_map" not in counts  # no GridMap by default
+        (g,) = [d for t, s, _, d in msgs if t == f"/evgrid/{name}/occupancy"]
         r0, c0, h, w = m.covered_bounds()
         res = m.grid.resolution
-        g = grids[-1]
         assert (g.info.width, g.info.height, g.info.resolution) == (h, w, res)
         assert (g.info.origin.position.x, g.info.origin.position.y) == pytest.approx(
             (-(r0 + h) * res, -(c0 + w) * res)
         )
         masses, cov = m.read(r0, c0, h, w)
         data = np.asarray(g.data, dtype=np.int8).reshape(w, h)  # rows along +y, columns along +x
-        # cell (i, j) is map cell R = r0 + h - 1 - i, C = c0 + w - 1 - j
-        want = np.clip(np.rint(100 * (masses[..., 1] + 0.5 * masses[..., 2])), 0, 100).astype(
-            np.int8
+        # cell (i, j) is map cell R = r0 + h - 1 - i, C = c0 + w - 1 - j; trinary values
+        np.testing.assert_array_equal(data, classify(masses, cov)[::-1, ::-1].T)
+
+
+def test_mcap_metadata_places_the_map_in_the_fixed_frame(run):
+    from mcap.reader import make_reader
+
+    _, frames, out = run
+    with open(out / "run.mcap", "rb") as fh:
+        (meta,) = [m for m in make_reader(fh).iter_metadata() if m.name == "evgrid"]
+    d = meta.metadata
+    assert (d["map_frame"], d["fixed_frame"]) == ("map", "odom")
+    xyz = [float(v) for v in d["first_pose_xyz"].split()]
+    np.testing.assert_allclose(xyz, frames[0].ego_pose.translation)
+    q = [float(v) for v in d["first_pose_quaternion_wxyz"].split()]
+    np.testing.assert_allclose(q, frames[0].ego_pose.quaternion())
+
+
+def test_mcap_grid_map_layers_and_scaled_values(run):
+    mapper, frames, out = run
+    counts = _topic_counts(out / "full.mcap")
+    n_kf = sum(f.is_keyframe for f in frames)
+    assert counts["/evgrid/ray_ilm/grid_map"] == n_kf + 1
+    msgs = _decoded(out / "full.mcap", frames[-2].timestamp * 1000)
+    m = mapper.maps.maps["fused"]
+    (g,) = [d for t, s, _, d in msgs if t == "/evgrid/fused/occupancy"]
+    (gm,) = [d for t, s, _, d in msgs if t == "/evgrid/fused/grid_map"]
+    r0, c0, h, w = m.covered_bounds()
+    res = m.grid.resolution
+    masses, cov = m.read(r0, c0, h, w)
+    data = np.asarray(g.data, dtype=np.int8).reshape(w, h)
+    want = occupancy_values(masses, cov, mode="scale")
+    np.testing.assert_array_equal(data, want[::-1, ::-1].T)
+    assert list(gm.layers) == ["m_free", "m_occupied", "m_unknown"]
+    assert (gm.info.resolution, gm.info.length_x, gm.info.length_y) == (res, h * res, w * res)
+    assert (gm.info.pose.position.x, gm.info.pose.position.y) == pytest.approx(
+        (-(r0 + h / 2) * res, -(c0 + w / 2) * res)
+    )
+    for k, layer in enumerate(gm.data):
+        assert [d.label for d in layer.layout.dim] == ["column_index", "row_index"]
+        np.testing.assert_array_equal(
+            np.asarray(layer.data, np.float32).reshape(w, h).T, masses[..., k]
         )
-        want[classify(masses, cov) == UNKNOWN] = -1
-        np.testing.assert_array_equal(data, want[::-1, ::-1].T)
-        gm = gms[-1]
-        assert list(gm.layers) == ["m_free", "m_occupied", "m_unknown"]
-        assert (gm.info.resolution, gm.info.length_x, gm.info.length_y) == (res, h * res, w * res)
-        assert (gm.info.pose.position.x, gm.info.pose.position.y) == pytest.approx(
-            (-(r0 + h / 2) * res, -(c0 + w / 2) * res)
-        )
-        for k, layer in enumerate(gm.data):
-            assert [d.label for d in layer.layout.dim] == ["column_index", "row_index"]
-            np.testing.assert_array_equal(
-                np.asarray(layer.data, np.float32).reshape(w, h).T, masses[..., k]
-            )
 
 
 def test_rerun_recording_has_maps_isms_and_trajectory(run):
@@ -199,10 +241,12 @@ def test_rerun_recording_has_maps_isms_and_trajectory(run):
     for p in (
         "/trajectory",
         "/ego",
+        "/ego/position",
         "/maps/fused",
-        "/isms/ray_ilm",
-        "/isms/ray_irm",
+        "/ego/isms/ray_ilm",
+        "/ego/isms/ray_irm",
         "/final/fused",
+        "/info",
     ):
         assert p in paths
 
@@ -216,20 +260,25 @@ def test_export_map_every_format(run, tmp_path):
         if f != "rerun" or "rerun" in sys.modules
     }
     assert [p.name for p in files["nav2"]] == ["fused.pgm", "fused.yaml"]
-    # the run's nav2 observer wrote the same final map (and only the one asked for)
-    assert sorted(p.name for p in (out / "nav2").iterdir()) == ["fused.pgm", "fused.yaml"]
-    assert (out / "nav2" / "fused.pgm").read_bytes() == files["nav2"][0].read_bytes()
+    # the run's nav2 observer wrote the navigation map (fused: no nav map in this run) as
+    # map.pgm + map.yaml, and the map asked for beside it
+    assert sorted(p.name for p in (out / "nav2").iterdir()) == [
+        "map.pgm",
+        "map.yaml",
+        "ray_ilm.pgm",
+        "ray_ilm.yaml",
+    ]
+    assert (out / "nav2" / "map.pgm").read_bytes() == files["nav2"][0].read_bytes()
+    text = (out / "nav2" / "map.yaml").read_text()
+    assert "image: map.pgm" in text and "the navigation map: 'fused'" in text
+    assert "first ego pose in 'odom'" in text
     data, res, _ = read_nav2(files["nav2"][1])
     r0, c0, h, w = m.covered_bounds()
     assert data.shape == (w, h) and res == m.grid.resolution
     (grid,) = [d for t, _, _, d in _decoded(files["mcap"][0]) if t == "/evgrid/fused/occupancy"]
-    # the OccupancyGrid and the nav2 map agree on every cell they both call free or occupied
+    # the OccupancyGrid and the nav2 map (as map_server loads it) agree on every cell
     occ = np.asarray(grid.data, np.int8).reshape(w, h)
-    assert np.array_equal(occ == -1, data == -1)
-    assert (
-        np.array_equal(data[data == 100], np.full((data == 100).sum(), 100))
-        and (occ[data == 100] >= 65).all()
-    )
+    np.testing.assert_array_equal(occ, data)
     with pytest.raises(ValueError, match="nav2"):
         export_map(m, tmp_path / "x", "png")
     with pytest.raises(ValueError, match="rerun"):

@@ -14,9 +14,10 @@ def test_a_run_writes_the_exports_it_is_asked_for(tmp_path):
     scene = simulate_scene(4, SimConfig(duration_s=1.0))
     outputs = OutputConfig(figures=False, exports=("nav2", "mcap"))
     res = map_scene(scene, tmp_path / "run", MapperConfig(maps=("ray_ilm", "ray_irm")), outputs)
-    assert (tmp_path / "run" / "nav2" / "ray_ilm.yaml").is_file() and (
-        tmp_path / "run" / "nav2" / "ray_irm.pgm"
-    ).is_file()
+    # the navigation map under map_saver's names (ray_ilm: the run has neither nav nor fused)
+    nav2 = tmp_path / "run" / "nav2"
+    assert sorted(p.name for p in nav2.iterdir()) == ["map.pgm", "map.yaml"]
+    assert "the navigation map: 'ray_ilm'" in (nav2 / "map.yaml").read_text()
     assert (tmp_path / "run" / f"{scene.name}.mcap").stat().st_size > 0
     assert set(res.files) >= {"export_nav2", "export_mcap", "metrics", "config"}
 

@@ -220,6 +220,7 @@ class GifRecorder:
         self.frames: list[np.ndarray] = []
         self._stride = 1
         self._n_keyframes = 0
+        self._t0_us: int | None = None
 
     def on_update(self, update: MapUpdate) -> None:
         if not update.frame.is_keyframe:
@@ -228,15 +229,19 @@ class GifRecorder:
         self._n_keyframes += 1
         if k % self._stride:
             return
-        from evgrid.render import masses_to_rgb, mosaic, sample_map
+        from evgrid.render import label_panels, map_rgb, sample_map
 
         rc, cc = self.grid.map_xy_to_cell(update.pose.x, update.pose.y)
         r0, c0 = int(rc) - self.cells // 2, int(cc) - self.cells // 2
         pics = [
-            masses_to_rgb(sample_map(m, r0, c0, self.cells, self.cells, self.step)[0])
+            map_rgb(sample_map(m, r0, c0, self.cells, self.cells, self.step)[0])
             for m in update.maps.maps.values()
         ]
-        self.frames.append(mosaic(pics, self.cols))
+        if self._t0_us is None:
+            self._t0_us = update.frame.timestamp
+        t_s = (update.frame.timestamp - self._t0_us) * 1e-6
+        caption = f"t = {t_s:.1f} s   {self.cells * self.grid.resolution:g} m around the vehicle"
+        self.frames.append(label_panels(pics, list(update.maps.maps), caption, self.cols))
         if len(self.frames) >= self.max_frames:
             self.frames = self.frames[::2]
             self._stride *= 2

@@ -1,4 +1,10 @@
-"""Pictures of masses: the paper's colours (red = free, green = occupied, blue = unknown), figures, GIFs.
+"""Pictures of masses, figures and GIFs that read as maps.
+
+Maps are drawn in a map_server-like palette (:func:`map_rgb`: free white, occupied black,
+unknown grey, mixed masses as shades between), with the axes in metres (x forward up, y left),
+a scale bar, and the legend outside the panels; every plot gives a map the same colour
+(:func:`map_colour`). The paper's colours (red free, green occupied, blue unknown) remain as
+:func:`masses_to_rgb` and ``palette="paper"``.
 
 matplotlib (Agg) is imported inside the functions that draw figures, so that importing
 evgrid stays light.
@@ -17,6 +23,9 @@ from evgrid.io import atomic_write
 from evgrid.mass import vacuous
 
 __all__ = [
+    "map_rgb",
+    "map_colour",
+    "label_panels",
     "masses_to_rgb",
     "plot_panels",
     "plot_convergence",
@@ -41,6 +50,25 @@ def masses_to_rgb(m: np.ndarray) -> np.ndarray:
     return np.clip(np.rint(a * 255.0), 0, 255).astype(np.uint8)
 
 
+#: The map palette's colours (map_server's PGM greys: free 254, occupied 0, unknown 205).
+MAP_PALETTE = {"free": (1.0, 1.0, 1.0), "occupied": (0.0, 0.0, 0.0), "unknown": (0.8, 0.8, 0.8)}
+
+
+def map_rgb(m: np.ndarray) -> np.ndarray:
+    """Masses ``(..., 3)`` to a uint8 RGB map picture: free white, occupied black, unknown grey.
+
+    Each pixel mixes the three colours of :data:`MAP_PALETTE` by the masses (a mass is a convex
+    weight), so confidence reads as shade: a cell with ``m_f = 0.3, m_u = 0.7`` is a lighter
+    grey than unknown, one with ``m_o = 0.3, m_u = 0.7`` a darker one, as in a nav2 map.
+    """
+    a = np.asarray(m, dtype=np.float32)
+    if a.ndim < 1 or a.shape[-1] != 3:
+        raise ValueError(f"masses must have a last axis of length 3, got shape {a.shape}")
+    grey = a[..., 0] * MAP_PALETTE["free"][0] + a[..., 2] * MAP_PALETTE["unknown"][0]
+    v = np.clip(np.rint(grey * 255.0), 0, 255).astype(np.uint8)
+    return np.repeat(v[..., None], 3, axis=-1)
+
+
 def _pyplot():
     """matplotlib.pyplot on the non-interactive Agg backend (no display needed)."""
     import matplotlib
@@ -51,11 +79,72 @@ def _pyplot():
     return plt
 
 
-def _legend(ax) -> None:
+#: One line colour per map, the same in every plot (Tableau colours; the reference grey).
+_LINE_COLOURS = {
+    "ray_ilm": "#555555",
+    "fused": "tab:blue",
+    "deep_acc": "tab:orange",
+    "deep_replace": "tab:green",
+    "deep_disc": "tab:red",
+    "ray_irm": "tab:purple",
+    "nav": "tab:brown",
+}
+_SPARE_COLOURS = ("tab:pink", "tab:olive", "tab:cyan", "#1b9e77", "#7570b3", "#d95f02")
+#: The path's colour in map figures (stands out on white, black and grey).
+PATH_COLOUR = "#e6331a"
+
+
+def map_colour(name: str) -> str:
+    """The line colour of map ``name`` in every plot: fixed for the known maps, otherwise
+    chosen by the name alone (a checksum), so it does not depend on which maps a plot has."""
+    import zlib
+
+    return _LINE_COLOURS.get(name) or _SPARE_COLOURS[zlib.crc32(name.encode()) % 6]
+
+
+def _legend(fig, palette: str, path: bool) -> None:
+    """The classes' colours (and the path) as one row below the panels."""
+    from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
 
-    handles = [Patch(color=CLASS_COLOURS[c], label=c) for c in CLASSES]
-    ax.legend(handles=handles, loc="lower right", fontsize=7, framealpha=0.8)
+    colours = MAP_PALETTE if palette == "map" else CLASS_COLOURS
+    handles = [Patch(facecolor=colours[c], edgecolor="0.3", label=c) for c in CLASSES]
+    if palette == "map":
+        handles.append(
+            Patch(
+                facecolor="0.55",
+                edgecolor="0.3",
+                label="shades: mixed masses (darker: more occupied)",
+            )
+        )
+    if path:
+        handles.append(Line2D([], [], color=PATH_COLOUR, lw=1.2, label="path"))
+    fig.legend(
+        handles=handles, loc="upper center", bbox_to_anchor=(0.5, 0.0), ncol=len(handles),
+        fontsize=8, frameon=False,
+    )  # fmt: skip
+
+
+def _scale_bar(ax, width_m: float) -> None:
+    """A bar of a round length (1, 2 or 5 x 10^k m, about a fifth of the panel) at the lower
+    left, black on a white box so that it reads on any map."""
+    from matplotlib.offsetbox import AnchoredOffsetbox, AuxTransformBox, TextArea, VPacker
+    from matplotlib.patches import Rectangle
+
+    target = abs(width_m) / 5
+    k = 10 ** np.floor(np.log10(target))
+    length = max(v * k for v in (1, 2, 5) if v * k <= target)
+    # in axes fractions, so an inverted axis (y grows to the left) draws it the same way
+    frac = length / abs(width_m)
+    bar = AuxTransformBox(ax.transAxes)
+    bar.add_artist(Rectangle((0, 0), frac, 0.012, color="k"))
+    label = TextArea(f"{length:g} m", textprops=dict(fontsize=7))
+    box = AnchoredOffsetbox(
+        loc="lower left", child=VPacker(children=[label, bar], align="center", pad=0, sep=2),
+        pad=0.3, borderpad=0.4, frameon=True,
+    )  # fmt: skip
+    box.patch.set_alpha(0.8)
+    ax.add_artist(box)
 
 
 def _save(fig, path: str | os.PathLike, title: str = "") -> Path:
@@ -74,6 +163,15 @@ def _save(fig, path: str | os.PathLike, title: str = "") -> Path:
     return atomic_write(path, lambda f: f.write(buf.getvalue()))
 
 
+def _gamma(m: np.ndarray, gamma: float) -> np.ndarray:
+    """Masses raised to ``gamma`` and renormalised (still masses): small masses show."""
+    a = np.asarray(m, dtype=np.float32)
+    if gamma == 1.0:
+        return a
+    g = a**gamma
+    return g / np.maximum(g.sum(-1, keepdims=True), 1e-12)
+
+
 def plot_panels(
     panels: Mapping[str, np.ndarray],
     path: str | os.PathLike,
@@ -82,34 +180,49 @@ def plot_panels(
     tracks: Mapping[str, np.ndarray] | None = None,
     cols: int | None = None,
     gamma: float = 1.0,
+    palette: str = "map",
 ) -> Path:
-    """Mass grids side by side (paper Figs. 2 and 4), with a legend; ``extent_m`` = (left, right, bottom, top).
+    """Mass grids side by side (paper Figs. 2 and 4), the legend below them.
 
-    ``gamma < 1`` brightens small masses (a single ISM's m_f = 0.05 is invisible otherwise).
+    With ``extent_m`` = (left, right, bottom, top) in metres of the grid's outer edges as
+    drawn (columns left to right, rows top to bottom: for evgrid's grids y at the left and
+    right edges, x at the bottom and top, :mod:`evgrid.geometry`), the axes are in metres with
+    a scale bar, and ``tracks`` are ``(n, 2)`` paths as (x, y) metres; without it, ``tracks``
+    are image (column, row) coordinates. ``palette``: ``map`` (:func:`map_rgb`) or ``paper``
+    (:func:`masses_to_rgb`). ``gamma < 1`` brightens small masses (a single ISM's m_f = 0.05
+    is invisible otherwise).
     """
+    if palette not in ("map", "paper"):
+        raise ValueError(f"palette must be 'map' or 'paper', got {palette!r}")
     plt = _pyplot()
+    to_rgb = map_rgb if palette == "map" else masses_to_rgb
 
     n = len(panels)
     if n == 0:
         raise ValueError("no panels to draw")
     cols = cols or min(n, 3)
     rows = (n + cols - 1) // cols
-    fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols, 3.6 * rows), dpi=110, squeeze=False)
+    fig, axes = plt.subplots(rows, cols, figsize=(3.8 * cols, 3.8 * rows), dpi=110, squeeze=False)
     for ax, (name, m) in zip(axes.flat, panels.items()):
-        shown = np.asarray(m, dtype=np.float32) ** gamma if gamma != 1.0 else m
-        ax.imshow(masses_to_rgb(shown), extent=extent_m, interpolation="nearest")
+        ax.imshow(to_rgb(_gamma(m, gamma)), extent=extent_m, interpolation="nearest")
         if tracks and name in tracks:
-            t = tracks[name]
-            ax.plot(t[:, 0], t[:, 1], "w-", lw=0.8)
+            t = np.asarray(tracks[name], dtype=np.float64).reshape(-1, 2)
+            if extent_m is not None:  # (x, y) metres: y runs along the image's columns
+                ax.plot(t[:, 1], t[:, 0], "-", color=PATH_COLOUR, lw=1.0)
+            else:
+                ax.plot(t[:, 0], t[:, 1], "-", color=PATH_COLOUR, lw=1.0)
         ax.set_title(name, fontsize=9)
         if extent_m is None:
             ax.set_xticks([])
             ax.set_yticks([])
         else:
             ax.tick_params(labelsize=6)
+            ax.set_xlabel("y [m] (left +)", fontsize=7)
+            ax.set_ylabel("x [m] (forward +)", fontsize=7)
+            _scale_bar(ax, extent_m[1] - extent_m[0])
     for ax in list(axes.flat)[n:]:
         ax.axis("off")
-    _legend(axes.flat[0])
+    _legend(fig, palette, bool(tracks))
     return _save(fig, path, title)
 
 
@@ -119,7 +232,8 @@ def plot_convergence(
     times_s: Sequence[float] | None = None,
     title: str = "",
 ) -> Path:
-    """IoU over time of each map, one subplot per class (paper: faster convergence with the deep prior)."""
+    """IoU over time of each map, one subplot per class (paper: faster convergence with the
+    deep prior)."""
     plt = _pyplot()
 
     fig, axes = plt.subplots(1, 3, figsize=(12, 3.4), dpi=110)
@@ -127,7 +241,7 @@ def plot_convergence(
         for name, series in curves.items():
             y = [s.get(cls, np.nan) for s in series]
             x = times_s if times_s is not None else np.arange(len(y))
-            ax.plot(x, y, label=name, lw=1.2)
+            ax.plot(x, y, label=name, lw=1.2, color=map_colour(name))
         ax.set_title(f"{cls} IoU vs ray_ilm", fontsize=9)
         ax.set_xlabel("time [s]" if times_s is not None else "keyframe", fontsize=8)
         ax.set_ylim(0, 1)
@@ -138,8 +252,9 @@ def plot_convergence(
 
 
 def plot_perception_field(conv: Mapping, path: str | os.PathLike, title: str = "") -> Path:
-    """Free and occupied IoU against the truth and the area classified correctly after 1, 2, 5, 10 s of
-    driving, mean over scenes with 95% bootstrap intervals (``summary["convergence_truth"]``)."""
+    """Free and occupied IoU against the truth and the area classified correctly after 1, 2,
+    5, 10 s of driving, mean over scenes with 95% bootstrap intervals
+    (``summary["convergence_truth"]``)."""
     plt = _pyplot()
 
     t = np.asarray(conv["t_s"], dtype=float)
@@ -163,6 +278,7 @@ def plot_perception_field(conv: Mapping, path: str | os.PathLike, title: str = "
                 y,
                 yerr=[y - lo, hi - y],
                 label=name,
+                color=map_colour(name),
                 lw=1.2,
                 capsize=2,
                 marker="o",
@@ -198,7 +314,8 @@ def write_gif(frames: Sequence[np.ndarray], path: str | os.PathLike, fps: float 
 
 
 def trajectory_cells(xy: np.ndarray, resolution: float, r0: int, c0: int) -> np.ndarray:
-    """Trajectory points in the first pose's frame (m) to (column, row) image coordinates of a map crop."""
+    """Trajectory points in the first pose's frame (m) to (column, row) image coordinates of a
+    map crop."""
     xy = np.asarray(xy, dtype=np.float64)
     rows = -xy[:, 0] / resolution - r0 - 0.5
     cols = -xy[:, 1] / resolution - c0 - 0.5
@@ -206,7 +323,8 @@ def trajectory_cells(xy: np.ndarray, resolution: float, r0: int, c0: int) -> np.
 
 
 def sample_map(m, r0: int, c0: int, h: int, w: int, step: int = 1) -> tuple[np.ndarray, np.ndarray]:
-    """Every ``step``-th map cell of ``[r0, r0+h) x [c0, c0+w)``: masses and coverage, read tile by tile.
+    """Every ``step``-th map cell of ``[r0, r0+h) x [c0, c0+w)``: masses and coverage, read
+    tile by tile.
 
     Only tiles that exist are touched (at most those the box meets), so a picture of a window
     costs the same anywhere on a long drive, and a picture of a whole map grows with its area.
@@ -261,7 +379,40 @@ def mosaic(pics: Sequence[np.ndarray], cols: int = 3) -> np.ndarray:
     )
 
 
-#: Longest side, in map cells read, of the whole-map figure (a figure has a few hundred pixels a panel).
+def label_panels(
+    pics: Sequence[np.ndarray],
+    labels: Sequence[str],
+    caption: str = "",
+    cols: int = 3,
+) -> np.ndarray:
+    """RGB pictures of one size tiled ``cols`` across (:func:`mosaic`), each with its label
+    (a map's name) in its upper left corner, and ``caption`` (e.g. the time) in a strip above."""
+    from PIL import Image, ImageDraw, ImageFont
+
+    if len(labels) != len(pics):
+        raise ValueError(f"{len(pics)} pictures but {len(labels)} labels")
+    try:
+        font = ImageFont.load_default(size=11)
+    except TypeError:  # Pillow without FreeType sizes
+        font = ImageFont.load_default()
+    out = []
+    for pic, label in zip(pics, labels):
+        im = Image.fromarray(np.asarray(pic, dtype=np.uint8))
+        d = ImageDraw.Draw(im)
+        x0, y0, x1, y1 = d.textbbox((3, 2), label, font=font)
+        d.rectangle((0, 0, x1 + 3, y1 + 2), fill=(40, 40, 40))
+        d.text((3, 2), label, fill=(255, 255, 255), font=font)
+        out.append(np.asarray(im))
+    grid = mosaic(out, cols)
+    if not caption:
+        return grid
+    strip = Image.new("RGB", (grid.shape[1], 18), (40, 40, 40))
+    ImageDraw.Draw(strip).text((4, 3), caption, fill=(255, 255, 255), font=font)
+    return np.concatenate([np.asarray(strip), grid], axis=0)
+
+
+#: Longest side, in map cells read, of the whole-map figure (a figure has a few hundred
+#: pixels a panel).
 _FIGURE_CELLS = 1024
 
 
@@ -274,34 +425,37 @@ def write_scene_figures(
     keyframes: Sequence[Mapping] = (),
     gif_frames: Sequence[np.ndarray] = (),
 ) -> dict[str, str]:
-    """The maps side by side, the ISMs of the last update, convergence curves and the GIF; returns the files."""
+    """The maps side by side, the ISMs of the last update, convergence curves and the GIF;
+    returns the files."""
     files: dict[str, str] = {}
     ref = maps.get("ray_ilm") or next(iter(maps.values()))
     r0, c0, h, w = ref.covered_bounds()
     step = max(1, -(-max(h, w) // _FIGURE_CELLS))
     res = ref.grid.resolution
     panels = {n: sample_map(m, r0, c0, h, w, step)[0] for n, m in maps.items()}
-    track = trajectory_cells(
-        np.array([(x, y) for x, y, _ in trajectory]).reshape(-1, 2),
-        res * step,
-        r0 / step,
-        c0 / step,
-    )
+    hh, ww = next(iter(panels.values())).shape[:2]
+    # outer edges of the sampled cells (map cell R spans x in [-(R+1) res, -R res])
+    extent = (-c0 * res, -(c0 + ww * step) * res, -(r0 + hh * step) * res, -r0 * res)
+    track = np.array([(x, y) for x, y, _ in trajectory], dtype=np.float64).reshape(-1, 2)
     files["maps"] = str(
         plot_panels(
             panels,
             out / "maps.png",
-            title=f"{name}: the maps (first pose's frame, x up)",
+            title=f"{name}: the maps (map frame: the first pose's, x forward up)",
+            extent_m=extent,
             tracks={n: track for n in panels},
         )
     )
     if last_isms:
+        n = next(iter(last_isms.values())).shape[0]
+        half = n / 2 * res
         files["isms"] = str(
             plot_panels(
                 last_isms,
                 out / "isms.png",
                 gamma=0.4,
-                title=f"{name}: ISMs of the last update (local grid, colour gamma 0.4)",
+                extent_m=(half, -half, -half, half),
+                title=f"{name}: ISMs of the last update (ego frame; masses^0.4, renormalised)",
             )
         )
     if keyframes and "iou" in keyframes[0]:
@@ -324,7 +478,8 @@ def plot_m_u_min_sweep(
     path: str | os.PathLike,
     chosen: float | None = None,
 ) -> Path:
-    """mIoU of the swept maps against m_u_min, per class and averaged, with the chosen value marked."""
+    """mIoU of the swept maps against m_u_min, per class and averaged, with the chosen value
+    marked."""
     plt = _pyplot()
 
     xs = [r["m_u_min"] for r in rows]
@@ -334,7 +489,7 @@ def plot_m_u_min_sweep(
             ys = [
                 r["mean_of_classes"][name] if cls == "mean" else r["miou"][name][cls] for r in rows
             ]
-            ax.plot(xs, ys, marker="o", label=name)
+            ax.plot(xs, ys, marker="o", label=name, color=map_colour(name))
         ax.set_title(
             f"{cls} mIoU vs ray_ilm" if cls != "mean" else "mean of the three classes", fontsize=9
         )

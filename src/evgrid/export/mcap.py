@@ -1,41 +1,78 @@
 """Maps as ROS 2 messages in an MCAP file, for Foxglove (or RViz through a bag player).
 
-Per exported map update, for each map ``NAME``:
+What the file holds (:class:`McapParams`; defaults in brackets, docs/ros.md says why):
 
-* ``/evgrid/NAME/occupancy``: ``nav_msgs/OccupancyGrid``, -1 where unknown (never observed or
-  ``m_u > unknown_mass``), else ``round(100 P(occ))`` with ``P(occ) = m_o + m_u / 2``;
-* ``/evgrid/NAME/grid_map``: ``grid_map_msgs/GridMap`` with layers ``m_free``, ``m_occupied``,
-  ``m_unknown`` (grid_map's storage: index (0, 0) at the largest x and y, rows towards -x,
-  columns towards -y, column-major data, which is evgrid's map grid as it is);
+* ``/evgrid/NAME/occupancy``: ``nav_msgs/OccupancyGrid`` of the maps in ``maps`` [the
+  navigation map ``nav``, else ``fused``], a square of ``window_m`` metres [40] around the
+  vehicle at ``rate_hz`` [None: at keyframes, 2 Hz in nuScenes]; and of every map in
+  ``final_maps`` [all maps] whole at the end, stamped 1 us after the last update. Values
+  (:func:`~evgrid.export.nav2.occupancy_values`) agree with the nav2 export's classes at its
+  thresholds: ``trinary`` [0 free, 100 occupied, -1 unknown] or ``scale``;
+* ``/evgrid/NAME/grid_map``: ``grid_map_msgs/GridMap`` with the mass layers of ``layers``
+  (``m_free``, ``m_occupied``, ``m_unknown``) [none: float masses are about ten times the
+  OccupancyGrid's size]; grid_map's storage is evgrid's map grid as it is (index (0, 0) at the
+  largest x and y, rows towards -x, columns towards -y, column-major data);
+* ``/tf``: ``map_frame -> fixed_frame`` at every update [``map -> odom``], the map frame as a
+  parent of the recording's fixed frame (:mod:`evgrid.export._place`), never a second parent
+  of ``base_link``; ``/evgrid/ego_pose`` (``geometry_msgs/PoseStamped``, map frame) at every
+  update and ``/evgrid/path`` (``nav_msgs/Path``) at the end;
+* metadata record ``evgrid``: the frames, the first ego pose in the fixed frame, the
+  parameters.
 
-and ``/tf`` with the ego pose (``base_link`` in ``map``, the first ego pose's frame). Stamps
-are the frames' timestamps.
+Chunks are compressed (``compression``: zstd [default], lz4 or none). The file is written
+under a temporary name and renamed when complete (:mod:`evgrid.export._files`). Stamps are
+the frames' timestamps.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from evgrid.export.nav2 import UNKNOWN, Nav2Thresholds, classify, map_to_occupancy
+from evgrid.export._files import AtomicFile, _named, target_path
+from evgrid.export._place import MapPlacement, fixed_in_map
+from evgrid.export.nav2 import (
+    OCCUPANCY_VALUES,
+    Nav2Thresholds,
+    map_to_occupancy,
+    occupancy_values,
+)
 from evgrid.geometry import SE2, SE3
 from evgrid.grid import EvidentialMap
 
-__all__ = ["McapExporter", "occupancy_grid_msg", "grid_map_msg", "LAYERS"]
+log = logging.getLogger(__name__)
 
+__all__ = [
+    "McapExporter",
+    "McapParams",
+    "occupancy_grid_msg",
+    "grid_map_msg",
+    "write_maps_mcap",
+    "write_map_mcap",
+    "LAYERS",
+    "COMPRESSIONS",
+]
+
+#: The GridMap layers evgrid writes (the masses); ``occupancy`` names the OccupancyGrid.
 LAYERS = ("m_free", "m_occupied", "m_unknown")
+#: MCAP chunk compressions the ``mcap`` writer supports.
+COMPRESSIONS = ("zstd", "lz4", "none")
 
 
-def _pose_msg(store: Any, x: float, y: float) -> Any:
+def _pose_msg(store: Any, x: float, y: float, yaw: float = 0.0) -> Any:
     t = store.types
     return t["geometry_msgs/msg/Pose"](
         position=t["geometry_msgs/msg/Point"](x=float(x), y=float(y), z=0.0),
-        orientation=t["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
+        orientation=t["geometry_msgs/msg/Quaternion"](
+            x=0.0, y=0.0, z=math.sin(0.5 * yaw), w=math.cos(0.5 * yaw)
+        ),
     )
 
 
@@ -49,13 +86,13 @@ def occupancy_grid_msg(
     frame_id: str,
     store: Any,
     th: Nav2Thresholds = Nav2Thresholds(),
+    values: str = "trinary",
 ) -> Any:
-    """``nav_msgs/OccupancyGrid`` of map cells ``[r0:r0+h, c0:c0+w]`` (masses ``(h, w, 3)``)."""
+    """``nav_msgs/OccupancyGrid`` of map cells ``[r0:r0+h, c0:c0+w]`` (masses ``(h, w, 3)``);
+    ``values`` as :func:`~evgrid.export.nav2.occupancy_values`."""
     from evgrid.ros import header, us_to_stamp
 
-    m = np.asarray(masses, dtype=np.float32)
-    val = np.clip(np.rint(100.0 * (m[..., 1] + 0.5 * m[..., 2])), 0, 100).astype(np.int8)
-    val[classify(m, covered, th) == UNKNOWN] = UNKNOWN
+    val = occupancy_values(masses, covered, th, values)
     data, (ox, oy) = map_to_occupancy(val, r0, c0, resolution)
     sec, ns = us_to_stamp(t_us)
     t = store.types
@@ -72,9 +109,17 @@ def occupancy_grid_msg(
 
 
 def grid_map_msg(
-    masses: np.ndarray, r0: int, c0: int, resolution: float, t_us: int, frame_id: str, store: Any
+    masses: np.ndarray,
+    r0: int,
+    c0: int,
+    resolution: float,
+    t_us: int,
+    frame_id: str,
+    store: Any,
+    layers: Sequence[str] = LAYERS,
 ) -> Any:
-    """``grid_map_msgs/GridMap`` (layers m_free, m_occupied, m_unknown) of map cells ``[r0:r0+h, c0:c0+w]``."""
+    """``grid_map_msgs/GridMap`` with the mass ``layers`` (of m_free, m_occupied, m_unknown) of
+    map cells ``[r0:r0+h, c0:c0+w]``."""
     from evgrid.ros import header, us_to_stamp
 
     m = np.asarray(masses, dtype=np.float32)
@@ -87,9 +132,9 @@ def grid_map_msg(
     layout = t["std_msgs/msg/MultiArrayLayout"](dim=dims, data_offset=0)
     data = [
         t["std_msgs/msg/Float32MultiArray"](
-            layout=layout, data=np.ascontiguousarray(m[..., k].ravel(order="F"))
+            layout=layout, data=np.ascontiguousarray(m[..., LAYERS.index(k)].ravel(order="F"))
         )
-        for k in range(3)
+        for k in layers
     ]
     info = t["grid_map_msgs/msg/GridMapInfo"](
         resolution=float(resolution),
@@ -101,7 +146,7 @@ def grid_map_msg(
     return t["grid_map_msgs/msg/GridMap"](
         header=header(sec, ns, frame_id, store),
         info=info,
-        layers=list(LAYERS),
+        layers=list(layers),
         basic_layers=[],
         data=data,
         outer_start_index=0,
@@ -109,113 +154,310 @@ def grid_map_msg(
     )
 
 
-class McapExporter:
-    """Observer that writes the maps to an MCAP file as the mapper updates them; call :meth:`close` at the end.
+@dataclass(frozen=True)
+class McapParams:
+    """What the MCAP export holds (see the module's docstring; docs/ros.md gives the sizes).
 
-    ``keyframes_only``: export at keyframes (2 Hz in nuScenes) rather than every update.
-    ``window_m``: export a square of that many metres around the vehicle (constant cost per
-    update) instead of the whole observed map. ``maps``: which maps (default all). The final
-    maps are written whole at :meth:`close`.
+    ``window_m``: side of the square around the vehicle written while mapping (0: none).
+    ``rate_hz``: how often the window is written (None: at every keyframe). ``maps``: the
+    windowed maps (None: the first of ``navigation`` the run has, else its first map).
+    ``final_maps``: the maps written whole at the end (None: every map of the run; ``()``:
+    none). ``layers``:
+    ``occupancy`` (OccupancyGrid) and any of :data:`LAYERS` (one GridMap with those layers).
+    ``occupancy_values``: ``trinary`` or ``scale`` (:func:`~evgrid.export.nav2.occupancy_values`).
+    ``compression``: the chunks' (:data:`COMPRESSIONS`). ``map_frame``, ``fixed_frame``: the
+    map frame and the recording's fixed frame (the rig's ``world_frame``; nuScenes: global).
+    """
+
+    window_m: float = 40.0
+    rate_hz: float | None = None
+    maps: tuple[str, ...] | None = None
+    final_maps: tuple[str, ...] | None = None
+    layers: tuple[str, ...] = ("occupancy",)
+    occupancy_values: str = "trinary"
+    compression: str = "zstd"
+    navigation: tuple[str, ...] = ("nav", "fused", "ray_ilm")
+    thresholds: Nav2Thresholds = field(default_factory=Nav2Thresholds)
+    map_frame: str = "map"
+    fixed_frame: str = "odom"
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.window_m, (int, float)) and math.isfinite(self.window_m)):
+            raise ValueError(f"McapParams.window_m must be a finite number, got {self.window_m!r}")
+        if self.window_m < 0:
+            raise ValueError(f"McapParams.window_m must be >= 0 m, got {self.window_m!r}")
+        if self.rate_hz is not None and not (
+            isinstance(self.rate_hz, (int, float)) and 0 < self.rate_hz < math.inf
+        ):
+            raise ValueError(
+                f"McapParams.rate_hz must be a positive number or None, got {self.rate_hz!r}"
+            )
+        for key in ("maps", "final_maps", "layers", "navigation"):
+            v = getattr(self, key)
+            if v is None and key in ("maps", "final_maps"):
+                continue
+            if isinstance(v, str) or not all(isinstance(n, str) and n for n in v):
+                raise ValueError(f"McapParams.{key} must be a tuple of names, got {v!r}")
+            object.__setattr__(self, key, tuple(v))
+        bad = [k for k in self.layers if k != "occupancy" and k not in LAYERS]
+        if bad or not self.layers:
+            raise ValueError(
+                f"McapParams.layers: {bad or 'none'}; choose from {('occupancy', *LAYERS)}"
+            )
+        if self.occupancy_values not in OCCUPANCY_VALUES:
+            raise ValueError(
+                f"McapParams.occupancy_values must be one of {OCCUPANCY_VALUES}, "
+                f"got {self.occupancy_values!r}"
+            )
+        if self.compression not in COMPRESSIONS:
+            raise ValueError(
+                f"McapParams.compression must be one of {COMPRESSIONS}, got {self.compression!r}"
+            )
+        if not self.navigation:
+            raise ValueError("McapParams.navigation must name at least one map")
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["thresholds"] = asdict(self.thresholds)
+        return d
+
+
+def _open_mcap(path: Path, compression: str, overwrite: bool) -> tuple[AtomicFile, Any]:
+    from evgrid.ros import require
+
+    require("mcap")
+    from mcap.writer import CompressionType, Writer
+
+    f = AtomicFile(path, overwrite)
+    try:
+        kind = {
+            "zstd": CompressionType.ZSTD,
+            "lz4": CompressionType.LZ4,
+            "none": CompressionType.NONE,
+        }[compression]
+        w = Writer(f.file, compression=kind)
+        w.start(profile="ros2", library="evgrid")
+    except BaseException as e:
+        f.abort()
+        raise _named(path, e) from e
+    return f, w
+
+
+class McapExporter:
+    """Observer that writes the maps to an MCAP file while mapping; call :meth:`close` at the
+    end (or :meth:`abort` when the run fails: nothing is left under ``path``).
+
+    ``path`` is a ``.mcap`` file (the suffix is added when missing) or a folder (``maps.mcap``
+    in it); an existing file is refused unless ``overwrite``. See :class:`McapParams`.
     """
 
     def __init__(
         self,
         path: str | os.PathLike,
-        maps: Sequence[str] | None = None,
-        keyframes_only: bool = True,
-        window_m: float | None = None,
-        frame_id: str = "map",
-        base_frame: str = "base_link",
-        thresholds: Nav2Thresholds = Nav2Thresholds(),
+        params: McapParams = McapParams(),
+        overwrite: bool = False,
     ):
-        from evgrid.ros import RecordingWriter
+        from evgrid.ros import typestore
 
-        self.path = Path(path)
-        if self.path.exists():
-            raise FileExistsError(f"{self.path} exists; evgrid does not overwrite recordings")
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.writer = RecordingWriter(self.path, "plain-mcap")
-        self.maps = tuple(maps) if maps else None
-        self.keyframes_only = keyframes_only
-        self.window_m = window_m
-        self.frame_id = frame_id
-        self.base_frame = base_frame
-        self.thresholds = thresholds
+        self.params = params
+        self.path = target_path(path, "maps", ".mcap")
+        self.store = typestore(2)
+        self._file, self._w = _open_mcap(self.path, params.compression, overwrite)
+        self._channels: dict[str, int] = {}
         self.n_messages = 0
+        self.placement: MapPlacement | None = None
+        self._window_maps: tuple[str, ...] = ()
+        self._next_us: float | None = None
         self._last: tuple[int, dict[str, EvidentialMap]] | None = None
+        self._path: list[tuple[int, SE2]] = []
+
+    # -- writing -----------------------------------------------------------------------------
+
+    def _write(self, topic: str, msgtype: str, t_us: int, msg: Any) -> None:
+        c = self._channels.get(topic)
+        if c is None:
+            text, _ = self.store.generate_msgdef(msgtype, ros_version=2)
+            sid = self._w.register_schema(name=msgtype, encoding="ros2msg", data=text.encode())
+            c = self._channels[topic] = self._w.register_channel(
+                topic=topic, message_encoding="cdr", schema_id=sid
+            )
+        data = bytes(self.store.serialize_cdr(msg, msgtype))
+        t_ns = int(t_us) * 1000
+        self._w.add_message(channel_id=c, log_time=t_ns, data=data, publish_time=t_ns)
+        self.n_messages += 1
+
+    def _guarded(self, fn, *args) -> Any:
+        """Run a writing step; on any failure remove the temporary file and name ``path``."""
+        if self._file.done:
+            raise ValueError(f"{self.path}: the MCAP export is closed")
+        try:
+            return fn(*args)
+        except BaseException as e:
+            self._file.abort()
+            raise _named(self.path, e) from e
+
+    def write_maps(
+        self,
+        maps: dict[str, EvidentialMap],
+        t_us: int,
+        box: tuple[int, int, int, int] | None = None,
+    ) -> None:
+        """Write ``maps`` (a window ``(r0, c0, h, w)`` of map cells, or each whole) at ``t_us``."""
+        self._guarded(self._write_maps, maps, t_us, box)
 
     def _write_maps(
         self, maps: dict[str, EvidentialMap], t_us: int, box: tuple[int, int, int, int] | None
     ) -> None:
-        store = self.writer.store
+        p, frame = self.params, self.params.map_frame
+        grid_layers = tuple(k for k in p.layers if k != "occupancy")
         for name, m in maps.items():
-            if self.maps is not None and name not in self.maps:
-                continue
             r0, c0, h, w = box or m.covered_bounds()
             if h == 0:
                 continue
             masses, cov = m.read(r0, c0, h, w)
             res = m.grid.resolution
-            self.writer.write(
-                f"/evgrid/{name}/occupancy",
-                "nav_msgs/msg/OccupancyGrid",
-                t_us * 1000,
-                occupancy_grid_msg(
-                    masses, cov, r0, c0, res, t_us, self.frame_id, store, self.thresholds
-                ),
-            )
-            self.writer.write(
-                f"/evgrid/{name}/grid_map",
-                "grid_map_msgs/msg/GridMap",
-                t_us * 1000,
-                grid_map_msg(masses, r0, c0, res, t_us, self.frame_id, store),
-            )
-            self.n_messages += 2
+            if "occupancy" in p.layers:
+                msg = occupancy_grid_msg(
+                    masses, cov, r0, c0, res, t_us, frame, self.store, p.thresholds,
+                    p.occupancy_values,
+                )  # fmt: skip
+                self._write(f"/evgrid/{name}/occupancy", "nav_msgs/msg/OccupancyGrid", t_us, msg)
+            if grid_layers:
+                msg = grid_map_msg(masses, r0, c0, res, t_us, frame, self.store, grid_layers)
+                self._write(f"/evgrid/{name}/grid_map", "grid_map_msgs/msg/GridMap", t_us, msg)
+
+    # -- the observer ------------------------------------------------------------------------
+
+    def _start(self, update: Any) -> None:
+        p = self.params
+        maps = update.maps.maps
+        if p.maps is None:
+            found = [n for n in p.navigation if n in maps] or list(maps)[:1]
+            if found[0] not in p.navigation:
+                log.info(
+                    "MCAP export %s: no navigation map %s in this run; the window shows %s",
+                    self.path,
+                    list(p.navigation),
+                    found[0],
+                )
+            self._window_maps = (found[0],)
+        else:
+            self._window_maps = p.maps
+        missing = [n for n in (*self._window_maps, *(p.final_maps or ())) if n not in maps]
+        if missing:
+            raise ValueError(f"{self.path}: no map {missing} in this run; it has {sorted(maps)}")
+        self.placement = MapPlacement.from_update(update, p.map_frame, p.fixed_frame)
+        meta = {**self.placement.as_dict(), "params": repr(p.to_dict())}
+        self._w.add_metadata("evgrid", {k: str(v) for k, v in meta.items()})
+
+    def _on_update(self, update: Any) -> None:
+        from evgrid.ros import header, tf_message, transform_msg, us_to_stamp
+
+        if self.placement is None:
+            self._start(update)
+        p, store = self.params, self.store
+        t_us = int(update.frame.timestamp)
+        pose: SE2 = update.pose
+        fixed = SE3.from_se2(fixed_in_map(update))
+        tf = transform_msg(p.map_frame, p.fixed_frame, t_us, fixed, store)
+        self._write("/tf", "tf2_msgs/msg/TFMessage", t_us, tf_message([tf], store))
+        sec, ns = us_to_stamp(t_us)
+        ego = store.types["geometry_msgs/msg/PoseStamped"](
+            header=header(sec, ns, p.map_frame, store),
+            pose=_pose_msg(store, pose.x, pose.y, pose.yaw),
+        )
+        self._write("/evgrid/ego_pose", "geometry_msgs/msg/PoseStamped", t_us, ego)
+        self._path.append((t_us, pose))
+        self._last = (t_us, update.maps.maps)
+        if p.window_m <= 0 or not self._due(t_us, update.frame.is_keyframe):
+            return
+        maps = {n: update.maps.maps[n] for n in self._window_maps}
+        any_map = next(iter(maps.values()))
+        n = int(math.ceil(p.window_m / any_map.grid.resolution))
+        rc, cc = any_map.grid.map_xy_to_cell(pose.x, pose.y)
+        self._write_maps(maps, t_us, (int(rc) - n // 2, int(cc) - n // 2, n, n))
+
+    def _due(self, t_us: int, keyframe: bool) -> bool:
+        """Whether the window is written at ``t_us``: keyframes, or a fixed rate's ticks."""
+        if self.params.rate_hz is None:
+            return keyframe
+        period = 1e6 / self.params.rate_hz
+        if self._next_us is None:
+            self._next_us = t_us + period
+            return True
+        if t_us < self._next_us:
+            return False
+        while self._next_us <= t_us:
+            self._next_us += period
+        return True
 
     def on_update(self, update: Any) -> None:
-        from evgrid.ros import tf_message, transform_msg
+        self._guarded(self._on_update, update)
 
-        t_us = update.frame.timestamp
-        store = self.writer.store
-        pose: SE2 = update.pose
-        self.writer.write(
-            "/tf",
-            "tf2_msgs/msg/TFMessage",
-            t_us * 1000,
-            tf_message(
-                [transform_msg(self.frame_id, self.base_frame, t_us, SE3.from_se2(pose), store)],
-                store,
-            ),
-        )
-        self.n_messages += 1
-        self._last = (t_us, update.maps.maps)
-        if self.keyframes_only and not update.frame.is_keyframe:
-            return
-        box = None
-        if self.window_m is not None:
-            any_map = next(iter(update.maps.maps.values()))
-            n = int(math.ceil(self.window_m / any_map.grid.resolution))
-            rc, cc = any_map.grid.map_xy_to_cell(pose.x, pose.y)
-            box = (int(rc) - n // 2, int(cc) - n // 2, n, n)
-        self._write_maps(update.maps.maps, t_us, box)
+    def _close(self) -> None:
+        from evgrid.ros import header, us_to_stamp
+
+        p, store = self.params, self.store
+        if self._last is not None:
+            t_us, maps = self._last
+            t_us += 1  # after the last window, so a player shows the whole maps at the end
+            names = tuple(maps) if p.final_maps is None else p.final_maps
+            self._write_maps({n: maps[n] for n in names}, t_us, None)
+            sec, ns = us_to_stamp(t_us)
+            poses = []
+            for tp, pose in self._path:
+                s, n = us_to_stamp(tp)
+                poses.append(
+                    store.types["geometry_msgs/msg/PoseStamped"](
+                        header=header(s, n, p.map_frame, store),
+                        pose=_pose_msg(store, pose.x, pose.y, pose.yaw),
+                    )
+                )
+            path = store.types["nav_msgs/msg/Path"](
+                header=header(sec, ns, p.map_frame, store), poses=poses
+            )
+            self._write("/evgrid/path", "nav_msgs/msg/Path", t_us, path)
+            self._last = None
+        self._w.finish()
 
     def close(self) -> Path:
-        """Write the final maps whole and finish the file; returns its path."""
-        if self._last is not None:
-            self._write_maps(self._last[1], self._last[0] + 1, None)
-            self._last = None
-        self.writer.close()
-        return self.path
+        """Write the final maps and the path, finish the file and rename it onto ``path``."""
+        self._guarded(self._close)
+        return self._guarded(self._file.commit)
+
+    def abort(self) -> None:
+        """Drop the file being written (nothing is left under ``path``)."""
+        self._file.abort()
+
+    def __enter__(self) -> McapExporter:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+
+def write_maps_mcap(
+    maps: dict[str, EvidentialMap],
+    path: str | os.PathLike,
+    params: McapParams = McapParams(),
+    overwrite: bool = False,
+) -> Path:
+    """Saved maps as one MCAP file: each whole, stamped 0 (``params.layers`` and values)."""
+    exp = McapExporter(path, params, overwrite)
+    with exp:
+        exp.write_maps(maps, 0, None)
+    return exp.path
 
 
 def write_map_mcap(
     m: EvidentialMap,
     path: str | os.PathLike,
     name: str | None = None,
-    frame_id: str = "map",
-    thresholds: Nav2Thresholds = Nav2Thresholds(),
+    params: McapParams = McapParams(),
+    overwrite: bool = False,
 ) -> Path:
-    """One saved map as an MCAP file (one OccupancyGrid and one GridMap, stamped 0)."""
-    exp = McapExporter(path, frame_id=frame_id, thresholds=thresholds)
-    exp._write_maps({name or str(m.metadata.get("rule", "map")): m}, 0, None)
-    return exp.close()
+    """One saved map as an MCAP file (topic ``/evgrid/NAME/...``, NAME default the map's rule)."""
+    return write_maps_mcap({name or str(m.metadata.get("rule", "map")): m}, path, params, overwrite)
