@@ -45,12 +45,15 @@ def fan_out(
     engine: str = "local",
     workers: int = 1,
     retries: int = 1,
+    address: str | None = None,
 ) -> Iterator[Outcome]:
     """Run ``fn(args)`` for each ``(key, args)`` of ``jobs``; yield an :class:`Outcome` per job as it finishes.
 
     ``fn`` and ``args`` must pickle (a module-level function). ``workers`` bounds the jobs run
-    at once on the local engine (1: in this process, in order). A job whose worker died is run
-    again up to ``retries`` times; an exception raised by ``fn`` is not retried.
+    at once (local engine, 1: in this process, in order). A job whose worker died is run
+    again up to ``retries`` times; an exception raised by ``fn`` is not retried. ``address``
+    (ray engine only) is the Ray cluster to join; by default ``RAY_ADDRESS``, else a local
+    instance started for the call (:mod:`evgrid.engine_ray`).
     """
     if engine not in ENGINES:
         raise ValueError(f"unknown engine {engine!r}; choose from {ENGINES}")
@@ -58,8 +61,10 @@ def fan_out(
     if engine == "ray":
         from evgrid.engine_ray import fan_out_ray
 
-        yield from fan_out_ray(fn, jobs, workers=workers, retries=retries)
+        yield from fan_out_ray(fn, jobs, workers=workers, retries=retries, address=address)
         return
+    if address is not None:
+        raise ValueError("an address is for the ray engine only (--engine ray)")
     if workers <= 1 or len(jobs) <= 1:
         for key, args in jobs:
             try:
