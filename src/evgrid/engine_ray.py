@@ -44,9 +44,11 @@ INSTALL_HINT = (
     "(from a source checkout: pip install -e '.[ray]')"
 )
 
-#: Seconds to wait for a cluster's address to answer before giving up (Ray's own connection
-#: attempts go on for minutes against an address nobody listens on).
-CONNECT_TIMEOUT_S = 10.0
+#: Seconds to wait for a cluster's address to accept a connection, and then for Ray's GCS to
+#: answer there, before giving up: Ray's own attempts go on for minutes against an address
+#: nobody listens on, or where something else answers. The GCS wait takes about three times
+#: its timeout in all, so an unreachable address fails within 30 s.
+CONNECT_TIMEOUT_S = 5.0
 
 _LOOPBACK_SWITCH = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"
 _DIED = "its worker process died (killed or out of memory), also when retried"
@@ -87,6 +89,28 @@ def _check_reachable(address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> None
     except OSError as e:
         raise RayEngineError(
             f"no Ray cluster answers at {address} (RAY_ADDRESS or --address): {_one_line(e)}"
+        ) from None
+
+
+def _check_gcs(ray: Any, address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
+    """Fail in one line when what listens at ``address`` is no Ray GCS that lets us in."""
+    try:
+        from ray._raylet import InnerGcsClient  # Ray's GCS client with a deadline
+    except ImportError:  # another Ray: leave it to ray.init
+        return
+    try:
+        InnerGcsClient.standalone(address, None, int(timeout_s * 1000))
+    except Exception as e:
+        first = next((ln.strip() for ln in str(e).splitlines() if ln.strip()), "")
+        hint = ""
+        if "auth" in f"{type(e).__name__} {first}".lower():
+            hint = (
+                "; the cluster wants its token: set RAY_AUTH_MODE=token and RAY_AUTH_TOKEN_PATH "
+                "(or RAY_AUTH_TOKEN) here too (docs/cluster.md)"
+            )
+        raise RayEngineError(
+            f"no Ray cluster answers at {address} (RAY_ADDRESS or --address): "
+            f"{type(e).__name__}: {first[:200]}{hint}"
         ) from None
 
 
@@ -136,7 +160,10 @@ def ray_session(
         address = None
     if address is not None and address != "auto":
         _check_reachable(address)
-        ray = _import_ray(loopback=_is_loopback(_split_address(address)[0]))
+        # Ray's conventions unchanged: it takes a loopback address for this machine's own
+        # (docs/cluster.md on why a cluster of several nodes cannot stay on loopback)
+        ray = _import_ray(loopback=False)
+        _check_gcs(ray, address)
         with _ray_errors(address):
             ray.init(address=address, log_to_driver=True, configure_logging=False)
         try:
