@@ -33,7 +33,7 @@ import tempfile
 from collections.abc import Callable, Iterator
 from typing import Any
 
-from evgrid.engine import Outcome, _one_line
+from evgrid.engine import _DIED, Outcome, _one_line
 
 __all__ = ["RayEngineError", "fan_out_ray", "ray_session", "INSTALL_HINT", "CONNECT_TIMEOUT_S"]
 
@@ -51,7 +51,6 @@ INSTALL_HINT = (
 CONNECT_TIMEOUT_S = 5.0
 
 _LOOPBACK_SWITCH = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"
-_DIED = "its worker process died (killed or out of memory), also when retried"
 
 
 class RayEngineError(OSError):
