@@ -7,12 +7,10 @@ its configuration when imported and installs signal handlers, which would leak b
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import json
 import os
 import shutil
-import signal
 import socket
 import subprocess
 import sys
@@ -29,7 +27,6 @@ from evgrid.engine import fan_out
 ROOT = Path(__file__).resolve().parents[1]
 HAS_RAY = find_spec("ray") is not None
 needs_ray = pytest.mark.skipif(not HAS_RAY, reason="ray is not installed (pip install -e '.[ray]')")
-RAY_BIN = Path(sys.executable).with_name("ray")
 
 #: Three short simulated scenes, and one job that raises on its worker.
 SCENE_SEEDS = (4, 9, 14)
@@ -285,83 +282,24 @@ def test_local_instance_refuses_auth_disabled():
 # --- a two-node cluster on this machine ---------------------------------------------------------
 
 
-def _stop(proc: subprocess.Popen, grace_s: float = 20.0) -> None:
-    """Stop one ``ray start --block`` we started: SIGTERM (it stops its node), then its group."""
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGTERM)
-        with contextlib.suppress(subprocess.TimeoutExpired):
-            proc.wait(grace_s)
-    with contextlib.suppress(ProcessLookupError, PermissionError):
-        os.killpg(proc.pid, signal.SIGKILL)  # what it left in its own session
-    with contextlib.suppress(subprocess.TimeoutExpired):
-        proc.wait(5)
-
-
-def _ours(marker: str) -> list[int]:
-    """Processes whose command line names ``marker`` (our cluster's temp dir)."""
-    found = []
-    for pid in os.listdir("/proc"):
-        if pid.isdigit():
-            with contextlib.suppress(OSError):
-                if marker.encode() in Path(f"/proc/{pid}/cmdline").read_bytes():
-                    found.append(int(pid))
-    return found
-
-
 @pytest.fixture(scope="module")
 def two_node_cluster():
     """``ray start --head`` and a second ``ray start --address`` on this machine, token
-    authentication on, each in its own session; stopped again however the tests end."""
+    authentication on; stopped again however the tests end (evgrid.engine_ray.local_cluster)."""
     if not HAS_RAY:
         pytest.skip("ray is not installed (pip install -e '.[ray]')")
-    tmp = tempfile.mkdtemp(prefix="evc", dir="/tmp")
-    token = Path(tmp, "token")
-    token.write_text(os.urandom(32).hex())
-    token.chmod(0o600)
-    env = _base_env(RAY_AUTH_MODE="token", RAY_AUTH_TOKEN_PATH=str(token))
-    port = _free_port()
-    address = f"127.0.0.1:{port}"
-    procs: list[subprocess.Popen] = []
+    from evgrid.engine_ray import local_cluster
 
-    def start(*args: str, log: str) -> None:
-        with open(Path(tmp, log), "w") as f:
-            procs.append(
-                subprocess.Popen(
-                    [str(RAY_BIN), "start", "--block", "--disable-usage-stats", *args],
-                    env=env,
-                    stdout=f,
-                    stderr=subprocess.STDOUT,
-                    start_new_session=True,
-                )
-            )
+    with local_cluster(nodes=2, cpus_per_node=1) as cluster:
+        cluster["env"]["PYTHONPATH"] = os.pathsep.join([str(ROOT / "src"), str(ROOT)])
+        yield cluster
+    assert not _ours(cluster["tmp"]), "a Ray process of the test cluster outlived it"
 
-    t0 = time.perf_counter()
-    try:
-        start(
-            "--head",
-            "--node-ip-address=127.0.0.1",
-            f"--port={port}",
-            f"--temp-dir={tmp}/head",
-            "--num-cpus=1",
-            "--include-dashboard=false",
-            log="head.log",
-        )
-        deadline = time.monotonic() + 90
-        while True:
-            with contextlib.suppress(OSError), socket.create_connection(("127.0.0.1", port), 1):
-                break
-            if procs[0].poll() is not None or time.monotonic() > deadline:
-                pytest.fail("the head node did not start: " + Path(tmp, "head.log").read_text())
-            time.sleep(0.5)
-        start(f"--address={address}", f"--temp-dir={tmp}/worker", "--num-cpus=1", log="w.log")
-        yield {"address": address, "env": env, "tmp": tmp, "start_s": time.perf_counter() - t0}
-    finally:
-        for proc in reversed(procs):
-            _stop(proc)
-        for pid in _ours(tmp):  # a daemon that left its session: still ours, by its temp dir
-            with contextlib.suppress(ProcessLookupError):
-                os.kill(pid, signal.SIGKILL)
-        shutil.rmtree(tmp, ignore_errors=True)
+
+def _ours(marker: str) -> list[int]:
+    from evgrid.engine_ray import _processes_naming
+
+    return _processes_naming(marker)
 
 
 @needs_ray
@@ -372,11 +310,9 @@ def test_two_node_cluster_maps_like_the_local_engine(two_node_cluster):
     code = f"""
         import json, time
         import ray
+        from evgrid.engine_ray import wait_for_nodes
         ray.init(address={two_node_cluster["address"]!r}, log_to_driver=False)
-        deadline = time.monotonic() + 90
-        while sum(n["Alive"] for n in ray.nodes()) < 2 and time.monotonic() < deadline:
-            time.sleep(0.5)
-        nodes = sum(n["Alive"] for n in ray.nodes())
+        nodes = wait_for_nodes(ray, 2)
         ray.shutdown()
         from evgrid.engine import fan_out
         from tests.test_engine_ray import map_metrics
@@ -385,8 +321,7 @@ def test_two_node_cluster_maps_like_the_local_engine(two_node_cluster):
                                                              workers=2)}}
         print("RESULT", json.dumps({{"nodes": nodes, "out": out}}))
     """
-    env = dict(two_node_cluster["env"], RAY_ADDRESS=two_node_cluster["address"])
-    r = _run_python(code, env, timeout=400)
+    r = _run_python(code, two_node_cluster["env"], timeout=400)
     lines = [ln for ln in r.stdout.splitlines() if ln.startswith("RESULT ")]
     assert r.returncode == 0 and lines, r.stdout[-2000:] + r.stderr[-4000:]
     res = json.loads(lines[0][len("RESULT ") :])
