@@ -76,8 +76,9 @@ def test_a_worker_that_dies_again_is_reported_not_retried_forever():
 
 
 def test_no_retries_means_a_dead_worker_is_reported_at_once(tmp_path):
-    out = by_key(fan_out(_dispatch, [("dies", (7, str(tmp_path / "m"))), ("j2", 2)], workers=2,
-                         retries=0))  # fmt: skip
+    out = by_key(
+        fan_out(_dispatch, [("dies", (7, str(tmp_path / "m"))), ("j2", 2)], workers=2, retries=0)
+    )
     assert not out["dies"].ok and "worker process died" in out["dies"].error
 
 

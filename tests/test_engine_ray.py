@@ -77,6 +77,7 @@ def map_metrics(args: tuple) -> dict:
         "confusion_vs_ray_ilm": res.metrics["confusion_vs_ray_ilm"],
         "masses_sha256": digest.hexdigest(),
         "node": _ray_node(),
+        "evgrid": __import__("evgrid").__file__,
     }
 
 
@@ -290,8 +291,7 @@ def two_node_cluster():
         pytest.skip("ray is not installed (pip install -e '.[ray]')")
     from evgrid.engine_ray import local_cluster
 
-    with local_cluster(nodes=2, cpus_per_node=1) as cluster:
-        cluster["env"]["PYTHONPATH"] = os.pathsep.join([str(ROOT / "src"), str(ROOT)])
+    with local_cluster(nodes=2, cpus_per_node=1, python_path=(str(ROOT / "src"),)) as cluster:
         yield cluster
     assert not _ours(cluster["tmp"]), "a Ray process of the test cluster outlived it"
 
@@ -337,4 +337,6 @@ def test_two_node_cluster_maps_like_the_local_engine(two_node_cluster):
     }
     for m in local.values():
         assert m.pop("node") is None
+    # the nodes' workers mapped with this checkout's evgrid, not another installed one
+    assert {m["evgrid"] for m in on_ray.values()} == {m["evgrid"] for m in local.values()}
     assert on_ray == json.loads(json.dumps(local))  # masses bit for bit, IoUs, confusion

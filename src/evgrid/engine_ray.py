@@ -336,7 +336,10 @@ def _stop(proc: Any, grace_s: float = 20.0) -> None:
 
 @contextlib.contextmanager
 def local_cluster(
-    nodes: int = 2, cpus_per_node: int = 1, timeout_s: float = 120.0
+    nodes: int = 2,
+    cpus_per_node: int = 1,
+    timeout_s: float = 120.0,
+    python_path: tuple[str, ...] = (),
 ) -> Iterator[dict[str, Any]]:
     """A Ray cluster of ``nodes`` nodes on this machine, for tests and benchmarks.
 
@@ -344,9 +347,11 @@ def local_cluster(
     session of its own, with token authentication (a fresh token in a private temporary folder)
     and without the dashboard. Yields ``{"address", "env", "tmp"}``: ``env`` is this
     environment with what a driver needs (``RAY_ADDRESS``, ``RAY_AUTH_MODE``,
-    ``RAY_AUTH_TOKEN_PATH``). Every process is stopped again however the block ends, by its
-    process id. Ray 2.60 runs several nodes only on the machine's address, not on loopback
-    (docs/cluster.md), so the cluster listens there while it runs.
+    ``RAY_AUTH_TOKEN_PATH``). The nodes' workers import from ``python_path``, then this
+    environment's ``PYTHONPATH`` made absolute, as every node of a real cluster must import the
+    driver's version of evgrid (docs/cluster.md). Every process is stopped again however the
+    block ends, by its process id. Ray 2.60 runs several nodes only on the machine's address,
+    not on loopback (docs/cluster.md), so the cluster listens there while it runs.
     """
     import subprocess
     import time
@@ -361,6 +366,8 @@ def local_cluster(
         f.write(secrets.token_hex(32))
     env = {k: v for k, v in os.environ.items() if not k.startswith("RAY_")}
     env.update(RAY_AUTH_MODE="token", RAY_AUTH_TOKEN_PATH=token)
+    paths = [*python_path, *os.environ.get("PYTHONPATH", "").split(os.pathsep)]
+    env["PYTHONPATH"] = os.pathsep.join(os.path.abspath(p) for p in paths if p)
     port = _free_port()
     address = f"127.0.0.1:{port}"
     procs: list[Any] = []
