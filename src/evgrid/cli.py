@@ -295,6 +295,8 @@ def transfer(
     scenes: int = typer.Option(4, "--scenes", min=1, help="Held-out scenes per radar."),
     seed: int = typer.Option(1000, "--seed", min=0, help="First simulator seed."),
     duration: float = typer.Option(10.0, "--duration", help="Scene length in seconds."),
+    workers: int = _workers(1),
+    engine: str = _ENGINE,
 ) -> None:
     """Score Ev-Net's single frames on radars inside and outside its training ranges (the deep
     and the ray IRM's IoU per class against the ray ILM). Example: evgrid transfer --scenes 4"""
@@ -302,7 +304,7 @@ def transfer(
     from evgrid.train_run import run_transfer
 
     with bar("radars", None, unit="radars") as advance:
-        text = run_transfer(out, checkpoint, scenes, seed, duration, progress=advance)
+        text = run_transfer(out, checkpoint, scenes, seed, duration, advance, engine, workers)
     typer.echo(f"{text}\nwrote {out / 'transfer.json'} and {out / 'transfer.md'}")
 
 

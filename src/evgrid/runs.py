@@ -485,7 +485,9 @@ def map_scenes(
         failed: dict[str, str] = {}
         todo = [n for n in names if n not in done]
         events.start(todo, list(done), dropped)
-        on_frame = events.frame if workers <= 1 and engine == "local" else None
+        # fan_out runs jobs in this process with one worker or one job: frames can be shown
+        in_process = engine == "local" and (workers <= 1 or len(todo) <= 1)
+        on_frame = events.frame if in_process else None
         jobs = [(n, (source, n, str(out), config, outputs, source_dict, on_frame)) for n in todo]
         try:
             for o in fan_out(_map_one, jobs, engine=engine, workers=workers):

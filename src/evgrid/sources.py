@@ -203,7 +203,11 @@ class NuScenesSource:
 
         wanted = set(self.scene_names or ())
         if self.split is not None:
-            split = set(nuscenes_splits(Path(self.dataroot), self.version).get(self.split, ()))
+            try:
+                splits = nuscenes_splits(Path(self.dataroot), self.version)
+            except (OSError, ValueError, ImportError):  # no split table: loading will say why
+                return {}
+            split = set(splits.get(self.split, ()))
             wanted = split & wanted if self.scene_names else split
         kept = set(self.names())
         # the loader's only reason to leave a scene out (paper: scenes that barely move)

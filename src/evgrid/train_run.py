@@ -207,6 +207,13 @@ def train_config_from_args(
     return resolve_train_config(path, overrides, TrainData(**data) if data else None)
 
 
+def _transfer_one(args: tuple) -> dict:
+    from evgrid.learn.transfer import measure_transfer
+
+    ckpt, name, source, cache = args
+    return measure_transfer(ckpt, {name: source}, cache)[name]
+
+
 def run_transfer(
     out: str | os.PathLike,
     checkpoint: str | os.PathLike | None,
@@ -214,18 +221,32 @@ def run_transfer(
     seed: int,
     duration_s: float,
     progress: Callable[[str], None] | None = None,
+    engine: str = "local",
+    workers: int = 1,
 ) -> str:
     """``evgrid transfer``: score a checkpoint's single frames on radars inside and outside its
-    training ranges; writes ``transfer.json`` and ``transfer.md``, returns the Markdown."""
+    training ranges, one radar a job (:func:`evgrid.engine.fan_out`); writes ``transfer.json``
+    and ``transfer.md``, returns the Markdown. A radar whose job fails is an error naming it."""
+    from evgrid.engine import fan_out
     from evgrid.io import atomic_write_text, write_json
     from evgrid.ism.deep import default_checkpoint
-    from evgrid.learn.transfer import measure_transfer, transfer_markdown, transfer_sources
+    from evgrid.learn.transfer import transfer_markdown, transfer_sources
 
     out = Path(out)
     sources = transfer_sources(scenes, seed, duration_s)
-    ckpt = checkpoint or default_checkpoint()
+    ckpt = str(checkpoint or default_checkpoint())
     out.mkdir(parents=True, exist_ok=True)
-    res = measure_transfer(ckpt, sources, out / "cache", progress=progress)
+    jobs = [(name, (ckpt, name, src, str(out / "cache"))) for name, src in sources.items()]
+    found, failed = {}, {}
+    for o in fan_out(_transfer_one, jobs, engine=engine, workers=workers):
+        found[o.key] = o.result
+        if not o.ok:
+            failed[o.key] = o.error
+        if progress:
+            progress(o.key)
+    if failed:
+        raise RuntimeError(f"transfer: radar(s) failed: {failed}")
+    res = {name: found[name] for name in sources}  # the order of the radars, not of finishing
     meta = {"checkpoint": str(ckpt), "scenes": scenes, "seed": seed, "duration_s": duration_s}
     write_json(out / "transfer.json", {**meta, "radars": res})
     text = transfer_markdown(res)
