@@ -294,6 +294,7 @@ def SPEC_AT(res: float) -> GridSpec:  # noqa: N802 (a grid of that resolution)
         (dict(window_m=0.0), 0),
         (dict(compression="lz4", maps=("ray_ilm", "fused")), 6),  # 3 keyframes x 2 maps
         (dict(compression="none", final_maps=()), 3),
+        (dict(map_frame="odom"), 3),  # maps in the fixed frame: no /tf (no odom -> odom)
     ],
 )
 def test_mcap_window_rate_maps_and_compression(tmp_path, params, windows):
@@ -310,7 +311,9 @@ def test_mcap_window_rate_maps_and_compression(tmp_path, params, windows):
         chunks = {c.compression for c in summary.chunk_indexes}
         msgs = [(ch.topic, m.log_time) for _, ch, m in reader.iter_messages()]
     assert chunks == {"" if p.compression == "none" else p.compression}
-    last = max(t for topic, t in msgs if topic == "/tf")
+    n_tf = sum(topic == "/tf" for topic, _ in msgs)
+    assert n_tf == (0 if p.map_frame == p.fixed_frame else 12)
+    last = max(t for topic, t in msgs if topic == "/evgrid/ego_pose")
     grids = [(topic, t) for topic, t in msgs if topic.endswith("/occupancy")]
     assert len([g for g in grids if g[1] <= last]) == windows
     final = sorted(topic for topic, t in grids if t > last)
