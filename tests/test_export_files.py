@@ -284,3 +284,38 @@ def test_rerun_quads_lie_on_their_cells():
 
 def SPEC_AT(res: float) -> GridSpec:  # noqa: N802 (a grid of that resolution)
     return GridSpec(8, 8 * res)
+
+
+@pytest.mark.parametrize(
+    "params, windows",
+    [
+        (dict(), 3),  # keyframes: updates 0, 5, 10 of 12
+        (dict(rate_hz=5.0), 6),  # updates every 0.1 s: every second one
+        (dict(window_m=0.0), 0),
+        (dict(compression="lz4", maps=("ray_ilm", "fused")), 6),  # 3 keyframes x 2 maps
+        (dict(compression="none", final_maps=()), 3),
+        (dict(map_frame="odom"), 3),  # maps in the fixed frame: no /tf (no odom -> odom)
+    ],
+)
+def test_mcap_window_rate_maps_and_compression(tmp_path, params, windows):
+    pytest.importorskip("mcap")
+    from mcap.reader import make_reader
+
+    from evgrid.export.mcap import McapParams
+
+    p = McapParams(**params)
+    path = _run(make_observer("mcap", tmp_path / "r.mcap", p))
+    with open(path, "rb") as fh:
+        reader = make_reader(fh)
+        summary = reader.get_summary()
+        chunks = {c.compression for c in summary.chunk_indexes}
+        msgs = [(ch.topic, m.log_time) for _, ch, m in reader.iter_messages()]
+    assert chunks == {"" if p.compression == "none" else p.compression}
+    n_tf = sum(topic == "/tf" for topic, _ in msgs)
+    assert n_tf == (0 if p.map_frame == p.fixed_frame else 12)
+    last = max(t for topic, t in msgs if topic == "/evgrid/ego_pose")
+    grids = [(topic, t) for topic, t in msgs if topic.endswith("/occupancy")]
+    assert len([g for g in grids if g[1] <= last]) == windows
+    final = sorted(topic for topic, t in grids if t > last)
+    want = [] if p.final_maps == () else ["/evgrid/fused/occupancy", "/evgrid/ray_ilm/occupancy"]
+    assert final == want

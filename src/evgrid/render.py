@@ -125,6 +125,15 @@ def _legend(fig, palette: str, path: bool) -> None:
     )  # fmt: skip
 
 
+def _line_legend(fig, ax) -> None:
+    """The maps' lines as one row below the panels, off the curves."""
+    handles, labels = ax.get_legend_handles_labels()
+    fig.legend(
+        handles, labels, loc="upper center", bbox_to_anchor=(0.5, 0.0), ncol=len(handles),
+        fontsize=8, frameon=False,
+    )  # fmt: skip
+
+
 def _scale_bar(ax, width_m: float) -> None:
     """A bar of a round length (1, 2 or 5 x 10^k m, about a fifth of the panel) at the lower
     left, black on a white box so that it reads on any map."""
@@ -247,7 +256,7 @@ def plot_convergence(
         ax.set_ylim(0, 1)
         ax.grid(alpha=0.3)
         ax.tick_params(labelsize=7)
-    axes[0].legend(fontsize=7)
+    _line_legend(fig, axes[0])
     return _save(fig, path, title)
 
 
@@ -291,7 +300,7 @@ def plot_perception_field(conv: Mapping, path: str | os.PathLike, title: str = "
         ax.set_xlabel("driving time [s]", fontsize=8)
         ax.grid(alpha=0.3)
         ax.tick_params(labelsize=7)
-    axes[0].legend(fontsize=7)
+    _line_legend(fig, axes[0])
     return _save(
         fig, path, title or "perception field over time (mean over scenes, 95% bootstrap interval)"
     )
@@ -497,5 +506,5 @@ def plot_m_u_min_sweep(
         ax.grid(alpha=0.3)
         if chosen is not None:
             ax.axvline(chosen, color="k", ls="--", lw=0.8)
-    axes[0].legend(fontsize=7)
+    _line_legend(fig, axes[0])
     return _save(fig, path)

@@ -358,9 +358,10 @@ class McapExporter:
         p, store = self.params, self.store
         t_us = int(update.frame.timestamp)
         pose: SE2 = update.pose
-        fixed = SE3.from_se2(fixed_in_map(update))
-        tf = transform_msg(p.map_frame, p.fixed_frame, t_us, fixed, store)
-        self._write("/tf", "tf2_msgs/msg/TFMessage", t_us, tf_message([tf], store))
+        if p.map_frame != p.fixed_frame:  # maps built in the fixed frame itself need no link
+            fixed = SE3.from_se2(fixed_in_map(update))
+            tf = transform_msg(p.map_frame, p.fixed_frame, t_us, fixed, store)
+            self._write("/tf", "tf2_msgs/msg/TFMessage", t_us, tf_message([tf], store))
         sec, ns = us_to_stamp(t_us)
         ego = store.types["geometry_msgs/msg/PoseStamped"](
             header=header(sec, ns, p.map_frame, store),
