@@ -285,8 +285,9 @@ class SelfReturnParams:
     margin_m: float = 0.1
     #: "auto" with a prior: every ``grow_travel_m`` of path until a body is learnt, voxels outside
     #: the body box that stayed fixed in the ego frame and lie within ``grow_gap_m`` of the prior
-    #: or of the sensor's mount (or of such a voxel) join the body (0: never). Something beside the vehicle at a constant offset
-    #: for a few metres is a gap away from it; the vehicle's own roof box or cab is not.
+    #: or of the sensor's mount (or of such a voxel) join the body (0: never). Something beside
+    #: the vehicle at a constant offset for a few metres is a gap away from it; the vehicle's
+    #: own roof box or cab is not.
     grow_travel_m: float = 2.0
     grow_gap_m: float = 0.3
     #: The box this far around the sensor holds its mount: the body is grown from there too
