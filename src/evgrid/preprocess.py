@@ -30,8 +30,9 @@ Self-return modes (:class:`SelfReturnParams`):
   it is removed too, which catches the sparse returns of edges no single voxel sees often enough.
   Until then ``prior`` (a passenger car, :data:`NUSCENES_BODY`) stands in for the body box, and
   it is *checked against what is seen* every ``grow_travel_m`` of driving: voxels fixed in the
-  ego frame that touch the body known so far or the sensor's mount (within ``grow_gap_m``: a
-  roof box, a van's or a truck cab's taller body) are part of the vehicle at once, so a vehicle
+  ego frame that touch the prior or the sensor's mount (``mount_reach_m`` around the sensor),
+  within ``grow_gap_m`` (a roof box, a van's or a truck cab's taller body), are
+  part of the vehicle at once, so a vehicle
   larger than the prior leaves no trail of its own body along a short drive either. What
   drives beside the vehicle is a gap away from its body, and is not grown into it. Until the
   first check, the prior reaches up to ``mount_reach_m`` above the sensor (and that far around
@@ -284,13 +285,14 @@ class SelfReturnParams:
     min_travel_m: float = 20.0
     margin_m: float = 0.1
     #: "auto" with a prior: every ``grow_travel_m`` of path until a body is learnt, voxels outside
-    #: the body box that stayed fixed in the ego frame and lie within ``grow_gap_m`` of the body
-    #: (or of such a voxel) join it (0: never). Something beside the vehicle at a constant offset
-    #: for a few metres is a gap away from it; the vehicle's own roof box or cab is not.
+    #: the body box that stayed fixed in the ego frame and lie within ``grow_gap_m`` of the prior
+    #: or of the sensor's mount (or of such a voxel) join the body (0: never). Something beside
+    #: the vehicle at a constant offset for a few metres is a gap away from it; the vehicle's
+    #: own roof box or cab is not.
     grow_travel_m: float = 2.0
     grow_gap_m: float = 0.3
-    #: The column under the sensor, this far around it (and up to this far above it), holds
-    #: its mount: the body is grown from there too.
+    #: The box this far around the sensor holds its mount: the body is grown from there too
+    #: (and until the first check the body box reaches this far above and around the sensor).
     mount_reach_m: float = 0.75
     #: Until the first check, the body box is at least this wide to either side of the ego
     #: frame's x axis: half the widest road vehicle (2.55 m), mirrors aside.
@@ -486,7 +488,7 @@ class SelfReturnFilter:
 
     def _grow(self, keys: np.ndarray, box: BodyBox, sensor: np.ndarray) -> None:
         """Count this sweep's voxels outside the body box; every ``grow_travel_m`` of path, the
-        fixed ones attached to the body or to the sensor's mount join the body (the prior
+        fixed ones attached to the prior or to the sensor's mount join the body (the prior
         checked against what is seen)."""
         p, w = self.params, self._outside
         w.add(keys, self._step)
@@ -496,10 +498,14 @@ class SelfReturnFilter:
         w.reset()
         self._checked = True
         # The sensor is mounted on the vehicle: whatever reaches up to it is the vehicle too (a
-        # van's or a truck's roof lies above the prior, right under the lidar's blind cone).
+        # van's or a truck's roof lies above the prior, right under the lidar's blind cone). Only
+        # around the sensor itself: a column down to the ground would reach past a bumper.
         r = p.mount_reach_m
-        mount = (*(sensor[:2] - r), 0.0, *(sensor[:2] + r), sensor[2] + r)
-        anchors = [box.as_tuple(), mount]
+        mount = (*(sensor - r), *(sensor + r))
+        # Anchored on the prior and the mount only, not on what was grown before: a wall that
+        # runs parallel to the path looks fixed over a few metres, and must not creep in along
+        # a grown edge check after check.
+        anchors = [(p.prior or box).as_tuple(), mount]
         attached = _attached(fixed, anchors, p.voxel_m, p.grow_gap_m)
         if len(attached):
             self._learnt = np.union1d(self._learnt, attached)

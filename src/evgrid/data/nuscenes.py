@@ -98,7 +98,10 @@ def check_records(table_file: Path, records: Any) -> None:
     keys = REQUIRED_KEYS.get(table_file.stem, ())
     if not isinstance(records, list):
         raise NuScenesDataError(f"{table_file}: must hold a list of records")
+    need = set(keys)
     for i, rec in enumerate(records):
+        if isinstance(rec, dict) and need <= rec.keys():  # one C-level test a record
+            continue
         if not isinstance(rec, dict):
             raise NuScenesDataError(f"{table_file}: record {i} is not a JSON object")
         for k in keys:

@@ -22,7 +22,7 @@ from evgrid.data.bag.decoding import (
 )
 from evgrid.data.bag.errors import BagError
 from evgrid.data.bag.reading import Recording
-from evgrid.data.bag.rig import RecordingRig, load_rig
+from evgrid.data.bag.rig import RadarTopic, RecordingRig, load_rig
 from evgrid.data.bag.transforms import TransformBuffer
 from evgrid.data.frame import LIDAR_CHANNEL, Frame, LidarSweep, RadarSweep
 from evgrid.geometry import SE3
@@ -320,12 +320,89 @@ class BagScene:
             return "future"
         return None
 
+    def _radar_sweep(
+        self, msg: Any, r: RadarTopic, t: int, where: str, counts: dict[str, int]
+    ) -> RadarSweep | None:
+        """The sweep of one radar message, or None when it is skipped (malformed, no pose),
+        counted under its reason."""
+        try:
+            pts = (
+                radar_scan_points(msg)
+                if hasattr(msg, "returns")
+                else radar_cloud_points(msg, r, where)
+            )
+        except CloudError as e:
+            self._skip("radar_messages_malformed", counts, "%s: %s; skipped", where, e)
+            return None
+        ego = self._poses.ego(t)
+        if ego is None:
+            counts["radar_sweeps_no_pose"] += 1
+            return None
+        s2e = self._extrinsic(r.frame or msg.header.frame_id, where)
+        if not r.compensated:
+            v = self._sensor_velocity(t, s2e)
+            if v is None:
+                counts["radar_sweeps_no_pose"] += 1
+                return None
+            compensate(pts, v)
+        return RadarSweep(pts, s2e, ego, t, r.channel)
+
+    def _emit(
+        self,
+        upto_ns: int | None,
+        lidar_q: list[tuple[int, np.ndarray, str]],
+        radar_q: list[RadarSweep],
+        counts: dict[str, int],
+        state: dict,
+    ) -> Iterator[Frame]:
+        """The frames of the queued lidar sweeps whose stamps are ``sync_tolerance_s`` before
+        bag time ``upto_ns`` (all with None), each with the radar sweeps since the last frame."""
+        rig = self.rig
+        tol_ns = int(rig.sync_tolerance_s * 1e9)
+        while lidar_q and (upto_ns is None or lidar_q[0][0] * 1000 + tol_ns < upto_ns):
+            t, pts, frame_id = lidar_q.pop(0)
+            ego = self._poses.ego(t)
+            if ego is None:
+                self._skip(
+                    "frames_no_pose",
+                    counts,
+                    "%s: no ego pose at lidar stamp %d us (%s -> %s); frame skipped",
+                    self.path,
+                    t,
+                    rig.world_frame,
+                    rig.base_frame,
+                )
+                continue
+            last = state["last_t"]
+            mine = [s for s in radar_q if s.timestamp <= t and (last is None or s.timestamp > last)]
+            radar_q[:] = [s for s in radar_q if s.timestamp > t]
+            radar = {
+                r.channel: tuple(
+                    sorted((s for s in mine if s.channel == r.channel), key=lambda s: s.timestamp)
+                )
+                for r in rig.radars
+            }
+            i = state["index"]
+            kf = self._is_keyframe(i, t, state["kf"])
+            s2e = self._extrinsic(frame_id, f"{self.path} lidar {rig.lidar.topic}")
+            lidar = LidarSweep(pts, s2e, ego, t, LIDAR_CHANNEL)
+            state["index"] = i + 1
+            state["last_t"] = t
+            yield Frame(
+                scene=self.name,
+                index=i,
+                timestamp=t,
+                ego_pose=ego,
+                is_keyframe=kf,
+                lidar=lidar,
+                radar=radar,
+            )
+
     def __iter__(self) -> Iterator[Frame]:
         from evgrid.ros import stamp_to_us
 
         rig = self.rig
         radar_by_topic = {r.topic: r for r in rig.radars}
-        tol_ns = int(rig.sync_tolerance_s * 1e9)
         lidar_q: list[tuple[int, np.ndarray, str]] = []
         radar_q: list[RadarSweep] = []
         counts = dict.fromkeys(
@@ -346,50 +423,6 @@ class BagScene:
         leads: deque[int] = deque(maxlen=9)  # lidar stamp minus bag time (us), last accepted
         index: dict[str, int] = {}
         state: dict = {"index": 0, "last_t": None, "kf": {}}
-
-        def emit(upto_ns: int | None) -> Iterator[Frame]:
-            while lidar_q and (upto_ns is None or lidar_q[0][0] * 1000 + tol_ns < upto_ns):
-                t, pts, frame_id = lidar_q.pop(0)
-                ego = self._poses.ego(t)
-                if ego is None:
-                    self._skip(
-                        "frames_no_pose",
-                        counts,
-                        "%s: no ego pose at lidar stamp %d us (%s -> %s); frame skipped",
-                        self.path,
-                        t,
-                        rig.world_frame,
-                        rig.base_frame,
-                    )
-                    continue
-                last = state["last_t"]
-                mine = [
-                    s for s in radar_q if s.timestamp <= t and (last is None or s.timestamp > last)
-                ]
-                radar_q[:] = [s for s in radar_q if s.timestamp > t]
-                radar = {
-                    r.channel: tuple(
-                        sorted(
-                            (s for s in mine if s.channel == r.channel), key=lambda s: s.timestamp
-                        )
-                    )
-                    for r in rig.radars
-                }
-                i = state["index"]
-                kf = self._is_keyframe(i, t, state["kf"])
-                s2e = self._extrinsic(frame_id, f"{self.path} lidar {rig.lidar.topic}")
-                lidar = LidarSweep(pts, s2e, ego, t, LIDAR_CHANNEL)
-                state["index"] = i + 1
-                state["last_t"] = t
-                yield Frame(
-                    scene=self.name,
-                    index=i,
-                    timestamp=t,
-                    ego_pose=ego,
-                    is_keyframe=kf,
-                    lidar=lidar,
-                    radar=radar,
-                )
 
         topics = {rig.lidar.topic, *radar_by_topic}
         for topic, bag_t, msg in self._rec.messages(topics):
@@ -421,34 +454,14 @@ class BagScene:
                     (t, pts, rig.lidar.frame or msg.header.frame_id),
                     key=lambda q: q[0],
                 )
+            elif state["last_t"] is not None and t <= state["last_t"]:
+                counts["radar_sweeps_late"] += 1
             else:
-                r = radar_by_topic[topic]
-                if state["last_t"] is not None and t <= state["last_t"]:
-                    counts["radar_sweeps_late"] += 1
-                    continue
-                try:
-                    pts = (
-                        radar_scan_points(msg)
-                        if hasattr(msg, "returns")
-                        else radar_cloud_points(msg, r, where)
-                    )
-                except CloudError as e:
-                    self._skip("radar_messages_malformed", counts, "%s: %s; skipped", where, e)
-                    continue
-                ego = self._poses.ego(t)
-                if ego is None:
-                    counts["radar_sweeps_no_pose"] += 1
-                    continue
-                s2e = self._extrinsic(r.frame or msg.header.frame_id, where)
-                if not r.compensated:
-                    v = self._sensor_velocity(t, s2e)
-                    if v is None:
-                        counts["radar_sweeps_no_pose"] += 1
-                        continue
-                    compensate(pts, v)
-                radar_q.append(RadarSweep(pts, s2e, ego, t, r.channel))
-            yield from emit(bag_t)
-        yield from emit(None)
+                sweep = self._radar_sweep(msg, radar_by_topic[topic], t, where, counts)
+                if sweep is not None:
+                    radar_q.append(sweep)
+            yield from self._emit(bag_t, lidar_q, radar_q, counts, state)
+        yield from self._emit(None, lidar_q, radar_q, counts, state)
         counts["radar_sweeps_after_end"] = len(radar_q)
         self.counts = counts
         self._logged = {}
