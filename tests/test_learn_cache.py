@@ -124,3 +124,33 @@ def test_scene_names_that_are_no_file_names_get_their_own_shards(tmp_path):
     assert len([p for p in tmp_path.iterdir() if p.is_dir()]) == 3
     assert cached_scenes(tmp_path, CFG) == {"a/b": 2, "a_b": 2, "..": 2}  # 20 frames, every 10th
     assert len(RadarDataset(tmp_path, names, CFG.grid)) == 6
+
+
+def test_a_build_killed_midway_resumes_to_the_same_cache(serial, tmp_path):
+    """The driver process dies (os._exit, as a kill) right after its first shard; the next
+    build computes the rest, and the cache equals an uninterrupted one."""
+    import subprocess
+    import sys
+
+    root, names = serial
+    script = (
+        "import os, sys\n"
+        "from evgrid.learn.train import build_cache\n"
+        "from evgrid.sources import SimSource\n"
+        "from evgrid.ism.evnet import EvNetConfig\n"
+        "from evgrid.learn.train import TrainConfig\n"
+        "CFG = TrainConfig(epochs=1, batch_size=2, workers=0, frame_stride=10,\n"
+        "                  model=EvNetConfig(in_channels=6, width=4, depth=2))\n"
+        "build_cache(SimSource((0, 4, 7), duration_s=1.0), sys.argv[1], CFG, with_irm=True,\n"
+        "            progress=lambda name: os._exit(9))\n"
+    )
+    r = subprocess.run([sys.executable, "-c", script, str(tmp_path)], timeout=300)
+    assert r.returncode == 9
+    assert len(cached_scenes(tmp_path, CFG)) == 1  # one shard, complete; the others absent
+    seen = []
+    assert build_cache(SOURCE, tmp_path, CFG, with_irm=True, progress=seen.append) == names
+    assert sorted(seen) == sorted(names)
+    assert cached_scenes(tmp_path, CFG) == cached_scenes(root, CFG)
+    for name in names:
+        a, b = _arrays(root, name), _arrays(tmp_path, name)
+        assert all(np.array_equal(a[k], b[k]) for k in a)
