@@ -23,6 +23,7 @@ from evgrid.fusion import (
     update_ray_irm,
 )
 from evgrid.geometry import SE2, GridSpec
+from evgrid.grid import Warper
 from tests.oracle import TwoPassMaps
 from tests.strategies import random_masses
 
@@ -280,3 +281,23 @@ def test_attached_map_sets_are_rows_of_the_same_pass():
         MapSet(grid, P, ("ray_ilm",)).attach(MapSet(grid, P, ("ray_irm",)))
     with pytest.raises(ValueError, match="grid"):
         host.attach(MapSet(GridSpec(32, 4.0), P, ("ray_ilm",)))
+
+
+def test_windows_for_observers_are_the_warps_of_the_last_update():
+    # MapUpdate.windows: the ISMs of the last update warped whole; no map is updated from them
+    grid = GridSpec(32, 4.0)
+    rng = np.random.default_rng(5)
+    ms = MapSet(grid, P, ("ray_ilm", "fused"))
+    isms = {i: random_masses(rng, grid.shape) for i in ("ray_ilm", "ray_irm", "deep_irm")}
+    pose = SE2(0.7, -0.3, 0.4)
+    ms.update(pose, isms)
+    before = {n: ms[n].to_dense()[0].copy() for n in ms.names}
+    windows = ms.windows(pose)
+    assert set(windows) == {"ray_ilm", "ray_irm", "deep_irm"}
+    for name, w in windows.items():
+        ref = Warper(grid).warp(isms[name], pose)
+        assert (w.r0, w.c0) == (ref.r0, ref.c0)
+        np.testing.assert_array_equal(w.masses, ref.masses)
+        np.testing.assert_array_equal(w.covered, ref.covered)
+    for n in ms.names:
+        np.testing.assert_array_equal(ms[n].to_dense()[0], before[n])
