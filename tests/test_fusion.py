@@ -23,6 +23,7 @@ from evgrid.fusion import (
     update_ray_irm,
 )
 from evgrid.geometry import SE2, GridSpec
+from evgrid.grid import Warper
 from tests.oracle import TwoPassMaps
 from tests.strategies import random_masses
 
@@ -248,3 +249,55 @@ def test_one_pass_update_rejects_bad_isms_naming_them():
         ms.update(SE2(), {"deep_irm": good[:8], "ray_irm": good})
     with pytest.raises(ValueError, match="deep_irm: the local grid must be a numeric array"):
         ms.update(SE2(), {"deep_irm": good.astype(str), "ray_irm": good})
+
+
+def test_attached_map_sets_are_rows_of_the_same_pass():
+    """The m_u_min sweep's extra map sets: attached, each keeps its own m_u_min and gets the
+    same maps, bit for bit, as updating it on its own."""
+    grid = GridSpec(40, 4.0)
+    rng = np.random.default_rng(11)
+    host = MapSet(grid, P, ("ray_ilm", "fused"), 24)
+    swept = ("deep_replace", "deep_disc", "fused")
+    extras = [MapSet(grid, FusionParams(m_u_min=v), swept, 24) for v in (0.1, 0.6)]
+    alone = [MapSet(grid, FusionParams(m_u_min=v), swept, 24) for v in (0.1, 0.6)]
+    for e in extras:
+        host.attach(e)
+    for k in range(3):
+        isms = {i: random_masses(rng, grid.shape) for i in ("ray_ilm", "ray_irm", "deep_irm")}
+        pose = SE2(0.4 * k, -0.2 * k, 0.3 * k)
+        assert host.update(pose, isms) == {"ray_ilm": 0, "fused": 0}
+        for a in alone:
+            a.update(pose, isms)
+    for e, a in zip(extras, alone):
+        _maps_equal(e, a)
+        assert e.n_updates == 3
+        assert e.n_rejected == {i: host.n_rejected[i] for i in e.required_isms}
+    assert not np.array_equal(extras[0]["deep_disc"].to_dense()[0], host["fused"].to_dense()[0])
+    with pytest.raises(ValueError, match="attached"):
+        extras[0].update(SE2(), isms)
+    with pytest.raises(ValueError, match="once"):
+        host.attach(extras[0])
+    with pytest.raises(ValueError, match=r"needs ISMs \['ray_irm'\]"):
+        MapSet(grid, P, ("ray_ilm",)).attach(MapSet(grid, P, ("ray_irm",)))
+    with pytest.raises(ValueError, match="grid"):
+        host.attach(MapSet(GridSpec(32, 4.0), P, ("ray_ilm",)))
+
+
+def test_windows_for_observers_are_the_warps_of_the_last_update():
+    # MapUpdate.windows: the ISMs of the last update warped whole; no map is updated from them
+    grid = GridSpec(32, 4.0)
+    rng = np.random.default_rng(5)
+    ms = MapSet(grid, P, ("ray_ilm", "fused"))
+    isms = {i: random_masses(rng, grid.shape) for i in ("ray_ilm", "ray_irm", "deep_irm")}
+    pose = SE2(0.7, -0.3, 0.4)
+    ms.update(pose, isms)
+    before = {n: ms[n].to_dense()[0].copy() for n in ms.names}
+    windows = ms.windows(pose)
+    assert set(windows) == {"ray_ilm", "ray_irm", "deep_irm"}
+    for name, w in windows.items():
+        ref = Warper(grid).warp(isms[name], pose)
+        assert (w.r0, w.c0) == (ref.r0, ref.c0)
+        np.testing.assert_array_equal(w.masses, ref.masses)
+        np.testing.assert_array_equal(w.covered, ref.covered)
+    for n in ms.names:
+        np.testing.assert_array_equal(ms[n].to_dense()[0], before[n])

@@ -38,22 +38,28 @@ def test_lidar_occupied_dominant_ignores_the_fused_maps_free_mass():
 
 
 def test_lidar_free_dominant_ignores_the_fused_maps_occupied_mass():
-    # L = [.3, .1, .6], F = [.2, .7, .1]: F' = [.2, 0, .8]; f = .3 * .2 + .3 * .8 + .6 * .2 = .42,
-    # o = .1 * .8 = .08, u = .6 * .8 = .48, K = .1 * .2 = .02, divided by .98
+    # L = [.3, 0, .7], F = [.2, .7, .1]: F' = [.2, 0, .8]; f = .3 * .2 + .3 * .8 + .7 * .2 = .44,
+    # o = 0, u = .7 * .8 = .56, no conflict
     np.testing.assert_allclose(
-        nav_of([0.3, 0.1, 0.6], [0.2, 0.7, 0.1]), np.array([0.42, 0.08, 0.48]) / 0.98, rtol=1e-6
+        nav_of([0.3, 0.0, 0.7], [0.2, 0.7, 0.1]), [0.44, 0.0, 0.56], rtol=1e-6, atol=1e-7
     )
+
+
+def test_where_the_lidar_saw_a_return_the_fused_map_adds_no_free_space():
+    # L = [.3, .1, .6]: free-dominant, but the lidar saw a return here once (m_o > 0): F' holds
+    # neither F's free mass nor its occupied mass, so nav is L
+    np.testing.assert_allclose(nav_of([0.3, 0.1, 0.6], [0.8, 0.1, 0.1]), [0.3, 0.1, 0.6], rtol=1e-6)
 
 
 def test_where_the_lidar_saw_nothing_nav_is_the_fused_map():
     np.testing.assert_allclose(nav_of([0.0, 0.0, 1.0], [0.6, 0.1, 0.3]), [0.6, 0.1, 0.3], rtol=1e-6)
 
 
-def test_a_tie_in_the_lidar_evidence_takes_the_whole_fused_mass():
-    # L = [.2, .2, .6], F = [.5, .3, .2]: f = .2 * .5 + .2 * .2 + .6 * .5 = .44,
-    # o = .2 * .3 + .2 * .2 + .6 * .3 = .28, u = .12, K = .2 * .3 + .2 * .5 = .16
+def test_a_tie_in_the_lidar_evidence_takes_only_the_fused_maps_occupied_mass():
+    # L = [.2, .2, .6], F = [.5, .3, .2]: F' = [0, .3, .7]; f = .2 * .7 = .14,
+    # o = .2 * .3 + .2 * .7 + .6 * .3 = .38, u = .6 * .7 = .42, K = .2 * .3 = .06
     np.testing.assert_allclose(
-        nav_of([0.2, 0.2, 0.6], [0.5, 0.3, 0.2]), np.array([0.44, 0.28, 0.12]) / 0.84, rtol=1e-6
+        nav_of([0.2, 0.2, 0.6], [0.5, 0.3, 0.2]), np.array([0.14, 0.38, 0.42]) / 0.94, rtol=1e-6
     )
 
 

@@ -12,8 +12,8 @@ paper's six maps (:data:`MAP_NAMES`), and a navigation map computed when asked f
 ``ray_irm``     map = map (+)_D ray IRM
 ``fused``       the deep_disc step, then map = map (+)_D ray IRM
 ``nav``         the ray_ilm map (+)_D the fused map, the fused map's free mass ignored where
-                the lidar's evidence is occupied-dominant (never free where the lidar saw
-                occupied), its occupied mass where the lidar's is free-dominant
+                the lidar saw a return (never free where the lidar saw occupied), its
+                occupied mass where the lidar's evidence is free-dominant
 ==============  ==========================================================================
 
 :class:`MapSet` updates any of them in one pass per time step (:meth:`MapSet.update`, the
@@ -330,8 +330,8 @@ def update_nav(
     """``cell := nav(lidar_map, fused_map)`` per cell (docs/equations.md#the-navigation-map).
 
     Dempster's rule (eq. (5)) of the lidar map's cell with the fused map's, whose free mass
-    counts as unknown where the lidar's occupied mass exceeds its free mass, and whose occupied
-    mass counts as unknown where the lidar's free mass exceeds its occupied mass. Returns 0.
+    counts as unknown where the lidar map holds any occupied mass, and whose occupied mass
+    counts as unknown where the lidar's free mass exceeds its occupied mass. Returns 0.
     """
     return RULES[NAV_MAP].update(cell, lidar_map, fused_map, params, spans=spans)
 

@@ -406,11 +406,12 @@ def _fused_row(mp_, deep_, irm_, bad, n, m_u_min, alpha):
 
 @numba.njit(inline="always", **_JIT)
 def _nav_cell(fl, ol, ul, ff, of, uf):
-    # nav (docs/equations.md#the-navigation-map): the lidar map L (+)_D the fused map F, with F
-    # restricted where L's evidence leans one way: where m_o(L) > m_f(L), F's free mass counts as
-    # unknown, so the cell can never end up free; where m_f(L) > m_o(L), F's occupied mass counts
-    # as unknown, so the lidar's free space stays free. Where L holds no evidence it is F.
-    occ = ol > fl
+    # nav (docs/equations.md#the-navigation-map): the lidar map L (+)_D the fused map F (eq. (5)),
+    # F restricted by L's evidence: where L holds any occupied mass (the lidar saw a return
+    # there), F's free mass counts as unknown, so a cell the lidar saw occupied is never made
+    # free by the radar or the prior; where m_f(L) > m_o(L), F's occupied mass counts as unknown,
+    # so the lidar's free space stays free. Where L holds no evidence, nav is F.
+    occ = ol > 0.0
     fre = fl > ol
     f2 = 0.0 if occ else ff
     o2 = 0.0 if fre else of
