@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import statistics
 import subprocess
 import sys
@@ -138,6 +139,7 @@ def child_ports(plain: bool) -> dict:
         ray.get(ray.remote(_one_task).remote())
         rows = _listening(_descendants(os.getpid()))
         ray.shutdown()
+        shutil.rmtree(tmp, ignore_errors=True)
         return {"ports": rows}
     from evgrid.engine_ray import ray_session
 

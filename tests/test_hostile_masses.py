@@ -333,10 +333,10 @@ def test_map_set_arguments_of_the_wrong_kind_are_named():
 
 def test_grid_spec_from_dict_names_what_is_missing():
     # before: a bare KeyError
-    with pytest.raises(ValueError, match=r"missing key\(s\) \['length_m'\]"):
+    with pytest.raises(ValueError, match=r"missing .*\['length_m'\]"):
         GridSpec.from_dict({"n_cells": 32})
-    with pytest.raises(ValueError, match="'length_m' is not a number"):
+    with pytest.raises(ValueError, match="length_m: expected float"):
         GridSpec.from_dict({"n_cells": 32, "length_m": "wide"})
-    with pytest.raises(ValueError, match="needs a mapping"):
+    with pytest.raises(ValueError, match="expected an object"):
         GridSpec.from_dict([32, 4.0])
     assert GridSpec.from_dict(GRID.to_dict()) == GRID
