@@ -161,6 +161,28 @@ def _range_channel(grid: GridSpec) -> np.ndarray:
     return (np.hypot(x, y) / grid.half_extent).astype(np.float32)
 
 
+def _check_inputs(sweeps: Sequence[RadarSweep], ego_pose: SE3) -> None:
+    """The deep IRM's arguments, named when wrong (not an AttributeError deep inside)."""
+    if isinstance(sweeps, RadarSweep):
+        raise TypeError(
+            "radar sweeps must be a sequence of RadarSweep, got one RadarSweep: wrap it in a list"
+        )
+    if not isinstance(sweeps, Sequence) or isinstance(sweeps, (str, bytes)):
+        raise TypeError(
+            f"radar sweeps must be a sequence of RadarSweep, got {type(sweeps).__name__}"
+        )
+    bad = [type(s).__name__ for s in sweeps if not isinstance(s, RadarSweep)]
+    if bad:
+        raise TypeError(
+            f"radar sweeps must be RadarSweep objects, got {bad[0]} (the first of {len(bad)}); "
+            "build them with evgrid.data.frame.RadarSweep(points, sensor_to_ego, ego_pose, ...)"
+        )
+    if not isinstance(ego_pose, SE3):
+        raise TypeError(
+            f"ego_pose must be an SE3 (the ego pose of now), got {type(ego_pose).__name__}"
+        )
+
+
 def radar_detections(
     sweeps: Sequence[RadarSweep],
     ego_pose: SE3,
@@ -174,6 +196,7 @@ def radar_detections(
     frame. ``now_us`` (µs) defaults to the newest sweep's time. NaN/inf detections and values
     outside the sensor's range are dropped (logged once per sweep).
     """
+    _check_inputs(sweeps, ego_pose)
     if not sweeps:
         return np.zeros((0, len(DETECTION_COLUMNS)), np.float32)
     now = max(s.timestamp for s in sweeps) if now_us is None else int(now_us)
@@ -586,6 +609,7 @@ class DeepIrm:
 
         Equals max-pooling :func:`radar_image`; the array is reused by the next call.
         """
+        _check_inputs(sweeps, ego_pose)
         if self._pooled is None:
             self._pooled = _PooledInput(self.grid, self.pool)
         if not sweeps:
