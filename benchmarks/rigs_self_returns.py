@@ -171,10 +171,12 @@ def main() -> None:
         bodies(seeds, a.duration)
         return
     print(
-        f"free fraction of ray_ilm cells within 10 m of the path ({a.duration:g} s scenes, seeds {seeds})"
+        "free fraction of ray_ilm cells within 10 m of the path "
+        f"({a.duration:g} s scenes, seeds {seeds})"
     )
     print(
-        "| rig | seed | no self-returns | self-returns, --self-returns off | self-returns, default (auto) |"
+        "| rig | seed | no self-returns | self-returns, --self-returns off "
+        "| self-returns, default (auto) |"
     )
     print("|---|---|---|---|---|")
     for name, (rate, rig) in RIGS.items():
@@ -183,19 +185,17 @@ def main() -> None:
             t = time.perf_counter()
             row = []
             for sr, mode in ((False, "auto"), (True, "off"), (True, "auto")):
-                cfg = SimConfig(
-                    duration_s=a.duration, lidar=LidarConfig(rate_hz=rate, self_returns=sr), rig=rig
-                )
+                lidar = LidarConfig(rate_hz=rate, self_returns=sr)
+                cfg = SimConfig(duration_s=a.duration, lidar=lidar, rig=rig)
                 row.append(map_free(scene_frames(seed, cfg, via), mode)[0])
+            took = time.perf_counter() - t
             print(
-                f"| {name} | {seed} | {row[0]:.4f} | {row[1]:.4f} | {row[2]:.4f} |  ({time.perf_counter() - t:.0f} s)",
+                f"| {name} | {seed} | {row[0]:.4f} | {row[1]:.4f} | {row[2]:.4f} |  ({took:.0f} s)",
                 flush=True,
             )
     for seed in seeds:
-        print(
-            f"default filter on nuScenes-like sweeps, seed {seed}: {removal_stats(seed, a.duration)}",
-            flush=True,
-        )
+        stats = removal_stats(seed, a.duration)
+        print(f"default filter on nuScenes-like sweeps, seed {seed}: {stats}", flush=True)
 
 
 if __name__ == "__main__":

@@ -34,7 +34,8 @@ def masses(draw: st.DrawFn, edges: bool = True) -> np.ndarray:
 def random_masses(
     rng: np.random.Generator, shape: tuple[int, ...], p_edge: float = 0.1
 ) -> np.ndarray:
-    """A float32 mass grid of ``shape + (3,)``, a fraction ``p_edge`` of cells at simplex corners/edges."""
+    """A float32 mass grid of ``shape + (3,)``, a fraction ``p_edge`` of cells at simplex
+    corners/edges."""
     m = rng.dirichlet([1.0, 1.0, 1.0], size=shape).astype(np.float32)
     edge = rng.random(shape) < p_edge
     picks = np.array(EDGE_MASSES, dtype=np.float32)[rng.integers(0, len(EDGE_MASSES), size=shape)]

@@ -9,11 +9,23 @@ import torch
 from typer.testing import CliRunner
 
 from evgrid.cli import app
+from evgrid.fusion import MAP_NAMES
 from evgrid.geometry import GridSpec
 from evgrid.ism.deep import CHANNELS
 from evgrid.ism.evnet import EvNet, EvNetConfig, save_checkpoint
 
 runner = CliRunner()
+
+
+def evgrid(*words: object, **options: object):
+    """``evgrid WORDS --OPTION VALUE ...``: each keyword is an option, in the order given
+    (underscores become dashes; ``True`` is a bare flag)."""
+    args = [str(w) for w in words]
+    for name, value in options.items():
+        args.append("--" + name.replace("_", "-"))
+        if value is not True:
+            args.append(str(value))
+    return runner.invoke(app, args)
 
 
 @pytest.fixture(scope="module")
@@ -28,20 +40,8 @@ def tiny_checkpoint(tmp_path_factory):
 
 
 def test_map_writes_per_scene_results_and_table(tmp_path, tiny_checkpoint):
-    r = runner.invoke(
-        app,
-        [
-            "map",
-            "--scenes",
-            "1",
-            "--duration",
-            "2",
-            "--checkpoint",
-            str(tiny_checkpoint),
-            "--out",
-            str(tmp_path),
-            "--save-maps",
-        ],
+    r = evgrid(
+        "map", scenes=1, duration=2, checkpoint=tiny_checkpoint, out=tmp_path, save_maps=True
     )
     assert r.exit_code == 0, r.output
     assert "frames/s" in r.output and "| `fused` |" in r.output
@@ -49,14 +49,7 @@ def test_map_writes_per_scene_results_and_table(tmp_path, tiny_checkpoint):
     for name in ("metrics.json", "maps.png", "isms.png", "maps.gif", "maps/fused.npz"):
         assert (scene_dir / name).is_file(), name
     summary = json.loads((tmp_path / "summary.json").read_text())
-    assert set(summary["maps"]) == {
-        "ray_ilm",
-        "deep_acc",
-        "deep_replace",
-        "deep_disc",
-        "ray_irm",
-        "fused",
-    }
+    assert set(summary["maps"]) == set(MAP_NAMES)  # the six maps of Table I
     assert summary["scenes"] == ["sim-000004"] and summary["frames_per_second"] > 0
     assert (tmp_path / "convergence_truth.png").is_file()
     assert summary["convergence_truth"]["t_s"] == [1.0, 2.0, 5.0, 10.0]
@@ -64,25 +57,15 @@ def test_map_writes_per_scene_results_and_table(tmp_path, tiny_checkpoint):
 
 
 def test_evaluate_over_two_scenes_in_two_processes(tmp_path, tiny_checkpoint):
-    r = runner.invoke(
-        app,
-        [
-            "evaluate",
-            "--scenes",
-            "2",
-            "--duration",
-            "1.5",
-            "--workers",
-            "2",
-            "--checkpoint",
-            str(tiny_checkpoint),
-            "--out",
-            str(tmp_path),
-            "--m-u-min",
-            "0.4",
-            "--lidar-min-range",
-            "1.5",
-        ],
+    r = evgrid(
+        "evaluate",
+        scenes=2,
+        duration=1.5,
+        workers=2,
+        checkpoint=tiny_checkpoint,
+        out=tmp_path,
+        m_u_min=0.4,
+        lidar_min_range=1.5,
     )
     assert r.exit_code == 0, r.output
     summary = json.loads((tmp_path / "summary.json").read_text())
@@ -112,9 +95,7 @@ def test_bad_options_are_rejected(tmp_path):
 
 def test_bench_prints_json(tmp_path, tiny_checkpoint):
     out = tmp_path / "bench.json"
-    r = runner.invoke(
-        app, ["bench", "--duration", "1", "--checkpoint", str(tiny_checkpoint), "--out", str(out)]
-    )
+    r = evgrid("bench", duration=1, checkpoint=tiny_checkpoint, out=out)
     assert r.exit_code == 0, r.output
     res = json.loads(out.read_text())
     fused = res["per_frame"]["fused_only"]["components_ms"]
@@ -124,23 +105,14 @@ def test_bench_prints_json(tmp_path, tiny_checkpoint):
 
 
 def test_sweep_m_u_min(tmp_path, tiny_checkpoint):
-    r = runner.invoke(
-        app,
-        [
-            "sweep-m-u-min",
-            "--scenes",
-            "1",
-            "--duration",
-            "1.5",
-            "--values",
-            "0.2,0.6",
-            "--workers",
-            "1",
-            "--checkpoint",
-            str(tiny_checkpoint),
-            "--out",
-            str(tmp_path),
-        ],
+    r = evgrid(
+        "sweep-m-u-min",
+        scenes=1,
+        duration=1.5,
+        values="0.2,0.6",
+        workers=1,
+        checkpoint=tiny_checkpoint,
+        out=tmp_path,
     )
     assert r.exit_code == 0, r.output
     res = json.loads((tmp_path / "m_u_min_sweep.json").read_text())
@@ -155,8 +127,7 @@ def test_sweep_m_u_min(tmp_path, tiny_checkpoint):
     assert isinstance(sweep, SweepConfig) and sweep.values == (0.2, 0.6)
     assert sweep.scenes == ("sim-000004",) and sweep.mapper.checkpoint == str(tiny_checkpoint)
     again = tmp_path / "again"
-    args = ["sweep-m-u-min", "--config", str(tmp_path / "config.json"), "--out", str(again)]
-    r = runner.invoke(app, [*args, "--workers", "1"])
+    r = evgrid("sweep-m-u-min", config=tmp_path / "config.json", out=again, workers=1)
     assert r.exit_code == 0, r.output
     assert json.loads((again / "m_u_min_sweep.json").read_text())["rows"] == res["rows"]
 
@@ -165,39 +136,16 @@ def test_map_on_a_dataset_in_the_nuscenes_layout(tmp_path, tiny_checkpoint):
     """`evgrid map --nuscenes`: the devkit reads a simulated dataset written in the nuScenes
     layout."""
     data = tmp_path / "nuscenes"
-    r = runner.invoke(
-        app,
-        [
-            "simulate",
-            "--out",
-            str(data),
-            "--scenes",
-            "1",
-            "--seed",
-            "4",
-            "--duration",
-            "1.5",
-            "--format",
-            "nuscenes",
-        ],
-    )
+    r = evgrid("simulate", out=data, scenes=1, seed=4, duration=1.5, format="nuscenes")
     assert r.exit_code == 0, r.output
     out = tmp_path / "out"
-    r = runner.invoke(
-        app,
-        [
-            "map",
-            "--nuscenes",
-            str(data),
-            "--version",
-            "v1.0-sim",
-            "--split",
-            "val",
-            "--checkpoint",
-            str(tiny_checkpoint),
-            "--out",
-            str(out),
-        ],
+    r = evgrid(
+        "map",
+        nuscenes=data,
+        version="v1.0-sim",
+        split="val",
+        checkpoint=tiny_checkpoint,
+        out=out,
     )
     assert r.exit_code == 0, r.output
     m = json.loads((out / "sim-000004" / "metrics.json").read_text())
@@ -208,19 +156,10 @@ def test_map_on_a_dataset_in_the_nuscenes_layout(tmp_path, tiny_checkpoint):
 def test_demo_writes_the_metrics_contract(tmp_path):
     """DIR/metrics.json = {"maps": {<six names>: {"free", "occupied", "unknown"}}, ...} with the
     shipped Ev-Net."""
-    r = runner.invoke(
-        app, ["demo", "--scenes", "1", "--duration", "2", "--workers", "1", "--out", str(tmp_path)]
-    )
+    r = evgrid("demo", scenes=1, duration=2, workers=1, out=tmp_path)
     assert r.exit_code == 0, r.output
     m = json.loads((tmp_path / "metrics.json").read_text())
-    assert set(m["maps"]) == {
-        "ray_ilm",
-        "deep_acc",
-        "deep_replace",
-        "deep_disc",
-        "ray_irm",
-        "fused",
-    }
+    assert set(m["maps"]) == set(MAP_NAMES)  # the six maps of Table I
     for ious in m["maps"].values():
         assert set(ious) == {"free", "occupied", "unknown"}
         assert all(v is None or 0.0 <= v <= 1.0 for v in ious.values())
@@ -231,33 +170,19 @@ def test_demo_writes_the_metrics_contract(tmp_path):
 
 def test_a_run_reproduces_from_its_own_config(tmp_path, tiny_checkpoint):
     first, again = tmp_path / "first", tmp_path / "again"
-    r = runner.invoke(
-        app,
-        [
-            "evaluate",
-            "--scenes",
-            "1",
-            "--duration",
-            "1.5",
-            "--workers",
-            "1",
-            "--seed",
-            "3",
-            "--checkpoint",
-            str(tiny_checkpoint),
-            "--m-u-min",
-            "0.35",
-            "--update-rate",
-            "5",
-            "--out",
-            str(first),
-        ],
+    r = evgrid(
+        "evaluate",
+        scenes=1,
+        duration=1.5,
+        workers=1,
+        seed=3,
+        checkpoint=tiny_checkpoint,
+        m_u_min=0.35,
+        update_rate=5,
+        out=first,
     )
     assert r.exit_code == 0, r.output
-    r = runner.invoke(
-        app,
-        ["evaluate", "--config", str(first / "config.json"), "--workers", "1", "--out", str(again)],
-    )
+    r = evgrid("evaluate", config=first / "config.json", workers=1, out=again)
     assert r.exit_code == 0, r.output
     a, b = (json.loads((d / "summary.json").read_text()) for d in (first, again))
     assert a["scenes"] == b["scenes"] == ["sim-000004"]
@@ -270,19 +195,8 @@ def test_a_run_reproduces_from_its_own_config(tmp_path, tiny_checkpoint):
         == {"kind": "sim", "seeds": [4], "duration_s": 1.5, "radar": None, "radar_ranges": None}
     )
     # an option given beside --config wins over the file
-    r = runner.invoke(
-        app,
-        [
-            "evaluate",
-            "--config",
-            str(first / "config.json"),
-            "--m-u-min",
-            "0.5",
-            "--workers",
-            "1",
-            "--out",
-            str(tmp_path / "changed"),
-        ],
+    r = evgrid(
+        "evaluate", config=first / "config.json", m_u_min=0.5, workers=1, out=tmp_path / "changed"
     )
     assert r.exit_code == 0, r.output
     assert (
@@ -294,26 +208,14 @@ def test_a_run_reproduces_from_its_own_config(tmp_path, tiny_checkpoint):
 
 
 def test_results_are_never_silently_overwritten(tmp_path, tiny_checkpoint):
-    args = [
-        "evaluate",
-        "--scenes",
-        "1",
-        "--duration",
-        "1",
-        "--workers",
-        "1",
-        "--checkpoint",
-        str(tiny_checkpoint),
-        "--out",
-        str(tmp_path),
-    ]
-    r = runner.invoke(app, args)
+    args = dict(scenes=1, duration=1, workers=1, checkpoint=tiny_checkpoint, out=tmp_path)
+    r = evgrid("evaluate", **args)
     assert r.exit_code == 0, r.output
     before = (tmp_path / "summary.json").read_text()
-    r = runner.invoke(app, args)
+    r = evgrid("evaluate", **args)
     assert r.exit_code == 1 and "already holds results" in r.output and "--overwrite" in r.output
     assert (tmp_path / "summary.json").read_text() == before
-    assert runner.invoke(app, [*args, "--overwrite"]).exit_code == 0
+    assert evgrid("evaluate", **args, overwrite=True).exit_code == 0
 
 
 def test_failures_print_one_line_and_leave_no_empty_folder(tmp_path):
@@ -349,21 +251,8 @@ def test_failures_print_one_line_and_leave_no_empty_folder(tmp_path):
 
 
 def test_too_short_a_scene_still_gives_a_table(tmp_path, tiny_checkpoint):
-    r = runner.invoke(
-        app,
-        [
-            "evaluate",
-            "--scenes",
-            "1",
-            "--duration",
-            "0.1",
-            "--workers",
-            "1",
-            "--checkpoint",
-            str(tiny_checkpoint),
-            "--out",
-            str(tmp_path),
-        ],
+    r = evgrid(
+        "evaluate", scenes=1, duration=0.1, workers=1, checkpoint=tiny_checkpoint, out=tmp_path
     )
     assert r.exit_code == 0, r.output
     assert "| `fused` |" in (tmp_path / "table.md").read_text()
@@ -371,45 +260,27 @@ def test_too_short_a_scene_still_gives_a_table(tmp_path, tiny_checkpoint):
 
 def test_a_simulated_recording_maps_through_bag_and_rig_and_exports(tmp_path, tiny_checkpoint):
     pytest.importorskip("rosbags")
-    r = runner.invoke(
-        app,
-        [
-            "simulate",
-            "--format",
-            "ros2",
-            "--out",
-            str(tmp_path / "bags"),
-            "--seed",
-            "4",
-            "--duration",
-            "1",
-            "--lidar-rate",
-            "10",
-            "--radar-rate",
-            "4",
-        ],
+    r = evgrid(
+        "simulate",
+        format="ros2",
+        out=tmp_path / "bags",
+        seed=4,
+        duration=1,
+        lidar_rate=10,
+        radar_rate=4,
     )
     assert r.exit_code == 0, r.output
     bag, rig = tmp_path / "bags" / "sim-000004", tmp_path / "bags" / "sim-000004.rig.yaml"
     assert bag.is_dir() and rig.is_file()
-    r = runner.invoke(
-        app,
-        [
-            "map",
-            "--bag",
-            str(bag),
-            "--rig",
-            str(rig),
-            "--maps",
-            "ray_ilm,ray_irm,fused",
-            "--checkpoint",
-            str(tiny_checkpoint),
-            "--export",
-            "nav2,mcap",
-            "--save-maps",
-            "--out",
-            str(tmp_path / "out"),
-        ],
+    r = evgrid(
+        "map",
+        bag=bag,
+        rig=rig,
+        maps="ray_ilm,ray_irm,fused",
+        checkpoint=tiny_checkpoint,
+        export="nav2,mcap",
+        save_maps=True,
+        out=tmp_path / "out",
     )
     assert r.exit_code == 0, r.output
     scene = tmp_path / "out" / "sim-000004"
@@ -420,17 +291,7 @@ def test_a_simulated_recording_maps_through_bag_and_rig_and_exports(tmp_path, ti
     run = json.loads((tmp_path / "out" / "config.json").read_text())
     assert run["source"]["kind"] == "bag" and run["outputs"]["exports"] == ["nav2", "mcap"]
     # a saved map exports on its own too
-    r = runner.invoke(
-        app,
-        [
-            "export",
-            str(scene / "maps" / "fused.npz"),
-            "--format",
-            "nav2",
-            "--out",
-            str(tmp_path / "f"),
-        ],
-    )
+    r = evgrid("export", scene / "maps" / "fused.npz", format="nav2", out=tmp_path / "f")
     assert r.exit_code == 0, r.output
     assert (tmp_path / "f.yaml").is_file() and "mode: trinary" in (tmp_path / "f.yaml").read_text()
 
@@ -438,18 +299,7 @@ def test_a_simulated_recording_maps_through_bag_and_rig_and_exports(tmp_path, ti
 def test_bag_options_fail_in_one_line(tmp_path):
     r = runner.invoke(app, ["map", "--bag", str(tmp_path / "x.mcap"), "--out", str(tmp_path / "o")])
     assert r.exit_code != 0 and "--rig" in r.output
-    r = runner.invoke(
-        app,
-        [
-            "map",
-            "--bag",
-            str(tmp_path / "x.mcap"),
-            "--sim-dir",
-            str(tmp_path),
-            "--out",
-            str(tmp_path / "o"),
-        ],
-    )
+    r = evgrid("map", bag=tmp_path / "x.mcap", sim_dir=tmp_path, out=tmp_path / "o")
     assert r.exit_code != 0 and "one data source" in r.output
     r = runner.invoke(app, ["export", str(tmp_path / "missing.npz"), "--format", "nav2"])
     assert r.exit_code == 1 and "missing.npz" in r.output and "Traceback" not in r.output

@@ -1,4 +1,5 @@
-"""The paper's convergence claim, measured: perception field over time, and intervals over scenes."""
+"""The paper's convergence claim, measured: perception field over time, and intervals over
+scenes."""
 
 from __future__ import annotations
 

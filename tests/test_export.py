@@ -94,6 +94,34 @@ def test_classify_thresholds():
         write_nav2(EvidentialMap(GridSpec(8, 0.8), 8), "/nonexistent/x")
 
 
+def test_occupancy_values_agree_with_the_nav2_classes_at_the_thresholds():
+    rng = np.random.default_rng(0)
+    e = rng.random((200_000, 2)) * rng.choice([0.5, 5, 50], (200_000, 1))
+    s = 2 + e.sum(-1)
+    m = np.stack([e[:, 0] / s, e[:, 1] / s, 2 / s], -1).astype(np.float32)
+    # cells right at the thresholds, where rounding 100 P(occ) used to disagree (20 and 65)
+    edge = np.array(
+        [[0.0, 0.301, 0.699 - 0.35], [0.604, 0.0, 0.396], [0.0, 0.3, 0.4], [0.6, 0.0, 0.4]],
+        np.float32,
+    )
+    edge[:, 2] = 1 - edge[:, 0] - edge[:, 1]
+    m = np.concatenate([m, edge])
+    for th in (Nav2Thresholds(), Nav2Thresholds(0.57, 0.2, 0.6), Nav2Thresholds(0.905, 0.05, 0.3)):
+        cls = classify(m, th=th)
+        for mode in ("trinary", "scale"):
+            v = occupancy_values(m, th=th, mode=mode)
+            p = v / 100.0  # a consumer's reading of the OccupancyGrid at the same thresholds
+            back = np.where(p > th.occupied_thresh, OCCUPIED, np.where(p < th.free_thresh, FREE, 0))
+            back = np.where(v == -1, UNKNOWN, back)
+            np.testing.assert_array_equal(back, cls)
+        scale = occupancy_values(m, th=th, mode="scale")
+        want = np.clip(np.rint(100 * (m[:, 1] + 0.5 * m[:, 2])), 0, 100)
+        known = cls != UNKNOWN
+        assert known.sum() > 1000
+        assert np.abs(scale[known] - want[known]).max() <= 1  # shade kept, moved at most 1
+    assert set(np.unique(occupancy_values(m))) <= {FREE, OCCUPIED, UNKNOWN}
+
+
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
     """A short mapped scene with the MCAP and rerun observers attached."""

@@ -1,4 +1,5 @@
-"""Long drives and odometry glitches: pose sanity, and per-frame work that does not grow with the drive."""
+"""Long drives and odometry glitches: pose sanity, and per-frame work that does not grow with the
+drive."""
 
 from __future__ import annotations
 

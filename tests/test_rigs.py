@@ -30,6 +30,7 @@ from evgrid.ism.self_returns import (
     parse_body_box,
 )
 from evgrid.mapper import OccupancyMapper
+from tests.helpers import driving_sweeps
 
 RIG = SimRadarRig(
     radar_channels=("RADAR_FRONT", "RADAR_BACK_LEFT", "RADAR_BACK_RIGHT"), radar_rates_hz=(4.0,)
@@ -92,25 +93,9 @@ def test_self_returns_leave_the_ray_ilm_outside_the_body_unchanged(params):
 
 
 def _moving_sweeps(n: int, step_m: float, body: np.ndarray, rng: np.random.Generator):
-    """Sweeps of a vehicle driving along x: fixed body points plus posts every 5 m beside the
-    road."""
-    s2e = LIDAR_MOUNT.sensor_to_ego()
-    for k in range(n):
-        x = k * step_m
-        posts = np.arange(np.floor(x / 5) * 5 - 10, x + 10, 5.0)
-        world = np.column_stack(
-            [
-                np.repeat(posts - x, 20),
-                np.full(20 * len(posts), 2.5),
-                np.tile(np.linspace(0.4, 1.5, 20), len(posts)),
-            ]
-        )
-        ego = np.concatenate([body, world]) + rng.normal(0, 0.01, (len(body) + len(world), 3))
-        pts = np.column_stack([s2e.inverse().apply(ego), np.zeros((len(ego), 2))]).astype(
-            np.float32
-        )
-        pose = SE3(np.eye(3), np.array([x, 0.0, 0.0]))
-        yield LidarSweep(pts, s2e, pose, k * 100_000), len(body)
+    """Sweeps of a vehicle driving along x: fixed body points plus posts every 5 m 2.5 m beside
+    the road, 0.1 s apart."""
+    return driving_sweeps(n, step_m, [body], rng, posts_y_m=2.5, dt_us=100_000)
 
 
 def test_auto_learns_the_body_of_a_vehicle_it_was_not_told_about():
@@ -121,7 +106,7 @@ def test_auto_learns_the_body_of_a_vehicle_it_was_not_told_about():
     )
     f = SelfReturnFilter(SelfReturnParams(prior=None))
     removed = []
-    for sweep, n_body in _moving_sweeps(60, 0.6, body, rng):
+    for sweep in _moving_sweeps(60, 0.6, body, rng):
         out = f(sweep)
         removed.append(len(sweep.points) - len(out.points))
     assert removed[0] == 0  # nothing is known before the vehicle has moved
@@ -137,7 +122,7 @@ def test_auto_learns_nothing_while_standing_still():
     rng = np.random.default_rng(2)
     body = np.column_stack([rng.uniform(0, 2, 100), rng.uniform(-0.5, 0.5, 100), np.full(100, 1.7)])
     f = SelfReturnFilter(SelfReturnParams(prior=None))
-    for sweep, _ in _moving_sweeps(100, 0.01, body, rng):
+    for sweep in _moving_sweeps(100, 0.01, body, rng):
         f(sweep)
     assert f.learnt_box is None and f.n_removed == 0
 

@@ -1,4 +1,5 @@
-"""The three cell classes, defined once for the ISMs' label grids, the evaluation and Ev-Net's targets."""
+"""The three cell classes, defined once for the ISMs' label grids, the evaluation and Ev-Net's
+targets."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""One way to validate parameters at the boundary: each check names the owner, the field and the bad value.
+"""One way to validate parameters at the boundary: each check names the owner, the field and the
+bad value.
 
 Parameter dataclasses call :func:`check_int` / :func:`check_number` from ``__post_init__`` so that
 every message reads the same: ``RayIlmParams.max_range_m must be > 0, got -1.0``.
@@ -49,7 +50,8 @@ def check_number(
     min_open: bool = False,
     max_open: bool = False,
 ) -> float:
-    """A finite real number within the given bounds (closed unless ``*_open``); returns it as ``float``."""
+    """A finite real number within the given bounds (closed unless ``*_open``); returns it as
+    ``float``."""
     v = _value(owner, name, value)
     if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v):
         raise ValueError(f"{_label(owner, name)} must be a finite number, got {v!r}")

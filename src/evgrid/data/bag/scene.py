@@ -53,6 +53,34 @@ class _PoseTrack:
 _SENSOR_TYPES = ("sensor_msgs/msg/PointCloud2", "radar_msgs/msg/RadarScan")
 
 
+def _pose_samples(topic: str, msg: Any, rig: RecordingRig) -> Iterator[tuple]:
+    """The transforms of one pose message, each as the arguments of
+    :meth:`TransformBuffer.add`: ``(parent, child, t_us, translation, q_xyzw, static)``."""
+    from evgrid.ros import stamp_to_us
+
+    if topic == rig.odometry_topic:
+        p = msg.pose.pose
+        yield (
+            msg.header.frame_id,
+            msg.child_frame_id,
+            stamp_to_us(msg.header.stamp),
+            (p.position.x, p.position.y, p.position.z),
+            (p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w),
+            False,
+        )
+        return
+    for tr in msg.transforms:
+        tt, q = tr.transform.translation, tr.transform.rotation
+        yield (
+            tr.header.frame_id,
+            tr.child_frame_id,
+            stamp_to_us(tr.header.stamp),
+            (tt.x, tt.y, tt.z),
+            (q.x, q.y, q.z, q.w),
+            topic == rig.tf_static_topic,
+        )
+
+
 class BagScene:
     """A recording as a :class:`~evgrid.data.frame.Scene`; frames are read lazily on iteration.
 
@@ -110,8 +138,6 @@ class BagScene:
         return out
 
     def _scan_poses(self) -> None:
-        from evgrid.ros import stamp_to_us
-
         rig = self.rig
         tf = TransformBuffer(int(round(rig.max_pose_gap_s * 1e6)))
         types = self._pose_types()
@@ -129,30 +155,9 @@ class BagScene:
                     f"{self.path}: pose topic {topic} is {self._rec.topics[topic]}, not "
                     f"{types[topic]}"
                 )
-            if topic == rig.odometry_topic:
-                p = msg.pose.pose
-                self._add_pose(
-                    tf,
-                    f"{topic} message {k}",
-                    msg.header.frame_id,
-                    msg.child_frame_id,
-                    stamp_to_us(msg.header.stamp),
-                    (p.position.x, p.position.y, p.position.z),
-                    (p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w),
-                )
-            else:
-                for tr in msg.transforms:
-                    tt, q = tr.transform.translation, tr.transform.rotation
-                    self._add_pose(
-                        tf,
-                        f"{topic} message {k}",
-                        tr.header.frame_id,
-                        tr.child_frame_id,
-                        stamp_to_us(tr.header.stamp),
-                        (tt.x, tt.y, tt.z),
-                        (q.x, q.y, q.z, q.w),
-                        static=topic == rig.tf_static_topic,
-                    )
+            for sample in _pose_samples(topic, msg, rig):
+                if not tf.add(*sample):
+                    self._skip_pose(f"{topic} message {k}", sample)
         self.stopped = self._rec.stopped
         if self.stopped:
             logger.warning("%s; mapping what was read before", self.stopped)
@@ -161,36 +166,23 @@ class BagScene:
         self._poses = _PoseTrack(tf, rig.world_frame, rig.base_frame)
         self._extrinsics: dict[str, SE3] = {}
 
-    def _add_pose(
-        self,
-        tf: TransformBuffer,
-        where: str,
-        parent: str,
-        child: str,
-        t_us: int,
-        translation: tuple,
-        q_xyzw: tuple,
-        static: bool = False,
-    ) -> None:
-        """One transform into the buffer; one that is not finite (or whose quaternion has no
-        length) is skipped, counted and logged, as tf2 refuses NaN input: the frames around it
-        take the pose interpolated from the samples on either side."""
-        vals = np.array([*translation, *q_xyzw], dtype=np.float64)
-        if not np.isfinite(vals).all() or not np.linalg.norm(vals[3:]) > 0:
-            self._skip(
-                "pose_samples_not_finite",
-                self._pose_counts,
-                "%s %s (stamp %d us): transform %s -> %s is not finite (%s); sample ignored, "
-                "the frames around it take the pose interpolated from its neighbours",
-                self.path,
-                where,
-                t_us,
-                parent,
-                child,
-                vals.tolist(),
-            )
-            return
-        tf.add(parent, child, t_us, translation, q_xyzw, static=static)
+    def _skip_pose(self, where: str, sample: tuple) -> None:
+        """A transform the buffer refused (not finite, or a quaternion without length): counted
+        and logged; the frames around it take the pose interpolated from the samples on either
+        side."""
+        parent, child, t_us, translation, q_xyzw, _ = sample
+        self._skip(
+            "pose_samples_not_finite",
+            self._pose_counts,
+            "%s %s (stamp %d us): transform %s -> %s is not finite (%s); sample ignored, "
+            "the frames around it take the pose interpolated from its neighbours",
+            self.path,
+            where,
+            t_us,
+            parent,
+            child,
+            [float(v) for v in (*translation, *q_xyzw)],
+        )
 
     def _check(self, tf: TransformBuffer) -> None:
         rig, have = self.rig, self._rec.topics

@@ -32,18 +32,24 @@ class TransformBuffer:
         translation: tuple,
         q_xyzw: tuple,
         static: bool = False,
-    ) -> None:
-        """One transform: the pose of ``child`` in ``parent``."""
+    ) -> bool:
+        """One transform: the pose of ``child`` in ``parent``; False, and nothing stored, when it
+        is not finite or its quaternion has no length (tf2 refuses such input the same way, so
+        the caller counts the sample and the lookups interpolate over it)."""
+        sample = np.array([*translation, *q_xyzw], dtype=np.float64)
+        if not np.isfinite(sample).all() or not np.linalg.norm(sample[3:]) > 0:
+            return False
         parent, child = parent.lstrip("/"), child.lstrip("/")
         if static:
             from evgrid.ros import transform_to_se3
 
             self._static[child] = (parent, transform_to_se3(translation, q_xyzw))
-            return
+            return True
         p, ts, vals = self._dyn.setdefault(child, (parent, [], []))
         ts.append(int(t_us))
         vals.append((*translation, *q_xyzw))
         self._arrays.pop(child, None)
+        return True
 
     def frames(self) -> set[str]:
         """Every frame named as a child or a parent."""
