@@ -73,6 +73,8 @@ __all__ = [
     "cached_scenes",
     "RadarDataset",
     "fine_tune_config",
+    "CHECKPOINT_NAMES",
+    "checkpoint_path",
     "Precision",
     "batch_loss",
     "train",
@@ -156,13 +158,29 @@ class TrainConfig:
         return hashlib.sha1(key.encode()).hexdigest()[:12]
 
 
+#: Checkpoints that may be named instead of given by path (``--init shipped``).
+CHECKPOINT_NAMES: tuple[str, ...] = ("shipped",)
+
+
+def checkpoint_path(init: str | os.PathLike) -> str:
+    """The checkpoint file that ``init`` names: ``shipped`` is the checkpoint shipped with
+    evgrid (:func:`evgrid.ism.deep.default_checkpoint`), anything else a path."""
+    if str(init) == "shipped":
+        from evgrid.ism.deep import default_checkpoint
+
+        return str(default_checkpoint())
+    return str(init)
+
+
 def fine_tune_config(config: TrainConfig, init: str | os.PathLike) -> TrainConfig:
-    """``config`` set to fine-tune from checkpoint ``init``: its architecture, and (when the
-    checkpoint saved its training config) its grid and input image, since the inputs must be
-    made as the parent's were. The rest (epochs, learning rate, data, filters) is ``config``'s.
+    """``config`` set to fine-tune from checkpoint ``init`` (a path, or a name of
+    :data:`CHECKPOINT_NAMES`): its architecture, and (when the checkpoint saved its training
+    config) its grid and input image, since the inputs must be made as the parent's were. The
+    rest (epochs, learning rate, data, filters) is ``config``'s.
     """
+    init = checkpoint_path(init)
     ck = load_checkpoint(init)
-    out = replace(config, init=str(init), model=ck.model.config)
+    out = replace(config, init=init, model=ck.model.config)
     saved = ck.extra.get("config")
     if isinstance(saved, dict):
         from evgrid.config import from_dict
