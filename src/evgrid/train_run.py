@@ -257,8 +257,9 @@ def _build_caches(run: TrainRunConfig, cache: Path, on_cache) -> dict[str, list[
         marker.unlink(missing_ok=True)
     names: dict[str, list[str]] = {}
     try:
-        for split, d in (("train", run.source), ("val", run.val_source)):
-            src = source_from_dict(d)
+        sources = {"train": source_from_dict(run.source), "val": source_from_dict(run.val_source)}
+        _check_disjoint(sources)
+        for split, src in sources.items():
             total = len(src.names())
             count = iter(range(1, total + 1))
             names[split] = build_cache(
@@ -277,6 +278,23 @@ def _build_caches(run: TrainRunConfig, cache: Path, on_cache) -> dict[str, list[
     if world > 1:
         write_json(marker, {"launch": _launch(), "stamp": _stamp(run), **names})
     return names
+
+
+def _check_disjoint(sources: dict[str, Any]) -> None:
+    """One cache holds the training and the validation scenes by name: a name in both would
+    train on the validation scene (its shard replaces the training one). Refuse it."""
+    both = sorted(set(sources["train"].names()) & set(sources["val"].names()))
+    if both:
+        hint = ""
+        if type(sources["train"]).__name__ == "BagSource":
+            hint = (
+                " (a lone recording is named by the rig file's 'scene:'; remove that line to "
+                "name recordings by their file names)"
+            )
+        raise ValueError(
+            f"scene(s) {both} are both training and validation scenes; give validation scenes "
+            f"of other names{hint}"
+        )
 
 
 #: Rank 0's marker in the cache folder: the scenes cached, or the error that stopped it.
