@@ -1,6 +1,12 @@
 """``evgrid train`` as a library: its config (the training parameters and the scenes trained and
 validated on), which scenes those are, and the sample cache built before training.
 
+The cache is built from the scene sources themselves (the engine's workers load the scenes:
+``TrainConfig.engine`` and ``cache_workers``); under torchrun, by rank 0 before any process joins
+the process group, while the other ranks wait for its marker (docs/training.md). ``--init``
+fine-tunes a checkpoint (:func:`evgrid.learn.train.fine_tune_config`), and the checkpoints
+record the data (:func:`data_record`).
+
 A training run writes :class:`TrainRunConfig` as ``OUT/config.json``; ``evgrid train --config
 OUT/config.json`` trains again on the same scenes the same way. The training parameters are
 :class:`evgrid.learn.train.TrainConfig`, serialised by :func:`evgrid.config.to_dict`.
