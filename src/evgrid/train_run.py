@@ -1,6 +1,12 @@
 """``evgrid train`` as a library: its config (the training parameters and the scenes trained and
 validated on), which scenes those are, and the sample cache built before training.
 
+The cache is built from the scene sources themselves (the engine's workers load the scenes:
+``TrainConfig.engine`` and ``cache_workers``); under torchrun, by rank 0 before any process joins
+the process group, while the other ranks wait for its marker (docs/training.md). ``--init``
+fine-tunes a checkpoint (:func:`evgrid.learn.train.fine_tune_config`), and the checkpoints
+record the data (:func:`data_record`).
+
 A training run writes :class:`TrainRunConfig` as ``OUT/config.json``; ``evgrid train --config
 OUT/config.json`` trains again on the same scenes the same way. The training parameters are
 :class:`evgrid.learn.train.TrainConfig`, serialised by :func:`evgrid.config.to_dict`.
@@ -25,6 +31,7 @@ __all__ = [
     "train_config_from_args",
     "run_training",
     "run_transfer",
+    "data_record",
 ]
 
 
@@ -63,6 +70,10 @@ TRAIN_OPTIONS: dict[str, tuple[str, ...]] = {
         "train.self_returns.prior",
     ),
     "radar-filter": ("train.radar_filter.mode",),
+    "init": ("train.init",),
+    "precision": ("train.precision",),
+    "engine": ("train.engine",),
+    "cache-workers": ("train.cache_workers",),
 }
 
 
@@ -126,10 +137,65 @@ def resolve_train_config(
     data: TrainData | None,
 ) -> TrainRunConfig:
     """The training run's config: the file (else the defaults), the data options (when given,
-    or when there is no file), then the overrides."""
+    or when there is no file), then the overrides. With ``train.init`` (a checkpoint's path, or
+    ``shipped``) the run fine-tunes that checkpoint: its architecture, grid and input image
+    (:func:`evgrid.learn.train.fine_tune_config`)."""
+    from evgrid.learn.train import checkpoint_path
+
     if path is None and data is None:
         data = TrainData()
-    return resolve_config(TrainRunConfig, path, [*(data.overrides() if data else []), *overrides])
+    # a checkpoint's name becomes its path here: a config file holds paths (made absolute)
+    overrides = [
+        (k, checkpoint_path(v) if k == "train.init" and isinstance(v, str) else v)
+        for k, v in overrides
+    ]
+    run = resolve_config(TrainRunConfig, path, [*(data.overrides() if data else []), *overrides])
+    return _fine_tuned(run) if run.train.init is not None else run
+
+
+def _fine_tuned(run: TrainRunConfig) -> TrainRunConfig:
+    """The run with the architecture, grid and input image of its parent checkpoint; an
+    architecture asked for that is neither the default nor the parent's is an error."""
+    from dataclasses import replace
+
+    from evgrid.learn.train import fine_tune_config
+
+    config = fine_tune_config(run.train, run.train.init)
+    if run.train.model not in (TrainConfig().model, config.model):
+        raise ValueError(
+            f"--init {run.train.init}: that checkpoint is a {config.model}, but the config asks "
+            f"for a {run.train.model}; fine-tuning keeps the parent's architecture (drop "
+            "--width/--depth)"
+        )
+    return replace(run, train=config)
+
+
+def data_record(run: TrainRunConfig) -> dict[str, Any]:
+    """What a checkpoint records of the data it was trained on (``extra["data"]``): the kind
+    of source, both sources as the config holds them, and for recordings the recording rig
+    (path and content) and the recordings; for nuScenes the version and splits."""
+    train, val = run.source or {}, run.val_source or {}
+    out: dict[str, Any] = {"source": train.get("kind"), "train": train, "val": val}
+    if train.get("kind") == "bag":
+        rig = Path(train["rig"])
+        try:
+            text = rig.read_text()
+        except (OSError, UnicodeDecodeError) as e:
+            raise ValueError(f"{rig}: cannot read the recording rig ({e})") from None
+        out.update(
+            rig=str(rig),
+            rig_text=text,
+            recordings=list(train["paths"]),
+            val_recordings=list(val.get("paths", ())),
+        )
+    elif train.get("kind") == "nuscenes":
+        out.update(
+            dataroot=train["dataroot"],
+            version=train["version"],
+            split=train["split"],
+            val_split=val.get("split"),
+        )
+    return out
 
 
 def run_training(
@@ -155,26 +221,17 @@ def run_training(
 
 
 def _run_training(run, out, resume, on_cache, on_epoch, on_batch):
-    from evgrid.learn.train import build_cache, train
-    from evgrid.sources import source_from_dict
+    from evgrid.learn.train import train
 
     config = run.train
     cache = out / "cache" / config.data_key()
-    sources = {"train": source_from_dict(run.source), "val": source_from_dict(run.val_source)}
-    names: dict[str, list[str]] = {}
-    if int(os.environ.get("RANK", "0")) == 0:
-        for split, src in sources.items():
-            todo = src.names()
-            count = iter(range(1, len(todo) + 1))
-            names[split] = build_cache(
-                (src.load(n) for n in todo),
-                cache,
-                config,
-                with_irm=split == "val",
-                progress=lambda n, s=split, t=len(todo): on_cache and on_cache(s, next(count), t),
-            )
+    # Under torchrun the cache is built by rank 0 before any process joins the process group:
+    # the group's start-up waits only so long for its members (minutes), a cache of a large
+    # dataset takes hours. The other ranks wait for rank 0's marker on the file system.
+    if _rank() == 0:
+        names = _build_caches(run, cache, on_cache)
     else:
-        names = {split: src.names() for split, src in sources.items()}
+        names = _wait_for_cache(run, cache)
     return train(
         config,
         cache,
@@ -184,8 +241,113 @@ def _run_training(run, out, resume, on_cache, on_epoch, on_batch):
         resume=resume,
         on_epoch=on_epoch,
         on_batch=on_batch,
+        data=data_record(run),
         config_document=document(run),
     )
+
+
+def _rank() -> int:
+    return int(os.environ.get("RANK", "0"))
+
+
+def _build_caches(run: TrainRunConfig, cache: Path, on_cache) -> dict[str, list[str]]:
+    """Rank 0: cache both sources (the engine's workers load the scenes themselves); under
+    torchrun, then tell the other ranks (:func:`_wait_for_cache`) the scenes, or the error."""
+    from evgrid.io import write_json
+    from evgrid.learn.train import build_cache
+    from evgrid.sources import source_from_dict
+
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    marker = cache / _READY
+    if world > 1:
+        marker.unlink(missing_ok=True)
+    names: dict[str, list[str]] = {}
+    try:
+        sources = {"train": source_from_dict(run.source), "val": source_from_dict(run.val_source)}
+        _check_disjoint(sources)
+        for split, src in sources.items():
+            total = len(src.names())
+            count = iter(range(1, total + 1))
+            names[split] = build_cache(
+                src,
+                cache,
+                run.train,
+                with_irm=split == "val",
+                progress=lambda n, s=split, t=total: on_cache and on_cache(s, next(count), t),
+            )
+    except BaseException as e:
+        if world > 1:
+            cache.mkdir(parents=True, exist_ok=True)
+            err = " ".join(str(e).split()) or type(e).__name__
+            write_json(marker, {"launch": _launch(), "error": err})
+        raise
+    if world > 1:
+        write_json(marker, {"launch": _launch(), "stamp": _stamp(run), **names})
+    return names
+
+
+def _check_disjoint(sources: dict[str, Any]) -> None:
+    """One cache holds the training and the validation scenes by name: a name in both would
+    train on the validation scene (its shard replaces the training one). Refuse it."""
+    both = sorted(set(sources["train"].names()) & set(sources["val"].names()))
+    if both:
+        hint = ""
+        if type(sources["train"]).__name__ == "BagSource":
+            hint = (
+                " (a lone recording is named by the rig file's 'scene:'; remove that line to "
+                "name recordings by their file names)"
+            )
+        raise ValueError(
+            f"scene(s) {both} are both training and validation scenes; give validation scenes "
+            f"of other names{hint}"
+        )
+
+
+#: Rank 0's marker in the cache folder: the scenes cached, or the error that stopped it.
+_READY = "ready.json"
+
+
+def _stamp(run: TrainRunConfig) -> str:
+    """What a cache marker must match: the sources and the settings of the samples."""
+    import hashlib
+    import json
+
+    key = {"data_key": run.train.data_key(), "source": run.source, "val_source": run.val_source}
+    return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()
+
+
+def _launch() -> str:
+    """This torchrun launch (its rendezvous id, master port and restart), so that an error
+    left by an earlier launch is not taken for this one's."""
+    keys = ("TORCHELASTIC_RUN_ID", "MASTER_ADDR", "MASTER_PORT", "TORCHELASTIC_RESTART_COUNT")
+    return ":".join(os.environ.get(k, "") for k in keys)
+
+
+def _wait_for_cache(
+    run: TrainRunConfig, cache: Path, poll_s: float = 2.0, timeout_s: float | None = None
+) -> dict[str, list[str]]:
+    """Ranks other than 0: wait (without a time limit unless ``timeout_s``: a cache can take
+    hours) until rank 0 has cached both sources; return the scene names it wrote. Rank 0's
+    error ends the wait with that error."""
+    import json
+    import time
+
+    marker = cache / _READY
+    stamp, launch = _stamp(run), _launch()
+    t0 = time.monotonic()
+    while True:
+        try:
+            got = json.loads(marker.read_text())
+        except (OSError, ValueError):
+            got = None  # not written yet (a marker is written atomically)
+        if isinstance(got, dict):
+            if got.get("stamp") == stamp:
+                return {"train": list(got["train"]), "val": list(got["val"])}
+            if got.get("error") is not None and got.get("launch") == launch:
+                raise RuntimeError(f"rank 0 could not build the cache {cache}: {got['error']}")
+        if timeout_s is not None and time.monotonic() - t0 > timeout_s:
+            raise TimeoutError(f"rank 0 did not build the cache {cache} in {timeout_s:.0f} s")
+        time.sleep(poll_s)
 
 
 def train_config_from_args(

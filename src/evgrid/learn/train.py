@@ -14,8 +14,9 @@ local pool or Ray); the driver alone writes them, each into a temporary folder r
 place once complete, so a shard is complete or absent, and an interrupted build resumes with
 the scenes it lacks (docs/training.md).
 
-The radar detections pass ``TrainConfig.radar_filter`` and the lidar sweeps
-``TrainConfig.self_returns`` exactly as in mapping (:class:`~evgrid.mapper.OccupancyMapper`);
+Frames are cleaned by :class:`evgrid.preprocess.Preprocessor`, the mapper's own: the radar
+detections pass ``TrainConfig.radar_filter`` and the lidar sweeps ``TrainConfig.self_returns``
+exactly as in mapping (:class:`~evgrid.mapper.OccupancyMapper`; no pose gate in training);
 the checkpoint records the radar filter (metadata ``extra["radar_filter"]``) so that mapping
 with another one warns, and, when fine-tuned (``TrainConfig.init``), its parent checkpoint.
 
@@ -72,6 +73,8 @@ __all__ = [
     "cached_scenes",
     "RadarDataset",
     "fine_tune_config",
+    "CHECKPOINT_NAMES",
+    "checkpoint_path",
     "Precision",
     "batch_loss",
     "train",
@@ -155,13 +158,29 @@ class TrainConfig:
         return hashlib.sha1(key.encode()).hexdigest()[:12]
 
 
+#: Checkpoints that may be named instead of given by path (``--init shipped``).
+CHECKPOINT_NAMES: tuple[str, ...] = ("shipped",)
+
+
+def checkpoint_path(init: str | os.PathLike) -> str:
+    """The checkpoint file that ``init`` names: ``shipped`` is the checkpoint shipped with
+    evgrid (:func:`evgrid.ism.deep.default_checkpoint`), anything else a path."""
+    if str(init) == "shipped":
+        from evgrid.ism.deep import default_checkpoint
+
+        return str(default_checkpoint())
+    return str(init)
+
+
 def fine_tune_config(config: TrainConfig, init: str | os.PathLike) -> TrainConfig:
-    """``config`` set to fine-tune from checkpoint ``init``: its architecture, and (when the
-    checkpoint saved its training config) its grid and input image, since the inputs must be
-    made as the parent's were. The rest (epochs, learning rate, data, filters) is ``config``'s.
+    """``config`` set to fine-tune from checkpoint ``init`` (a path, or a name of
+    :data:`CHECKPOINT_NAMES`): its architecture, and (when the checkpoint saved its training
+    config) its grid and input image, since the inputs must be made as the parent's were. The
+    rest (epochs, learning rate, data, filters) is ``config``'s.
     """
+    init = checkpoint_path(init)
     ck = load_checkpoint(init)
-    out = replace(config, init=str(init), model=ck.model.config)
+    out = replace(config, init=init, model=ck.model.config)
     saved = ck.extra.get("config")
     if isinstance(saved, dict):
         from evgrid.config import from_dict
@@ -192,18 +211,22 @@ def scene_samples(
     ``frame_stride``-th frame."""
     from evgrid.data.sweeps import RadarBuffer
     from evgrid.ism import ray_ilm, ray_irm
-    from evgrid.ism.self_returns import SelfReturnFilter
+    from evgrid.preprocess import Preprocessor
 
     buffer = RadarBuffer(config.image.n_sweeps)
-    self_returns = SelfReturnFilter(config.self_returns)
+    # frames cleaned as the mapper cleans them (radar validity filter before the sweep buffer,
+    # the vehicle's own lidar returns before the ray ILM); no pose gate: training takes the
+    # poses as given
+    clean = Preprocessor.from_config(config, gate_poses=False)
     for k, frame in enumerate(frames):
-        for sweep in frame.radar_sweeps():
-            buffer.push(config.radar_filter(sweep)[0])  # the mapper's filter, before its buffer
+        for sweep in clean.radar_sweeps(frame):
+            buffer.push(sweep)
         if k % config.frame_stride:
             continue
         sweeps = buffer.sweeps()
         det = radar_detections(sweeps, frame.ego_pose, frame.timestamp, config.image)
-        target = ilm_classes(ray_ilm(self_returns(frame.lidar), grid=config.grid))
+        # the lidar of sampled frames only, as the mapper cleans only the frames it maps
+        target = ilm_classes(ray_ilm(clean.lidar(frame.lidar), grid=config.grid))
         irm = ilm_classes(ray_irm(sweeps, frame.ego_pose, grid=config.grid)) if with_irm else None
         yield det, target, irm
 
