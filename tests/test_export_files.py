@@ -31,7 +31,7 @@ def _map(seed: int) -> EvidentialMap:
     m = EvidentialMap(SPEC, tile_cells=32)
     e = np.random.default_rng(seed).random((32, 32, 2)) * 5
     s = 2 + e.sum(-1)
-    m._tile((0, 0))[0][:] = np.stack([e[..., 0] / s, e[..., 1] / s, 2 / s], -1)
+    m.tile((0, 0))[0][:] = np.stack([e[..., 0] / s, e[..., 1] / s, 2 / s], -1)
     m.covered_tiles[(0, 0)][:] = True
     return m
 
