@@ -325,14 +325,13 @@ def upgrade_checkpoint_cmd(
 def bench(
     seconds: float = typer.Option(6.0, "--duration", help="Length of the scene used (s)."),
     checkpoint: Path = typer.Option(None, "--checkpoint", help="Default: the shipped one."),
-    old_path: bool = typer.Option(False, "--old-path", help="Also time the old path, in turns."),
     end_to_end: float = typer.Option(None, "--end-to-end", help="Seconds mapped end to end."),
     repeats: int = typer.Option(3, "--repeats", min=1, help="Passes; medians over them."),
     out: Path = typer.Option(None, "--out", help="Also write the JSON here."),
 ) -> None:
     """Time every component and the per-frame updates on one core; print JSON.
 
-    Example: evgrid bench --old-path --end-to-end 20   # before/after, and a whole 20 s run
+    Example: evgrid bench --end-to-end 20   # and a whole 20 s run mapped end to end
     """
     import json
 
@@ -340,7 +339,7 @@ def bench(
     from evgrid.io import write_json
 
     ckpt = str(checkpoint) if checkpoint else None
-    res = run_bench(seconds, ckpt, old_path=old_path, repeats=repeats, end_to_end_s=end_to_end)
+    res = run_bench(seconds, ckpt, repeats=repeats, end_to_end_s=end_to_end)
     typer.echo(json.dumps(res, indent=2))
     if out is not None:
         write_json(out, res)
