@@ -136,3 +136,11 @@ def test_ctrl_c_or_an_exception_leaves_no_export_file(tmp_path, error):
     # aborted at once (not when garbage collected): no temporary file, no file under a final
     # name, and the temporary file of a killed run is gone too
     assert _leftovers(out) == []
+
+
+def test_a_run_without_a_results_folder_maps_and_refuses_exports():
+    scene = simulate_scene(4, SimConfig(duration_s=0.5))
+    res = map_scene(scene, None, MapperConfig(maps=("ray_ilm",)), OutputConfig(figures=False))
+    assert res.metrics["updates"] > 0 and res.files == {}
+    with pytest.raises(ValueError, match="exports need a results folder"):
+        map_scene(scene, None, MapperConfig(maps=("ray_ilm",)), OutputConfig(exports=("nav2",)))

@@ -222,9 +222,10 @@ def _exporters(
         return replace(params, map_frame=own, fixed_frame=fixed_frame)
 
     params = {"nav2": outputs.nav2, "mcap": outputs.mcap, "rerun": outputs.rerun}
-    paths = {"nav2": out / "nav2", "mcap": out / f"{name}.mcap", "rerun": out / f"{name}.rrd"}
-    if out is not None:  # temporary files of a run killed outright (a signal Python never saw)
-        for fmt in ("mcap", "rerun"):
+    paths: dict[str, Path] = {}
+    if out is not None:
+        paths = {"nav2": out / "nav2", "mcap": out / f"{name}.mcap", "rerun": out / f"{name}.rrd"}
+        for fmt in ("mcap", "rerun"):  # temporary files of a run killed outright (SIGKILL)
             for tmp in out.glob(f".{paths[fmt].name}.*.part"):
                 tmp.unlink(missing_ok=True)
     # the results folder is this run's (evgrid.outdir refused it otherwise), so the exports
