@@ -315,3 +315,21 @@ def test_upgrade_checkpoint_rewrites_an_old_format(tmp_path, tiny_checkpoint):
     assert new.version == 2
     for (k, a), (_, b) in zip(old.model.state_dict().items(), new.model.state_dict().items()):
         assert torch.equal(a, b), k
+
+
+def test_export_refuses_an_existing_file_unless_overwrite(tmp_path):
+    import numpy as np
+
+    from evgrid.grid import EvidentialMap, save_map
+
+    m = EvidentialMap(GridSpec(16, 1.6), tile_cells=16)
+    m.tile((0, 0))[0][...] = np.array([0.8, 0.0, 0.2], np.float32)  # free
+    m.covered_tiles[(0, 0)][...] = True
+    path = save_map(m, tmp_path / "fused.npz")
+    args = ["export", str(path), "--format", "nav2", "--out", str(tmp_path / "nav")]
+    assert runner.invoke(app, args).exit_code == 0
+    r = runner.invoke(app, args)
+    assert r.exit_code != 0 and "nav.pgm exists" in r.output and "--overwrite" in r.output
+    r = runner.invoke(app, [*args, "--overwrite"])
+    assert r.exit_code == 0, r.output
+    assert "wrote" in r.output and (tmp_path / "nav.yaml").is_file()

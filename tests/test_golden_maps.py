@@ -75,12 +75,14 @@ def fusion_digests(update) -> dict[str, str]:
 
 
 def mapper_digests() -> dict[str, str]:
-    """The geometric maps of a 2 s simulated scene (ray ILM and ray IRM, no Ev-Net)."""
+    """The geometric maps of a 2 s simulated scene (ray ILM and ray IRM, no Ev-Net), in the
+    first pose's frame (the frame the reference maps were built in; runs default to the
+    recording's fixed frame, MapperConfig.frame)."""
     from evgrid.config import MapperConfig
     from evgrid.data import SimConfig, simulate_scene
     from evgrid.mapper import OccupancyMapper
 
-    mapper = OccupancyMapper(MapperConfig(maps=("ray_ilm", "ray_irm")))
+    mapper = OccupancyMapper(MapperConfig(maps=("ray_ilm", "ray_irm"), frame="first_pose"))
     for frame in simulate_scene(3, SimConfig(duration_s=2.0)):
         mapper.process(frame)
     return {name: _digest(mapper.maps[name]) for name in mapper.maps.names}

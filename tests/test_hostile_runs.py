@@ -183,9 +183,14 @@ def test_ctrl_c_stops_cleanly_keeps_whole_files_and_resumes(tmp_path):
     out = tmp_path / "out"
     args = ["map", "--maps", "ray_ilm,ray_irm", "--no-figures", "--scenes", "2", "--duration"]
     p = _evgrid(*args, "3", "--export", "mcap", "--out", str(out))
-    partial = out / "sim-000009" / ".partial-sim-000009.mcap"
+    # the exporter's temporary file of the second scene (evgrid.export._files.AtomicFile)
+    scene2 = out / "sim-000009"
     deadline = time.time() + 300
-    while not partial.exists() and p.poll() is None and time.time() < deadline:
+    while (
+        not list(scene2.glob(".sim-000009.mcap.*.part"))
+        and p.poll() is None
+        and time.time() < deadline
+    ):
         time.sleep(0.02)
     time.sleep(0.5)
     p.send_signal(signal.SIGINT)
@@ -194,6 +199,7 @@ def test_ctrl_c_stops_cleanly_keeps_whole_files_and_resumes(tmp_path):
     assert "interrupted: 1 of 2 scene(s) complete" in err and "--resume" in err, err
     assert (out / "sim-000004" / "sim-000004.mcap").is_file()
     assert not list(out.rglob(".partial-*")) and not list(out.rglob("*.tmp"))
+    assert not list(out.rglob("*.part"))  # the interrupted export aborted at once
     assert not (out / "sim-000009" / "sim-000009.mcap").exists()
     assert not (out / LOCK_NAME).exists()
     r = runner.invoke(app, [*args, "3", "--export", "mcap", "--out", str(out), "--resume"])

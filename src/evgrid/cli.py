@@ -274,6 +274,7 @@ def export_cmd(
     map_file: Path = typer.Argument(..., help="A map saved by evgrid (.npz, --save-maps)."),
     fmt: str = typer.Option(..., "--format", help="nav2 (PGM + YAML), mcap (Foxglove), rerun."),
     out: Path = typer.Option(None, "--out", help="Output stem or file; default: beside the map."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace existing files."),
 ) -> None:
     """Export a saved map for nav2's map_server, Foxglove or rerun (thresholds: docs/ros.md).
 
@@ -284,7 +285,8 @@ def export_cmd(
 
     if fmt not in FORMATS:
         raise typer.BadParameter(f"--format must be one of {', '.join(FORMATS)}, got {fmt!r}")
-    written = export_map(load_map(map_file), out or map_file.with_suffix(""), fmt, map_file.stem)
+    target = out or map_file.with_suffix("")
+    written = export_map(load_map(map_file), target, fmt, map_file.stem, overwrite=overwrite)
     typer.echo("\n".join(f"wrote {path}" for path in written))
 
 
@@ -329,7 +331,7 @@ def bench(
 ) -> None:
     """Time every component and the per-frame updates on one core; print JSON.
 
-    Example: evgrid bench --end-to-end 20   # also a whole 20 s run
+    Example: evgrid bench --end-to-end 20   # and a whole 20 s run mapped end to end
     """
     import json
 

@@ -23,6 +23,9 @@ from pathlib import Path
 from typing import Any
 
 from evgrid.data.radar_filter import RadarFilter
+from evgrid.export.mcap import McapParams
+from evgrid.export.nav2 import Nav2Params
+from evgrid.export.rerun import RerunParams
 from evgrid.fusion import MAP_NAMES, RULES, FusionParams
 from evgrid.geometry import GridSpec
 from evgrid.ism.deep import RadarImageParams
@@ -63,6 +66,10 @@ _FORMAT_VERSION = 1
 MAX_GRID_CELLS = 8192
 MAX_TILE_CELLS = 4096
 _BYTES_PER_CELL = 12  # [m_f, m_o, m_u] in float32
+
+#: The frames maps can be built in (:attr:`MapperConfig.frame`): the recording's fixed frame
+#: itself, or the first ego pose's frame (the paper's figures).
+MAP_FRAMES: tuple[str, ...] = ("world", "first_pose")
 
 
 def config_hash(obj: Any) -> str:
@@ -133,9 +140,14 @@ class MapperConfig:
     runtime: str = (
         "auto"  # Ev-Net's inference: auto (ONNX Runtime when installed), onnxruntime, torch
     )
+    # The map frame: "world", the recording's fixed frame (nuScenes global, a rig's
+    # world_frame, the simulator's world), axis-aligned with it, so map files and exports need
+    # no transform; or "first_pose", the first ego pose's frame, as in the paper's figures.
+    frame: str = "world"
 
     def __post_init__(self) -> None:
         check_choice(self, "runtime", choices=RUNTIMES)
+        check_choice(self, "frame", choices=MAP_FRAMES)
         unknown = [m for m in self.maps if m not in RULES]  # Table I's six, and nav
         if unknown or not self.maps:
             raise ValueError(
@@ -176,8 +188,12 @@ class OutputConfig:
     gif_max_frames: int = 240
     # nav2 (PGM + YAML of the final maps), mcap (maps and poses per keyframe), rerun (.rrd)
     exports: tuple[str, ...] = ()
-    export_window_m: float = 100.0  # the MCAP export's square around the vehicle
     viewer: bool = False  # a live rerun viewer
+    # Each export's parameters (docs/ros.md). Their map_frame and fixed_frame are the run's:
+    # the recording's fixed frame, and the map frame of MapperConfig.frame.
+    nav2: Nav2Params = field(default_factory=Nav2Params)
+    mcap: McapParams = field(default_factory=McapParams)
+    rerun: RerunParams = field(default_factory=RerunParams)
 
     def __post_init__(self) -> None:
         from evgrid.export import FORMATS
@@ -187,7 +203,11 @@ class OutputConfig:
             raise ValueError(
                 f"OutputConfig.exports: unknown format(s) {bad}; choose from {FORMATS}"
             )
-        check_number(self, "export_window_m", min=0.0, min_open=True)
+        for key, cls in (("nav2", Nav2Params), ("mcap", McapParams), ("rerun", RerunParams)):
+            if not isinstance(getattr(self, key), cls):
+                raise ValueError(
+                    f"OutputConfig.{key} must be {cls.__name__}, got {getattr(self, key)!r}"
+                )
         check_number(self, "gif_window_m", min=0.0, min_open=True)
         check_int(self, "gif_step", min=1)
         check_int(self, "gif_max_frames", min=2)
@@ -270,7 +290,28 @@ def _from_document(cls: type, d: Any, where: str, required: Sequence[str] = ()) 
             f"{where}: config version {version!r}; this evgrid reads {_FORMAT_VERSION}"
         )
     d.pop("evgrid", None)
+    _refuse_replaced(d, where)
     return from_dict(cls, d, where, required)
+
+
+#: Fields that earlier versions wrote and that are gone: (section, field) -> what replaced them.
+REPLACED_FIELDS: dict[tuple[str, str], str] = {
+    ("outputs", "export_window_m"): (
+        "outputs.mcap.window_m (default 40 m; --mcap-window); the MCAP export's other "
+        "parameters are under outputs.mcap"
+    ),
+}
+
+
+def _refuse_replaced(d: dict, where: str) -> None:
+    """A config that still has a field of :data:`REPLACED_FIELDS` is an error naming it: read
+    silently, it would change what the run writes."""
+    for (section, name), instead in REPLACED_FIELDS.items():
+        node = d.get(section)
+        if isinstance(node, Mapping) and name in node:
+            raise ConfigError(
+                f"{where}: {section}.{name} is no longer a field; set {instead} instead"
+            )
 
 
 #: Keys whose string values are paths: in a config file they are relative to the file's folder.
@@ -465,7 +506,10 @@ MAP_OPTIONS: dict[str, tuple[str, ...]] = {
     "save-maps": ("outputs.save_maps",),
     "figures": ("outputs.figures",),
     "export": ("outputs.exports",),
-    "export-window": ("outputs.export_window_m",),
+    "mcap-window": ("outputs.mcap.window_m",),
+    "mcap-rate": ("outputs.mcap.rate_hz",),
+    "mcap-maps": ("outputs.mcap.maps",),
+    "map-frame": ("mapper.frame",),
     "viewer": ("outputs.viewer",),
 }
 

@@ -166,9 +166,19 @@ class OccupancyMapper:
         return out
 
     def pose_in_map(self, ego_pose: SE3) -> SE2:
-        """The planar ego pose in the first pose's frame (m, rad)."""
+        """The planar ego pose in the map frame (m, rad).
+
+        ``config.frame == "world"``: the map frame is the recording's fixed frame, so the pose
+        is the ego pose's planar part (x, y, yaw about z), and maps, files and exports need no
+        transform; poses up to :data:`evgrid.fusion.MAX_POSE_M` from its origin keep the
+        warp's precision in float64 (docs/conventions.md#map-frame). ``"first_pose"``: the
+        first ego pose's frame, as in the paper's figures. ``first_pose`` keeps the first
+        ego pose in the fixed frame either way.
+        """
         if self.first_pose is None:
             self.first_pose = ego_pose
+        if self.config.frame == "world":
+            return ego_pose.to_se2()
         return (self.first_pose.inverse() @ ego_pose).to_se2()
 
     def timing_summary(self) -> dict[str, float]:

@@ -109,42 +109,43 @@ def map_scene(
     observers: tuple = (),
     overwrite: bool = False,
     source: dict[str, Any] | None = None,
+    fixed_frame: str | None = None,
 ) -> SceneResult:
     """Map a whole scene; with ``out_dir`` write ``config.json`` (naming ``source``, a source as
     :func:`~evgrid.sources.source_to_dict` gives it, and this scene), ``metrics.json``, figures,
     the GIF, the exports of ``outputs.exports`` and (optionally) the maps.
 
-    ``observers`` (e.g. exporters) see every map update after the built-in ones. Files are
-    written under temporary names and renamed when complete (the exports when closed).
+    ``fixed_frame`` names the recording's fixed frame (the frame of its ego poses; default
+    :func:`~evgrid.sources.fixed_frame_of` the scene: a recording's rig ``world_frame``, else
+    the simulator's ``world``): the exports' map frame when ``config.frame`` is ``world``, the
+    map frame's parent otherwise. ``observers`` (e.g. exporters) see every map update after the
+    built-in ones. Files are written under temporary names and renamed when complete (the
+    exports when closed; on any exception, Ctrl-C included, they are aborted).
     """
+    from evgrid.sources import fixed_frame_of
+
     name = name or getattr(frames, "name", "scene")
+    fixed_frame = fixed_frame or fixed_frame_of(None, frames)
     with (
         results_folder(out_dir, overwrite)
         if out_dir is not None
         else contextlib.nullcontext() as out
     ):
-        exporters, partial = _exporters(outputs, out, name)
+        exporters = _exporters(outputs, out, name, config.frame, fixed_frame)
         try:
             return _map_scene(
-                frames,
-                out,
-                config,
-                outputs,
-                deep,
-                name,
-                progress,
-                observers,
-                source,
-                exporters,
-                partial,
+                frames, out, config, outputs, deep, name, progress, observers, source, exporters
             )
-        finally:
-            for tmp in partial.values():  # an export not renamed is incomplete: never kept
-                tmp.unlink(missing_ok=True)
+        except BaseException:
+            # Ctrl-C included: an export not closed is incomplete, and its temporary file goes
+            # now rather than whenever the exporter is collected
+            for exporter in exporters:
+                exporter.abort()
+            raise
 
 
 def _map_scene(
-    frames, out, config, outputs, deep, name, progress, observers, source, exporters, partial
+    frames, out, config, outputs, deep, name, progress, observers, source, exporters
 ) -> SceneResult:
     truth = TruthTracker(config.grid, config.tile_cells)
     mapper = OccupancyMapper(config, deep)
@@ -167,11 +168,10 @@ def _map_scene(
     files: dict[str, str] = {}
     for fmt, exporter in zip(outputs.exports, exporters):
         written = exporter.close()
-        if fmt in partial:
-            final = partial[fmt].with_name(partial[fmt].name.removeprefix(".partial-"))
-            os.replace(partial.pop(fmt), final)
-            written = final
-        files[f"export_{fmt}"] = str(written[0] if isinstance(written, list) else written)
+        if written:  # nav2: the files written (none when no update came)
+            files[f"export_{fmt}"] = str(written[0] if isinstance(written, list) else written)
+    if outputs.viewer:
+        exporters[-1].close()
     metrics = _scene_metrics(name, mapper, scores, seconds, frame_ms)
     metrics.update(_source_report(frames))
     if out is not None:
@@ -200,34 +200,52 @@ def _map_scene(
     return SceneResult(name, jsonable(metrics), files, metrics["frames_per_second"])
 
 
-def _exporters(outputs: OutputConfig, out: Path | None, name: str) -> tuple[list[Any], dict]:
-    """The recorders ``outputs.exports`` asks for (into the scene's folder), and the live viewer;
-    and the temporary paths of the files that are renamed to their names when closed."""
+def _exporters(
+    outputs: OutputConfig, out: Path | None, name: str, map_frame: str, fixed_frame: str
+) -> list[Any]:
+    """The recorders ``outputs.exports`` asks for, into the scene's folder (nav2 ``nav2/``,
+    ``NAME.mcap``, ``NAME.rrd``), then the live viewer; each with its parameters from
+    ``outputs`` and the run's frames.
+
+    ``map_frame`` is :attr:`MapperConfig.frame`: with ``world`` the maps are in the recording's
+    ``fixed_frame`` itself (the exports' map frame is that frame: no transform, origins in its
+    coordinates); with ``first_pose`` they are in the map frame the parameters name, a parent
+    of ``fixed_frame``.
+    """
     from evgrid.export import make_observer
 
     if outputs.exports and out is None:
         raise ValueError("exports need a results folder (out_dir)")
-    # written under a temporary name: Ctrl-C or a full disk never leaves a half file named .mcap
-    partial = {
-        "mcap": out / f".partial-{name}.mcap" if out else None,
-        "rerun": out / f".partial-{name}.rrd" if out else None,
-    }
-    partial = {f: partial[f] for f in outputs.exports if f in partial}
-    paths = {"nav2": out / "nav2" if out else None, **partial}
-    for tmp in partial.values():
-        tmp.unlink(missing_ok=True)  # left by a killed run
-    # MCAP keeps a fixed window around the vehicle per update, so a long drive's file grows
-    # with time, not area x time
-    kwargs = {"mcap": {"window_m": outputs.export_window_m}}
-    found = [make_observer(fmt, paths[fmt], **kwargs.get(fmt, {})) for fmt in outputs.exports]
-    if outputs.viewer:
-        # rerun spawns its viewer by name: the one installed beside this interpreter (a virtual
-        # environment's bin) is found even when that bin is not on PATH
-        bin_dir = str(Path(sys.executable).parent)
-        if bin_dir not in os.environ.get("PATH", "").split(os.pathsep):
-            os.environ["PATH"] = os.pathsep.join([bin_dir, os.environ.get("PATH", "")])
-        found.append(make_observer("rerun", None))
-    return found, partial
+
+    def framed(params: Any) -> Any:
+        own = fixed_frame if map_frame == "world" else params.map_frame
+        return replace(params, map_frame=own, fixed_frame=fixed_frame)
+
+    params = {"nav2": outputs.nav2, "mcap": outputs.mcap, "rerun": outputs.rerun}
+    paths: dict[str, Path] = {}
+    if out is not None:
+        paths = {"nav2": out / "nav2", "mcap": out / f"{name}.mcap", "rerun": out / f"{name}.rrd"}
+        for fmt in ("mcap", "rerun"):  # temporary files of a run killed outright (SIGKILL)
+            for tmp in out.glob(f".{paths[fmt].name}.*.part"):
+                tmp.unlink(missing_ok=True)
+    # the results folder is this run's (evgrid.outdir refused it otherwise), so the exports
+    # replace what an earlier run left there
+    found: list[Any] = []
+    try:
+        for fmt in outputs.exports:
+            found.append(make_observer(fmt, paths[fmt], framed(params[fmt]), overwrite=True))
+        if outputs.viewer:
+            # rerun spawns its viewer by name: the one installed beside this interpreter (a
+            # virtual environment's bin) is found even when that bin is not on PATH
+            bin_dir = str(Path(sys.executable).parent)
+            if bin_dir not in os.environ.get("PATH", "").split(os.pathsep):
+                os.environ["PATH"] = os.pathsep.join([bin_dir, os.environ.get("PATH", "")])
+            found.append(make_observer("rerun", None, framed(outputs.rerun)))
+    except BaseException:
+        for exporter in found:
+            exporter.abort()
+        raise
+    return found
 
 
 def _source_report(frames: Any) -> dict[str, Any]:
@@ -321,6 +339,8 @@ def _scene_metrics(
 
 
 def _map_one(args: tuple) -> dict[str, Any]:
+    from evgrid.sources import fixed_frame_of
+
     source, name, out_dir, config, outputs, source_dict, on_frame = args
     scene = source.load(name)
     progress = None
@@ -337,6 +357,7 @@ def _map_one(args: tuple) -> dict[str, Any]:
         overwrite=True,
         progress=progress,
         source=source_dict,
+        fixed_frame=fixed_frame_of(source, scene),
     )
     return res.metrics
 

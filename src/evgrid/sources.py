@@ -5,6 +5,9 @@ own).
 * :class:`SimFilesSource` - scenes written by ``evgrid simulate`` (``.npz`` folder);
 * :class:`NuScenesSource` - nuScenes (or a simulated dataset in its layout) through the devkit;
 * :class:`BagSource` - a robot recording (ROS 1/2 bag or MCAP) read as its rig file says.
+
+Each source names its recordings' fixed frame (:meth:`fixed_frame`: the frame its ego poses
+are given in), the frame maps are built and exported in (docs/conventions.md#map-frame).
 """
 
 from __future__ import annotations
@@ -31,8 +34,14 @@ __all__ = [
     "source_to_dict",
     "source_from_dict",
     "scenes_of",
+    "fixed_frame_of",
     "DataOptions",
 ]
+
+#: The simulator's fixed frame: its towns' ``world`` coordinates, where its ego poses lie.
+SIM_FIXED_FRAME = "world"
+#: nuScenes' ego poses are in its ``global`` frame (the map's).
+NUSCENES_FIXED_FRAME = "global"
 
 
 def sim_split(seed: int) -> str:
@@ -47,6 +56,8 @@ class SceneSource(Protocol):
     def names(self) -> list[str]: ...
 
     def load(self, name: str) -> Scene: ...
+
+    def fixed_frame(self) -> str: ...
 
 
 @dataclass(frozen=True)
@@ -108,6 +119,10 @@ class SimSource:
             raise KeyError(f"no simulated scene {name!r} among {sorted(by_name)}")
         return simulate_scene(by_name[name], self.config(by_name[name]))
 
+    def fixed_frame(self) -> str:
+        """The frame of the ego poses: the simulated town's."""
+        return SIM_FIXED_FRAME
+
 
 class SceneIndexError(ValueError):
     """A folder of simulated scenes whose ``index.json`` is missing a scene or cannot be read."""
@@ -165,6 +180,10 @@ class SimFilesSource:
             f"no scene {name!r} in {self.folder}/index.json; it has {self.names()}"
         )
 
+    def fixed_frame(self) -> str:
+        """The frame of the ego poses: the simulated town's."""
+        return SIM_FIXED_FRAME
+
 
 @functools.lru_cache(maxsize=2)
 def _nuscenes_scenes(
@@ -196,6 +215,10 @@ class NuScenesSource:
         if name not in scenes:
             raise KeyError(f"no nuScenes scene {name!r} in split {self.split!r}")
         return scenes[name]
+
+    def fixed_frame(self) -> str:
+        """nuScenes' global frame, where its ego poses lie."""
+        return NUSCENES_FIXED_FRAME
 
     def dropped(self) -> dict[str, str]:
         """Scenes of the split (or named) that the loader left out, each with why."""
@@ -253,6 +276,12 @@ class BagSource:
             raise KeyError(f"no scene {name!r} among the recordings; they are {list(by_name)}")
         return load_bag(by_name[name], self.rig)
 
+    def fixed_frame(self) -> str:
+        """The rig's ``world_frame`` (default ``odom``): the frame its ego poses are read in."""
+        from evgrid.data.bag import load_rig
+
+        return load_rig(self.rig).world_frame
+
 
 def scenes_of(source: SceneSource, names: Sequence[str] | None = None) -> list[str]:
     """The names to run: all of the source's, or those asked for (checked)."""
@@ -269,6 +298,19 @@ def scenes_of(source: SceneSource, names: Sequence[str] | None = None) -> list[s
             + (" ..." if len(known) > 10 else "")
         )
     return list(names)
+
+
+def fixed_frame_of(source: object, scene: object = None) -> str:
+    """The fixed frame of a source's recordings (its :meth:`fixed_frame`); for a scene alone,
+    its rig's ``world_frame`` (recordings) or its ``fixed_frame``; else the simulator's
+    ``world``."""
+    said = getattr(source, "fixed_frame", None)
+    if callable(said):
+        return str(said())
+    rig = getattr(scene, "rig", None)
+    if rig is not None and getattr(rig, "world_frame", None):
+        return str(rig.world_frame)
+    return str(getattr(scene, "fixed_frame", None) or SIM_FIXED_FRAME)
 
 
 def _kinds() -> dict[str, type]:

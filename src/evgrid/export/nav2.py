@@ -390,6 +390,12 @@ class Nav2Exporter:
             notes.insert(0, f"the navigation map: '{name}'")
         return notes
 
+    def abort(self) -> None:
+        """Drop the run's maps: nothing is written (the files are written only at
+        :meth:`close`, all of them or none)."""
+        self._maps = {}
+        self.navigation = None
+
     def close(self) -> list[Path]:
         """Write the maps; returns the files written (none if no update came)."""
         if self.navigation is None:
