@@ -74,7 +74,9 @@ class OccupancyMapper:
         extra: tuple[MapSet, ...] = (),
     ):
         self.config = config
-        self.maps = MapSet(config.grid, config.fusion, config.maps, config.tile_cells)
+        self.maps = MapSet(
+            config.grid, config.fusion, config.maps, config.tile_cells, config.dynamic
+        )
         self.extra = tuple(extra)
         for s in self.extra:  # extra rows of the same one-pass update
             self.maps.attach(s)
