@@ -39,12 +39,12 @@ from evgrid.geometry import SE2, GridSpec
 from evgrid.grid import EvidentialMap, MapWindow, Warper, warp_window, window_affine
 from evgrid.kernels import (
     BLOCK,
+    DYNAMIC_RULES,
     RULE_DEEP_DISC,
     RULE_DEEP_REPLACE,
     RULE_DEMPSTER,
     RULE_FUSED,
     RULE_NAV,
-    DYNAMIC_RULES,
     band_columns,
     informative_blocks,
     rows,
