@@ -131,3 +131,61 @@ def test_golden_mapper_maps_with_the_score_off():
         mapper.process(frame)
     digests = {name: _digest(mapper.maps[name]) for name in mapper.maps.names}
     assert digests == json.loads(GOLDEN.read_text())["mapper"]
+
+
+def test_dynamic_on_off_is_a_named_override():
+    from evgrid.config import MAP_OPTIONS, RunConfig, options_to_overrides, resolve_config
+
+    assert MAP_OPTIONS["dynamic"] == ("mapper.dynamic.enabled",)
+    # a bool option: --dynamic=on|off, or --dynamic / --no-dynamic
+    for args, on in (
+        (["--dynamic=off"], False),
+        (["--dynamic=on"], True),
+        (["--no-dynamic"], False),
+        (["--dynamic"], True),
+    ):
+        overrides, _ = options_to_overrides(args, MAP_OPTIONS, RunConfig)
+        assert resolve_config(RunConfig, overrides=overrides).mapper.dynamic.enabled is on
+    with pytest.raises(ValueError, match="dynamic"):
+        resolve_config(RunConfig, overrides=[("mapper.dynamic.decay", "2")])
+
+
+def test_dynamic_confusion_and_scores_hand_counted():
+    from evgrid.evaluate import detection_scores, dynamic_confusion, dynamic_summary
+
+    score = np.array([[0.9, 0.9, 0.1], [0.5, 0.0, 0.9]], np.float32)
+    moving = np.array([[True, False, True], [True, False, False]])
+    observed = np.array([[True, True, True], [True, True, False]])
+    # called & observed: (0,0), (0,1), (1,0); truth & observed: (0,0), (0,2), (1,0)
+    assert dynamic_confusion(score, 0.3, moving, observed) == (2, 1, 1)
+    s = detection_scores(2, 1, 1)
+    assert s == {"precision": 2 / 3, "recall": 2 / 3, "iou": 0.5}
+    assert np.isnan(detection_scores(0, 0, 3)["precision"])
+    with pytest.raises(ValueError, match="differ"):
+        dynamic_confusion(score, 0.3, moving[:1], observed)
+    out = dynamic_summary(
+        [{"ray_ilm": {"precision": 0.5, "recall": 1.0, "iou": 0.5}}, {"ray_ilm": s}]
+    )
+    assert set(out["ray_ilm"]) == {"precision", "recall", "iou"}
+    assert out["ray_ilm"]["precision"]["mean"] == pytest.approx((0.5 + 2 / 3) / 2)
+    assert out["ray_ilm"]["recall"]["lo"] <= out["ray_ilm"]["recall"]["hi"]
+
+
+def test_scene_scores_score_the_dynamic_layer_against_moving_objects():
+    from evgrid.data import SimConfig, simulate_scene
+    from evgrid.mapper import OccupancyMapper
+    from evgrid.observers import SceneScores, TruthTracker
+
+    cfg = MapperConfig(maps=("ray_ilm", "ray_irm"))
+    truth = TruthTracker(cfg.grid, cfg.tile_cells)
+    mapper = OccupancyMapper(cfg, observers=(truth,))
+    scores = SceneScores(mapper.maps.maps, truth, track=False)
+    mapper.observers.append(scores)
+    for frame in simulate_scene(3, SimConfig(duration_s=3.0)):
+        mapper.process(frame)
+    assert any("dynamic" in k for k in scores.keyframes)
+    final = scores.final()["dynamic"]
+    assert set(final) == {"ray_ilm", "ray_irm"}
+    for d in final.values():
+        assert d["tp"] + d["fn"] > 0  # the scene has moving objects the sensors saw
+        assert d["iou"] == pytest.approx(d["tp"] / (d["tp"] + d["fp"] + d["fn"]))

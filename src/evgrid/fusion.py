@@ -117,8 +117,8 @@ class FusionParams:
 
 # Defaults of the dynamic score (docs/equations.md#the-dynamic-score): chosen with
 # benchmarks/dynamic.py on simulated scenes (docs/speed.md#the-dynamic-score).
-DYNAMIC_DECAY_DEFAULT = 0.7
-DYNAMIC_THRESHOLD_DEFAULT = 0.3
+DYNAMIC_DECAY_DEFAULT = 0.3
+DYNAMIC_THRESHOLD_DEFAULT = 0.1
 
 
 @dataclass(frozen=True, slots=True)
