@@ -189,3 +189,14 @@ def test_scene_scores_score_the_dynamic_layer_against_moving_objects():
     for d in final.values():
         assert d["tp"] + d["fn"] > 0  # the scene has moving objects the sensors saw
         assert d["iou"] == pytest.approx(d["tp"] / (d["tp"] + d["fp"] + d["fn"]))
+
+
+def test_bench_times_the_score_on_and_off():
+    from evgrid.bench import _dynamic_cost
+
+    rng = np.random.default_rng(0)
+    grid = GridSpec(64, 8.0)
+    a, b = (rng.dirichlet([1, 1, 1], grid.shape).astype(np.float32) for _ in range(2))
+    res = _dynamic_cost(grid, a, b, SE2(0.3, -0.2, 0.7), repeat=2)
+    assert res["on"] > 0 and res["off"] > 0
+    assert res["cost"] == pytest.approx(res["on"] - res["off"])

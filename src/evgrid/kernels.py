@@ -311,15 +311,28 @@ def _span(spans, i, w):
 # bad[j] flags invalid ISM cells; returns their number. The kernels below loop rows over them.
 
 
+@numba.njit(inline="always", **_JIT)
+def _conflict_split(f1, o1, f2, o2):
+    # The conflict K = f1 o2 + o1 f2 of Dempster's rule (paper eq. (7)), map 1 and ISM 2, split
+    # by direction (Moras, Cherfaoui, Bonnifait 2011): free then occupied is something that
+    # arrived, occupied then free something that left (docs/equations.md#the-dynamic-score).
+    return f1 * o2, o1 * f2
+
+
 @numba.njit(inline="always", **_CHECKED)
-def _dempster_row(mp_, ism_, bad, n):
-    # map <- map (+)_D ISM, paper eq. (5): the ray_ilm, deep_acc and ray_irm maps.
+def _dempster_row(mp_, ism_, bad, n, s_, decay, scored):
+    # map <- map (+)_D ISM, paper eq. (5): the ray_ilm, deep_acc and ray_irm maps. With
+    # ``scored`` (a constant where inlined), also the dynamic score s_ <- decay s_ + K_arr +
+    # K_left from the same map and ISM cells (see _dynamic_row): one loop over the cells.
     for j in range(n):
         p = 3 * j
         f1, o1, u1 = np.float64(mp_[p]), np.float64(mp_[p + 1]), np.float64(mp_[p + 2])
         f2, o2, u2 = np.float64(ism_[p]), np.float64(ism_[p + 1]), np.float64(ism_[p + 2])
         ok = _valid_cell(f2, o2, u2)
         bad[j] = 0 if ok else 1
+        if scored:
+            arrived, left = _conflict_split(f1, o1, f2, o2)
+            s_[j] = decay * np.float64(s_[j]) + (arrived + left if ok else 0.0)
         f, o, u = _dempster_cell(f1, o1, u1, f2, o2, u2)
         keep = u2 >= 1.0 or not ok
         mp_[p] = f1 if keep else f
@@ -426,14 +439,6 @@ def _nav_row(mp_, lidar_, fused_, n):
     return 0
 
 
-@numba.njit(inline="always", **_JIT)
-def _conflict_split(f1, o1, f2, o2):
-    # The conflict K = f1 o2 + o1 f2 of Dempster's rule (paper eq. (7)), map 1 and ISM 2, split
-    # by direction (Moras, Cherfaoui, Bonnifait 2011): free then occupied is something that
-    # arrived, occupied then free something that left (docs/equations.md#the-dynamic-score).
-    return f1 * o2, o1 * f2
-
-
 @numba.njit(inline="always", **_CHECKED)
 def _dynamic_row(mp_, ism_, s_, n, decay):
     # s <- decay s + K_arr + K_left per cell of the row, from the map cell before its update
@@ -460,7 +465,7 @@ def _rule_row(code, mp_, a, b, bad, n, m_u_min, alpha):
     # One row of a map updated by the rule of ``code`` from rows ``a`` and ``b`` (the first and
     # last input of the rule: the same row for one-input rules); returns the rejected cells.
     if code == RULE_DEMPSTER:
-        return _dempster_row(mp_, a, bad, n)
+        return _dempster_row(mp_, a, bad, n, a, 0.0, False)
     elif code == RULE_DEEP_REPLACE:
         return _deep_replace_row(mp_, a, bad, n, m_u_min)
     elif code == RULE_DEEP_DISC:
@@ -882,8 +887,13 @@ def warp_update(
         for k in range(len(tiles)):
             mp_ = tiles[k][3 * t : 3 * (t + m)]
             code, x, y = rules[k, 0], rules[k, 1], rules[k, 2]
-            if params[k, 2] > 0.0:  # the last input is the ISM of the Dempster step
-                _dynamic_row(mp_, bufs[y], dyns[k][t : t + m], m, params[k, 2])
+            decay = params[k, 2]
+            if decay > 0.0 and code == RULE_DEMPSTER:  # the score in the rule's own loop
+                rejected[k] += _dempster_row(mp_, bufs[x], bad, m, dyns[k][t : t + m], decay, True)
+                covs[k][t : t + m] = True
+                continue
+            if decay > 0.0:  # fused: the last input is the ISM of the Dempster step
+                _dynamic_row(mp_, bufs[y], dyns[k][t : t + m], m, decay)
             if code == RULE_NAV:
                 rejected[k] += _nav_row(
                     mp_, tiles[x][3 * t : 3 * (t + m)], tiles[y][3 * t : 3 * (t + m)], m
