@@ -26,7 +26,7 @@ from evgrid.data.radar_filter import RadarFilter
 from evgrid.export.mcap import McapParams
 from evgrid.export.nav2 import Nav2Params
 from evgrid.export.rerun import RerunParams
-from evgrid.fusion import MAP_NAMES, RULES, FusionParams
+from evgrid.fusion import MAP_NAMES, RULES, DynamicParams, FusionParams
 from evgrid.geometry import GridSpec
 from evgrid.ism.deep import RadarImageParams
 from evgrid.ism.lidar import RayIlmParams
@@ -120,6 +120,7 @@ class MapperConfig:
 
     grid: GridSpec = field(default_factory=GridSpec)
     fusion: FusionParams = field(default_factory=FusionParams)
+    dynamic: DynamicParams = field(default_factory=DynamicParams)  # moving objects' score
     maps: tuple[str, ...] = MAP_NAMES
     lidar: RayIlmParams = field(default_factory=RayIlmParams)  # ray ILM
     # The ego vehicle's own lidar returns, removed before the ray ILM (docs/rigs.md#self-returns).
@@ -491,6 +492,7 @@ def parse_overrides(items: Iterable[str]) -> list[tuple[str, str]]:
 MAP_OPTIONS: dict[str, tuple[str, ...]] = {
     "checkpoint": ("mapper.checkpoint",),
     "m-u-min": ("mapper.fusion.m_u_min",),
+    "dynamic": ("mapper.dynamic.enabled",),
     "update-rate": ("mapper.update_rate_hz",),
     "maps": ("mapper.maps",),
     "lidar-min-range": ("mapper.lidar.min_range_m",),

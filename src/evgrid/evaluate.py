@@ -34,6 +34,9 @@ __all__ = [
     "observable",
     "mean_iou",
     "markdown_table",
+    "dynamic_confusion",
+    "detection_scores",
+    "dynamic_summary",
 ]
 
 
@@ -345,3 +348,54 @@ def _interval(ci: Mapping[str, float] | None) -> str:
 
 def _pct(v: float | None) -> str:
     return "n/a" if v is None or math.isnan(v) else f"{100 * v:.2f}"
+
+
+# --- moving objects: the dynamic score against the truth (docs/equations.md#the-dynamic-score) ---
+
+
+def dynamic_confusion(
+    score: np.ndarray, threshold: float, moving: np.ndarray, observed: np.ndarray
+) -> tuple[int, int, int]:
+    """``(tp, fp, fn)`` of the cells called dynamic (``score > threshold``) against the truth
+    mask ``moving`` (cells of moving objects), over the ``observed`` cells only (the cells the
+    current lidar or radar ISM says anything about: elsewhere neither is checkable).
+
+    All three arrays have one shape; ``moving`` and ``observed`` are boolean.
+    """
+    if not (score.shape == moving.shape == observed.shape):
+        raise ValueError(
+            f"score {score.shape}, truth {moving.shape} and observed {observed.shape} differ"
+        )
+    called = (score > threshold) & observed
+    truth = moving & observed
+    tp = int(np.count_nonzero(called & truth))
+    return tp, int(np.count_nonzero(called)) - tp, int(np.count_nonzero(truth)) - tp
+
+
+def detection_scores(tp: int, fp: int, fn: int) -> dict[str, float]:
+    """Precision, recall and IoU of a detection from its counts; NaN where undefined (no cell
+    called, or no true cell)."""
+    return {
+        "precision": tp / (tp + fp) if tp + fp else math.nan,
+        "recall": tp / (tp + fn) if tp + fn else math.nan,
+        "iou": tp / (tp + fp + fn) if tp + fp + fn else math.nan,
+    }
+
+
+def dynamic_summary(
+    per_scene: Iterable[Mapping[str, Mapping[str, float]]], level: float = 0.95
+) -> dict[str, dict[str, dict]]:
+    """``summary["dynamic"]``: per map, ``precision``, ``recall`` and ``iou`` of the dynamic
+    cells as the mean over scenes with a bootstrap interval (:func:`bootstrap_interval`), from
+    each scene's ``metrics["dynamic"]`` (:meth:`evgrid.observers.SceneScores.final`)."""
+    acc: dict[str, dict[str, list[float]]] = {}
+    for scene in per_scene:
+        for name, d in scene.items():
+            for key in ("precision", "recall", "iou"):
+                v = d.get(key)
+                acc.setdefault(name, {}).setdefault(key, []).append(
+                    math.nan if v is None else float(v)
+                )
+    return {
+        name: {key: bootstrap_interval(v, level) for key, v in d.items()} for name, d in acc.items()
+    }

@@ -39,6 +39,7 @@ from evgrid.geometry import SE2, GridSpec
 from evgrid.grid import EvidentialMap, MapWindow, Warper, warp_window, window_affine
 from evgrid.kernels import (
     BLOCK,
+    DYNAMIC_RULES,
     RULE_DEEP_DISC,
     RULE_DEEP_REPLACE,
     RULE_DEMPSTER,
@@ -59,6 +60,7 @@ __all__ = [
     "ISM_NAMES",
     "MAX_POSE_M",
     "FusionParams",
+    "DynamicParams",
     "UpdateRule",
     "RULES",
     "update_ray_ilm",
@@ -111,6 +113,33 @@ class FusionParams:
     def __post_init__(self) -> None:
         check_number(self, "m_u_min", min=0.0, max=1.0, max_open=True)
         check_number(self, "alpha", min=0.0)
+
+
+# Defaults of the dynamic score (docs/equations.md#the-dynamic-score): chosen with
+# benchmarks/dynamic.py on simulated scenes (docs/speed.md#the-dynamic-score).
+DYNAMIC_DECAY_DEFAULT = 0.3
+DYNAMIC_THRESHOLD_DEFAULT = 0.1
+
+
+@dataclass(frozen=True, slots=True)
+class DynamicParams:
+    """The dynamic score of the maps fused with Dempster's rule (docs/equations.md).
+
+    At each update a map cell's score becomes ``decay * score + K_arr + K_left``, the conflict
+    of its Dempster step split by direction (Moras et al. 2011); a cell whose score exceeds
+    ``threshold`` is called dynamic. ``enabled=False`` keeps no score (the maps are the same
+    either way: the score never changes a mass). ``decay`` in (0, 1], ``threshold`` > 0.
+    """
+
+    enabled: bool = True
+    decay: float = DYNAMIC_DECAY_DEFAULT
+    threshold: float = DYNAMIC_THRESHOLD_DEFAULT
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.enabled, bool):
+            raise ValueError(f"DynamicParams.enabled must be true or false, got {self.enabled!r}")
+        check_number(self, "decay", min=0.0, max=1.0, min_open=True)
+        check_number(self, "threshold", min=0.0, min_open=True)
 
 
 # --- the table of rules --------------------------------------------------------------------
@@ -378,6 +407,10 @@ class MapSet:
     grids that were not masses and were taken as vacuous (no information);
     ``n_rejected_cells[map]`` the cells a map's rule rejected (0 when every ISM went through
     the loading check, as it does in :meth:`update`).
+
+    With ``dynamic`` enabled (:class:`DynamicParams`; default off), the maps with a Dempster
+    step on an ISM (:attr:`dynamic_maps`) keep a dynamic score per cell beside their masses,
+    updated in the same pass (:meth:`~evgrid.grid.EvidentialMap.read_dynamic` reads it).
     """
 
     def __init__(
@@ -386,6 +419,7 @@ class MapSet:
         params: FusionParams | None = None,
         names: tuple[str, ...] = MAP_NAMES,
         tile_cells: int = 256,
+        dynamic: DynamicParams | None = None,
     ):
         if grid is not None and not isinstance(grid, GridSpec):
             raise TypeError(f"MapSet: grid must be a GridSpec, got {type(grid).__name__}")
@@ -401,8 +435,13 @@ class MapSet:
             raise ValueError(f"unknown map name(s) {unknown}; choose from {tuple(RULES)}")
         if len(set(names)) != len(names):
             raise ValueError(f"map names repeat: {tuple(names)}")
+        if dynamic is not None and not isinstance(dynamic, DynamicParams):
+            raise TypeError(
+                f"MapSet: dynamic must be a DynamicParams, got {type(dynamic).__name__} {dynamic!r}"
+            )
         self.grid = grid or GridSpec()
         self.params = params or FusionParams()
+        self.dynamic = dynamic or DynamicParams(enabled=False)
         self.names = tuple(names)
         # maps read by a rule from maps come first in the pass, and are kept when not shown
         needed = [m for n in self.names if RULES[n].from_maps for m in RULES[n].inputs]
@@ -417,6 +456,7 @@ class MapSet:
                     self.grid,
                     tile_cells,
                     {"rule": n, "m_u_min": self.params.m_u_min, "alpha": self.params.alpha},
+                    dynamic=self._scores(n),
                 ),
                 self.params,
                 n in self.names,
@@ -443,8 +483,18 @@ class MapSet:
         #: the pass that samples them and applies the rules.
         self.last_ms: dict[str, float] = {}
 
+    def _scores(self, name: str) -> bool:
+        """Whether map ``name`` keeps a dynamic score: its rule has a Dempster step on an ISM."""
+        return self.dynamic.enabled and RULES[name].kernel in DYNAMIC_RULES
+
+    @property
+    def dynamic_maps(self) -> tuple[str, ...]:
+        """The maps of this set that keep a dynamic score (empty with the score off)."""
+        return tuple(n for n in self.names if self.maps[n].dynamic)
+
     def _plan(self) -> None:
-        """The pass's table: per row (kernel code, first input, last input) and (m_u_min, alpha)."""
+        """The pass's table: per row (kernel code, first input, last input) and (m_u_min, alpha,
+        decay), decay 0 for a map without a dynamic score."""
         slot = {i: s for s, i in enumerate(self.required_isms)}
         codes, params, rows_, owners = [], [], [], []
         for s in (self, *self._attached):
@@ -452,11 +502,12 @@ class MapSet:
             for r in s._rows:
                 where = index if r.rule.from_maps else slot
                 codes.append((r.rule.kernel, where[r.rule.inputs[0]], where[r.rule.inputs[-1]]))
-                params.append((r.params.m_u_min, r.params.alpha))
+                decay = s.dynamic.decay if r.map.dynamic else 0.0
+                params.append((r.params.m_u_min, r.params.alpha, decay))
             rows_ += s._rows
             owners += [s] * len(s._rows)
         self._codes = np.array(codes, dtype=np.int64).reshape(-1, 3)
-        self._params = np.array(params, dtype=np.float64).reshape(-1, 2)
+        self._params = np.array(params, dtype=np.float64).reshape(-1, 3)
         self._pass_rows: list[_Row] = rows_
         self._pass_owners: list[MapSet] = owners
 
@@ -540,6 +591,7 @@ class MapSet:
         maps = [r.map for r in self._pass_rows]
         rejected = np.zeros(len(maps), dtype=np.int64)
         src = tuple(warper.source for warper in warpers)
+        no_layer = np.zeros(0, dtype=np.float32)  # the dynamic layer of a map that keeps none
         for key, tr, tc, wr, wc in maps[0].pieces(r0, c0, h, w):
             piece = spans[wr]
             rows_on = np.flatnonzero(
@@ -563,6 +615,7 @@ class MapSet:
                 wc.stop,
                 tuple(t.reshape(-1) for t, _ in tiles),
                 tuple(c.reshape(-1) for _, c in tiles),
+                tuple(m.dynamic_tiles[key].reshape(-1) if m.dynamic else no_layer for m in maps),
                 self.tile_cells,
                 tr.start + a,
                 tc.start,

@@ -221,7 +221,8 @@ class EvidentialMap:
     """A mass grid in the first pose's frame, stored as tiles created where local grids reach.
 
     Cells never covered read as vacuous. ``metadata`` is free JSON-serialisable data that is
-    saved with the map.
+    saved with the map. With ``dynamic``, each tile also holds a float32 dynamic score per cell
+    (:attr:`dynamic_tiles`, created with the tile at 0; see :class:`evgrid.fusion.DynamicParams`).
     """
 
     def __init__(
@@ -229,6 +230,7 @@ class EvidentialMap:
         grid: GridSpec | None = None,
         tile_cells: int = 256,
         metadata: dict[str, Any] | None = None,
+        dynamic: bool = False,
     ):
         self.grid = grid or GridSpec()
         if not isinstance(tile_cells, (int, np.integer)) or tile_cells < 8:
@@ -237,6 +239,8 @@ class EvidentialMap:
         self.tiles: dict[tuple[int, int], np.ndarray] = {}
         self.covered_tiles: dict[tuple[int, int], np.ndarray] = {}
         self.metadata: dict[str, Any] = dict(metadata or {})
+        self.dynamic = bool(dynamic)
+        self.dynamic_tiles: dict[tuple[int, int], np.ndarray] = {}
 
     def __repr__(self) -> str:
         mib = self.nbytes / 2**20
@@ -245,8 +249,10 @@ class EvidentialMap:
     @property
     def nbytes(self) -> int:
         """Bytes held by the tiles."""
-        return sum(t.nbytes for t in self.tiles.values()) + sum(
-            c.nbytes for c in self.covered_tiles.values()
+        return sum(
+            a.nbytes
+            for layer in (self.tiles, self.covered_tiles, self.dynamic_tiles)
+            for a in layer.values()
         )
 
     def tile(self, key: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
@@ -257,6 +263,10 @@ class EvidentialMap:
             t = vacuous((self.tile_cells, self.tile_cells))
             self.tiles[key] = t
             self.covered_tiles[key] = np.zeros((self.tile_cells, self.tile_cells), dtype=np.bool_)
+            if self.dynamic:
+                self.dynamic_tiles[key] = np.zeros(
+                    (self.tile_cells, self.tile_cells), dtype=np.float32
+                )
         return t, self.covered_tiles[key]
 
     def pieces(
@@ -332,6 +342,20 @@ class EvidentialMap:
                 out[wr, wc] = t[tr, tc]
                 cov[wr, wc] = self.covered_tiles[key][tr, tc]
         return out, cov
+
+    def read_dynamic(self, r0: int, c0: int, h: int, w: int) -> np.ndarray:
+        """Dense copy ``(h, w)`` float32 of the dynamic score of cells ``[r0:r0+h, c0:c0+w]``;
+        0 where no tile is stored. Raises ValueError if the map keeps no dynamic layer."""
+        if not self.dynamic:
+            raise ValueError(
+                f"map {self.metadata.get('rule', '?')!r} keeps no dynamic layer (dynamic off)"
+            )
+        out = np.zeros((h, w), dtype=np.float32)
+        for key, tr, tc, wr, wc in self.pieces(r0, c0, h, w):
+            d = self.dynamic_tiles.get(key)
+            if d is not None:
+                out[wr, wc] = d[tr, tc]
+        return out
 
     def bounds(self) -> tuple[int, int, int, int]:
         """``(r0, c0, h, w)``: the smallest tile-aligned box holding every tile; zeros if none."""

@@ -39,6 +39,7 @@ __all__ = [
     "RULE_DEEP_DISC",
     "RULE_FUSED",
     "RULE_NAV",
+    "DYNAMIC_RULES",
     "rows",
     "count_invalid",
     "dempster_rows",
@@ -197,8 +198,9 @@ def _deep_disc_cell(f1, o1, u1, f2, o2, u2, m_u_min, alpha):
 # (elements): cell (i, j) starts at i * rs + 3 * j. See `rows()`.
 
 
-@numba.njit(**_JIT)
-def dempster_rows(a, ars, b, brs, out, ors, h, w):
+@numba.njit(inline="always", **_JIT)
+def _combine_rows(a, ars, b, brs, out, ors, h, w, yager):
+    # out = a (+) b cell by cell: Yager's rule (eq. (6)) if ``yager``, else Dempster's (eq. (5))
     for i in range(h):
         ra, rb, ro = (
             a[i * ars : i * ars + 3 * w],
@@ -207,40 +209,25 @@ def dempster_rows(a, ars, b, brs, out, ors, h, w):
         )
         for j in range(w):
             p = 3 * j
-            f, o, u = _dempster_cell(
-                np.float64(ra[p]),
-                np.float64(ra[p + 1]),
-                np.float64(ra[p + 2]),
-                np.float64(rb[p]),
-                np.float64(rb[p + 1]),
-                np.float64(rb[p + 2]),
-            )
+            f1, o1, u1 = np.float64(ra[p]), np.float64(ra[p + 1]), np.float64(ra[p + 2])
+            f2, o2, u2 = np.float64(rb[p]), np.float64(rb[p + 1]), np.float64(rb[p + 2])
+            if yager:
+                f, o, u = _yager_cell(f1, o1, u1, f2, o2, u2)
+            else:
+                f, o, u = _dempster_cell(f1, o1, u1, f2, o2, u2)
             ro[p] = f
             ro[p + 1] = o
             ro[p + 2] = u
+
+
+@numba.njit(**_JIT)
+def dempster_rows(a, ars, b, brs, out, ors, h, w):
+    _combine_rows(a, ars, b, brs, out, ors, h, w, False)
 
 
 @numba.njit(**_JIT)
 def yager_rows(a, ars, b, brs, out, ors, h, w):
-    for i in range(h):
-        ra, rb, ro = (
-            a[i * ars : i * ars + 3 * w],
-            b[i * brs : i * brs + 3 * w],
-            out[i * ors : i * ors + 3 * w],
-        )
-        for j in range(w):
-            p = 3 * j
-            f, o, u = _yager_cell(
-                np.float64(ra[p]),
-                np.float64(ra[p + 1]),
-                np.float64(ra[p + 2]),
-                np.float64(rb[p]),
-                np.float64(rb[p + 1]),
-                np.float64(rb[p + 2]),
-            )
-            ro[p] = f
-            ro[p + 1] = o
-            ro[p + 2] = u
+    _combine_rows(a, ars, b, brs, out, ors, h, w, True)
 
 
 @numba.njit(**_JIT)
@@ -324,15 +311,28 @@ def _span(spans, i, w):
 # bad[j] flags invalid ISM cells; returns their number. The kernels below loop rows over them.
 
 
+@numba.njit(inline="always", **_JIT)
+def _conflict_split(f1, o1, f2, o2):
+    # The conflict K = f1 o2 + o1 f2 of Dempster's rule (paper eq. (7)), map 1 and ISM 2, split
+    # by direction (Moras, Cherfaoui, Bonnifait 2011): free then occupied is something that
+    # arrived, occupied then free something that left (docs/equations.md#the-dynamic-score).
+    return f1 * o2, o1 * f2
+
+
 @numba.njit(inline="always", **_CHECKED)
-def _dempster_row(mp_, ism_, bad, n):
-    # map <- map (+)_D ISM, paper eq. (5): the ray_ilm, deep_acc and ray_irm maps.
+def _dempster_row(mp_, ism_, bad, n, s_, decay, scored):
+    # map <- map (+)_D ISM, paper eq. (5): the ray_ilm, deep_acc and ray_irm maps. With
+    # ``scored`` (a constant where inlined), also the dynamic score s_ <- decay s_ + K_arr +
+    # K_left from the same map and ISM cells (see _dynamic_row): one loop over the cells.
     for j in range(n):
         p = 3 * j
         f1, o1, u1 = np.float64(mp_[p]), np.float64(mp_[p + 1]), np.float64(mp_[p + 2])
         f2, o2, u2 = np.float64(ism_[p]), np.float64(ism_[p + 1]), np.float64(ism_[p + 2])
         ok = _valid_cell(f2, o2, u2)
         bad[j] = 0 if ok else 1
+        if scored:
+            arrived, left = _conflict_split(f1, o1, f2, o2)
+            s_[j] = decay * np.float64(s_[j]) + (arrived + left if ok else 0.0)
         f, o, u = _dempster_cell(f1, o1, u1, f2, o2, u2)
         keep = u2 >= 1.0 or not ok
         mp_[p] = f1 if keep else f
@@ -439,9 +439,25 @@ def _nav_row(mp_, lidar_, fused_, n):
     return 0
 
 
+@numba.njit(inline="always", **_CHECKED)
+def _dynamic_row(mp_, ism_, s_, n, decay):
+    # s <- decay s + K_arr + K_left per cell of the row, from the map cell before its update
+    # and the ISM cell the Dempster step combines it with; an invalid ISM cell adds nothing (the
+    # rule leaves the map cell untouched there), a vacuous one adds 0 as its K is 0.
+    for j in range(n):
+        p = 3 * j
+        f2, o2, u2 = np.float64(ism_[p]), np.float64(ism_[p + 1]), np.float64(ism_[p + 2])
+        ok = _valid_cell(f2, o2, u2)
+        arrived, left = _conflict_split(np.float64(mp_[p]), np.float64(mp_[p + 1]), f2, o2)
+        k = arrived + left
+        s_[j] = decay * np.float64(s_[j]) + (k if ok else 0.0)
+
+
 #: Kernel codes of the update rules; :data:`evgrid.fusion.RULES` says which map uses which.
 #: RULE_NAV reads two maps' rows (the lidar and fused maps), the others one or two ISMs' rows.
 RULE_DEMPSTER, RULE_DEEP_REPLACE, RULE_DEEP_DISC, RULE_FUSED, RULE_NAV = 0, 1, 2, 3, 4
+#: The rules with a Dempster step (eq. (5)) on an ISM, whose conflict feeds the dynamic score.
+DYNAMIC_RULES = (RULE_DEMPSTER, RULE_FUSED)
 
 
 @numba.njit(inline="always", **_CHECKED)
@@ -449,7 +465,7 @@ def _rule_row(code, mp_, a, b, bad, n, m_u_min, alpha):
     # One row of a map updated by the rule of ``code`` from rows ``a`` and ``b`` (the first and
     # last input of the rule: the same row for one-input rules); returns the rejected cells.
     if code == RULE_DEMPSTER:
-        return _dempster_row(mp_, a, bad, n)
+        return _dempster_row(mp_, a, bad, n, a, 0.0, False)
     elif code == RULE_DEEP_REPLACE:
         return _deep_replace_row(mp_, a, bad, n, m_u_min)
     elif code == RULE_DEEP_DISC:
@@ -807,6 +823,7 @@ def warp_update(
     wc1,
     tiles,
     covs,
+    dyns,
     ts,
     tr0,
     tc0,
@@ -821,8 +838,10 @@ def warp_update(
     # writes them, into a row buffer per ISM, and each map's rule runs on the buffers: the same
     # masses as warping whole windows and updating from them, without writing or re-reading the
     # windows. Row k of ``rules`` is map k's (kernel code, first input, last input), its
-    # ``params`` row (m_u_min, alpha): inputs are ISM slots (bufs), for RULE_NAV earlier maps
-    # (tiles) whose rows this step has already updated.
+    # ``params`` row (m_u_min, alpha, decay): inputs are ISM slots (bufs), for RULE_NAV earlier
+    # maps (tiles) whose rows this step has already updated. A row with decay > 0 (a rule of
+    # DYNAMIC_RULES) first adds its Dempster step's conflict to its dynamic layer ``dyns[k]``
+    # (flat, a float per cell), from the map cells before the update; masses are the same.
     idx = np.empty(BLOCK, dtype=np.int64)
     frac = np.empty(2 * BLOCK, dtype=np.float32)
     bad = np.zeros(ts, np.uint8)
@@ -868,6 +887,13 @@ def warp_update(
         for k in range(len(tiles)):
             mp_ = tiles[k][3 * t : 3 * (t + m)]
             code, x, y = rules[k, 0], rules[k, 1], rules[k, 2]
+            decay = params[k, 2]
+            if decay > 0.0 and code == RULE_DEMPSTER:  # the score in the rule's own loop
+                rejected[k] += _dempster_row(mp_, bufs[x], bad, m, dyns[k][t : t + m], decay, True)
+                covs[k][t : t + m] = True
+                continue
+            if decay > 0.0:  # fused: the last input is the ISM of the Dempster step
+                _dynamic_row(mp_, bufs[y], dyns[k][t : t + m], m, decay)
             if code == RULE_NAV:
                 rejected[k] += _nav_row(
                     mp_, tiles[x][3 * t : 3 * (t + m)], tiles[y][3 * t : 3 * (t + m)], m

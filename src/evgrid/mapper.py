@@ -31,7 +31,8 @@ logger = logging.getLogger(__name__)
 
 @dataclass(frozen=True, slots=True, eq=False)
 class MapUpdate:
-    """One map update, as observers see it: the frame, the ego pose in the map, the ISMs and the maps."""
+    """One map update, as observers see it: the frame, the ego pose in the map, the ISMs and the
+    maps."""
 
     frame: Frame
     pose: SE2  # ego pose in the first pose's frame (m, rad)
@@ -58,7 +59,8 @@ class Observer(Protocol):
 
 
 class OccupancyMapper:
-    """The maps of one scene, built online: call :meth:`process` with each :class:`Frame` in time order.
+    """The maps of one scene, built online: call :meth:`process` with each :class:`Frame` in time
+    order.
 
     ``deep`` is a :class:`~evgrid.ism.deep.DeepIrm` (loaded from ``config.checkpoint``, or the
     shipped checkpoint, when the maps need it and none is given). ``extra`` map sets are attached
@@ -74,7 +76,9 @@ class OccupancyMapper:
         extra: tuple[MapSet, ...] = (),
     ):
         self.config = config
-        self.maps = MapSet(config.grid, config.fusion, config.maps, config.tile_cells)
+        self.maps = MapSet(
+            config.grid, config.fusion, config.maps, config.tile_cells, config.dynamic
+        )
         self.extra = tuple(extra)
         for s in self.extra:  # extra rows of the same one-pass update
             self.maps.attach(s)
@@ -108,7 +112,8 @@ class OccupancyMapper:
         self.n_updates = 0
 
     def process(self, frame: Frame) -> bool:
-        """Take one frame; at the update rate and at keyframes update the maps. Returns whether it did."""
+        """Take one frame; at the update rate and at keyframes update the maps. Returns whether it
+        did."""
         if not isinstance(frame, Frame):
             raise TypeError(f"process needs a Frame, got {type(frame).__name__}")
         t0 = time.perf_counter()
@@ -137,7 +142,8 @@ class OccupancyMapper:
         return True
 
     def local_isms(self, frame: Frame) -> dict[str, np.ndarray]:
-        """Each ISM the maps need, once, on the local grid of ``frame`` (radar buffer already updated)."""
+        """Each ISM the maps need, once, on the local grid of ``frame`` (radar buffer already
+        updated)."""
         from evgrid.ism import ray_ilm, ray_irm
 
         cfg = self.config
@@ -186,7 +192,8 @@ class OccupancyMapper:
         return {k: float(np.median(v)) for k, v in self.timings.items() if v}
 
     def counts(self) -> dict[str, int]:
-        """What the mapper mapped, skipped, filtered and rejected, and why (``counts`` in metrics.json)."""
+        """What the mapper mapped, skipped, filtered and rejected, and why (``counts`` in
+        metrics.json)."""
         return {
             "frames": self.n_frames,
             "updates": self.n_updates,
@@ -213,9 +220,9 @@ class UpdateSchedule:
     """Map updates at a rate in Hz on a fixed time grid from the first frame, and at every keyframe.
 
     Of the frames around each grid time the one nearest to it is mapped (a frame is due once it
-    is less than half a frame interval, at most half a period, before the grid time), so sensor rates that do not divide
-    the update rate and timestamp jitter keep the rate; after a gap the grid catches up instead of
-    bursting.
+    is less than half a frame interval, at most half a period, before the grid time), so sensor
+    rates that do not divide the update rate and timestamp jitter keep the rate; after a gap the
+    grid catches up instead of bursting.
     """
 
     def __init__(self, rate_hz: float):

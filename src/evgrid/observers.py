@@ -14,6 +14,8 @@ import numpy as np
 
 from evgrid.classes import FREE, OCCUPIED
 from evgrid.evaluate import (
+    detection_scores,
+    dynamic_confusion,
     iou_from_confusion,
     tile_confusions_vs_map,
     tile_confusions_vs_truth,
@@ -23,7 +25,7 @@ from evgrid.geometry import GridSpec
 from evgrid.grid import EvidentialMap, MapWindow, Warper
 from evgrid.mapper import MapUpdate
 
-__all__ = ["TruthTracker", "TileScores", "SceneScores", "GifRecorder"]
+__all__ = ["TruthTracker", "TileScores", "SceneScores", "GifRecorder", "moving_and_observed"]
 
 _TRUTH_MASSES = np.array(
     [[1, 0, 0], [0, 1, 0], [0, 1, 0]], dtype=np.float32
@@ -92,6 +94,31 @@ class TileScores:
         }
 
 
+def moving_and_observed(
+    update: MapUpdate, warper: Warper
+) -> tuple[int, int, np.ndarray, np.ndarray] | None:
+    """The truth of the dynamic score at this update, in its map window: ``(r0, c0, moving,
+    observed)``, boolean ``(h, w)`` arrays whose [0, 0] is map cell (r0, c0). ``moving``: the
+    cells the simulator's truth raster marks as moving objects (value 2) now; ``observed``: the
+    cells the current ray ILM or ray IRM says anything about (non-vacuous). None without a
+    truth raster or without either ISM. ``warper`` (any, reused) warps the truth."""
+    occ = update.frame.occupancy
+    windows = update.windows if occ is not None else {}
+    isms = [windows[i] for i in ("ray_ilm", "ray_irm") if i in windows]
+    if not isms:
+        return None
+    local = np.zeros((*occ.shape, 3), np.float32)
+    local[..., 2] = 1.0
+    local[occ == 2] = (0.0, 1.0, 0.0)
+    truth = warper.warp(local, update.pose)
+    # a map cell is moving where most of its bilinear sample comes from moving cells
+    moving = truth.covered & (truth.masses[..., 1] >= 0.5)
+    observed = np.zeros_like(moving)
+    for w in isms:
+        observed |= w.covered & (w.masses[..., 2] < 1.0)
+    return truth.r0, truth.c0, moving, observed
+
+
 class SceneScores:
     """IoU of every map against ``ray_ilm`` and, where the simulator gives it, the truth; at every
     keyframe if asked.
@@ -132,6 +159,9 @@ class SceneScores:
         res = next(iter(maps.values())).grid.resolution
         self._cell_m2 = res * res
         self.keyframes: list[dict[str, Any]] = []
+        # the dynamic score against the moving objects, summed over keyframes: (tp, fp, fn)
+        self._dynamic = {n: np.zeros(3, np.int64) for n in names if maps[n].dynamic}
+        self._moving_warper: Warper | None = None
 
     def on_update(self, update: MapUpdate) -> None:
         keys = tile_keys(next(iter(self.maps.values())), *update.box)
@@ -144,6 +174,8 @@ class SceneScores:
         if not update.frame.is_keyframe:
             return
         rec: dict[str, Any] = {"index": update.frame.index, "timestamp": update.frame.timestamp}
+        if self._dynamic and update.frame.occupancy is not None:
+            rec["dynamic"] = self._score_dynamic(update)
         if self.track:
             if self.vs_ref is not None:
                 self.vs_ref.refresh()
@@ -157,6 +189,26 @@ class SceneScores:
                 self.field.refresh()
                 rec["field"] = self.perception_field()
         self.keyframes.append(rec)
+
+    def _score_dynamic(self, update: MapUpdate) -> dict[str, dict[str, float]]:
+        """Per dynamic map, precision, recall and IoU at this keyframe of the cells called
+        dynamic against the cells of moving objects (truth value 2) that the current ray ILM or
+        ray IRM observed (non-vacuous); counts are also summed for :meth:`final`."""
+        if self._moving_warper is None:
+            self._moving_warper = Warper(next(iter(self.maps.values())).grid, "moving objects")
+        found = moving_and_observed(update, self._moving_warper)
+        if found is None:
+            return {}
+        r0, c0, moving, observed = found
+        h, w_ = moving.shape
+        threshold = update.maps.dynamic.threshold
+        out = {}
+        for name, total in self._dynamic.items():
+            score = self.maps[name].read_dynamic(r0, c0, h, w_)
+            counts = dynamic_confusion(score, threshold, moving, observed)
+            total += counts
+            out[name] = detection_scores(*counts)
+        return out
 
     def perception_field(self) -> dict[str, dict[str, float]]:
         """Per map, against every true cell seen so far: free and occupied IoU, and the area (m^2)
@@ -192,6 +244,12 @@ class SceneScores:
             out["vs_truth"] = {
                 n: {c: v for c, v in d.items() if c != "unknown"}
                 for n, d in self.vs_truth.iou().items()
+            }
+        if any(t.any() for t in self._dynamic.values()):
+            # the cells of every keyframe pooled: precision, recall, IoU and the counts
+            out["dynamic"] = {
+                n: {**detection_scores(*map(int, t)), **dict(zip(("tp", "fp", "fn"), map(int, t)))}
+                for n, t in self._dynamic.items()
             }
         return out
 
