@@ -124,7 +124,8 @@ def test_golden_mapper_maps_with_the_score_off():
     from evgrid.data import SimConfig, simulate_scene
     from evgrid.mapper import OccupancyMapper
 
-    cfg = MapperConfig(maps=("ray_ilm", "ray_irm"))
+    # the reference maps are in the first pose's frame (tests/test_golden_maps.py)
+    cfg = MapperConfig(maps=("ray_ilm", "ray_irm"), frame="first_pose")
     assert cfg.dynamic.enabled  # on by default: tests/test_golden_maps.py runs it on
     mapper = OccupancyMapper(replace(cfg, dynamic=DynamicParams(enabled=False)))
     for frame in simulate_scene(3, SimConfig(duration_s=2.0)):

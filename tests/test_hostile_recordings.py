@@ -361,3 +361,15 @@ def test_a_scene_that_never_moves_is_dropped_with_its_reason(root, caplog):
     assert scenes == [] and list(scenes.dropped) == ["sim-000003"]
     assert "never gets 10000 m from its first pose" in scenes.dropped["sim-000003"]
     assert "'sim-000003' dropped" in caplog.text
+
+
+def test_a_rig_without_radar_maps_no_radar_map(frames, tmp_path, caplog):
+    # the deep IRM never runs on detections from no sensor: only the lidar's map is made
+    from evgrid.runs import map_scene
+
+    path = _write(tmp_path / "nr.mcap", frames[:6], extra_topics=("/radar_front/points",))
+    with caplog.at_level(logging.WARNING, logger="evgrid.runs"):
+        res = map_scene(load_bag(path, LIDAR_ONLY), None, deep=object())
+    assert "mapping ray_ilm only" in caplog.text
+    assert not res.metrics.get("vs_ray_ilm")  # no other map to compare with the lidar's
+    assert res.metrics["counts"]["updates"] > 0

@@ -30,6 +30,7 @@ from evgrid.data.frame import Frame
 from evgrid.evaluate import (
     bootstrap_interval,
     compare_maps,
+    dynamic_summary,
     iou_intervals,
     markdown_table,
     mean_iou,
@@ -126,6 +127,7 @@ def map_scene(
 
     name = name or getattr(frames, "name", "scene")
     fixed_frame = fixed_frame or fixed_frame_of(None, frames)
+    config = _maps_the_rig_can_make(config, frames, name)
     with (
         results_folder(out_dir, overwrite)
         if out_dir is not None
@@ -142,6 +144,30 @@ def map_scene(
             for exporter in exporters:
                 exporter.abort()
             raise
+
+
+def _maps_the_rig_can_make(config: MapperConfig, frames: Any, name: str) -> MapperConfig:
+    """A recording whose rig names no radar gives no radar maps: the deep IRM never runs on
+    detections from no sensor (docs/ros.md)."""
+    if getattr(frames, "has_radar", True):
+        return config
+    from evgrid.fusion import RULES
+
+    keep = tuple(m for m in config.maps if set(RULES[m].isms) <= {"ray_ilm"})
+    if not keep:
+        raise ValueError(
+            f"{name}: the rig names no radar, and every map asked for ({', '.join(config.maps)}) "
+            "needs one; ask for --maps ray_ilm"
+        )
+    left = [m for m in config.maps if m not in keep]
+    if left:
+        logging.getLogger(__name__).warning(
+            "%s: the rig names no radar: mapping %s only (%s need a radar)",
+            name,
+            ", ".join(keep),
+            ", ".join(left),
+        )
+    return replace(config, maps=keep)
 
 
 def _map_scene(
@@ -421,6 +447,9 @@ def summarize(per_scene: list[dict[str, Any]]) -> dict[str, Any]:
     }
     keys = sorted({k for m in per_scene for k in m.get("counts", {})})
     out["counts"] = {k: sum(m.get("counts", {}).get(k, 0) for m in per_scene) for k in keys}
+    scored = [m["dynamic"] for m in per_scene if m.get("dynamic")]
+    if scored:  # cells called dynamic against the moving objects of the truth (simulator)
+        out["dynamic"] = dynamic_summary(scored)
     return jsonable(out)
 
 
