@@ -391,7 +391,7 @@ def _check_pose(pose: SE2) -> None:
 
 
 class MapSet:
-    """Several maps over one scene, in the first pose's frame, updated in one pass per time step.
+    """Several maps over one scene, in the map frame, updated in one pass per time step.
 
     :meth:`update` loads each ISM grid once (checked, into the padded copy of its
     :class:`~evgrid.grid.Warper`) and then visits each covered map cell once: it samples every

@@ -2,7 +2,7 @@
 
 Indexing and frames are those of :mod:`evgrid.geometry`. A local ISM grid (``(n, n, 3)``,
 ego-centred) taken at ego pose ``pose`` (an :class:`~evgrid.geometry.SE2` of the ego in the
-first pose's frame) is resampled onto the map cells its square covers, bilinearly (a convex
+map frame) is resampled onto the map cells its square covers, bilinearly (a convex
 mix of masses is a mass), cells beyond the local grid counting as vacuous [0, 0, 1]
 (docs/decisions.md#map-frame-and-warp). Only that window of the map is read or written, and
 within it the update rules visit only the covered cells of each row (:attr:`MapWindow.spans`).
@@ -218,7 +218,7 @@ def warp_to_map(local: np.ndarray, pose: SE2, grid: GridSpec) -> MapWindow:
 
 
 class EvidentialMap:
-    """A mass grid in the first pose's frame, stored as tiles created where local grids reach.
+    """A mass grid in the map frame, stored as tiles created where local grids reach.
 
     Cells never covered read as vacuous. ``metadata`` is free JSON-serialisable data that is
     saved with the map. With ``dynamic``, each tile also holds a float32 dynamic score per cell

@@ -1,8 +1,9 @@
 """The online mapper: the paper's loop, frame by frame (sec. V-VI).
 
 For each frame: keep the radar sweeps (the last N per radar), and at the map update rate compute
-each inverse sensor model once in the current ego frame, warp it into the frame of the scene's
-first ego pose, and fuse it into every map of Table I. Whatever else a run wants (truth,
+each inverse sensor model once in the current ego frame, warp it into the map frame (the
+recording's fixed frame, or with ``frame="first_pose"`` the scene's first ego pose as in the
+paper), and fuse it into every map of Table I. Whatever else a run wants (truth,
 convergence, pictures, exports) watches the updates as an observer (:mod:`evgrid.observers`).
 """
 
@@ -35,7 +36,7 @@ class MapUpdate:
     maps."""
 
     frame: Frame
-    pose: SE2  # ego pose in the first pose's frame (m, rad)
+    pose: SE2  # ego pose in the map frame (m, rad)
     isms: Mapping[str, np.ndarray]  # local ISM grids (n, n, 3), ego frame
     maps: MapSet
 
