@@ -4,6 +4,7 @@ accumulated with a decay (docs/equations.md#the-dynamic-score), and the maps unc
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -196,3 +197,199 @@ def test_bench_times_the_score_on_and_off():
     res = _dynamic_cost(grid, a, b, SE2(0.3, -0.2, 0.7), repeat=2)
     assert res["on"] > 0 and res["off"] > 0
     assert res["cost"] == pytest.approx(res["on"] - res["off"])
+
+
+# --- the gate (docs/equations.md#the-gate) -----------------------------------------------------
+
+
+def _cell(ms: MapSet, name: str) -> np.ndarray:
+    m, cov, _, _ = ms[name].to_dense()
+    return m[cov][0].astype(np.float64)
+
+
+def test_gate_hand_computed():
+    grid = GridSpec(16, 2.0)
+    n = grid.n_cells
+    names = ("ray_ilm", "ray_irm", "fused")
+    d = DynamicParams(decay=0.5, threshold=0.1, gate_maps=True)
+    gated, plain = (MapSet(grid, names=names, dynamic=x) for x in (d, replace(d, gate_maps=False)))
+    for ms in (gated, plain):
+        _step(ms, n, ilm=(0.0, 0.8), irm=(0.0, 0.8))  # something there: (0, 0.8, 0.2)
+    # it leaves: K_left = 0.8 * 0.6 = 0.48 > 0.1, and the ISM says free (0.6 > 0)
+    for ms in (gated, plain):
+        _step(ms, n, ilm=(0.6, 0.0), irm=(0.6, 0.0))
+    # gated: (0, 0.8, 0.2) -> (0, 0, 1) before eq. (5), then (+)_D (0.6, 0, 0.4) = the ISM
+    for name in ("ray_ilm", "ray_irm"):
+        np.testing.assert_allclose(_cell(gated, name), [0.6, 0.0, 0.4], atol=1e-6)
+    # not gated: eq. (5) with K = 0.48: (0.2 * 0.6, 0.8 * 0.4, 0.2 * 0.4) / 0.52
+    np.testing.assert_allclose(
+        _cell(plain, "ray_ilm"), np.array([0.12, 0.32, 0.08]) / 0.52, rtol=1e-6
+    )
+    # fused: the gate before its steps (the deep IRM is vacuous here: only the ray IRM acts)
+    np.testing.assert_allclose(_cell(gated, "fused"), [0.6, 0.0, 0.4], atol=1e-6)
+
+
+def test_gate_keeps_what_the_ism_says_occupied_and_what_scores_low():
+    grid = GridSpec(16, 2.0)
+    n = grid.n_cells
+    d = DynamicParams(decay=0.5, threshold=0.3, gate_maps=True)
+    ms = MapSet(grid, names=("ray_ilm",), dynamic=d)
+    _step(ms, n, ilm=(0.0, 0.8), irm=(0.0, 0.0))
+    # K_left = 0.8 * 0.3 = 0.24 <= 0.3: no gate, eq. (5) as without it
+    _step(ms, n, ilm=(0.3, 0.0), irm=(0.0, 0.0))
+    np.testing.assert_allclose(
+        _cell(ms, "ray_ilm"), np.array([0.2 * 0.3, 0.8 * 0.7, 0.2 * 0.7]) / (1 - 0.24), rtol=1e-6
+    )
+    # an ISM that says occupied (0.5 > 0.2) is never gated, whatever the score
+    ms = MapSet(grid, names=("ray_ilm",), dynamic=replace(d, threshold=0.01))
+    _step(ms, n, ilm=(0.0, 0.8), irm=(0.0, 0.0))
+    _step(ms, n, ilm=(0.2, 0.5), irm=(0.0, 0.0))  # K_left = 0.16 > 0.01
+    f1, o1, u1, f2, o2, u2 = 0.0, 0.8, 0.2, 0.2, 0.5, 0.3
+    k = f1 * o2 + o1 * f2
+    want = np.array([u1 * f2, o1 * o2 + o1 * u2 + u1 * o2, u1 * u2]) / (1 - k)
+    np.testing.assert_allclose(_cell(ms, "ray_ilm"), want, rtol=1e-6)
+
+
+def test_gate_is_off_for_the_papers_maps_by_default_golden():
+    grid = GridSpec(n_cells=128, length_m=19.2)
+    assert not DynamicParams().gate_maps
+    maps = MapSet(grid, dynamic=DynamicParams(doppler_mass=0.7))
+    rng = np.random.default_rng(20261202)
+    for pose in POSES:
+        # a Doppler cue too: it raises scores, never a mass
+        maps.update(pose, _isms(rng, grid.n_cells), np.array([[pose.x, pose.y]]))
+    assert {n: _digest(maps[n]) for n in maps.names} == json.loads(GOLDEN.read_text())["fusion"]
+    gated = MapSet(grid, dynamic=DynamicParams(gate_maps=True))
+    rng = np.random.default_rng(20261202)
+    for pose in POSES:
+        gated.update(pose, _isms(rng, grid.n_cells))
+    changed = {n for n in gated.names if _digest(gated[n]) != _digest(maps[n])}
+    assert changed == {"ray_ilm", "deep_acc", "ray_irm", "fused"}  # the maps with a score
+
+
+# --- the Doppler cue (docs/equations.md#the-doppler-cue) --------------------------------------
+
+
+def test_doppler_cue_hand_computed():
+    from evgrid.doppler import disc_cells
+
+    grid = GridSpec(16, 2.0)  # 0.125 m cells
+    res = grid.resolution
+    # the centre of map cell (3, 5): x = -(3 + 0.5) res, y = -(5 + 0.5) res
+    xy = np.array([[-3.5 * res, -5.5 * res]])
+    rows, cols = disc_cells(grid, SE2(), xy, 2 * res)
+    # centres within 2 cells: the cell, 4 at 1, 4 at sqrt(2), 4 at 2 (not (2, 1): sqrt(5) > 2)
+    assert len(rows) == 13
+    assert set(zip(rows - 3, cols - 5)) == {
+        (a, b) for a in range(-2, 3) for b in range(-2, 3) if a * a + b * b <= 4
+    }
+    # outside the local grid at the pose: ignored
+    assert len(disc_cells(grid, SE2(5.0, 0.0, 0.0), xy, 2 * res)[0]) == 0
+    d = DynamicParams(decay=0.5, doppler_mass=0.4, doppler_radius_m=2 * res)
+    ms = MapSet(grid, names=("ray_ilm",), dynamic=d)
+    isms = {"ray_ilm": _uniform(16, 0.0, 0.0)}
+    # at the identity pose local row r is map row r - 8 (the ego sits on the grid's centre)
+    isms["ray_ilm"][8:12] = (0.6, 0.2, 0.2)  # map rows 0-3
+    isms["ray_ilm"][13] = (0.0, 0.3, 0.7)  # map row 5
+    ms.update(SE2(), isms, xy)
+    r0, c0, h, w = ms["ray_ilm"].bounds()
+    s = ms["ray_ilm"].read_dynamic(r0, c0, h, w)
+    assert (s > 0).sum() == 13
+    # mass times 1 - m_f / (m_f + m_o) of the ISM now: 0.4 * 0.25 in rows 0-3, 0.4 in row 4
+    # (vacuous: nothing rules a mover out) and row 5 (only occupied); no conflict at first
+    assert s[3 - r0, 5 - c0] == pytest.approx(0.4 * 0.2 / 0.8)
+    assert s[4 - r0, 5 - c0] == pytest.approx(0.4) and s[5 - r0, 5 - c0] == pytest.approx(0.4)
+    ms.update(SE2(), isms, np.vstack([xy, xy]))  # two detections in one disc: added once
+    s = ms["ray_ilm"].read_dynamic(r0, c0, h, w)
+    # K = 0.6 * 0.2 + 0.2 * 0.6 = 0.24 (the map cell (0.6, 0.2, 0.2) meets the same ISM cell)
+    assert s[3 - r0, 5 - c0] == pytest.approx(0.5 * 0.1 + 0.24 + 0.1)
+
+
+def test_doppler_cue_finds_the_simulators_movers():
+    from evgrid.data import SimConfig, simulate_scene
+    from evgrid.mapper import OccupancyMapper
+
+    cfg = MapperConfig(maps=("ray_ilm",), frame="first_pose")
+    mapper = OccupancyMapper(cfg)
+    near = total = 0
+    for frame in simulate_scene(9, SimConfig(duration_s=5.0)):
+        mapper.process(frame)
+        if not frame.is_keyframe or frame.occupancy is None:
+            continue
+        mapper._doppler_seen.clear()  # the newest sweeps again, for this check
+        xy = mapper.moving_detections()
+        pose = mapper.pose_in_map(frame.ego_pose)
+        local = pose.inverse().apply(xy)
+        r = np.floor(cfg.grid.n_cells / 2 - local[:, 0] / cfg.grid.resolution).astype(int)
+        c = np.floor(cfg.grid.n_cells / 2 - local[:, 1] / cfg.grid.resolution).astype(int)
+        inside = (r >= 0) & (r < cfg.grid.n_cells) & (c >= 0) & (c < cfg.grid.n_cells)
+        movers = frame.occupancy == 2
+        k = 12  # 1 m either way: the radar's position error and the object's extent
+        for a, b in zip(r[inside], c[inside]):
+            total += 1
+            near += bool(movers[max(a - k, 0) : a + k + 1, max(b - k, 0) : b + k + 1].any())
+    assert total > 0
+    assert near / total > 0.5  # most moving detections are on moving objects (not clutter)
+
+
+def test_doppler_cue_from_a_bag_radar_scan():
+    from types import SimpleNamespace
+
+    from evgrid.data.bag.decoding import compensate, radar_scan_points
+    from evgrid.data.frame import RadarSweep
+    from evgrid.doppler import moving_detections
+    from evgrid.geometry import SE3
+
+    # the sensor drives forward at 5 m/s: a static target ahead reads -5 m/s raw; a car ahead
+    # coming at us at 3 m/s reads -8 m/s
+    ret = [
+        SimpleNamespace(range=10.0, azimuth=0.0, elevation=0.0, doppler_velocity=-5.0, amplitude=5),
+        SimpleNamespace(range=12.0, azimuth=0.1, elevation=0.0, doppler_velocity=-8.0, amplitude=9),
+    ]
+    pts = radar_scan_points(SimpleNamespace(returns=ret))
+    compensate(pts, np.array([5.0, 0.0, 0.0]))
+    sweep = RadarSweep(pts, SE3.identity(), SE3.identity(), 0, "RADAR_FRONT")
+    xy = moving_detections([sweep], SE3.identity(), 0.5)
+    assert xy.shape == (1, 2)
+    np.testing.assert_allclose(xy[0], [12.0 * np.cos(0.1), 12.0 * np.sin(0.1)], rtol=1e-5)
+
+
+# --- the area movers leave behind ---------------------------------------------------------------
+
+
+def test_left_behind_hand_computed():
+    from evgrid.observers import MoverTrail
+
+    grid = GridSpec(16, 2.0)
+    m = MapSet(grid, names=("ray_ilm",))["ray_ilm"]
+    t, _ = m.tile((0, 0))
+    t[:4, :4] = (0.1, 0.8, 0.1)  # occupied
+    t[1, 1] = (0.8, 0.1, 0.1)  # free
+    t[2, 2] = (0.3, 0.3, 0.4)  # unknown: a tie
+    trail = MoverTrail(grid, m.tile_cells)
+    moving = np.zeros((3, 3), bool)
+    moving[0, :] = True  # cells (1, 1), (1, 2), (1, 3) at the first keyframe
+    trail.add(1, 1, moving)
+    moving = np.zeros((3, 3), bool)
+    moving[1, 1] = True  # (2, 2) at the second
+    trail.add(1, 1, moving)
+    free = np.ones((4, 4), bool)
+    free[1, 3] = False  # cell (1, 3) is not free now
+    # left behind: (1, 2) only ((1, 1) is free in the map, (2, 2) unknown, (1, 3) not free now)
+    n, area = trail.left_behind(m, 0, 0, free)
+    assert n == 1 and area == pytest.approx(grid.resolution**2)
+
+
+def test_dynamic_options_take_a_value_after_a_space():
+    from evgrid.config import MAP_OPTIONS, RunConfig, options_to_overrides, resolve_config
+
+    for args, on, gate in (
+        (["--dynamic", "off"], False, False),
+        (["--dynamic", "on", "--dynamic-gate", "on"], True, True),
+        (["--dynamic", "--dynamic-gate"], True, True),
+        (["--dynamic-gate", "off", "--no-dynamic"], False, False),
+        (["--dynamic-gate=true", "--maps", "ray_ilm"], True, True),
+    ):
+        overrides, _ = options_to_overrides(args, MAP_OPTIONS, RunConfig)
+        d = resolve_config(RunConfig, overrides=overrides).mapper.dynamic
+        assert (d.enabled, d.gate_maps) == (on, gate), args

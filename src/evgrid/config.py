@@ -493,6 +493,7 @@ MAP_OPTIONS: dict[str, tuple[str, ...]] = {
     "checkpoint": ("mapper.checkpoint",),
     "m-u-min": ("mapper.fusion.m_u_min",),
     "dynamic": ("mapper.dynamic.enabled",),
+    "dynamic-gate": ("mapper.dynamic.gate_maps",),
     "update-rate": ("mapper.update_rate_hz",),
     "maps": ("mapper.maps",),
     "lidar-min-range": ("mapper.lidar.min_range_m",),
@@ -532,7 +533,7 @@ def options_to_overrides(
     cls: type,
     plain: type | None = None,
 ) -> tuple[list[tuple[str, str]], dict[str, Any]]:
-    """Parse ``--name VALUE``, ``--name=VALUE``, ``--flag`` and ``--no-flag`` options.
+    """Parse ``--name VALUE``, ``--name=VALUE``, ``--flag [on|off]`` and ``--no-flag`` options.
 
     An option of ``aliases`` becomes overrides of ``cls``'s fields; an option named after a
     field of the dataclass ``plain`` (``--sim-dir`` for ``sim_dir``) is returned by field name,
@@ -559,7 +560,13 @@ def options_to_overrides(
             known = sorted([*aliases, *_dashed(plain_types)])
             raise ConfigError(f"no such option --{name}; options: --{', --'.join(known)}")
         if tp is bool and not eq:
-            text = "false" if negated else "true"
+            # --flag, --no-flag, or --flag on|off (a value with a space, as for other options)
+            value = args[i + 1].strip().lower() if i + 1 < len(args) and not negated else ""
+            if value in _TRUE + _FALSE:
+                i += 1
+                text = value
+            else:
+                text = "false" if negated else "true"
         elif not eq:
             i += 1
             if i >= len(args):

@@ -119,6 +119,13 @@ class FusionParams:
 # benchmarks/dynamic.py on simulated scenes (docs/speed.md#the-dynamic-score).
 DYNAMIC_DECAY_DEFAULT = 0.3
 DYNAMIC_THRESHOLD_DEFAULT = 0.1
+# The Doppler cue (docs/equations.md#the-doppler-cue): a pedestrian walks at >= 1 m/s, and the
+# ego-motion compensation of a static target leaves errors of a few tenths of a m/s (odometry
+# speed and yaw rate, the radar's 0.1 m/s Doppler resolution); the disc covers the radar's
+# position error and a part of the object behind its one detection.
+DOPPLER_MPS_DEFAULT = 0.5
+DOPPLER_MASS_DEFAULT = 0.5
+DOPPLER_RADIUS_DEFAULT = 1.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -128,18 +135,37 @@ class DynamicParams:
     At each update a map cell's score becomes ``decay * score + K_arr + K_left``, the conflict
     of its Dempster step split by direction (Moras et al. 2011); a cell whose score exceeds
     ``threshold`` is called dynamic. ``enabled=False`` keeps no score (the maps are the same
-    either way: the score never changes a mass). ``decay`` in (0, 1], ``threshold`` > 0.
+    either way unless gated). ``decay`` in (0, 1], ``threshold`` > 0.
+
+    The Doppler cue: cells within ``doppler_radius_m`` (m) of a detection of the newest sweep
+    of each radar whose ego-motion compensated Doppler speed exceeds ``doppler_mps`` (m/s) add
+    ``doppler_mass`` (>= 0; 0: no cue) to the score once per update.
+
+    The gate: a scored cell whose score exceeds ``threshold`` moves its occupied mass to unknown
+    before a Dempster step whose ISM does not say occupied; ``gate_maps`` gates the paper's
+    maps (off by default: Table I stays the paper's), ``gate_nav`` the navigation map's inputs.
     """
 
     enabled: bool = True
     decay: float = DYNAMIC_DECAY_DEFAULT
     threshold: float = DYNAMIC_THRESHOLD_DEFAULT
+    doppler_mps: float = DOPPLER_MPS_DEFAULT
+    doppler_mass: float = DOPPLER_MASS_DEFAULT
+    doppler_radius_m: float = DOPPLER_RADIUS_DEFAULT
+    gate_maps: bool = False
+    gate_nav: bool = True
 
     def __post_init__(self) -> None:
-        if not isinstance(self.enabled, bool):
-            raise ValueError(f"DynamicParams.enabled must be true or false, got {self.enabled!r}")
+        for name in ("enabled", "gate_maps", "gate_nav"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(
+                    f"DynamicParams.{name} must be true or false, got {getattr(self, name)!r}"
+                )
         check_number(self, "decay", min=0.0, max=1.0, min_open=True)
         check_number(self, "threshold", min=0.0, min_open=True)
+        check_number(self, "doppler_mps", min=0.0)
+        check_number(self, "doppler_mass", min=0.0)
+        check_number(self, "doppler_radius_m", min=0.0, max=10.0)
 
 
 # --- the table of rules --------------------------------------------------------------------
@@ -492,9 +518,15 @@ class MapSet:
         """The maps of this set that keep a dynamic score (empty with the score off)."""
         return tuple(n for n in self.names if self.maps[n].dynamic)
 
+    def _gate(self, row: _Row) -> float:
+        """The gate's threshold of a row (docs/equations.md#the-gate); 0: not gated."""
+        d = self.dynamic
+        on = d.gate_maps if row.name in MAP_NAMES and row.shown else d.gate_nav
+        return d.threshold if (on and row.map.dynamic) else 0.0
+
     def _plan(self) -> None:
         """The pass's table: per row (kernel code, first input, last input) and (m_u_min, alpha,
-        decay), decay 0 for a map without a dynamic score."""
+        decay, gate), decay 0 for a map without a dynamic score, gate 0 for one not gated."""
         slot = {i: s for s, i in enumerate(self.required_isms)}
         codes, params, rows_, owners = [], [], [], []
         for s in (self, *self._attached):
@@ -503,11 +535,11 @@ class MapSet:
                 where = index if r.rule.from_maps else slot
                 codes.append((r.rule.kernel, where[r.rule.inputs[0]], where[r.rule.inputs[-1]]))
                 decay = s.dynamic.decay if r.map.dynamic else 0.0
-                params.append((r.params.m_u_min, r.params.alpha, decay))
+                params.append((r.params.m_u_min, r.params.alpha, decay, s._gate(r)))
             rows_ += s._rows
             owners += [s] * len(s._rows)
         self._codes = np.array(codes, dtype=np.int64).reshape(-1, 3)
-        self._params = np.array(params, dtype=np.float64).reshape(-1, 3)
+        self._params = np.array(params, dtype=np.float64).reshape(-1, 4)
         self._pass_rows: list[_Row] = rows_
         self._pass_owners: list[MapSet] = owners
 
@@ -545,9 +577,15 @@ class MapSet:
     def __getitem__(self, name: str) -> EvidentialMap:
         return self.maps[name]
 
-    def update(self, pose: SE2, isms: Mapping[str, np.ndarray]) -> dict[str, int]:
+    def update(
+        self, pose: SE2, isms: Mapping[str, np.ndarray], moving: np.ndarray | None = None
+    ) -> dict[str, int]:
         """Fuse one time step: local ISM grids ``(n, n, 3)`` keyed by ISM name, taken at ego
         ``pose`` (m, rad) in the map frame; every map of this set and of the sets attached to it.
+
+        ``moving``: ``(k, 2)`` map-frame positions (m) of the radar detections faster than
+        ``dynamic.doppler_mps`` (:func:`evgrid.doppler.moving_detections`), the Doppler cue of
+        the dynamic score (added after the pass; those outside the local grid are ignored).
 
         Cells of an ISM grid that are not masses are taken as vacuous and counted in
         :attr:`n_rejected`. Returns, per map of this set, the cells its rule rejected.
@@ -563,6 +601,8 @@ class MapSet:
             warper.load(isms[name])
         t1 = time.perf_counter()
         rejected = self._pass(pose)
+        if moving is not None and len(moving):
+            self._doppler(pose, moving, isms)
         self.last_ms = {"warp": (t1 - t0) * 1e3, "fuse": (time.perf_counter() - t1) * 1e3}
         for s in (self, *self._attached):
             s.n_updates += 1
@@ -625,6 +665,26 @@ class MapSet:
                 rejected,
             )
         return rejected
+
+    def _doppler(self, pose: SE2, moving: np.ndarray, isms: Mapping[str, np.ndarray]) -> None:
+        """The Doppler cue: ``doppler_mass`` times the share of the map's ISM (that of its Dempster
+        step) that is not free, added once to the score of every map cell within
+        ``doppler_radius_m`` of a moving detection (docs/equations.md#the-doppler-cue)."""
+        from evgrid.doppler import add_to_layer, disc_cells, not_free_now
+
+        cells: dict[float, tuple[np.ndarray, np.ndarray]] = {}
+        weights: dict[tuple[float, str], np.ndarray] = {}
+        for row, owner in zip(self._pass_rows, self._pass_owners):
+            d = owner.dynamic
+            r = d.doppler_radius_m
+            if not row.map.dynamic or d.doppler_mass <= 0.0:
+                continue
+            if r not in cells:
+                cells[r] = disc_cells(self.grid, pose, moving, r)
+            ism = row.rule.inputs[-1]
+            if (r, ism) not in weights:
+                weights[(r, ism)] = not_free_now(self.grid, pose, *cells[r], isms[ism])
+            add_to_layer(row.map, *cells[r], np.float32(d.doppler_mass) * weights[(r, ism)])
 
     def windows(self, pose: SE2) -> dict[str, MapWindow]:
         """The ISM grids of the last :meth:`update` warped whole into map windows at ``pose``.

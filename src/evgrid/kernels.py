@@ -319,11 +319,20 @@ def _conflict_split(f1, o1, f2, o2):
     return f1 * o2, o1 * f2
 
 
+@numba.njit(inline="always", **_JIT)
+def _gated(s, gate, f2, o2, u2, ok):
+    # The gate (docs/equations.md#the-gate): a cell whose score s exceeds the threshold ``gate``
+    # (> 0; 0 is no gate) sheds its occupied mass before a Dempster step whose valid,
+    # informative ISM cell does not say occupied (m_o <= m_f), so what a mover left goes free.
+    return gate > 0.0 and s > gate and ok and u2 < 1.0 and o2 <= f2
+
+
 @numba.njit(inline="always", **_CHECKED)
-def _dempster_row(mp_, ism_, bad, n, s_, decay, scored):
+def _dempster_row(mp_, ism_, bad, n, s_, decay, scored, gate):
     # map <- map (+)_D ISM, paper eq. (5): the ray_ilm, deep_acc and ray_irm maps. With
     # ``scored`` (a constant where inlined), also the dynamic score s_ <- decay s_ + K_arr +
-    # K_left from the same map and ISM cells (see _dynamic_row): one loop over the cells.
+    # K_left from the same map and ISM cells (see _dynamic_row), and with ``gate`` > 0 the
+    # gate on the new score (_gated): one loop over the cells.
     for j in range(n):
         p = 3 * j
         f1, o1, u1 = np.float64(mp_[p]), np.float64(mp_[p + 1]), np.float64(mp_[p + 2])
@@ -332,7 +341,11 @@ def _dempster_row(mp_, ism_, bad, n, s_, decay, scored):
         bad[j] = 0 if ok else 1
         if scored:
             arrived, left = _conflict_split(f1, o1, f2, o2)
-            s_[j] = decay * np.float64(s_[j]) + (arrived + left if ok else 0.0)
+            s = decay * np.float64(s_[j]) + (arrived + left if ok else 0.0)
+            s_[j] = s
+            g = _gated(s, gate, f2, o2, u2, ok)
+            u1 = u1 + o1 if g else u1
+            o1 = 0.0 if g else o1
         f, o, u = _dempster_cell(f1, o1, u1, f2, o2, u2)
         keep = u2 >= 1.0 or not ok
         mp_[p] = f1 if keep else f
@@ -440,17 +453,24 @@ def _nav_row(mp_, lidar_, fused_, n):
 
 
 @numba.njit(inline="always", **_CHECKED)
-def _dynamic_row(mp_, ism_, s_, n, decay):
+def _dynamic_row(mp_, ism_, s_, n, decay, gate):
     # s <- decay s + K_arr + K_left per cell of the row, from the map cell before its update
     # and the ISM cell the Dempster step combines it with; an invalid ISM cell adds nothing (the
-    # rule leaves the map cell untouched there), a vacuous one adds 0 as its K is 0.
+    # rule leaves the map cell untouched there), a vacuous one adds 0 as its K is 0. With
+    # ``gate`` > 0, a gated cell (_gated) moves its occupied mass to unknown before the rule.
     for j in range(n):
         p = 3 * j
         f2, o2, u2 = np.float64(ism_[p]), np.float64(ism_[p + 1]), np.float64(ism_[p + 2])
         ok = _valid_cell(f2, o2, u2)
-        arrived, left = _conflict_split(np.float64(mp_[p]), np.float64(mp_[p + 1]), f2, o2)
+        o1 = np.float64(mp_[p + 1])
+        arrived, left = _conflict_split(np.float64(mp_[p]), o1, f2, o2)
         k = arrived + left
-        s_[j] = decay * np.float64(s_[j]) + (k if ok else 0.0)
+        s = decay * np.float64(s_[j]) + (k if ok else 0.0)
+        s_[j] = s
+        if gate > 0.0:
+            g = _gated(s, gate, f2, o2, u2, ok)
+            mp_[p + 2] = np.float64(mp_[p + 2]) + o1 if g else mp_[p + 2]
+            mp_[p + 1] = 0.0 if g else mp_[p + 1]
 
 
 #: Kernel codes of the update rules; :data:`evgrid.fusion.RULES` says which map uses which.
@@ -465,7 +485,7 @@ def _rule_row(code, mp_, a, b, bad, n, m_u_min, alpha):
     # One row of a map updated by the rule of ``code`` from rows ``a`` and ``b`` (the first and
     # last input of the rule: the same row for one-input rules); returns the rejected cells.
     if code == RULE_DEMPSTER:
-        return _dempster_row(mp_, a, bad, n, a, 0.0, False)
+        return _dempster_row(mp_, a, bad, n, a, 0.0, False, 0.0)
     elif code == RULE_DEEP_REPLACE:
         return _deep_replace_row(mp_, a, bad, n, m_u_min)
     elif code == RULE_DEEP_DISC:
@@ -838,10 +858,11 @@ def warp_update(
     # writes them, into a row buffer per ISM, and each map's rule runs on the buffers: the same
     # masses as warping whole windows and updating from them, without writing or re-reading the
     # windows. Row k of ``rules`` is map k's (kernel code, first input, last input), its
-    # ``params`` row (m_u_min, alpha, decay): inputs are ISM slots (bufs), for RULE_NAV earlier
-    # maps (tiles) whose rows this step has already updated. A row with decay > 0 (a rule of
+    # ``params`` row (m_u_min, alpha, decay, gate): inputs are ISM slots (bufs), for RULE_NAV
+    # earlier maps (tiles) whose rows this step has already updated. A row with decay > 0 (a rule of
     # DYNAMIC_RULES) first adds its Dempster step's conflict to its dynamic layer ``dyns[k]``
-    # (flat, a float per cell), from the map cells before the update; masses are the same.
+    # (flat, a float per cell), from the map cells before the update; masses are the same
+    # unless the row's gate (> 0: the threshold of the gate, docs/equations.md#the-gate) is on.
     idx = np.empty(BLOCK, dtype=np.int64)
     frac = np.empty(2 * BLOCK, dtype=np.float32)
     bad = np.zeros(ts, np.uint8)
@@ -887,13 +908,15 @@ def warp_update(
         for k in range(len(tiles)):
             mp_ = tiles[k][3 * t : 3 * (t + m)]
             code, x, y = rules[k, 0], rules[k, 1], rules[k, 2]
-            decay = params[k, 2]
+            decay, gate = params[k, 2], params[k, 3]
             if decay > 0.0 and code == RULE_DEMPSTER:  # the score in the rule's own loop
-                rejected[k] += _dempster_row(mp_, bufs[x], bad, m, dyns[k][t : t + m], decay, True)
+                rejected[k] += _dempster_row(
+                    mp_, bufs[x], bad, m, dyns[k][t : t + m], decay, True, gate
+                )
                 covs[k][t : t + m] = True
                 continue
             if decay > 0.0:  # fused: the last input is the ISM of the Dempster step
-                _dynamic_row(mp_, bufs[y], dyns[k][t : t + m], m, decay)
+                _dynamic_row(mp_, bufs[y], dyns[k][t : t + m], m, decay, gate)
             if code == RULE_NAV:
                 rejected[k] += _nav_row(
                     mp_, tiles[x][3 * t : 3 * (t + m)], tiles[y][3 * t : 3 * (t + m)], m

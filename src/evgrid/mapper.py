@@ -109,6 +109,7 @@ class OccupancyMapper:
         self.timings: dict[str, list[float]] = {}
         self.trajectory: list[tuple[float, float, float]] = []
         self.last_isms: dict[str, np.ndarray] = {}
+        self._doppler_seen: dict[str, int] = {}  # per radar, the sweep the Doppler cue last used
         self.n_frames = 0
         self.n_updates = 0
 
@@ -130,7 +131,7 @@ class OccupancyMapper:
         isms = self.local_isms(frame)  # each ISM once, in the current ego frame
         # into the map frame and through every map's update rule (paper Table I), in one pass;
         # the extra map sets are rows of the same pass
-        self.maps.update(pose, isms)
+        self.maps.update(pose, isms, self.moving_detections())
         for k, ms in self.maps.last_ms.items():  # "warp": the ISMs checked; "fuse": the pass
             self.timings.setdefault(k, []).append(ms)
         self._time("step_total", t0)
@@ -171,6 +172,21 @@ class OccupancyMapper:
             )
             t = self._time("deep_irm", t)
         return out
+
+    def moving_detections(self) -> np.ndarray | None:
+        """The Doppler cue of the dynamic score: map-frame positions ``(k, 2)`` of the detections
+        faster than ``dynamic.doppler_mps`` in the newest sweep of each radar, each sweep once
+        (a sweep already used by an earlier update adds nothing); None with the score off."""
+        d = self.config.dynamic
+        if not d.enabled or d.doppler_mass <= 0.0 or self.first_pose is None:
+            return None
+        from evgrid.doppler import moving_detections
+
+        new = [s for s in self.buffer.sweeps(1) if self._doppler_seen.get(s.channel) != s.timestamp]
+        for s in new:
+            self._doppler_seen[s.channel] = s.timestamp
+        to_map = SE3.identity() if self.config.frame == "world" else self.first_pose.inverse()
+        return moving_detections(new, to_map, d.doppler_mps)
 
     def pose_in_map(self, ego_pose: SE3) -> SE2:
         """The planar ego pose in the map frame (m, rad).

@@ -14,6 +14,7 @@ import numpy as np
 
 from evgrid.classes import FREE, OCCUPIED
 from evgrid.evaluate import (
+    classify,
     detection_scores,
     dynamic_confusion,
     iou_from_confusion,
@@ -25,7 +26,15 @@ from evgrid.geometry import GridSpec
 from evgrid.grid import EvidentialMap, MapWindow, Warper
 from evgrid.mapper import MapUpdate
 
-__all__ = ["TruthTracker", "TileScores", "SceneScores", "GifRecorder", "moving_and_observed"]
+__all__ = [
+    "TruthTracker",
+    "TileScores",
+    "SceneScores",
+    "GifRecorder",
+    "MoverTrail",
+    "moving_and_observed",
+    "truth_masks",
+]
 
 _TRUTH_MASSES = np.array(
     [[1, 0, 0], [0, 1, 0], [0, 1, 0]], dtype=np.float32
@@ -94,14 +103,15 @@ class TileScores:
         }
 
 
-def moving_and_observed(
+def truth_masks(
     update: MapUpdate, warper: Warper
-) -> tuple[int, int, np.ndarray, np.ndarray] | None:
+) -> tuple[int, int, np.ndarray, np.ndarray, np.ndarray] | None:
     """The truth of the dynamic score at this update, in its map window: ``(r0, c0, moving,
-    observed)``, boolean ``(h, w)`` arrays whose [0, 0] is map cell (r0, c0). ``moving``: the
-    cells the simulator's truth raster marks as moving objects (value 2) now; ``observed``: the
-    cells the current ray ILM or ray IRM says anything about (non-vacuous). None without a
-    truth raster or without either ISM. ``warper`` (any, reused) warps the truth."""
+    observed, free)``, boolean ``(h, w)`` arrays whose [0, 0] is map cell (r0, c0). ``moving``:
+    the cells the simulator's truth raster marks as moving objects (value 2) now; ``free``:
+    those it marks free (0); ``observed``: the cells the current ray ILM or ray IRM says
+    anything about (non-vacuous). None without a truth raster or without either ISM. ``warper``
+    (any, reused) warps the truth."""
     occ = update.frame.occupancy
     windows = update.windows if occ is not None else {}
     isms = [windows[i] for i in ("ray_ilm", "ray_irm") if i in windows]
@@ -110,13 +120,77 @@ def moving_and_observed(
     local = np.zeros((*occ.shape, 3), np.float32)
     local[..., 2] = 1.0
     local[occ == 2] = (0.0, 1.0, 0.0)
+    local[occ == 0] = (1.0, 0.0, 0.0)
     truth = warper.warp(local, update.pose)
-    # a map cell is moving where most of its bilinear sample comes from moving cells
+    # a map cell is moving (free) where most of its bilinear sample comes from moving (free)
+    # cells
     moving = truth.covered & (truth.masses[..., 1] >= 0.5)
+    free = truth.covered & (truth.masses[..., 0] >= 0.5)
     observed = np.zeros_like(moving)
     for w in isms:
         observed |= w.covered & (w.masses[..., 2] < 1.0)
-    return truth.r0, truth.c0, moving, observed
+    return truth.r0, truth.c0, moving, observed, free
+
+
+def moving_and_observed(
+    update: MapUpdate, warper: Warper
+) -> tuple[int, int, np.ndarray, np.ndarray] | None:
+    """``(r0, c0, moving, observed)`` of :func:`truth_masks`."""
+    found = truth_masks(update, warper)
+    return None if found is None else found[:4]
+
+
+class MoverTrail:
+    """The map cells a moving object covered at some keyframe so far (the simulator's truth),
+    and the area movers leave behind: cells truly free now, covered by a moving object earlier
+    in the scene, that a map calls occupied (docs/equations.md#the-area-movers-leave-behind)."""
+
+    def __init__(self, grid: GridSpec, tile_cells: int = 256):
+        self.grid = grid
+        self.tile_cells = tile_cells
+        self.tiles: dict[tuple[int, int], np.ndarray] = {}
+
+    def add(self, r0: int, c0: int, moving: np.ndarray) -> None:
+        """Mark the ``moving`` cells (boolean ``(h, w)``, [0, 0] at map cell (r0, c0))."""
+        ts = self.tile_cells
+        h, w = moving.shape
+        for ti in range(r0 // ts, (r0 + h - 1) // ts + 1):
+            ra, rb = max(r0, ti * ts), min(r0 + h, (ti + 1) * ts)
+            for tj in range(c0 // ts, (c0 + w - 1) // ts + 1):
+                ca, cb = max(c0, tj * ts), min(c0 + w, (tj + 1) * ts)
+                part = moving[ra - r0 : rb - r0, ca - c0 : cb - c0]
+                if not part.any():
+                    continue
+                t = self.tiles.get((ti, tj))
+                if t is None:
+                    t = self.tiles[(ti, tj)] = np.zeros((ts, ts), np.bool_)
+                t[ra - ti * ts : rb - ti * ts, ca - tj * ts : cb - tj * ts] |= part
+
+    def read(self, r0: int, c0: int, h: int, w: int) -> np.ndarray:
+        """Dense ``(h, w)`` boolean copy of cells ``[r0:r0+h, c0:c0+w]``."""
+        out = np.zeros((h, w), np.bool_)
+        ts = self.tile_cells
+        for (ti, tj), t in self.tiles.items():
+            ra, rb = max(r0, ti * ts), min(r0 + h, (ti + 1) * ts)
+            ca, cb = max(c0, tj * ts), min(c0 + w, (tj + 1) * ts)
+            if ra < rb and ca < cb:
+                out[ra - r0 : rb - r0, ca - c0 : cb - c0] = t[
+                    ra - ti * ts : rb - ti * ts, ca - tj * ts : cb - tj * ts
+                ]
+        return out
+
+    def left_behind(
+        self, m: EvidentialMap, r0: int, c0: int, free: np.ndarray
+    ) -> tuple[int, float]:
+        """``(cells, m^2)`` of map ``m`` left behind: ``free`` now (boolean ``(h, w)``, [0, 0] at
+        map cell (r0, c0)), covered by a mover before, and classified occupied."""
+        h, w = free.shape
+        trail = self.read(r0, c0, h, w) & free
+        if not trail.any():
+            return 0, 0.0
+        masses, _ = m.read(r0, c0, h, w)
+        n = int(np.count_nonzero(trail & (classify(masses) == OCCUPIED)))
+        return n, n * self.grid.resolution**2
 
 
 class SceneScores:
@@ -162,6 +236,9 @@ class SceneScores:
         # the dynamic score against the moving objects, summed over keyframes: (tp, fp, fn)
         self._dynamic = {n: np.zeros(3, np.int64) for n in names if maps[n].dynamic}
         self._moving_warper: Warper | None = None
+        # the area movers leave behind, per map: m^2 at each keyframe with a truth raster
+        self._trail: MoverTrail | None = None
+        self._left_behind: dict[str, list[float]] = {n: [] for n in names}
 
     def on_update(self, update: MapUpdate) -> None:
         keys = tile_keys(next(iter(self.maps.values())), *update.box)
@@ -174,8 +251,8 @@ class SceneScores:
         if not update.frame.is_keyframe:
             return
         rec: dict[str, Any] = {"index": update.frame.index, "timestamp": update.frame.timestamp}
-        if self._dynamic and update.frame.occupancy is not None:
-            rec["dynamic"] = self._score_dynamic(update)
+        if update.frame.occupancy is not None:
+            rec.update(self._score_dynamic(update))
         if self.track:
             if self.vs_ref is not None:
                 self.vs_ref.refresh()
@@ -190,24 +267,32 @@ class SceneScores:
                 rec["field"] = self.perception_field()
         self.keyframes.append(rec)
 
-    def _score_dynamic(self, update: MapUpdate) -> dict[str, dict[str, float]]:
-        """Per dynamic map, precision, recall and IoU at this keyframe of the cells called
-        dynamic against the cells of moving objects (truth value 2) that the current ray ILM or
-        ray IRM observed (non-vacuous); counts are also summed for :meth:`final`."""
+    def _score_dynamic(self, update: MapUpdate) -> dict[str, Any]:
+        """At this keyframe: ``dynamic``, per dynamic map, precision, recall and IoU of the cells
+        called dynamic against the cells of moving objects (truth value 2) that the current ray
+        ILM or ray IRM observed (non-vacuous), counts also summed for :meth:`final`; and
+        ``left_behind_m2``, per map, the area movers left behind (:class:`MoverTrail`)."""
+        grid = next(iter(self.maps.values())).grid
         if self._moving_warper is None:
-            self._moving_warper = Warper(next(iter(self.maps.values())).grid, "moving objects")
-        found = moving_and_observed(update, self._moving_warper)
+            self._moving_warper = Warper(grid, "moving objects")
+            self._trail = MoverTrail(grid, next(iter(self.maps.values())).tile_cells)
+        found = truth_masks(update, self._moving_warper)
         if found is None:
             return {}
-        r0, c0, moving, observed = found
+        r0, c0, moving, observed, free = found
         h, w_ = moving.shape
         threshold = update.maps.dynamic.threshold
-        out = {}
+        out: dict[str, Any] = {}
         for name, total in self._dynamic.items():
             score = self.maps[name].read_dynamic(r0, c0, h, w_)
             counts = dynamic_confusion(score, threshold, moving, observed)
             total += counts
-            out[name] = detection_scores(*counts)
+            out.setdefault("dynamic", {})[name] = detection_scores(*counts)
+        self._trail.add(r0, c0, moving)
+        left = {n: self._trail.left_behind(m, r0, c0, free)[1] for n, m in self.maps.items()}
+        for n, v in left.items():
+            self._left_behind[n].append(v)
+        out["left_behind_m2"] = left
         return out
 
     def perception_field(self) -> dict[str, dict[str, float]]:
@@ -244,6 +329,11 @@ class SceneScores:
             out["vs_truth"] = {
                 n: {c: v for c, v in d.items() if c != "unknown"}
                 for n, d in self.vs_truth.iou().items()
+            }
+        if any(self._left_behind.values()):
+            # the mean over keyframes of the area movers left behind that each map calls occupied
+            out["left_behind_m2"] = {
+                n: float(np.mean(v)) for n, v in self._left_behind.items() if v
             }
         if any(t.any() for t in self._dynamic.values()):
             # the cells of every keyframe pooled: precision, recall, IoU and the counts

@@ -450,7 +450,43 @@ def summarize(per_scene: list[dict[str, Any]]) -> dict[str, Any]:
     scored = [m["dynamic"] for m in per_scene if m.get("dynamic")]
     if scored:  # cells called dynamic against the moving objects of the truth (simulator)
         out["dynamic"] = dynamic_summary(scored)
+    left = [m["left_behind_m2"] for m in per_scene if m.get("left_behind_m2")]
+    if left:  # the area movers leave behind that a map calls occupied (simulator)
+        out["left_behind_m2"] = {
+            n: bootstrap_interval(d[n] for d in left if n in d) for n in left[0]
+        }
     return jsonable(out)
+
+
+def dynamic_table(summary: Mapping[str, Any]) -> str:
+    """Markdown: per map, precision, recall and IoU of the cells called dynamic against the moving
+    objects, and the area movers left behind that it calls occupied (mean over scenes, 95 %
+    bootstrap interval)."""
+
+    def cell(ci: Mapping[str, float] | None, scale: float, fmt: str) -> str:
+        if not ci or ci["n"] == 0:
+            return "n/a"
+        v = format(ci["mean"] * scale, fmt)
+        if ci["n"] < 2:
+            return v
+        return f"{v} ({format(ci['lo'] * scale, fmt)}-{format(ci['hi'] * scale, fmt)})"
+
+    dyn = summary.get("dynamic", {})
+    left = summary.get("left_behind_m2", {})
+    lines = [
+        "**moving objects** (simulator; mean over scenes, 95% bootstrap interval): the cells "
+        "called dynamic against the moving objects the current ray ILM or IRM observed, in %, "
+        "and the area movers left behind that a map calls occupied (m², mean over keyframes)",
+        "",
+        "| map | precision | recall | IoU | left behind m² |",
+        "|---|---|---|---|---|",
+    ]
+    for name in dict.fromkeys([*dyn, *left]):
+        d = dyn.get(name, {})
+        row = [cell(d.get(k), 100, ".1f") if d else "-" for k in ("precision", "recall", "iou")]
+        row.append(cell(left.get(name), 1, ".2f"))
+        lines.append(f"| `{name}` | " + " | ".join(row) + " |")
+    return "\n".join(lines) + "\n"
 
 
 def convergence_table(conv: Mapping[str, Any]) -> str:
@@ -586,6 +622,8 @@ def _write_summary(
             paper=False,
             intervals=summary.get("vs_truth_interval"),
         )
+    if "dynamic" in summary or "left_behind_m2" in summary:
+        table += "\n" + dynamic_table(summary)
     if "convergence_truth" in summary:
         table += "\n" + convergence_table(summary["convergence_truth"])
         if outputs.figures:
