@@ -257,7 +257,7 @@ def test_gate_is_off_for_the_papers_maps_by_default_golden():
     rng = np.random.default_rng(20261202)
     for pose in POSES:
         # a Doppler cue too: it raises scores, never a mass
-        maps.update(pose, _isms(rng, grid.n_cells), np.array([[pose.x, pose.y]]))
+        maps.update(pose, _isms(rng, grid.n_cells), np.array([[pose.x, pose.y, 5.0]]))
     assert {n: _digest(maps[n]) for n in maps.names} == json.loads(GOLDEN.read_text())["fusion"]
     gated = MapSet(grid, dynamic=DynamicParams(gate_maps=True))
     rng = np.random.default_rng(20261202)
@@ -291,7 +291,10 @@ def test_doppler_cue_hand_computed():
     # at the identity pose local row r is map row r - 8 (the ego sits on the grid's centre)
     isms["ray_ilm"][8:12] = (0.6, 0.2, 0.2)  # map rows 0-3
     isms["ray_ilm"][13] = (0.0, 0.3, 0.7)  # map row 5
-    ms.update(SE2(), isms, xy)
+    slow = MapSet(grid, names=("ray_ilm",), dynamic=d)
+    slow.update(SE2(), isms, np.array([[*xy[0], 0.4]]))  # not faster than doppler_mps: nothing
+    assert slow["ray_ilm"].read_dynamic(*slow["ray_ilm"].bounds()).max() == 0.0
+    ms.update(SE2(), isms, np.array([[*xy[0], 0.6]]))
     r0, c0, h, w = ms["ray_ilm"].bounds()
     s = ms["ray_ilm"].read_dynamic(r0, c0, h, w)
     assert (s > 0).sum() == 13
@@ -299,7 +302,7 @@ def test_doppler_cue_hand_computed():
     # (vacuous: nothing rules a mover out) and row 5 (only occupied); no conflict at first
     assert s[3 - r0, 5 - c0] == pytest.approx(0.4 * 0.2 / 0.8)
     assert s[4 - r0, 5 - c0] == pytest.approx(0.4) and s[5 - r0, 5 - c0] == pytest.approx(0.4)
-    ms.update(SE2(), isms, np.vstack([xy, xy]))  # two detections in one disc: added once
+    ms.update(SE2(), isms, np.array([[*xy[0], 0.6], [*xy[0], 9.0]]))  # one disc: added once
     s = ms["ray_ilm"].read_dynamic(r0, c0, h, w)
     # K = 0.6 * 0.2 + 0.2 * 0.6 = 0.24 (the map cell (0.6, 0.2, 0.2) meets the same ISM cell)
     assert s[3 - r0, 5 - c0] == pytest.approx(0.5 * 0.1 + 0.24 + 0.1)
@@ -319,7 +322,7 @@ def test_doppler_cue_finds_the_simulators_movers():
         mapper._doppler_seen.clear()  # the newest sweeps again, for this check
         xy = mapper.moving_detections()
         pose = mapper.pose_in_map(frame.ego_pose)
-        local = pose.inverse().apply(xy)
+        local = pose.inverse().apply(xy[:, :2])
         r = np.floor(cfg.grid.n_cells / 2 - local[:, 0] / cfg.grid.resolution).astype(int)
         c = np.floor(cfg.grid.n_cells / 2 - local[:, 1] / cfg.grid.resolution).astype(int)
         inside = (r >= 0) & (r < cfg.grid.n_cells) & (c >= 0) & (c < cfg.grid.n_cells)
@@ -340,8 +343,8 @@ def test_doppler_cue_from_a_bag_radar_scan():
     from evgrid.doppler import moving_detections
     from evgrid.geometry import SE3
 
-    # the sensor drives forward at 5 m/s: a static target ahead reads -5 m/s raw; a car ahead
-    # coming at us at 3 m/s reads -8 m/s
+    # the sensor drives forward at 5 m/s: a static target dead ahead reads -5 m/s raw; a car
+    # coming at us reads -8 m/s
     ret = [
         SimpleNamespace(range=10.0, azimuth=0.0, elevation=0.0, doppler_velocity=-5.0, amplitude=5),
         SimpleNamespace(range=12.0, azimuth=0.1, elevation=0.0, doppler_velocity=-8.0, amplitude=9),
@@ -350,8 +353,10 @@ def test_doppler_cue_from_a_bag_radar_scan():
     compensate(pts, np.array([5.0, 0.0, 0.0]))
     sweep = RadarSweep(pts, SE3.identity(), SE3.identity(), 0, "RADAR_FRONT")
     xy = moving_detections([sweep], SE3.identity(), 0.5)
-    assert xy.shape == (1, 2)
-    np.testing.assert_allclose(xy[0], [12.0 * np.cos(0.1), 12.0 * np.sin(0.1)], rtol=1e-5)
+    assert xy.shape == (1, 3)
+    # its own radial speed: -8 m/s + the sensor's 5 m/s along the line of sight, 5 cos(0.1)
+    want = [12.0 * np.cos(0.1), 12.0 * np.sin(0.1), 8.0 - 5.0 * np.cos(0.1)]
+    np.testing.assert_allclose(xy[0], want, rtol=1e-5)
 
 
 # --- the area movers leave behind ---------------------------------------------------------------

@@ -27,10 +27,10 @@ _X, _VX, _VY = (radar_column(c) for c in ("x", "vx_comp", "vy_comp"))
 
 
 def moving_detections(sweeps: Sequence[RadarSweep], to_map: SE3, min_speed: float) -> np.ndarray:
-    """``(k, 2)`` float64 map-frame positions (m) of the detections of ``sweeps`` whose ego-motion
-    compensated Doppler speed ``|(vx_comp, vy_comp)|`` exceeds ``min_speed`` (m/s); ``to_map``
-    takes the global frame to the map frame. Each sweep moves with its own ego pose and
-    extrinsics; detections with a non-finite position or velocity are skipped."""
+    """``(k, 3)`` float64: map-frame position (m) and speed (m/s) of the detections of ``sweeps``
+    whose ego-motion compensated Doppler speed ``|(vx_comp, vy_comp)|`` exceeds ``min_speed``;
+    ``to_map`` takes the global frame to the map frame. Each sweep moves with its own ego pose
+    and extrinsics; detections with a non-finite position or velocity are skipped."""
     parts = []
     for s in sweeps:
         p = s.points
@@ -40,8 +40,9 @@ def moving_detections(sweeps: Sequence[RadarSweep], to_map: SE3, min_speed: floa
         xyz = p[:, _X : _X + 3].astype(np.float64)
         fast = (speed > min_speed) & np.isfinite(xyz).all(axis=1)  # NaN speeds compare False
         if fast.any():
-            parts.append((to_map @ s.ego_pose @ s.sensor_to_ego).apply(xyz[fast])[:, :2])
-    return np.concatenate(parts) if parts else np.zeros((0, 2), np.float64)
+            xy = (to_map @ s.ego_pose @ s.sensor_to_ego).apply(xyz[fast])[:, :2]
+            parts.append(np.column_stack([xy, speed[fast]]))
+    return np.concatenate(parts) if parts else np.zeros((0, 3), np.float64)
 
 
 @functools.lru_cache(maxsize=8)

@@ -583,9 +583,10 @@ class MapSet:
         """Fuse one time step: local ISM grids ``(n, n, 3)`` keyed by ISM name, taken at ego
         ``pose`` (m, rad) in the map frame; every map of this set and of the sets attached to it.
 
-        ``moving``: ``(k, 2)`` map-frame positions (m) of the radar detections faster than
-        ``dynamic.doppler_mps`` (:func:`evgrid.doppler.moving_detections`), the Doppler cue of
-        the dynamic score (added after the pass; those outside the local grid are ignored).
+        ``moving``: ``(k, 3)`` map-frame position (m) and compensated Doppler speed (m/s) of
+        radar detections (:func:`evgrid.doppler.moving_detections`), the Doppler cue of the
+        dynamic score: those faster than each set's ``dynamic.doppler_mps`` count (added after
+        the pass; those outside the local grid are ignored).
 
         Cells of an ISM grid that are not masses are taken as vacuous and counted in
         :attr:`n_rejected`. Returns, per map of this set, the cells its rule rejected.
@@ -672,19 +673,21 @@ class MapSet:
         ``doppler_radius_m`` of a moving detection (docs/equations.md#the-doppler-cue)."""
         from evgrid.doppler import add_to_layer, disc_cells, not_free_now
 
-        cells: dict[float, tuple[np.ndarray, np.ndarray]] = {}
-        weights: dict[tuple[float, str], np.ndarray] = {}
+        moving = np.asarray(moving, dtype=np.float64).reshape(-1, 3)
+        cells: dict[tuple[float, float], tuple[np.ndarray, np.ndarray]] = {}
+        weights: dict[tuple[float, float, str], np.ndarray] = {}
         for row, owner in zip(self._pass_rows, self._pass_owners):
             d = owner.dynamic
-            r = d.doppler_radius_m
+            key = (d.doppler_mps, d.doppler_radius_m)
             if not row.map.dynamic or d.doppler_mass <= 0.0:
                 continue
-            if r not in cells:
-                cells[r] = disc_cells(self.grid, pose, moving, r)
+            if key not in cells:
+                fast = moving[moving[:, 2] > d.doppler_mps, :2]
+                cells[key] = disc_cells(self.grid, pose, fast, d.doppler_radius_m)
             ism = row.rule.inputs[-1]
-            if (r, ism) not in weights:
-                weights[(r, ism)] = not_free_now(self.grid, pose, *cells[r], isms[ism])
-            add_to_layer(row.map, *cells[r], np.float32(d.doppler_mass) * weights[(r, ism)])
+            if (*key, ism) not in weights:
+                weights[(*key, ism)] = not_free_now(self.grid, pose, *cells[key], isms[ism])
+            add_to_layer(row.map, *cells[key], np.float32(d.doppler_mass) * weights[(*key, ism)])
 
     def windows(self, pose: SE2) -> dict[str, MapWindow]:
         """The ISM grids of the last :meth:`update` warped whole into map windows at ``pose``.

@@ -174,9 +174,10 @@ class OccupancyMapper:
         return out
 
     def moving_detections(self) -> np.ndarray | None:
-        """The Doppler cue of the dynamic score: map-frame positions ``(k, 2)`` of the detections
-        faster than ``dynamic.doppler_mps`` in the newest sweep of each radar, each sweep once
-        (a sweep already used by an earlier update adds nothing); None with the score off."""
+        """The Doppler cue of the dynamic score: map-frame positions and speeds ``(k, 3)`` of the
+        detections faster than ``dynamic.doppler_mps`` in the newest sweep of each radar, each
+        sweep once (a sweep already used by an earlier update adds nothing); None with the score
+        off. The attached map sets see these (those faster than their own ``doppler_mps``)."""
         d = self.config.dynamic
         if not d.enabled or d.doppler_mass <= 0.0 or self.first_pose is None:
             return None
