@@ -78,7 +78,7 @@ class OccupancyMapper:
     ):
         self.config = config
         self.maps = MapSet(
-            config.grid, config.fusion, config.maps, config.tile_cells, config.dynamic
+            config.grid, config.fusion, config.maps, config.tile_cells, config.dynamic, config.nav
         )
         self.extra = tuple(extra)
         for s in self.extra:  # extra rows of the same one-pass update
@@ -140,6 +140,9 @@ class OccupancyMapper:
         update = MapUpdate(frame, pose, isms, self.maps)
         for obs in self.observers:
             obs.on_update(update)
+        nav_ms = self.maps.last_ms.get("nav")  # nav computed when an observer read it
+        if nav_ms is not None:
+            self.timings.setdefault("nav", []).append(nav_ms)
         return True
 
     def local_isms(self, frame: Frame) -> dict[str, np.ndarray]:
