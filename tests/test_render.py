@@ -143,7 +143,7 @@ def test_gif_frames_are_labelled():
 
 def _dynamic_map(enabled: bool):
     """A 16 x 16 map (one tile) free everywhere, with a score of 0.5 in rows 4..7, columns
-    2..5 (when it keeps one)."""
+    2..5 and in the lone cell (12, 12) (when it keeps one)."""
     from evgrid.geometry import GridSpec
     from evgrid.grid import EvidentialMap
 
@@ -153,7 +153,8 @@ def _dynamic_map(enabled: bool):
     cov[:] = True
     if enabled:
         m.dynamic_tiles[(0, 0)][4:8, 2:6] = 0.5
-        m.dynamic_tiles[(0, 0)][12, 12] = 0.05  # below the threshold: not called dynamic
+        m.dynamic_tiles[(0, 0)][12, 12] = 0.5
+        m.dynamic_tiles[(0, 0)][14, 2] = 0.05  # below the threshold: not called dynamic
     return m
 
 
@@ -165,13 +166,15 @@ def test_dynamic_cells_are_drawn_over_the_map_only_where_scored():
     pic = map_picture(m, 0, 0, 16, 16, 1, threshold=0.1)
     called = (pic == blue).all(-1)
     want = np.zeros((16, 16), bool)
-    want[4:8, 2:6] = True
+    want[4:8, 2:6] = want[12, 12] = True
     np.testing.assert_array_equal(called, want)
     np.testing.assert_array_equal(pic[~want], map_rgb(sample_map(m, 0, 0, 16, 16)[0])[~want])
-    # a coarse picture keeps a block with one dynamic cell in it
-    coarse = map_picture(m, 0, 0, 16, 16, 4, threshold=0.1)
-    assert (coarse == blue).all(-1).tolist()[1][:2] == [True, True]
-    assert (coarse == blue).all(-1).sum() == 2
+    # a coarse picture (4 x 4 cells a pixel) shows the blocks half called dynamic, not the one
+    # with a lone cell (a mover shows; a single cell's conflict does not grow to a pixel)
+    coarse = (map_picture(m, 0, 0, 16, 16, 4, threshold=0.1) == blue).all(-1)
+    want = np.zeros((4, 4), bool)
+    want[1, :2] = True
+    np.testing.assert_array_equal(coarse, want)
     # no overlay: the score off, or no threshold asked for
     for pic in (
         map_picture(_dynamic_map(False), 0, 0, 16, 16, 1, 0.1),
@@ -212,7 +215,7 @@ def test_maps_figure_shows_the_dynamic_cells_with_a_legend_entry(tmp_path):
     on, off = seen
     assert "dynamic (score > 0.1)" in on["legend"]
     for img in on["images"]:
-        assert (np.asarray(img) == blue).all(-1).sum() == 16
+        assert (np.asarray(img) == blue).all(-1).sum() == 17
     assert not any("dynamic" in t for t in off["legend"])
     for img in off["images"]:
         assert not (np.asarray(img) == blue).all(-1).any()
@@ -245,5 +248,5 @@ def test_gif_frames_show_the_dynamic_cells_and_their_legend():
         )
         (frame,) = gif.frames
         strip, pic = frame[:18], frame[18:]
-        assert (pic == blue).all(-1).sum() == (16 if enabled else 0)
+        assert (pic == blue).all(-1).sum() == (17 if enabled else 0)
         assert (strip == blue).all(-1).any() == enabled  # the legend's swatch

@@ -33,7 +33,7 @@ __all__ = [
     "write_gif",
     "trajectory_cells",
     "sample_map",
-    "sample_dynamic",
+    "called_dynamic",
     "map_picture",
     "overlay_dynamic",
     "dynamic_label",
@@ -400,20 +400,29 @@ def sample_map(m, r0: int, c0: int, h: int, w: int, step: int = 1) -> tuple[np.n
     return out, cov
 
 
-def sample_dynamic(m, r0: int, c0: int, h: int, w: int, step: int = 1) -> np.ndarray:
-    """The dynamic score of map cells ``[r0, r0+h) x [c0, c0+w)``, the largest of each block of
-    ``step`` x ``step`` cells (so a mover a few cells wide still shows in a coarse picture),
-    read tile by tile as :func:`sample_map`; float32 ``(ceil(h / step), ceil(w / step))``, 0
-    where no tile is stored. Raises ValueError if the map keeps no score."""
+#: The share of a picture's block of cells that must be called dynamic for the block to be drawn
+#: dynamic: a mover larger than a pixel shows, a lone cell's conflict does not grow to a pixel.
+DYNAMIC_SHARE = 0.25
+
+
+def called_dynamic(
+    m, r0: int, c0: int, h: int, w: int, step: int = 1, threshold: float = 0.1
+) -> np.ndarray:
+    """Which blocks of ``step`` x ``step`` cells of ``[r0, r0+h) x [c0, c0+w)`` are drawn as
+    dynamic: those where at least :data:`DYNAMIC_SHARE` of the cells have a dynamic score
+    above ``threshold`` (with ``step`` 1, the cells called dynamic). Read tile by tile as
+    :func:`sample_map`; bool ``(ceil(h / step), ceil(w / step))``, no cell called where no
+    tile is stored. Raises ValueError if the map keeps no score."""
     if not m.dynamic:
         raise ValueError(
             f"map {m.metadata.get('rule', '?')!r} keeps no dynamic layer (dynamic off)"
         )
     if step < 1 or h < 0 or w < 0:
         raise ValueError(
-            f"sample_dynamic needs step >= 1 and a non-negative box, got step {step}, box {h} x {w}"
+            f"called_dynamic needs step >= 1 and a non-negative box, got step {step}, box {h} x {w}"
         )
-    out = np.zeros((-(-h // step), -(-w // step)), dtype=np.float32)
+    hh, ww = -(-h // step), -(-w // step)
+    n_called = np.zeros((hh, ww), dtype=np.int64)
     ts = m.tile_cells
     for ti, tj in _box_keys(m, r0, c0, h, w):
         d = m.dynamic_tiles.get((ti, tj))
@@ -423,16 +432,17 @@ def sample_dynamic(m, r0: int, c0: int, h: int, w: int, step: int = 1) -> np.nda
         ca, cb = max(c0, tj * ts), min(c0 + w, (tj + 1) * ts)
         if ra >= rb or ca >= cb:
             continue
-        piece = d[ra - ti * ts : rb - ti * ts, ca - tj * ts : cb - tj * ts]
+        piece = d[ra - ti * ts : rb - ti * ts, ca - tj * ts : cb - tj * ts] > threshold
         # the blocks this piece meets start at its first cell and at every multiple of step
-        rs = np.r_[0, np.arange(-(-(ra - r0) // step) * step, rb - r0, step) - (ra - r0)]
-        cs = np.r_[0, np.arange(-(-(ca - c0) // step) * step, cb - c0, step) - (ca - c0)]
-        rs, cs = np.unique(rs), np.unique(cs)
-        block = np.maximum.reduceat(np.maximum.reduceat(piece, rs, axis=0), cs, axis=1)
+        rs = np.unique(np.r_[0, np.arange(-(-(ra - r0) // step) * step, rb - r0, step) - ra + r0])
+        cs = np.unique(np.r_[0, np.arange(-(-(ca - c0) // step) * step, cb - c0, step) - ca + c0])
+        block = np.add.reduceat(np.add.reduceat(piece.astype(np.int64), rs, axis=0), cs, axis=1)
         oi, oj = (ra - r0) // step, (ca - c0) // step
-        view = out[oi : oi + block.shape[0], oj : oj + block.shape[1]]
-        np.maximum(view, block, out=view)
-    return out
+        n_called[oi : oi + block.shape[0], oj : oj + block.shape[1]] += block
+    # cells per block (the last row and column of blocks may be cut by the box)
+    rows = np.minimum(step, h - np.arange(hh) * step)
+    cols = np.minimum(step, w - np.arange(ww) * step)
+    return n_called > 0 if step == 1 else n_called >= DYNAMIC_SHARE * np.outer(rows, cols)
 
 
 def overlay_dynamic(rgb: np.ndarray, called: np.ndarray) -> np.ndarray:
@@ -460,7 +470,7 @@ def map_picture(
     pic = map_rgb(sample_map(m, r0, c0, h, w, step)[0])
     if threshold is None or not getattr(m, "dynamic", False):
         return pic
-    return overlay_dynamic(pic, sample_dynamic(m, r0, c0, h, w, step) > threshold)
+    return overlay_dynamic(pic, called_dynamic(m, r0, c0, h, w, step, threshold))
 
 
 def mosaic(pics: Sequence[np.ndarray], cols: int = 3) -> np.ndarray:
@@ -539,7 +549,7 @@ def write_scene_figures(
     res = ref.grid.resolution
     panels = {n: sample_map(m, r0, c0, h, w, step)[0] for n, m in maps.items()}
     dynamic = {
-        n: sample_dynamic(m, r0, c0, h, w, step) > dynamic_threshold
+        n: called_dynamic(m, r0, c0, h, w, step, dynamic_threshold)
         for n, m in maps.items()
         if dynamic_threshold is not None and getattr(m, "dynamic", False)
     }
@@ -551,7 +561,7 @@ def write_scene_figures(
         plot_panels(
             panels,
             out / "maps.png",
-            title=f"{name}: the maps (map frame: the first pose's, x forward up)",
+            title=f"{name}: the maps (in the map frame, x up, y left)",
             extent_m=extent,
             tracks={n: track for n in panels},
             dynamic=dynamic,

@@ -53,8 +53,9 @@ class RerunParams:
     cell (cells read per map and picture: ``(window_m / res / step)^2``), ISMs at every
     ``step``-th cell, pictures at keyframes only unless ``keyframes_only`` is False (the
     trajectory is logged at every update), ``isms`` whether to log them, ``dynamic`` whether to
-    log the cells called dynamic (a point per ``step`` x ``step`` block with one); ``map_frame``
-    and ``fixed_frame`` name the frames in ``info``."""
+    log the cells called dynamic (a point per ``step`` x ``step`` block drawn dynamic, as in the
+    figures: :func:`evgrid.render.called_dynamic`); ``map_frame`` and ``fixed_frame`` name the
+    frames in ``info``."""
 
     window_m: float = 40.0
     step: int = 2
@@ -96,13 +97,13 @@ def _quad(rr: Any, rgb: np.ndarray, corners: np.ndarray) -> Any:
 def _dynamic_points(
     rr: Any, m: EvidentialMap, box: tuple[int, int, int, int], step: int, threshold: float
 ) -> Any:
-    """The blocks of ``step`` x ``step`` cells of ``box`` ``(r0, c0, h, w)`` holding a cell
-    called dynamic, as points in metres at the blocks' centres (none: an empty set, so that
-    the last ones do not linger in the viewer)."""
-    from evgrid.render import DYNAMIC_COLOUR, sample_dynamic
+    """The blocks of ``step`` x ``step`` cells of ``box`` ``(r0, c0, h, w)`` drawn as dynamic
+    (:func:`evgrid.render.called_dynamic`), as points in metres at the blocks' centres (none:
+    an empty set, so that the last ones do not linger in the viewer)."""
+    from evgrid.render import DYNAMIC_COLOUR, called_dynamic
 
     r0, c0, h, w = box
-    i, j = np.nonzero(sample_dynamic(m, r0, c0, h, w, step) > threshold)
+    i, j = np.nonzero(called_dynamic(m, r0, c0, h, w, step, threshold))
     res = m.grid.resolution
     xyz = np.stack(
         [-(r0 + (i + 0.5) * step) * res, -(c0 + (j + 0.5) * step) * res, np.full(len(i), 0.05)],
