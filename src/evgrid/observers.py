@@ -291,12 +291,13 @@ class GifRecorder:
 
         rc, cc = self.grid.map_xy_to_cell(update.pose.x, update.pose.y)
         r0, c0 = int(rc) - self.cells // 2, int(cc) - self.cells // 2
-        threshold = update.maps.dynamic.threshold  # drawn on the maps that keep a score
+        # the cells called dynamic, on the maps that keep a score
+        threshold = update.maps.dynamic.threshold if update.maps.dynamic_maps else None
         n = self.cells
         pics = [
             map_picture(m, r0, c0, n, n, self.step, threshold) for m in update.maps.maps.values()
         ]
-        legend = [(dynamic_label(threshold), DYNAMIC_COLOUR)] if update.maps.dynamic_maps else []
+        legend = [(dynamic_label(threshold), DYNAMIC_COLOUR)] if threshold is not None else []
         if self._t0_us is None:
             self._t0_us = update.frame.timestamp
         t_s = (update.frame.timestamp - self._t0_us) * 1e-6

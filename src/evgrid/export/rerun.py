@@ -205,7 +205,7 @@ class RerunRecorder:
         self.rec.log("/", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         self.trajectory: list[tuple[float, float]] = []
         self._maps: dict[str, EvidentialMap] = {}
-        self._threshold = 0.0  # the run's dynamic threshold, from its first update
+        self._mapset: Any = None  # the run's maps (its dynamic threshold: DynamicParams)
         self._n = 0
         self.placement: MapPlacement | None = None
 
@@ -245,7 +245,7 @@ class RerunRecorder:
         )
         rec.log("ego/position", rr.Points3D([[0.0, 0.0, 0.0]], radii=0.5, colors=[[230, 60, 30]]))
         self._maps = update.maps.maps
-        self._threshold = update.maps.dynamic.threshold
+        self._mapset = update.maps
         if not (p.keyframes_only and not update.frame.is_keyframe):
             self._log_trajectory(_TRAJECTORY_POINTS)
             if p.isms:
@@ -265,7 +265,8 @@ class RerunRecorder:
                 corners = quad_corners(r0, c0, hh * p.step, ww * p.step, m.grid.resolution)
                 rec.log(f"maps/{name}", _quad(rr, pic, corners))
                 if p.dynamic and m.dynamic:
-                    points = _dynamic_points(rr, m, (r0, c0, n, n), p.step, self._threshold)
+                    th = update.maps.dynamic.threshold
+                    points = _dynamic_points(rr, m, (r0, c0, n, n), p.step, th)
                     rec.log(f"maps/{name}/dynamic", points)
             if self._out is not None:
                 self._out.drain()  # with the pictures: the trajectory alone is small
@@ -290,9 +291,8 @@ class RerunRecorder:
                 pic, corners = _whole(m)
                 self.rec.log(f"final/{name}", _quad(self.rr, pic, corners), static=True)
                 if self.params.dynamic and m.dynamic:
-                    points = _dynamic_points(
-                        self.rr, m, m.covered_bounds(), _whole_step(m), self._threshold
-                    )
+                    th = self._mapset.dynamic.threshold
+                    points = _dynamic_points(self.rr, m, m.covered_bounds(), _whole_step(m), th)
                     self.rec.log(f"final/{name}/dynamic", points, static=True)
         self.rec.flush()
 
