@@ -3,8 +3,10 @@
 Maps are drawn in a map_server-like palette (:func:`map_rgb`: free white, occupied black,
 unknown grey, mixed masses as shades between), with the axes in metres (x forward up, y left),
 a scale bar, and the legend outside the panels; every plot gives a map the same colour
-(:func:`map_colour`). The paper's colours (red free, green occupied, blue unknown) remain as
-:func:`masses_to_rgb` and ``palette="paper"``.
+(:func:`map_colour`). The cells called dynamic (:class:`evgrid.fusion.DynamicParams`) are drawn
+in :data:`DYNAMIC_COLOUR` over the maps that keep a score (:func:`map_picture`). The paper's
+colours (red free, green occupied, blue unknown) remain as :func:`masses_to_rgb` and
+``palette="paper"``.
 
 matplotlib (Agg) is imported inside the functions that draw figures, so that importing
 evgrid stays light.
@@ -405,9 +407,7 @@ def sample_map(m, r0: int, c0: int, h: int, w: int, step: int = 1) -> tuple[np.n
 DYNAMIC_SHARE = 0.25
 
 
-def called_dynamic(
-    m, r0: int, c0: int, h: int, w: int, step: int = 1, threshold: float = 0.1
-) -> np.ndarray:
+def called_dynamic(m, r0: int, c0: int, h: int, w: int, step: int, threshold: float) -> np.ndarray:
     """Which blocks of ``step`` x ``step`` cells of ``[r0, r0+h) x [c0, c0+w)`` are drawn as
     dynamic: those where at least :data:`DYNAMIC_SHARE` of the cells have a dynamic score
     above ``threshold`` (with ``step`` 1, the cells called dynamic). Read tile by tile as
