@@ -514,6 +514,7 @@ MAP_OPTIONS: dict[str, tuple[str, ...]] = {
     "mcap-window": ("outputs.mcap.window_m",),
     "mcap-rate": ("outputs.mcap.rate_hz",),
     "mcap-maps": ("outputs.mcap.maps",),
+    "mcap-layers": ("outputs.mcap.layers",),
     "map-frame": ("mapper.frame",),
     "viewer": ("outputs.viewer",),
 }
