@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import re
 import sys
 
 import numpy as np
 import pytest
 
+import evgrid
 from evgrid.config import MapperConfig
 from evgrid.data import SimConfig, simulate_scene
 from evgrid.export import FORMATS, export_map, make_observer
@@ -367,8 +369,8 @@ def test_missing_extras_say_how_to_install(monkeypatch):
     from evgrid.ros import require
 
     monkeypatch.setitem(sys.modules, "rerun", None)
-    with pytest.raises(ImportError, match=r"pip install 'evgrid\[rerun\]'"):
+    with pytest.raises(ImportError, match=re.escape(evgrid.install_hint("rerun"))):
         require("rerun", "rerun")
     monkeypatch.setitem(sys.modules, "rosbags", None)
-    with pytest.raises(ImportError, match=r"pip install 'evgrid\[ros\]'"):
+    with pytest.raises(ImportError, match=re.escape(evgrid.install_hint("ros"))):
         require("rosbags")
