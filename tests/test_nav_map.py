@@ -282,3 +282,14 @@ def test_cells_the_dynamic_score_calls_moving_block_like_a_return():
     assert (nav_dense(lidar, fused, 1, 1.0, moving)[..., 0] > 0.7).all()
     with pytest.raises(ValueError, match="moving must have shape"):
         nav_dense(lidar, fused, 1, 1.0, moving[:2], moving_min=0.1)
+
+
+def test_an_update_reaches_the_navigation_maps_margin_beyond_its_window():
+    # observers recount the tiles an update can change: nav's reach past the window (0.5 m at
+    # 0.125 m a cell: 4 cells), also through an attached set; none without nav
+    grid = GridSpec(32, 4.0)
+    assert MapSet(grid, names=("nav",)).reach == 4
+    host = MapSet(grid, names=("ray_ilm", "fused"))
+    assert host.reach == 0
+    host.attach(MapSet(grid, names=("nav",)))
+    assert host.reach == 4

@@ -518,6 +518,15 @@ class MapSet:
         """The maps of this set that keep a dynamic score (empty with the score off)."""
         return tuple(r.name for r in self._rows if r.shown and r.map.dynamic)
 
+    @property
+    def reach(self) -> int:
+        """Cells beyond an update's window that it can change: the navigation map's margin
+        (nav reads a neighbourhood) when this set or one attached to it has nav, else 0."""
+        return max(
+            (s.nav.margin_cells(s.grid.resolution) for s in (self, *self._attached) if s._derived),
+            default=0,
+        )
+
     def _plan(self) -> None:
         """The pass's table: per row (kernel code, first input, last input) and (m_u_min, alpha,
         decay), decay 0 for a map without a dynamic score."""

@@ -42,8 +42,11 @@ class MapUpdate:
 
     @property
     def box(self) -> tuple[int, int, int, int]:
-        """Map cells ``(r0, c0, h, w)`` that this update could change."""
-        return warp_window(self.maps.grid, self.pose)
+        """Map cells ``(r0, c0, h, w)`` that this update could change: its window, grown by
+        the navigation map's margin when the set has one (nav reads a neighbourhood)."""
+        r0, c0, h, w = warp_window(self.maps.grid, self.pose)
+        g = self.maps.reach
+        return r0 - g, c0 - g, h + 2 * g, w + 2 * g
 
     @property
     def windows(self) -> dict[str, MapWindow]:
