@@ -17,6 +17,7 @@ import numpy as np
 from evgrid.fusion import ISM_NAMES, MAP_NAMES, RULES, FusionParams
 from evgrid.geometry import SE2, GridSpec
 from evgrid.grid import EvidentialMap, MapWindow, Warper
+from evgrid.nav import NavParams, nav_dense
 
 
 class TwoPassMaps:
@@ -28,8 +29,9 @@ class TwoPassMaps:
         params: FusionParams = FusionParams(),
         names: tuple[str, ...] = MAP_NAMES,
         tile_cells: int = 256,
+        nav: NavParams = NavParams(),
     ):
-        self.grid, self.params, self.names = grid, params, tuple(names)
+        self.grid, self.params, self.names, self.nav = grid, params, tuple(names), nav
         needed = [m for n in self.names if RULES[n].from_maps for m in RULES[n].inputs]
         order = [n for n in self.names if not RULES[n].from_maps]
         order += [m for m in dict.fromkeys(needed) if m not in order]
@@ -60,7 +62,7 @@ class TwoPassMaps:
         for name in self.order:
             rule = RULES[name]
             if rule.from_maps:
-                rejected[name] = self._from_maps(name, any_w)
+                rejected[name] = self._from_maps(name)
                 continue
             arrays = tuple(windows[i].masses for i in rule.inputs)
             rejected[name] = self.all_maps[name].apply(
@@ -74,20 +76,20 @@ class TwoPassMaps:
         self.n_updates += 1
         return {n: rejected[n] for n in self.names}
 
-    def _from_maps(self, name: str, window: MapWindow) -> int:
-        # a rule from maps reads the same cells of its input maps, already updated this step
-        rule = RULES[name]
+    def _from_maps(self, name: str) -> int:
+        # nav: recomputed over the whole of its input maps (already updated this step)
+        lidar, fused = (self.all_maps[m] for m in RULES[name].inputs)
+        r0, c0, h, w = lidar.bounds()
+        lm, cov = lidar.read(r0, c0, h, w)
+        fm, fcov = fused.read(r0, c0, h, w)
+        r = self.nav.margin_cells(self.grid.resolution)
+        nav = nav_dense(lm, fm, r, self.nav.occupied_min)
         out = self.all_maps[name]
-        spans = window.row_spans()
-        h, w = window.shape
-        for key, tr, tc, wr, wc in out.pieces(window.r0, window.c0, h, w):
-            piece = np.clip(spans[wr] - wc.start, 0, wc.stop - wc.start)
-            if not (piece[:, 1] > piece[:, 0]).any():
-                continue
-            tile, cov = out.tile(key)
-            inputs = [self.all_maps[m].tile(key)[0][tr, tc] for m in rule.inputs]
-            rule.update(tile[tr, tc], *inputs, self.params, piece)
-            cov[tr, tc] |= window.covered[wr, wc]
+        for key, tr, tc, wr, wc in out.pieces(r0, c0, h, w):
+            if (cov | fcov)[wr, wc].any():
+                tile, tcov = out.tile(key)
+                tile[tr, tc] = nav[wr, wc]
+                tcov[tr, tc] |= (cov | fcov)[wr, wc]
         return 0
 
     def update(self, pose: SE2, isms: Mapping[str, np.ndarray]) -> dict[str, int]:

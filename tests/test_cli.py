@@ -102,6 +102,38 @@ def test_bench_prints_json(tmp_path, tiny_checkpoint):
     assert {"ray_irm", "deep_irm", "warp", "fuse", "step_total"} <= set(fused)
     assert "ray_ilm" not in fused  # the fused map needs no lidar
     assert res["kernels_ms"]["dempster_512"] > 0
+    # the options beside the result reload: the same bench again, an option given wins
+    from evgrid.bench import BenchOptions, bench_options
+
+    cfg = tmp_path / "bench.config.json"
+    same = BenchOptions(duration=1.0, checkpoint=str(tiny_checkpoint))
+    assert json.loads(cfg.read_text())["format"] == "evgrid-bench"
+    assert bench_options({}, cfg) == same
+    assert bench_options({"repeats": 1}, cfg).repeats == 1
+    cfg.write_text(cfg.read_text().replace('"repeats"', '"repeat"'))
+    r = evgrid("bench", config=cfg)
+    assert r.exit_code != 0 and "bench.config.json" in r.output and "repeat" in r.output, r.output
+
+
+def test_simulate_writes_a_config_that_reloads(tmp_path):
+    from evgrid.sim_writer import SimulateOptions, simulate_options
+
+    data = tmp_path / "data"
+    r = evgrid("simulate", out=data, scenes=1, seed=3, duration=0.5, lidar_rate=10)
+    assert r.exit_code == 0, r.output
+    opts = SimulateOptions(scenes=1, seed=3, duration=0.5, lidar_rate=10.0)
+    assert simulate_options({}, data / "config.json") == opts
+    # simulate again from it: another seed, the rest as before
+    r = evgrid("simulate", out=tmp_path / "again", config=data / "config.json", seed=8)
+    assert r.exit_code == 0, r.output
+    again = simulate_options({}, tmp_path / "again" / "config.json")
+    assert again == SimulateOptions(scenes=1, seed=8, duration=0.5, lidar_rate=10.0)
+    index = json.loads((tmp_path / "again" / "index.json").read_text())["scenes"]
+    assert [e["seed"] for e in index] == [8] and index[0]["frames"] == 5
+    bad = tmp_path / "bad.json"
+    bad.write_text((data / "config.json").read_text().replace('"seed"', '"sed"'))
+    r = evgrid("simulate", out=tmp_path / "x", config=bad)
+    assert r.exit_code != 0 and "bad.json" in r.output and "sed" in r.output, r.output
 
 
 def test_sweep_m_u_min(tmp_path, tiny_checkpoint):

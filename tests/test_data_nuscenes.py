@@ -5,11 +5,13 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import sys
 
 import numpy as np
 import pytest
 
+import evgrid
 from evgrid.data import LIDAR_CHANNEL, RADAR_CHANNELS, RADAR_COLUMNS, radar_column
 from evgrid.data.nuscenes import NuScenesError, load_nuscenes, nuscenes_splits
 from evgrid.data.nuscenes_format import (
@@ -167,7 +169,7 @@ def test_missing_data_says_what_to_download(tmp_path):
 def test_missing_devkit_says_how_to_install(written, monkeypatch):
     root, _ = written
     monkeypatch.setitem(sys.modules, "nuscenes.nuscenes", None)
-    with pytest.raises(NuScenesError, match=r"pip install 'evgrid\[nuscenes\]'"):
+    with pytest.raises(NuScenesError, match=re.escape(evgrid.install_hint("nuscenes"))):
         load_nuscenes(root, VERSION, split=None)
 
 

@@ -2,15 +2,17 @@
 
 from __future__ import annotations
 
+import re
 import sys
 
 import numpy as np
 import pytest
 
+import evgrid
 from evgrid.config import MapperConfig
 from evgrid.data import SimConfig, simulate_scene
 from evgrid.export import FORMATS, export_map, make_observer
-from evgrid.export.mcap import LAYERS, McapParams
+from evgrid.export.mcap import DYNAMIC_STEP, LAYERS, McapParams
 from evgrid.export.nav2 import (
     FREE,
     OCCUPIED,
@@ -136,6 +138,7 @@ def run(tmp_path_factory):
             McapParams(layers=("occupancy", *LAYERS), occupancy_values="scale", maps=("ray_ilm",)),
         ),
         make_observer("nav2", out / "nav2", maps=("ray_ilm",)),
+        make_observer("mcap", out / "dynamic.mcap", McapParams(layers=("dynamic",), window_m=0)),
     ]
     try:
         import rerun  # noqa: F401
@@ -261,6 +264,53 @@ def test_mcap_grid_map_layers_and_scaled_values(run):
         )
 
 
+def test_mcap_dynamic_layer_round_trips(run):
+    mapper, _, out = run
+    counts = _topic_counts(out / "dynamic.mcap")
+    assert not any(t.endswith("/occupancy") for t in counts)  # the GridMap alone
+    msgs = {t: d for t, _, _, d in _decoded(out / "dynamic.mcap") if t.endswith("/grid_map")}
+    assert set(msgs) == {f"/evgrid/{n}/grid_map" for n in mapper.maps.maps}
+    scored = set(mapper.maps.dynamic_maps)
+    assert scored == {"ray_ilm", "ray_irm", "fused"}  # every map of the run has a Dempster step
+    called = 0
+    for name, m in mapper.maps.maps.items():
+        gm = msgs[f"/evgrid/{name}/grid_map"]
+        assert list(gm.layers) == ["dynamic"]
+        r0, c0, h, w = m.covered_bounds()
+        got = np.asarray(gm.data[0].data, np.float32).reshape(w, h).T
+        want = m.read_dynamic(r0, c0, h, w)
+        np.testing.assert_allclose(got, want, atol=DYNAMIC_STEP / 2 + 1e-7)
+        called += int((got > mapper.maps.dynamic.threshold).sum())
+    assert called > 0  # the simulated scene's movers are scored
+
+    # a map that keeps no score: NaN in every cell
+    from evgrid.export.mcap import MapCells, grid_map_msg
+    from evgrid.ros import typestore
+
+    m = mapper.maps.maps["fused"]
+    b = m.covered_bounds()
+    gm = grid_map_msg(MapCells.read(m, b), 0, "map", typestore(2), ("m_free", "dynamic"))
+    assert np.isnan(np.asarray(gm.data[1].data)).all()
+    assert not np.isnan(np.asarray(gm.data[0].data)).any()
+    with pytest.raises(ValueError, match="speed"):
+        McapParams(layers=("occupancy", "speed"))
+
+
+def test_rerun_dynamic_points_lie_on_the_cells_called_dynamic(run):
+    rr = pytest.importorskip("rerun")
+    mapper, _, out = run
+    rec = rr.dataframe.load_recording(str(out / "run.rrd"))
+    view = rec.view(index="update", contents="/final/fused/dynamic")
+    (xyz,) = view.select_static().read_all().column("/final/fused/dynamic:Position3D").to_pylist()
+    xyz = np.asarray(xyz, np.float64)
+    m = mapper.maps.maps["fused"]
+    r0, c0, h, w = m.covered_bounds()  # a small map: its picture has every cell (step 1)
+    rows, cols = m.grid.map_xy_to_cell(xyz[:, 0], xyz[:, 1])
+    got = set(zip(rows.tolist(), cols.tolist()))
+    i, j = np.nonzero(m.read_dynamic(r0, c0, h, w) > mapper.maps.dynamic.threshold)
+    assert got == set(zip((i + r0).tolist(), (j + c0).tolist())) and got
+
+
 def test_rerun_recording_has_maps_isms_and_trajectory(run):
     rr = pytest.importorskip("rerun")
     _, _, out = run
@@ -275,6 +325,8 @@ def test_rerun_recording_has_maps_isms_and_trajectory(run):
         "/ego/isms/ray_irm",
         "/final/fused",
         "/info",
+        "/maps/fused/dynamic",  # the cells called dynamic, points in metres
+        "/final/fused/dynamic",
     ):
         assert p in paths
 
@@ -317,8 +369,8 @@ def test_missing_extras_say_how_to_install(monkeypatch):
     from evgrid.ros import require
 
     monkeypatch.setitem(sys.modules, "rerun", None)
-    with pytest.raises(ImportError, match=r"pip install 'evgrid\[rerun\]'"):
+    with pytest.raises(ImportError, match=re.escape(evgrid.install_hint("rerun"))):
         require("rerun", "rerun")
     monkeypatch.setitem(sys.modules, "rosbags", None)
-    with pytest.raises(ImportError, match=r"pip install 'evgrid\[ros\]'"):
+    with pytest.raises(ImportError, match=re.escape(evgrid.install_hint("ros"))):
         require("rosbags")

@@ -174,6 +174,27 @@ def test_atomic_file_never_replaces_a_file_that_appeared_meanwhile(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["a.bin"]
 
 
+def test_one_atomic_writer_for_exports_and_evgrid_io(tmp_path):
+    from evgrid import io
+
+    assert AtomicFile is io.AtomicFile and ExportFileError is io.FileWriteError
+    with io.AtomicFile(tmp_path / "t.txt", mode="w") as f:  # text mode, UTF-8
+        f.write("käse\n")
+    assert (tmp_path / "t.txt").read_bytes() == "käse\n".encode()
+    with io.atomic_open(tmp_path / "t.txt", "w") as fh:  # replaces, as atomic_open always did
+        fh.write("new")
+    assert (tmp_path / "t.txt").read_text() == "new"
+    with pytest.raises(KeyboardInterrupt), io.atomic_open(tmp_path / "t.txt", "w") as fh:
+        fh.write("half")
+        raise KeyboardInterrupt
+    assert (tmp_path / "t.txt").read_text() == "new"
+    assert [p.name for p in tmp_path.iterdir()] == ["t.txt"]  # no temporary left
+    (tmp_path / "ro").mkdir(mode=0o500)
+    if not os.access(tmp_path / "ro", os.W_OK):  # root writes anywhere
+        with pytest.raises(OSError, match="ro/x"), io.atomic_open(tmp_path / "ro" / "x"):
+            pass
+
+
 def test_mcap_frames_map_is_parent_of_the_fixed_frame(tmp_path):
     pytest.importorskip("mcap_ros2")
     from mcap.reader import make_reader

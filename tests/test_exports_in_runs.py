@@ -67,6 +67,9 @@ def test_mcap_options_on_the_command_line_and_through_set():
     assert run.mapper.frame == "first_pose" and run.outputs.mcap.window_m == 0.0
     with pytest.raises(ConfigError, match="mcap-rate|rate_hz"):
         config_from_args(RunConfig, ["--mcap-rate", "-2"])
+    run = config_from_args(RunConfig, ["--mcap-layers", "occupancy,dynamic"])
+    assert run.outputs.mcap.layers == ("occupancy", "dynamic")
+    assert RunConfig().outputs.mcap.layers == ("occupancy",)  # the dynamic layer on request
 
 
 def _leftovers(folder):

@@ -171,7 +171,7 @@ def test_map_save_load_is_bit_identical(tmp_path):
     for k in m.tiles:
         assert back.tiles[k].tobytes() == m.tiles[k].tobytes()
         np.testing.assert_array_equal(back.covered_tiles[k], m.covered_tiles[k])
-    assert not list((tmp_path / "maps").glob(".*.tmp"))  # no temporary left behind
+    assert not list((tmp_path / "maps").glob(".*"))  # no temporary left behind
 
 
 def test_truncated_and_foreign_files_raise_clear_errors(tmp_path):

@@ -285,5 +285,10 @@ def test_help_keeps_extra_names_and_hints_work_from_a_checkout():
     assert r.exit_code == 0 and "evgrid[ros]" in r.output, r.output
     hint = evgrid.install_hint("ros")
     assert hint.startswith("pip install -e '") and hint.endswith("[ros]'")  # a source checkout
-    line = error_line(ImportError("MCAP needs mcap (pip install 'evgrid[ros]')"))
-    assert hint in line and "'evgrid[ros]'" not in line
+    from evgrid.ros import require
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setitem(sys.modules, "mcap", None)
+        with pytest.raises(ImportError) as info:
+            require("mcap")
+    assert hint in error_line(info.value)

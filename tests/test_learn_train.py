@@ -77,6 +77,31 @@ def test_train_writes_logs_and_checkpoints_and_resumes(cache, tmp_path):
     assert res2.seconds_per_epoch > 0
 
 
+def test_metrics_csv_is_rewritten_atomically_each_epoch(tmp_path, monkeypatch):
+    import os
+
+    from evgrid.learn import train as train_mod
+
+    path = tmp_path / "metrics.csv"
+    for epoch in range(3):
+        train_mod._write_metrics(path, epoch, {"epoch": epoch, "train_loss": 1.0 / (epoch + 1)})
+    assert [r["epoch"] for r in csv.DictReader(open(path))] == ["0", "1", "2"]
+    # a resumed run that logs epoch 1 again: the rows before it kept, the later ones replaced
+    train_mod._write_metrics(path, 1, {"epoch": 1, "train_loss": 0.25})
+    rows = list(csv.DictReader(open(path)))
+    assert [(r["epoch"], r["train_loss"]) for r in rows] == [("0", "1.0"), ("1", "0.25")]
+    before = path.read_bytes()
+
+    def full_disk(*a, **k):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(os, "fsync", full_disk)  # the real writer fails before its rename
+    with pytest.raises(OSError, match="metrics.csv"):
+        train_mod._write_metrics(path, 2, {"epoch": 2})
+    assert path.read_bytes() == before  # the old file, whole
+    assert [p.name for p in tmp_path.iterdir()] == ["metrics.csv"]  # no temporary left
+
+
 def test_config_validation():
     with pytest.raises(ValueError, match="epochs"):
         TrainConfig(epochs=0)

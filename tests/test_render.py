@@ -139,3 +139,114 @@ def test_gif_frames_are_labelled():
     assert out.shape == (60 + 18, 160, 3)
     assert (out[:18] != 205).any() and (out[18:32, :40] != 205).any()  # caption, name boxes
     assert (out[50:, 60:80] == 205).all()  # the picture itself is left as it was
+
+
+def _dynamic_map(enabled: bool):
+    """A 16 x 16 map (one tile) free everywhere, with a score of 0.5 in rows 4..7, columns
+    2..5 and in the lone cell (12, 12) (when it keeps one)."""
+    from evgrid.geometry import GridSpec
+    from evgrid.grid import EvidentialMap
+
+    m = EvidentialMap(GridSpec(16, 0.1), tile_cells=16, dynamic=enabled)
+    t, cov = m.tile((0, 0))
+    t[:] = [0.9, 0.0, 0.1]
+    cov[:] = True
+    if enabled:
+        m.dynamic_tiles[(0, 0)][4:8, 2:6] = 0.5
+        m.dynamic_tiles[(0, 0)][12, 12] = 0.5
+        m.dynamic_tiles[(0, 0)][14, 2] = 0.05  # below the threshold: not called dynamic
+    return m
+
+
+def test_dynamic_cells_are_drawn_over_the_map_only_where_scored():
+    from evgrid.render import DYNAMIC_COLOUR, map_picture, map_rgb, sample_map
+
+    blue = np.rint(np.asarray(DYNAMIC_COLOUR) * 255).astype(np.uint8)
+    m = _dynamic_map(True)
+    pic = map_picture(m, 0, 0, 16, 16, 1, threshold=0.1)
+    called = (pic == blue).all(-1)
+    want = np.zeros((16, 16), bool)
+    want[4:8, 2:6] = want[12, 12] = True
+    np.testing.assert_array_equal(called, want)
+    np.testing.assert_array_equal(pic[~want], map_rgb(sample_map(m, 0, 0, 16, 16)[0])[~want])
+    # a coarse picture (4 x 4 cells a pixel) shows the blocks half called dynamic, not the one
+    # with a lone cell (a mover shows; a single cell's conflict does not grow to a pixel)
+    coarse = (map_picture(m, 0, 0, 16, 16, 4, threshold=0.1) == blue).all(-1)
+    want = np.zeros((4, 4), bool)
+    want[1, :2] = True
+    np.testing.assert_array_equal(coarse, want)
+    # no overlay: the score off, or no threshold asked for
+    for pic in (
+        map_picture(_dynamic_map(False), 0, 0, 16, 16, 1, 0.1),
+        map_picture(m, 0, 0, 16, 16),
+    ):
+        assert not (pic == blue).all(-1).any()
+
+
+def test_maps_figure_shows_the_dynamic_cells_with_a_legend_entry(tmp_path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from evgrid.render import DYNAMIC_COLOUR, write_scene_figures
+
+    blue = np.rint(np.asarray(DYNAMIC_COLOUR) * 255).astype(np.uint8)
+    seen = []
+    real_close = plt.close
+
+    def keep(fig=None):
+        seen.append(
+            {
+                "legend": [t.get_text() for t in fig.legends[0].get_texts()],
+                "images": [ax.images[0].get_array() for ax in fig.axes if ax.images],
+            }
+        )
+        real_close(fig)
+
+    plt.close = keep
+    try:
+        for enabled in (True, False):
+            maps = {"ray_ilm": _dynamic_map(enabled), "fused": _dynamic_map(enabled)}
+            trajectory = [(0.0, 0.0, 0.0), (-0.5, -0.5, 0.0)]
+            write_scene_figures(maps, tmp_path, "s", trajectory, dynamic_threshold=0.1)
+    finally:
+        plt.close = real_close
+    on, off = seen
+    assert "dynamic (score > 0.1)" in on["legend"]
+    for img in on["images"]:
+        assert (np.asarray(img) == blue).all(-1).sum() == 17
+    assert not any("dynamic" in t for t in off["legend"])
+    for img in off["images"]:
+        assert not (np.asarray(img) == blue).all(-1).any()
+
+
+def test_gif_frames_show_the_dynamic_cells_and_their_legend():
+    from types import SimpleNamespace
+
+    from evgrid.fusion import DynamicParams
+    from evgrid.geometry import SE2
+    from evgrid.observers import GifRecorder
+    from evgrid.render import DYNAMIC_COLOUR
+
+    blue = np.rint(np.asarray(DYNAMIC_COLOUR) * 255).astype(np.uint8)
+    for enabled in (True, False):
+        m = _dynamic_map(enabled)
+        maps = SimpleNamespace(
+            maps={"fused": m},
+            dynamic=DynamicParams(enabled=enabled),
+            dynamic_maps=("fused",) if enabled else (),
+        )
+        gif = GifRecorder(m.grid, window_m=4.8, step=1, cols=1)
+        # around map cell (8, 8) (x = y = -0.85 m): the map's tile is the window's lower right,
+        # clear of the name's box
+        pose = SE2(-0.85, -0.85, 0.0)
+        gif.on_update(
+            SimpleNamespace(
+                frame=SimpleNamespace(is_keyframe=True, timestamp=0), pose=pose, maps=maps
+            )
+        )
+        (frame,) = gif.frames
+        strip, pic = frame[:18], frame[18:]
+        assert (pic == blue).all(-1).sum() == (17 if enabled else 0)
+        assert (strip == blue).all(-1).any() == enabled  # the legend's swatch

@@ -179,9 +179,11 @@ def demo(
 def simulate(
     ctx: typer.Context, out: Path = typer.Option(..., "--out", help="Output folder."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace existing scenes."),
+    config: Path = typer.Option(None, "--config", help="A simulate config.json (options win)."),
 ) -> None:  # fmt: skip
     """Simulate nuScenes-like scenes (lidar, radars, odometry, true occupancy) into OUT: npz,
     nuscenes, or recordings (ros2, ros1, mcap: needs evgrid[ros]); seed % 5 == 4 is 'val'.
+    Writes OUT/config.json (simulate again with --config).
 
     \b
     Example (a 10 Hz lidar, three radars at 4 Hz):
@@ -190,10 +192,10 @@ def simulate(
     """
     from evgrid.config import options_to_overrides
     from evgrid.console import bar
-    from evgrid.sim_writer import SimulateOptions, check_out, write_simulated
+    from evgrid.sim_writer import SimulateOptions, check_out, simulate_options, write_simulated
 
     _, values = options_to_overrides(ctx.args, {}, SimulateOptions, SimulateOptions)
-    opts, out = SimulateOptions(**values), check_out(out)
+    opts, out = simulate_options(values, config), check_out(out)
     total = opts.scenes * opts.sim_config().n_frames
     with bar("simulating", total) as advance:
         names = write_simulated(opts, out, overwrite, on_frame=advance)
@@ -323,26 +325,43 @@ def upgrade_checkpoint_cmd(
 
 @_command()
 def bench(
+    ctx: typer.Context,
     seconds: float = typer.Option(6.0, "--duration", help="Length of the scene used (s)."),
     checkpoint: Path = typer.Option(None, "--checkpoint", help="Default: the shipped one."),
     end_to_end: float = typer.Option(None, "--end-to-end", help="Seconds mapped end to end."),
     repeats: int = typer.Option(3, "--repeats", min=1, help="Passes; medians over them."),
-    out: Path = typer.Option(None, "--out", help="Also write the JSON here."),
+    out: Path = typer.Option(None, "--out", help="Also write the JSON here (and .config.json)."),
+    config: Path = typer.Option(None, "--config", help="A bench's .config.json (options win)."),
 ) -> None:
-    """Time every component and the per-frame updates on one core; print JSON.
+    """Time every component and the per-frame updates on one core; print JSON. With --out
+    FILE, FILE's stem + .config.json holds the options (bench again with --config).
 
     Example: evgrid bench --end-to-end 20   # and a whole 20 s run mapped end to end
     """
     import json
 
-    from evgrid.bench import run_bench
+    from click.core import ParameterSource
+
+    from evgrid.bench import bench_options, run_bench, write_bench_config
     from evgrid.io import write_json
 
-    ckpt = str(checkpoint) if checkpoint else None
-    res = run_bench(seconds, ckpt, repeats=repeats, end_to_end_s=end_to_end)
+    given = {
+        "duration": seconds, "checkpoint": str(checkpoint) if checkpoint else None,
+        "end_to_end": end_to_end, "repeats": repeats,
+    }  # fmt: skip
+    names = {"duration": "seconds"}  # the field -> this function's parameter
+    # a config's values stand unless the option is given on the command line
+    typed = ParameterSource.COMMANDLINE
+    values = {
+        k: v for k, v in given.items()
+        if config is None or ctx.get_parameter_source(names.get(k, k)) == typed
+    }  # fmt: skip
+    opts = bench_options(values, config)
+    res = run_bench(opts.duration, opts.checkpoint, opts.repeats, end_to_end_s=opts.end_to_end)
     typer.echo(json.dumps(res, indent=2))
     if out is not None:
         write_json(out, res)
+        write_bench_config(opts, out)
 
 
 if __name__ == "__main__":

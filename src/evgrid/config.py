@@ -33,6 +33,7 @@ from evgrid.ism.lidar import RayIlmParams
 from evgrid.ism.radar import RayIrmParams
 from evgrid.ism.runtime import RUNTIMES
 from evgrid.ism.self_returns import SelfReturnParams
+from evgrid.nav import NavParams
 from evgrid.serial import ConfigError, from_dict, to_dict
 from evgrid.validation import check_choice, check_int, check_number
 
@@ -121,6 +122,8 @@ class MapperConfig:
     grid: GridSpec = field(default_factory=GridSpec)
     fusion: FusionParams = field(default_factory=FusionParams)
     dynamic: DynamicParams = field(default_factory=DynamicParams)  # moving objects' score
+    # the navigation map's clearance around the lidar's returns (docs/equations.md)
+    nav: NavParams = field(default_factory=NavParams)
     maps: tuple[str, ...] = MAP_NAMES
     lidar: RayIlmParams = field(default_factory=RayIlmParams)  # ray ILM
     # The ego vehicle's own lidar returns, removed before the ray ILM (docs/rigs.md#self-returns).
@@ -512,6 +515,7 @@ MAP_OPTIONS: dict[str, tuple[str, ...]] = {
     "mcap-window": ("outputs.mcap.window_m",),
     "mcap-rate": ("outputs.mcap.rate_hz",),
     "mcap-maps": ("outputs.mcap.maps",),
+    "mcap-layers": ("outputs.mcap.layers",),
     "map-frame": ("mapper.frame",),
     "viewer": ("outputs.viewer",),
 }

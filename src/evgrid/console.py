@@ -188,15 +188,9 @@ def train_report(res: Any, out: Any) -> str:
 
 def error_line(e: BaseException) -> str:
     """A failure as one line: the exception's own message (a KeyError's unquoted), else its
-    type; install hints as they work where evgrid is installed from
-    (:func:`evgrid.install_hint`)."""
-    import re
-
-    from evgrid import install_hint
-
+    type."""
     text = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
     text = " ".join(str(text).split())
-    text = re.sub(r"pip install '?evgrid\[(\w+)\]'?", lambda m: install_hint(m.group(1)), text)
     if isinstance(e, (ValueError, OSError, KeyError, RuntimeError, ImportError)):
         return text or type(e).__name__
     return f"{type(e).__name__}: {text}" if text else type(e).__name__

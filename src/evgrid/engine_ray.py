@@ -35,14 +35,16 @@ from typing import Any
 
 from evgrid.engine import _DIED, Outcome, _one_line
 
-__all__ = ["RayEngineError", "fan_out_ray", "ray_session", "INSTALL_HINT", "CONNECT_TIMEOUT_S"]
+__all__ = ["RayEngineError", "fan_out_ray", "ray_session", "CONNECT_TIMEOUT_S"]
 
 log = logging.getLogger(__name__)
 
-INSTALL_HINT = (
-    "the ray engine needs the 'ray' extra: pip install 'evgrid[ray]' "
-    "(from a source checkout: pip install -e '.[ray]')"
-)
+
+def _needs_ray() -> str:
+    from evgrid import install_hint
+
+    return f"the ray engine needs the 'ray' extra: {install_hint('ray')}"
+
 
 #: Seconds to wait for a cluster's address to accept a connection, and then for Ray's GCS to
 #: answer there, before giving up: Ray's own attempts go on for minutes against an address
@@ -121,7 +123,7 @@ def _import_ray(loopback: bool) -> Any:
     try:
         import ray
     except ImportError:
-        raise RayEngineError(INSTALL_HINT) from None
+        raise RayEngineError(_needs_ray()) from None
     return ray
 
 
@@ -358,7 +360,7 @@ def local_cluster(
 
     ray_bin = os.path.join(os.path.dirname(sys.executable), "ray")
     if not os.path.exists(ray_bin):
-        raise RayEngineError(INSTALL_HINT)
+        raise RayEngineError(_needs_ray())
     tmp = tempfile.mkdtemp(prefix="evc", dir="/tmp")  # short: Ray's socket paths must fit
     token = os.path.join(tmp, "token")
     fd = os.open(token, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)

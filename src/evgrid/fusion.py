@@ -11,9 +11,9 @@ paper's six maps (:data:`MAP_NAMES`), and a navigation map computed when asked f
 ``deep_disc``   m = limit_unknown(deep IRM, m_u_min); map = map (+)_Y (gamma (x) m)
 ``ray_irm``     map = map (+)_D ray IRM
 ``fused``       the deep_disc step, then map = map (+)_D ray IRM
-``nav``         the ray_ilm map (+)_D the fused map, the fused map's free mass ignored where
-                the lidar saw a return (never free where the lidar saw occupied), its
-                occupied mass where the lidar's evidence is free-dominant
+``nav``         the ray_ilm map (+)_D the fused map, the fused map's free mass ignored within
+                a margin of the lidar's returns and of fused obstacles, its occupied mass
+                where the lidar's evidence is free-dominant (:mod:`evgrid.nav`)
 ==============  ==========================================================================
 
 :class:`MapSet` updates any of them in one pass per time step (:meth:`MapSet.update`, the
@@ -30,7 +30,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -52,6 +52,7 @@ from evgrid.kernels import (
     warp_update,
     window_spans,
 )
+from evgrid.nav import NavParams, nav_dense, refresh
 from evgrid.validation import check_number
 
 __all__ = [
@@ -196,10 +197,17 @@ class UpdateRule:
     def update(self, cell: np.ndarray, *args, spans: np.ndarray | None = None) -> int:
         """``update(cell, *inputs[, params[, spans]])``: apply the rule in place on dense views.
 
+        Rules from maps read a neighbourhood, not cells: :func:`update_nav` applies nav.
+
         ``cell`` and each input are ``(h, w, 3)`` float32 views with contiguous rows; ``spans``
         (``(h, 2)`` int64) limits row i to columns ``spans[i, 0]:spans[i, 1]``. Returns the
         number of invalid input cells rejected (their map cells are left untouched).
         """
+        if self.from_maps:
+            raise TypeError(
+                f"{self.name} is computed from whole maps and a neighbourhood of cells, not per "
+                f"cell: use evgrid.fusion.update_nav"
+            )
         n = len(self.inputs)
         if not n <= len(args) <= n + 2:
             raise TypeError(
@@ -268,7 +276,7 @@ RULES: dict[str, UpdateRule] = {
             ("ray_ilm", "fused"),
             RULE_NAV,
             (),
-            "ray_ilm map (+)_D fused map restricted by the lidar's evidence, eq. (5)",
+            "ray_ilm map (+)_D fused map kept off the lidar's returns, eq. (5)",
             from_maps=True,
             isms=("ray_ilm", "deep_irm", "ray_irm"),
         ),
@@ -379,16 +387,22 @@ def update_nav(
     cell: np.ndarray,
     lidar_map: np.ndarray,
     fused_map: np.ndarray,
-    params: FusionParams | None = None,
-    spans: np.ndarray | None = None,
+    *,
+    margin_cells: int = 0,
+    occupied_min: float = 1.0,
 ) -> int:
-    """``cell := nav(lidar_map, fused_map)`` per cell (docs/equations.md#the-navigation-map).
+    """``cell := nav(lidar_map, fused_map)`` on dense ``(h, w, 3)`` float32 maps
+    (:mod:`evgrid.nav`, docs/equations.md#the-navigation-map); cells beyond the edges are vacuous.
 
     Dempster's rule (eq. (5)) of the lidar map's cell with the fused map's, whose free mass
-    counts as unknown where the lidar map holds any occupied mass, and whose occupied mass
-    counts as unknown where the lidar's free mass exceeds its occupied mass. Returns 0.
+    counts as unknown within ``margin_cells`` of a cell with lidar occupied mass or fused
+    occupied mass above ``occupied_min`` (the defaults look at each cell alone), and whose
+    occupied mass counts as unknown where the lidar's free mass exceeds its occupied mass.
+    Returns 0 (maps hold no invalid cells to reject).
     """
-    return RULES[NAV_MAP].update(cell, lidar_map, fused_map, params, spans=spans)
+    _check_views(cell, lidar_map, fused_map)
+    cell[...] = nav_dense(lidar_map, fused_map, margin_cells, occupied_min)
+    return 0
 
 
 # --- a set of maps, updated in one pass ----------------------------------------------------
@@ -425,9 +439,10 @@ class MapSet:
     map's rule table (kernel code, inputs, ``m_u_min``, ``alpha``). Other map sets attached
     with :meth:`attach` (the ``m_u_min`` sweep's) are extra rows of the same pass.
 
-    ``names`` are any of :data:`RULES` (default: the six of Table I). ``nav`` reads the
-    ``ray_ilm`` and ``fused`` maps of the same step: where they are not asked for, the set
-    keeps them for it without showing them in :attr:`maps`.
+    ``names`` are any of :data:`RULES` (default: the six of Table I). ``nav`` (with ``nav``
+    :class:`~evgrid.nav.NavParams`) is computed from the ``ray_ilm`` and ``fused`` maps when
+    it is read from :attr:`maps`, over the cells the updates since the last read changed: where
+    those two are not asked for, the set keeps them for it without showing them in :attr:`maps`.
 
     Invalid ISM cells never reach a map: ``n_rejected[ism]`` counts the cells of the local ISM
     grids that were not masses and were taken as vacuous (no information);
@@ -446,6 +461,7 @@ class MapSet:
         names: tuple[str, ...] = MAP_NAMES,
         tile_cells: int = 256,
         dynamic: DynamicParams | None = None,
+        nav: NavParams | None = None,
     ):
         if grid is not None and not isinstance(grid, GridSpec):
             raise TypeError(f"MapSet: grid must be a GridSpec, got {type(grid).__name__}")
@@ -467,7 +483,10 @@ class MapSet:
             )
         self.grid = grid or GridSpec()
         self.params = params or FusionParams()
+        if nav is not None and not isinstance(nav, NavParams):
+            raise TypeError(f"MapSet: nav must be a NavParams, got {type(nav).__name__} {nav!r}")
         self.dynamic = dynamic or DynamicParams(enabled=False)
+        self.nav = nav or NavParams()
         self.names = tuple(names)
         # maps read by a rule from maps come first in the pass, and are kept when not shown
         needed = [m for n in self.names if RULES[n].from_maps for m in RULES[n].inputs]
@@ -490,8 +509,15 @@ class MapSet:
             for n in order
         ]
         self.tile_cells = self._rows[0].map.tile_cells
-        shown = {r.name: r.map for r in self._rows}
-        self.maps: dict[str, EvidentialMap] = {n: shown[n] for n in self.names}
+        every = {r.name: r.map for r in self._rows}
+        # the maps computed from others when read (nav), each with its input maps
+        self._derived = [
+            (every[r.name], *(every[m] for m in r.rule.inputs))
+            for r in self._rows
+            if r.rule.from_maps
+        ]
+        self._stale: tuple[int, int, int, int] | None = None  # cells changed since the last read
+        self.maps: Mapping[str, EvidentialMap] = _Maps(self, {n: every[n] for n in self.names})
         self.required_isms: tuple[str, ...] = tuple(
             i for i in ISM_NAMES if any(i in RULES[n].isms for n in self.names)
         )
@@ -516,7 +542,16 @@ class MapSet:
     @property
     def dynamic_maps(self) -> tuple[str, ...]:
         """The maps of this set that keep a dynamic score (empty with the score off)."""
-        return tuple(n for n in self.names if self.maps[n].dynamic)
+        return tuple(r.name for r in self._rows if r.shown and r.map.dynamic)
+
+    @property
+    def reach(self) -> int:
+        """Cells beyond an update's window that it can change: the navigation map's margin
+        (nav reads a neighbourhood) when this set or one attached to it has nav, else 0."""
+        return max(
+            (s.nav.margin_cells(s.grid.resolution) for s in (self, *self._attached) if s._derived),
+            default=0,
+        )
 
     def _gate(self, row: _Row) -> float:
         """The gate's threshold of a row (docs/equations.md#the-gate); 0: not gated."""
@@ -530,14 +565,13 @@ class MapSet:
         slot = {i: s for s, i in enumerate(self.required_isms)}
         codes, params, rows_, owners = [], [], [], []
         for s in (self, *self._attached):
-            index = {r.name: len(rows_) + k for k, r in enumerate(s._rows)}
-            for r in s._rows:
-                where = index if r.rule.from_maps else slot
-                codes.append((r.rule.kernel, where[r.rule.inputs[0]], where[r.rule.inputs[-1]]))
+            updated = [r for r in s._rows if not r.rule.from_maps]  # nav is computed when read
+            for r in updated:
+                codes.append((r.rule.kernel, slot[r.rule.inputs[0]], slot[r.rule.inputs[-1]]))
                 decay = s.dynamic.decay if r.map.dynamic else 0.0
                 params.append((r.params.m_u_min, r.params.alpha, decay, s._gate(r)))
-            rows_ += s._rows
-            owners += [s] * len(s._rows)
+            rows_ += updated
+            owners += [s] * len(updated)
         self._codes = np.array(codes, dtype=np.int64).reshape(-1, 3)
         self._params = np.array(params, dtype=np.float64).reshape(-1, 4)
         self._pass_rows: list[_Row] = rows_
@@ -601,13 +635,16 @@ class MapSet:
         for name, warper in self._warpers.items():
             warper.load(isms[name])
         t1 = time.perf_counter()
-        rejected = self._pass(pose)
+        box = warp_window(self.grid, pose)
+        rejected = self._pass(pose, box)
         if moving is not None and len(moving):
             self._doppler(pose, moving, isms)
         self.last_ms = {"warp": (t1 - t0) * 1e3, "fuse": (time.perf_counter() - t1) * 1e3}
         for s in (self, *self._attached):
             s.n_updates += 1
-        out: dict[str, int] = {}
+            if s._derived:
+                s._stale = _union(s._stale, box)
+        out: dict[str, int] = {n: 0 for n in self.names if RULES[n].from_maps}
         for row, owner, r in zip(self._pass_rows, self._pass_owners, rejected):
             if row.shown:
                 owner.n_rejected_cells[row.name] += int(r)
@@ -615,10 +652,24 @@ class MapSet:
                     out[row.name] = int(r)
         return out
 
-    def _pass(self, pose: SE2) -> np.ndarray:
-        """The one pass over the window at ``pose``: the ISMs of the last load, every row's rule."""
+    def _settle(self) -> None:
+        """Compute the maps derived from others (nav) over the cells changed since the last read."""
+        if self._stale is None:
+            return
+        t0 = time.perf_counter()
+        r = self.nav.margin_cells(self.grid.resolution)
+        avoid = self.nav.avoid_moving and self.dynamic.enabled
+        moving_min = self.dynamic.threshold if avoid else math.inf
+        for nav, lidar, fused in self._derived:
+            refresh(nav, lidar, fused, self._stale, r, self.nav.occupied_min, moving_min)
+        self._stale = None
+        self.last_ms["nav"] = self.last_ms.get("nav", 0.0) + (time.perf_counter() - t0) * 1e3
+
+    def _pass(self, pose: SE2, box: tuple[int, int, int, int]) -> np.ndarray:
+        """The one pass over the window ``box`` at ``pose``: the ISMs of the last load, every
+        row's rule."""
         grid, n = self.grid, self.grid.n_cells
-        r0, c0, h, w = warp_window(grid, pose)
+        r0, c0, h, w = box
         affine = window_affine(grid, pose, r0, c0)
         spans = self._spans[:h]
         window_spans(*affine, n, h, w, spans)
@@ -697,3 +748,33 @@ class MapSet:
         """
         host = self._host or self
         return {i: host._warpers[i].warp_loaded(pose) for i in self.required_isms}
+
+
+def _union(a: tuple[int, int, int, int] | None, b: tuple[int, int, int, int]):
+    """The smallest box (r0, c0, h, w) holding boxes ``a`` (None: none) and ``b``."""
+    if a is None:
+        return b
+    r0, c0 = min(a[0], b[0]), min(a[1], b[1])
+    return r0, c0, max(a[0] + a[2], b[0] + b[2]) - r0, max(a[1] + a[3], b[1] + b[3]) - c0
+
+
+class _Maps(Mapping):
+    """A map set's maps by name; reading one first brings the maps computed from others (nav)
+    up to date, so every reader sees them as of the last update."""
+
+    def __init__(self, owner: MapSet, maps: dict[str, EvidentialMap]):
+        self._owner, self._maps = owner, maps
+
+    def __getitem__(self, name: str) -> EvidentialMap:
+        m = self._maps[name]
+        self._owner._settle()
+        return m
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._maps)
+
+    def __len__(self) -> int:
+        return len(self._maps)
+
+    def __repr__(self) -> str:
+        return f"maps({', '.join(self._maps)})"

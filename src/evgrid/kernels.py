@@ -53,6 +53,7 @@ __all__ = [
     "informative_blocks",
     "warp_rows",
     "warp_update",
+    "nav_cells",
 ]
 
 # --- per-cell formulas (float64 scalars in, normalised float64 triple out) ---------------------
@@ -417,41 +418,6 @@ def _fused_row(mp_, deep_, irm_, bad, n, m_u_min, alpha):
     return _row_sum(bad, n)
 
 
-@numba.njit(inline="always", **_JIT)
-def _nav_cell(fl, ol, ul, ff, of, uf):
-    # nav (docs/equations.md#the-navigation-map): the lidar map L (+)_D the fused map F (eq. (5)),
-    # F restricted by L's evidence: where L holds any occupied mass (the lidar saw a return
-    # there), F's free mass counts as unknown, so a cell the lidar saw occupied is never made
-    # free by the radar or the prior; where m_f(L) > m_o(L), F's occupied mass counts as unknown,
-    # so the lidar's free space stays free. Where L holds no evidence, nav is F.
-    occ = ol > 0.0
-    fre = fl > ol
-    f2 = 0.0 if occ else ff
-    o2 = 0.0 if fre else of
-    u2 = uf + (ff if occ else 0.0) + (of if fre else 0.0)
-    return _dempster_cell(fl, ol, ul, f2, o2, u2)
-
-
-@numba.njit(inline="always", **_CHECKED)
-def _nav_row(mp_, lidar_, fused_, n):
-    # nav from the lidar map's and the fused map's cells of the same row (already updated in
-    # this step), for every cell of the row; map cells are never invalid, so nothing is rejected.
-    for j in range(n):
-        p = 3 * j
-        f, o, u = _nav_cell(
-            np.float64(lidar_[p]),
-            np.float64(lidar_[p + 1]),
-            np.float64(lidar_[p + 2]),
-            np.float64(fused_[p]),
-            np.float64(fused_[p + 1]),
-            np.float64(fused_[p + 2]),
-        )
-        mp_[p] = f
-        mp_[p + 1] = o
-        mp_[p + 2] = u
-    return 0
-
-
 @numba.njit(inline="always", **_CHECKED)
 def _dynamic_row(mp_, ism_, s_, n, decay, gate):
     # s <- decay s + K_arr + K_left per cell of the row, from the map cell before its update
@@ -474,7 +440,7 @@ def _dynamic_row(mp_, ism_, s_, n, decay, gate):
 
 
 #: Kernel codes of the update rules; :data:`evgrid.fusion.RULES` says which map uses which.
-#: RULE_NAV reads two maps' rows (the lidar and fused maps), the others one or two ISMs' rows.
+#: RULE_NAV is not a row of the pass: nav is computed from two maps by nav_cells when read.
 RULE_DEMPSTER, RULE_DEEP_REPLACE, RULE_DEEP_DISC, RULE_FUSED, RULE_NAV = 0, 1, 2, 3, 4
 #: The rules with a Dempster step (eq. (5)) on an ISM, whose conflict feeds the dynamic score.
 DYNAMIC_RULES = (RULE_DEMPSTER, RULE_FUSED)
@@ -490,9 +456,7 @@ def _rule_row(code, mp_, a, b, bad, n, m_u_min, alpha):
         return _deep_replace_row(mp_, a, bad, n, m_u_min)
     elif code == RULE_DEEP_DISC:
         return _deep_disc_row(mp_, a, bad, n, m_u_min, alpha)
-    elif code == RULE_FUSED:
-        return _fused_row(mp_, a, b, bad, n, m_u_min, alpha)
-    return _nav_row(mp_, a, b, n)
+    return _fused_row(mp_, a, b, bad, n, m_u_min, alpha)
 
 
 @numba.njit(**_CHECKED)
@@ -518,6 +482,53 @@ def update_rows(code, mp, mrs, a, ars, b, brs, h, w, spans, m_u_min, alpha):
             alpha,
         )
     return n_bad
+
+
+# --- the navigation map: two maps of the same set and their neighbourhood -----------------------
+
+
+@numba.njit(inline="always", **_JIT)
+def _nav_cell(fl, ol, ul, ff, of, uf, clear):
+    # F' = F with its free mass as unknown unless the cell is clear, and its occupied mass as
+    # unknown where the lidar's evidence is free-dominant; then L (+)_D F', eq. (5).
+    f2 = ff if clear else 0.0
+    o2 = 0.0 if fl > ol else of
+    u2 = uf + (ff - f2) + (of - o2)
+    return _dempster_cell(fl, ol, ul, f2, o2, u2)
+
+
+@numba.njit(**_CHECKED)
+def nav_cells(lidar, fused, moving, out, r, occupied_min, moving_min):
+    """The navigation map (evgrid.nav) of the cells ``r`` in from every edge of the dense lidar
+    and fused maps ``(h + 2r, w + 2r, 3)``, into ``out`` ``(h, w, 3)``: a cell is clear when no
+    cell within ``r`` cells (a square) holds lidar occupied mass, fused occupied mass above
+    ``occupied_min``, or a dynamic score ``moving`` ``(h + 2r, w + 2r)`` above ``moving_min``."""
+    # blocking cells are counted in an integral image: each cell's clearance is four reads
+    hh, ww = lidar.shape[0], lidar.shape[1]
+    acc = np.zeros((hh + 1, ww + 1), np.int32)
+    for i in range(hh):
+        run = 0
+        for j in range(ww):
+            if lidar[i, j, 1] > 0.0 or fused[i, j, 1] > occupied_min or moving[i, j] > moving_min:
+                run += 1
+            acc[i + 1, j + 1] = acc[i, j + 1] + run
+    d = 2 * r + 1
+    for i in range(out.shape[0]):
+        for j in range(out.shape[1]):
+            n = acc[i + d, j + d] - acc[i, j + d] - acc[i + d, j] + acc[i, j]
+            a, b = i + r, j + r
+            f, o, u = _nav_cell(
+                np.float64(lidar[a, b, 0]),
+                np.float64(lidar[a, b, 1]),
+                np.float64(lidar[a, b, 2]),
+                np.float64(fused[a, b, 0]),
+                np.float64(fused[a, b, 1]),
+                np.float64(fused[a, b, 2]),
+                n == 0,
+            )
+            out[i, j, 0] = f
+            out[i, j, 1] = o
+            out[i, j, 2] = u
 
 
 # --- the warp: a local grid resampled into the map (evgrid.grid) ---------------------------------
@@ -858,11 +869,11 @@ def warp_update(
     # writes them, into a row buffer per ISM, and each map's rule runs on the buffers: the same
     # masses as warping whole windows and updating from them, without writing or re-reading the
     # windows. Row k of ``rules`` is map k's (kernel code, first input, last input), its
-    # ``params`` row (m_u_min, alpha, decay, gate): inputs are ISM slots (bufs), for RULE_NAV
-    # earlier maps (tiles) whose rows this step has already updated. A row with decay > 0 (a rule of
-    # DYNAMIC_RULES) first adds its Dempster step's conflict to its dynamic layer ``dyns[k]``
-    # (flat, a float per cell), from the map cells before the update; masses are the same
-    # unless the row's gate (> 0: the threshold of the gate, docs/equations.md#the-gate) is on.
+    # ``params`` row (m_u_min, alpha, decay, gate): inputs are ISM slots (bufs). A row with
+    # decay > 0 (a rule of DYNAMIC_RULES) first adds its Dempster step's conflict to its dynamic
+    # layer ``dyns[k]`` (flat, a float per cell), from the map cells before the update; masses
+    # are the same unless the row's gate (> 0: the gate's threshold,
+    # docs/equations.md#the-gate) is on.
     idx = np.empty(BLOCK, dtype=np.int64)
     frac = np.empty(2 * BLOCK, dtype=np.float32)
     bad = np.zeros(ts, np.uint8)
@@ -917,12 +928,7 @@ def warp_update(
                 continue
             if decay > 0.0:  # fused: the last input is the ISM of the Dempster step
                 _dynamic_row(mp_, bufs[y], dyns[k][t : t + m], m, decay, gate)
-            if code == RULE_NAV:
-                rejected[k] += _nav_row(
-                    mp_, tiles[x][3 * t : 3 * (t + m)], tiles[y][3 * t : 3 * (t + m)], m
-                )
-            else:
-                rejected[k] += _rule_row(
-                    code, mp_, bufs[x], bufs[y], bad, m, params[k, 0], params[k, 1]
-                )
+            rejected[k] += _rule_row(
+                code, mp_, bufs[x], bufs[y], bad, m, params[k, 0], params[k, 1]
+            )
             covs[k][t : t + m] = True

@@ -42,8 +42,11 @@ class MapUpdate:
 
     @property
     def box(self) -> tuple[int, int, int, int]:
-        """Map cells ``(r0, c0, h, w)`` that this update could change."""
-        return warp_window(self.maps.grid, self.pose)
+        """Map cells ``(r0, c0, h, w)`` that this update could change: its window, grown by
+        the navigation map's margin when the set has one (nav reads a neighbourhood)."""
+        r0, c0, h, w = warp_window(self.maps.grid, self.pose)
+        g = self.maps.reach
+        return r0 - g, c0 - g, h + 2 * g, w + 2 * g
 
     @property
     def windows(self) -> dict[str, MapWindow]:
@@ -78,7 +81,7 @@ class OccupancyMapper:
     ):
         self.config = config
         self.maps = MapSet(
-            config.grid, config.fusion, config.maps, config.tile_cells, config.dynamic
+            config.grid, config.fusion, config.maps, config.tile_cells, config.dynamic, config.nav
         )
         self.extra = tuple(extra)
         for s in self.extra:  # extra rows of the same one-pass update
@@ -141,6 +144,9 @@ class OccupancyMapper:
         update = MapUpdate(frame, pose, isms, self.maps)
         for obs in self.observers:
             obs.on_update(update)
+        nav_ms = self.maps.last_ms.get("nav")  # nav computed when an observer read it
+        if nav_ms is not None:
+            self.timings.setdefault("nav", []).append(nav_ms)
         return True
 
     def local_isms(self, frame: Frame) -> dict[str, np.ndarray]:

@@ -377,19 +377,22 @@ class GifRecorder:
         self._n_keyframes += 1
         if k % self._stride:
             return
-        from evgrid.render import label_panels, map_rgb, sample_map
+        from evgrid.render import DYNAMIC_COLOUR, dynamic_label, label_panels, map_picture
 
         rc, cc = self.grid.map_xy_to_cell(update.pose.x, update.pose.y)
         r0, c0 = int(rc) - self.cells // 2, int(cc) - self.cells // 2
+        # the cells called dynamic, on the maps that keep a score
+        threshold = update.maps.dynamic.threshold if update.maps.dynamic_maps else None
+        n = self.cells
         pics = [
-            map_rgb(sample_map(m, r0, c0, self.cells, self.cells, self.step)[0])
-            for m in update.maps.maps.values()
+            map_picture(m, r0, c0, n, n, self.step, threshold) for m in update.maps.maps.values()
         ]
+        legend = [(dynamic_label(threshold), DYNAMIC_COLOUR)] if threshold is not None else []
         if self._t0_us is None:
             self._t0_us = update.frame.timestamp
         t_s = (update.frame.timestamp - self._t0_us) * 1e-6
         caption = f"t = {t_s:.1f} s   {self.cells * self.grid.resolution:g} m around the vehicle"
-        self.frames.append(label_panels(pics, list(update.maps.maps), caption, self.cols))
+        self.frames.append(label_panels(pics, list(update.maps.maps), caption, self.cols, legend))
         if len(self.frames) >= self.max_frames:
             self.frames = self.frames[::2]
             self._stride *= 2

@@ -3,8 +3,10 @@
 Maps are drawn in a map_server-like palette (:func:`map_rgb`: free white, occupied black,
 unknown grey, mixed masses as shades between), with the axes in metres (x forward up, y left),
 a scale bar, and the legend outside the panels; every plot gives a map the same colour
-(:func:`map_colour`). The paper's colours (red free, green occupied, blue unknown) remain as
-:func:`masses_to_rgb` and ``palette="paper"``.
+(:func:`map_colour`). The cells called dynamic (:class:`evgrid.fusion.DynamicParams`) are drawn
+in :data:`DYNAMIC_COLOUR` over the maps that keep a score (:func:`map_picture`). The paper's
+colours (red free, green occupied, blue unknown) remain as :func:`masses_to_rgb` and
+``palette="paper"``.
 
 matplotlib (Agg) is imported inside the functions that draw figures, so that importing
 evgrid stays light.
@@ -33,6 +35,10 @@ __all__ = [
     "write_gif",
     "trajectory_cells",
     "sample_map",
+    "called_dynamic",
+    "map_picture",
+    "overlay_dynamic",
+    "dynamic_label",
     "mosaic",
     "write_scene_figures",
     "plot_m_u_min_sweep",
@@ -52,6 +58,9 @@ def masses_to_rgb(m: np.ndarray) -> np.ndarray:
 
 #: The map palette's colours (map_server's PGM greys: free 254, occupied 0, unknown 205).
 MAP_PALETTE = {"free": (1.0, 1.0, 1.0), "occupied": (0.0, 0.0, 0.0), "unknown": (0.8, 0.8, 0.8)}
+#: The colour of the cells called dynamic, drawn over the map palette (no grey, nor the path's
+#: red: it reads on free, occupied and unknown alike).
+DYNAMIC_COLOUR = (0.1, 0.4, 1.0)
 
 
 def map_rgb(m: np.ndarray) -> np.ndarray:
@@ -102,8 +111,9 @@ def map_colour(name: str) -> str:
     return _LINE_COLOURS.get(name) or _SPARE_COLOURS[zlib.crc32(name.encode()) % 6]
 
 
-def _legend(fig, palette: str, path: bool) -> None:
-    """The classes' colours (and the path) as one row below the panels."""
+def _legend(fig, palette: str, path: bool, dynamic: str = "") -> None:
+    """The classes' colours (the path, and ``dynamic``: the label of the cells called dynamic)
+    as one row below the panels."""
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
 
@@ -117,6 +127,8 @@ def _legend(fig, palette: str, path: bool) -> None:
                 label="shades: mixed masses (darker: more occupied)",
             )
         )
+    if dynamic:
+        handles.append(Patch(facecolor=DYNAMIC_COLOUR, edgecolor="0.3", label=dynamic))
     if path:
         handles.append(Line2D([], [], color=PATH_COLOUR, lw=1.2, label="path"))
     fig.legend(
@@ -190,6 +202,8 @@ def plot_panels(
     cols: int | None = None,
     gamma: float = 1.0,
     palette: str = "map",
+    dynamic: Mapping[str, np.ndarray] | None = None,
+    dynamic_label: str = "dynamic",
 ) -> Path:
     """Mass grids side by side (paper Figs. 2 and 4), the legend below them.
 
@@ -199,7 +213,9 @@ def plot_panels(
     a scale bar, and ``tracks`` are ``(n, 2)`` paths as (x, y) metres; without it, ``tracks``
     are image (column, row) coordinates. ``palette``: ``map`` (:func:`map_rgb`) or ``paper``
     (:func:`masses_to_rgb`). ``gamma < 1`` brightens small masses (a single ISM's m_f = 0.05
-    is invisible otherwise).
+    is invisible otherwise). ``dynamic``: per panel, a boolean mask of its shape, the cells
+    called dynamic, drawn in :data:`DYNAMIC_COLOUR` over the map, with ``dynamic_label`` in the
+    legend (panels without a mask, and runs without the score, show none).
     """
     if palette not in ("map", "paper"):
         raise ValueError(f"palette must be 'map' or 'paper', got {palette!r}")
@@ -212,8 +228,12 @@ def plot_panels(
     cols = cols or min(n, 3)
     rows = (n + cols - 1) // cols
     fig, axes = plt.subplots(rows, cols, figsize=(3.8 * cols, 3.8 * rows), dpi=110, squeeze=False)
+    dynamic = dynamic or {}
     for ax, (name, m) in zip(axes.flat, panels.items()):
-        ax.imshow(to_rgb(_gamma(m, gamma)), extent=extent_m, interpolation="nearest")
+        rgb = to_rgb(_gamma(m, gamma))
+        if name in dynamic:
+            rgb = overlay_dynamic(rgb, dynamic[name])
+        ax.imshow(rgb, extent=extent_m, interpolation="nearest")
         if tracks and name in tracks:
             t = np.asarray(tracks[name], dtype=np.float64).reshape(-1, 2)
             if extent_m is not None:  # (x, y) metres: y runs along the image's columns
@@ -231,7 +251,7 @@ def plot_panels(
             _scale_bar(ax, extent_m[1] - extent_m[0])
     for ax in list(axes.flat)[n:]:
         ax.axis("off")
-    _legend(fig, palette, bool(tracks))
+    _legend(fig, palette, bool(tracks), dynamic_label if dynamic else "")
     return _save(fig, path, title)
 
 
@@ -331,6 +351,22 @@ def trajectory_cells(xy: np.ndarray, resolution: float, r0: int, c0: int) -> np.
     return np.stack([cols, rows], axis=1)
 
 
+def _box_keys(m, r0: int, c0: int, h: int, w: int) -> list[tuple[int, int]]:
+    """Tile keys to look up for box ``[r0, r0+h) x [c0, c0+w)``: those the box meets, or the
+    stored ones when fewer (a box larger than the map)."""
+    ts = m.tile_cells
+    n_box = (
+        ((r0 + h - 1) // ts - r0 // ts + 1) * ((c0 + w - 1) // ts - c0 // ts + 1) if h and w else 0
+    )
+    if n_box > len(m.tiles):
+        return list(m.tiles)
+    return [
+        (ti, tj)
+        for ti in range(r0 // ts, (r0 + h - 1) // ts + 1)
+        for tj in range(c0 // ts, (c0 + w - 1) // ts + 1)
+    ]
+
+
 def sample_map(m, r0: int, c0: int, h: int, w: int, step: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """Every ``step``-th map cell of ``[r0, r0+h) x [c0, c0+w)``: masses and coverage, read
     tile by tile.
@@ -346,18 +382,7 @@ def sample_map(m, r0: int, c0: int, h: int, w: int, step: int = 1) -> tuple[np.n
     out = vacuous((hh, ww))
     cov = np.zeros((hh, ww), dtype=np.bool_)
     ts = m.tile_cells
-    n_box = (
-        ((r0 + h - 1) // ts - r0 // ts + 1) * ((c0 + w - 1) // ts - c0 // ts + 1) if h and w else 0
-    )
-    if n_box <= len(m.tiles):
-        keys = [
-            (ti, tj)
-            for ti in range(r0 // ts, (r0 + h - 1) // ts + 1)
-            for tj in range(c0 // ts, (c0 + w - 1) // ts + 1)
-        ]
-    else:
-        keys = list(m.tiles)
-    for ti, tj in keys:
+    for ti, tj in _box_keys(m, r0, c0, h, w):
         t = m.tiles.get((ti, tj))
         if t is None:
             continue
@@ -377,6 +402,77 @@ def sample_map(m, r0: int, c0: int, h: int, w: int, step: int = 1) -> tuple[np.n
     return out, cov
 
 
+#: The share of a picture's block of cells that must be called dynamic for the block to be drawn
+#: dynamic: a mover larger than a pixel shows, a lone cell's conflict does not grow to a pixel.
+DYNAMIC_SHARE = 0.25
+
+
+def called_dynamic(m, r0: int, c0: int, h: int, w: int, step: int, threshold: float) -> np.ndarray:
+    """Which blocks of ``step`` x ``step`` cells of ``[r0, r0+h) x [c0, c0+w)`` are drawn as
+    dynamic: those where at least :data:`DYNAMIC_SHARE` of the cells have a dynamic score
+    above ``threshold`` (with ``step`` 1, the cells called dynamic). Read tile by tile as
+    :func:`sample_map`; bool ``(ceil(h / step), ceil(w / step))``, no cell called where no
+    tile is stored. Raises ValueError if the map keeps no score."""
+    if not m.dynamic:
+        raise ValueError(
+            f"map {m.metadata.get('rule', '?')!r} keeps no dynamic layer (dynamic off)"
+        )
+    if step < 1 or h < 0 or w < 0:
+        raise ValueError(
+            f"called_dynamic needs step >= 1 and a non-negative box, got step {step}, box {h} x {w}"
+        )
+    hh, ww = -(-h // step), -(-w // step)
+    n_called = np.zeros((hh, ww), dtype=np.int64)
+    ts = m.tile_cells
+    for ti, tj in _box_keys(m, r0, c0, h, w):
+        d = m.dynamic_tiles.get((ti, tj))
+        if d is None:
+            continue
+        ra, rb = max(r0, ti * ts), min(r0 + h, (ti + 1) * ts)
+        ca, cb = max(c0, tj * ts), min(c0 + w, (tj + 1) * ts)
+        if ra >= rb or ca >= cb:
+            continue
+        piece = d[ra - ti * ts : rb - ti * ts, ca - tj * ts : cb - tj * ts] > threshold
+        # the blocks this piece meets start at its first cell and at every multiple of step
+        rs = np.unique(np.r_[0, np.arange(-(-(ra - r0) // step) * step, rb - r0, step) - ra + r0])
+        cs = np.unique(np.r_[0, np.arange(-(-(ca - c0) // step) * step, cb - c0, step) - ca + c0])
+        block = np.add.reduceat(np.add.reduceat(piece.astype(np.int64), rs, axis=0), cs, axis=1)
+        oi, oj = (ra - r0) // step, (ca - c0) // step
+        n_called[oi : oi + block.shape[0], oj : oj + block.shape[1]] += block
+    # cells per block (the last row and column of blocks may be cut by the box)
+    rows = np.minimum(step, h - np.arange(hh) * step)
+    cols = np.minimum(step, w - np.arange(ww) * step)
+    return n_called > 0 if step == 1 else n_called >= DYNAMIC_SHARE * np.outer(rows, cols)
+
+
+def overlay_dynamic(rgb: np.ndarray, called: np.ndarray) -> np.ndarray:
+    """A copy of RGB picture ``rgb`` with the cells of mask ``called`` in
+    :data:`DYNAMIC_COLOUR`."""
+    called = np.asarray(called, dtype=bool)
+    if called.shape != rgb.shape[:2]:
+        raise ValueError(f"dynamic mask of shape {called.shape} for a picture of {rgb.shape[:2]}")
+    out = np.array(rgb, dtype=np.uint8, copy=True)
+    out[called] = np.rint(np.asarray(DYNAMIC_COLOUR) * 255).astype(np.uint8)
+    return out
+
+
+def dynamic_label(threshold: float) -> str:
+    """The legend's words for the cells called dynamic."""
+    return f"dynamic (score > {threshold:g})"
+
+
+def map_picture(
+    m, r0: int, c0: int, h: int, w: int, step: int = 1, threshold: float | None = None
+) -> np.ndarray:
+    """Every ``step``-th cell of ``[r0, r0+h) x [c0, c0+w)`` as a map picture (:func:`map_rgb`),
+    with the cells whose dynamic score exceeds ``threshold`` in :data:`DYNAMIC_COLOUR` when the
+    map keeps a score (none drawn with ``threshold`` None)."""
+    pic = map_rgb(sample_map(m, r0, c0, h, w, step)[0])
+    if threshold is None or not getattr(m, "dynamic", False):
+        return pic
+    return overlay_dynamic(pic, called_dynamic(m, r0, c0, h, w, step, threshold))
+
+
 def mosaic(pics: Sequence[np.ndarray], cols: int = 3) -> np.ndarray:
     """RGB pictures of one size tiled ``cols`` across (missing places black)."""
     if not pics:
@@ -393,9 +489,11 @@ def label_panels(
     labels: Sequence[str],
     caption: str = "",
     cols: int = 3,
+    legend: Sequence[tuple[str, Sequence[float]]] = (),
 ) -> np.ndarray:
     """RGB pictures of one size tiled ``cols`` across (:func:`mosaic`), each with its label
-    (a map's name) in its upper left corner, and ``caption`` (e.g. the time) in a strip above."""
+    (a map's name) in its upper left corner, and ``caption`` (e.g. the time) in a strip above,
+    followed by the ``legend``'s (label, RGB in [0, 1]) swatches."""
     from PIL import Image, ImageDraw, ImageFont
 
     if len(labels) != len(pics):
@@ -413,10 +511,16 @@ def label_panels(
         d.text((3, 2), label, fill=(255, 255, 255), font=font)
         out.append(np.asarray(im))
     grid = mosaic(out, cols)
-    if not caption:
+    if not caption and not legend:
         return grid
     strip = Image.new("RGB", (grid.shape[1], 18), (40, 40, 40))
-    ImageDraw.Draw(strip).text((4, 3), caption, fill=(255, 255, 255), font=font)
+    d = ImageDraw.Draw(strip)
+    d.text((4, 3), caption, fill=(255, 255, 255), font=font)
+    x = d.textbbox((4, 3), caption, font=font)[2] + 16 if caption else 4
+    for label, rgb in legend:
+        d.rectangle((x, 4, x + 10, 14), fill=tuple(int(round(255 * v)) for v in rgb))
+        d.text((x + 14, 3), label, fill=(255, 255, 255), font=font)
+        x = d.textbbox((x + 14, 3), label, font=font)[2] + 16
     return np.concatenate([np.asarray(strip), grid], axis=0)
 
 
@@ -433,15 +537,22 @@ def write_scene_figures(
     last_isms: Mapping[str, np.ndarray] | None = None,
     keyframes: Sequence[Mapping] = (),
     gif_frames: Sequence[np.ndarray] = (),
+    dynamic_threshold: float | None = None,
 ) -> dict[str, str]:
     """The maps side by side, the ISMs of the last update, convergence curves and the GIF;
-    returns the files."""
+    returns the files. With ``dynamic_threshold``, the cells of the maps that keep a dynamic
+    score above it are drawn in :data:`DYNAMIC_COLOUR`."""
     files: dict[str, str] = {}
     ref = maps.get("ray_ilm") or next(iter(maps.values()))
     r0, c0, h, w = ref.covered_bounds()
     step = max(1, -(-max(h, w) // _FIGURE_CELLS))
     res = ref.grid.resolution
     panels = {n: sample_map(m, r0, c0, h, w, step)[0] for n, m in maps.items()}
+    dynamic = {
+        n: called_dynamic(m, r0, c0, h, w, step, dynamic_threshold)
+        for n, m in maps.items()
+        if dynamic_threshold is not None and getattr(m, "dynamic", False)
+    }
     hh, ww = next(iter(panels.values())).shape[:2]
     # outer edges of the sampled cells (map cell R spans x in [-(R+1) res, -R res])
     extent = (-c0 * res, -(c0 + ww * step) * res, -(r0 + hh * step) * res, -r0 * res)
@@ -450,9 +561,11 @@ def write_scene_figures(
         plot_panels(
             panels,
             out / "maps.png",
-            title=f"{name}: the maps (map frame: the first pose's, x forward up)",
+            title=f"{name}: the maps (in the map frame, x up, y left)",
             extent_m=extent,
             tracks={n: track for n in panels},
+            dynamic=dynamic,
+            dynamic_label=dynamic_label(dynamic_threshold) if dynamic else "",
         )
     )
     if last_isms:

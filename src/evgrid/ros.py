@@ -1,5 +1,5 @@
 """ROS messages without ROS: type stores, point clouds, transforms and stamps
-(``pip install 'evgrid[ros]'``).
+(the ``ros`` extra, :func:`evgrid.install_hint`).
 
 Messages are (de)serialised by the pure-Python ``rosbags`` package. Its type stores know the
 standard ROS 1 (Noetic) and ROS 2 (Humble) messages; the two packages we need beyond them,
@@ -44,8 +44,6 @@ __all__ = [
     "tf_message",
 ]
 
-INSTALL_ROS = "pip install 'evgrid[ros]'"
-
 #: Message definitions registered on top of the standard type stores (ROS 2 spelling).
 EXTRA_MSGS: dict[str, str] = {
     "radar_msgs/msg/RadarReturn": (
@@ -68,12 +66,12 @@ def require(module: str, extra: str = "ros") -> Any:
     """Import an optional dependency, or raise ImportError saying how to install it."""
     import importlib
 
+    from evgrid import install_hint
+
     try:
         return importlib.import_module(module)
     except ImportError as e:
-        raise ImportError(
-            f"{module} is needed for this (pip install 'evgrid[{extra}]'): {e}"
-        ) from None
+        raise ImportError(f"{module} is needed for this ({install_hint(extra)}): {e}") from None
 
 
 @functools.lru_cache(maxsize=2)

@@ -216,6 +216,7 @@ def _map_scene(
                     mapper.last_isms,
                     scores.keyframes,
                     gif.frames if gif else (),
+                    mapper.maps.dynamic.threshold,
                 )
             )
         if outputs.save_maps:

@@ -14,13 +14,24 @@ from __future__ import annotations
 import json
 import shutil
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from evgrid.io import write_json
 from evgrid.validation import check_int, check_number
 
-__all__ = ["SimulateOptions", "FORMATS", "check_out", "write_simulated"]
+__all__ = [
+    "SimulateOptions",
+    "SimulateConfig",
+    "FORMATS",
+    "CONFIG_FORMAT",
+    "check_out",
+    "simulate_options",
+    "write_simulated",
+]
+
+#: The ``format`` tag of the ``config.json`` that ``evgrid simulate`` writes.
+CONFIG_FORMAT = "evgrid-simulate"
 
 #: ``--format`` -> (rosbags storage, file suffix) of the recording formats.
 _BAGS = {"ros2": ("mcap", ""), "ros1": ("ros1", ".bag"), "mcap": ("plain-mcap", ".mcap")}
@@ -93,6 +104,33 @@ class SimulateOptions:
         )
 
 
+@dataclass(frozen=True)
+class SimulateConfig:
+    """A simulate run's ``config.json``: the options under ``simulate`` (at the top their
+    ``format`` and ``version`` would clash with the file's own tags)."""
+
+    simulate: SimulateOptions = field(default_factory=SimulateOptions)
+
+
+def _register() -> None:
+    from evgrid.config import FORMATS as CONFIG_FORMATS
+
+    CONFIG_FORMATS[SimulateConfig] = CONFIG_FORMAT  # config.json tags and checks its kind
+
+
+def simulate_options(values: dict, config: str | Path | None = None) -> SimulateOptions:
+    """The options of a simulate run: the ``config.json`` at ``config`` (of an earlier run;
+    errors name the file and field), else the defaults, with ``values`` (field -> value, from
+    the command line) over them."""
+    if config is None:
+        return SimulateOptions(**values)
+    from evgrid.config import resolve_config
+
+    _register()
+    overrides = [(f"simulate.{k}", v) for k, v in values.items()]
+    return resolve_config(SimulateConfig, config, overrides).simulate
+
+
 def write_simulated(
     opts: SimulateOptions,
     out: str | Path,
@@ -101,11 +139,17 @@ def write_simulated(
 ) -> list[str]:
     """Simulate ``opts.scenes`` scenes from ``opts.seed`` on and write them under ``out`` in
     ``opts.format``; ``on_frame(scene name)`` after each frame. Returns the scene names.
-    An existing scene is refused unless ``overwrite`` (FileExistsError naming it)."""
+    An existing scene is refused unless ``overwrite`` (FileExistsError naming it).
+    ``out/config.json`` holds ``opts`` (``evgrid simulate --config`` runs them again); the
+    last run into a folder writes it."""
+    from evgrid.config import document
+
     out = check_out(out)
     config = opts.sim_config()
     seeds = [opts.seed + k for k in range(opts.scenes)]
     out.mkdir(parents=True, exist_ok=True)
+    _register()
+    write_json(out / "config.json", document(SimulateConfig(opts)))
     tick = on_frame or (lambda name: None)
     if opts.format in _BAGS:
         return _write_recordings(seeds, config, out, opts.format, overwrite, tick)

@@ -1,6 +1,6 @@
 """The nuScenes loader: the same frames as the simulator, read through the official devkit.
 
-Needs the extra ``pip install 'evgrid[nuscenes]'`` (nuscenes-devkit 1.2.0), imported only
+Needs the ``nuscenes`` extra (nuscenes-devkit 1.2.0), imported only
 when a dataset is opened. What it yields, per scene:
 
 * one :class:`~evgrid.data.frame.Frame` per ``LIDAR_TOP`` sample_data of the scene, in
@@ -36,6 +36,7 @@ from typing import Any
 
 import numpy as np
 
+from evgrid import install_hint
 from evgrid.data.frame import LIDAR_CHANNEL, Frame, LidarSweep, RadarSweep
 from evgrid.data.nuscenes_format import (
     radar_pcd_to_columns,
@@ -137,7 +138,7 @@ def _devkit() -> Any:
         from nuscenes.nuscenes import NuScenes
     except ImportError as e:
         raise NuScenesError(
-            "reading nuScenes needs the nuScenes devkit: pip install 'evgrid[nuscenes]' "
+            f"reading nuScenes needs the nuScenes devkit: {install_hint('nuscenes')} "
             f"(nuscenes-devkit==1.2.0); import failed with: {e}"
         ) from e
     return NuScenes
@@ -172,7 +173,7 @@ def nuscenes_splits(dataroot: str | os.PathLike, version: str) -> dict[str, list
         splits.update({k: list(v) for k, v in create_splits_scenes().items()})
     except ImportError as e:
         raise NuScenesError(
-            f"reading nuScenes splits needs the devkit: pip install 'evgrid[nuscenes]' ({e})"
+            f"reading nuScenes splits needs the devkit: {install_hint('nuscenes')} ({e})"
         ) from e
     custom = Path(dataroot) / version / "splits.json"
     if custom.is_file():

@@ -10,8 +10,10 @@ What the file holds (:class:`McapParams`; defaults in brackets, docs/ros.md says
   thresholds: ``trinary`` [0 free, 100 occupied, -1 unknown] or ``scale``;
 * ``/evgrid/NAME/grid_map``: ``grid_map_msgs/GridMap`` with the mass layers of ``layers``
   (``m_free``, ``m_occupied``, ``m_unknown``) [none: float masses are about ten times the
-  OccupancyGrid's size]; grid_map's storage is evgrid's map grid as it is (index (0, 0) at the
-  largest x and y, rows towards -x, columns towards -y, column-major data);
+  OccupancyGrid's size], and the layer ``dynamic`` [off]: the dynamic score of the maps that
+  keep one (:class:`evgrid.fusion.DynamicParams`), NaN in every cell of a map that keeps
+  none; grid_map's storage is evgrid's map grid as it is (index (0, 0) at the largest x and
+  y, rows towards -x, columns towards -y, column-major data);
 * ``/tf``: ``map_frame -> fixed_frame`` at every update [``map -> odom``], the map frame as a
   parent of the recording's fixed frame (:mod:`evgrid.export._place`), never a second parent
   of ``base_link``; ``/evgrid/ego_pose`` (``geometry_msgs/PoseStamped``, map frame) at every
@@ -57,11 +59,22 @@ __all__ = [
     "write_maps_mcap",
     "write_map_mcap",
     "LAYERS",
+    "DYNAMIC_LAYER",
+    "GRID_LAYERS",
+    "DYNAMIC_STEP",
+    "MapCells",
     "COMPRESSIONS",
 ]
 
-#: The GridMap layers evgrid writes (the masses); ``occupancy`` names the OccupancyGrid.
+#: The GridMap's mass layers; ``occupancy`` names the OccupancyGrid.
 LAYERS = ("m_free", "m_occupied", "m_unknown")
+#: The GridMap layer of the dynamic score (:class:`evgrid.fusion.DynamicParams`).
+DYNAMIC_LAYER = "dynamic"
+#: Every GridMap layer evgrid writes.
+GRID_LAYERS = (*LAYERS, DYNAMIC_LAYER)
+#: The dynamic layer's step: the score is written rounded to it, far finer than any threshold,
+#: so that the decaying tails of the score (tiny, all different) compress (docs/ros.md).
+DYNAMIC_STEP = 1 / 1024
 #: MCAP chunk compressions the ``mcap`` writer supports.
 COMPRESSIONS = ("zstd", "lz4", "none")
 
@@ -76,29 +89,49 @@ def _pose_msg(store: Any, x: float, y: float, yaw: float = 0.0) -> Any:
     )
 
 
+@dataclass(frozen=True)
+class MapCells:
+    """Map cells ``[r0:r0+h, c0:c0+w]`` read for a message: masses ``(h, w, 3)``, coverage
+    ``(h, w)``, the dynamic score ``(h, w)`` (None: the map keeps none, or it was not asked
+    for) and the cells' size in metres."""
+
+    masses: np.ndarray
+    covered: np.ndarray
+    r0: int
+    c0: int
+    resolution: float
+    dynamic: np.ndarray | None = None
+
+    @classmethod
+    def read(
+        cls, m: EvidentialMap, box: tuple[int, int, int, int], dynamic: bool = False
+    ) -> MapCells:
+        """Read ``box`` ``(r0, c0, h, w)`` of ``m``, with its dynamic score if ``dynamic`` and the
+        map keeps one."""
+        masses, cov = m.read(*box)
+        score = m.read_dynamic(*box) if dynamic and m.dynamic else None
+        return cls(masses, cov, box[0], box[1], m.grid.resolution, score)
+
+
 def occupancy_grid_msg(
-    masses: np.ndarray,
-    covered: np.ndarray,
-    r0: int,
-    c0: int,
-    resolution: float,
+    cells: MapCells,
     t_us: int,
     frame_id: str,
     store: Any,
     th: Nav2Thresholds = Nav2Thresholds(),
     values: str = "trinary",
 ) -> Any:
-    """``nav_msgs/OccupancyGrid`` of map cells ``[r0:r0+h, c0:c0+w]`` (masses ``(h, w, 3)``);
-    ``values`` as :func:`~evgrid.export.nav2.occupancy_values`."""
+    """``nav_msgs/OccupancyGrid`` of ``cells``; ``values`` as
+    :func:`~evgrid.export.nav2.occupancy_values`."""
     from evgrid.ros import header, us_to_stamp
 
-    val = occupancy_values(masses, covered, th, values)
-    data, (ox, oy) = map_to_occupancy(val, r0, c0, resolution)
+    val = occupancy_values(cells.masses, cells.covered, th, values)
+    data, (ox, oy) = map_to_occupancy(val, cells.r0, cells.c0, cells.resolution)
     sec, ns = us_to_stamp(t_us)
     t = store.types
     info = t["nav_msgs/msg/MapMetaData"](
         map_load_time=t["builtin_interfaces/msg/Time"](sec=sec, nanosec=ns),
-        resolution=float(resolution),
+        resolution=float(cells.resolution),
         width=int(data.shape[1]),
         height=int(data.shape[0]),
         origin=_pose_msg(store, ox, oy),
@@ -109,38 +142,45 @@ def occupancy_grid_msg(
 
 
 def grid_map_msg(
-    masses: np.ndarray,
-    r0: int,
-    c0: int,
-    resolution: float,
+    cells: MapCells,
     t_us: int,
     frame_id: str,
     store: Any,
     layers: Sequence[str] = LAYERS,
 ) -> Any:
-    """``grid_map_msgs/GridMap`` with the mass ``layers`` (of m_free, m_occupied, m_unknown) of
-    map cells ``[r0:r0+h, c0:c0+w]``."""
+    """``grid_map_msgs/GridMap`` of ``cells`` with ``layers`` (of :data:`GRID_LAYERS`): the
+    masses, and ``dynamic``, the score rounded to :data:`DYNAMIC_STEP` (NaN in every cell when
+    ``cells`` has none)."""
     from evgrid.ros import header, us_to_stamp
 
-    m = np.asarray(masses, dtype=np.float32)
+    m = np.asarray(cells.masses, dtype=np.float32)
     h, w = m.shape[:2]
+    res = cells.resolution
     t = store.types
     dims = [
         t["std_msgs/msg/MultiArrayDimension"](label="column_index", size=w, stride=h * w),
         t["std_msgs/msg/MultiArrayDimension"](label="row_index", size=h, stride=h),
     ]
     layout = t["std_msgs/msg/MultiArrayLayout"](dim=dims, data_offset=0)
+
+    def layer(k: str) -> np.ndarray:
+        if k != DYNAMIC_LAYER:
+            return m[..., LAYERS.index(k)]
+        if cells.dynamic is None:
+            return np.full((h, w), np.nan, dtype=np.float32)
+        return (np.round(cells.dynamic / DYNAMIC_STEP) * DYNAMIC_STEP).astype(np.float32)
+
     data = [
         t["std_msgs/msg/Float32MultiArray"](
-            layout=layout, data=np.ascontiguousarray(m[..., LAYERS.index(k)].ravel(order="F"))
+            layout=layout, data=np.ascontiguousarray(layer(k).ravel(order="F"))
         )
         for k in layers
     ]
     info = t["grid_map_msgs/msg/GridMapInfo"](
-        resolution=float(resolution),
-        length_x=h * resolution,
-        length_y=w * resolution,
-        pose=_pose_msg(store, -(r0 + h / 2) * resolution, -(c0 + w / 2) * resolution),
+        resolution=float(res),
+        length_x=h * res,
+        length_y=w * res,
+        pose=_pose_msg(store, -(cells.r0 + h / 2) * res, -(cells.c0 + w / 2) * res),
     )
     sec, ns = us_to_stamp(t_us)
     return t["grid_map_msgs/msg/GridMap"](
@@ -163,7 +203,8 @@ class McapParams:
     windowed maps (None: the first of ``navigation`` the run has, else its first map).
     ``final_maps``: the maps written whole at the end (None: every map of the run; ``()``:
     none). ``layers``:
-    ``occupancy`` (OccupancyGrid) and any of :data:`LAYERS` (one GridMap with those layers).
+    ``occupancy`` (OccupancyGrid) and any of :data:`GRID_LAYERS` (one GridMap with those
+    layers: the masses, ``dynamic`` the dynamic score).
     ``occupancy_values``: ``trinary`` or ``scale`` (:func:`~evgrid.export.nav2.occupancy_values`).
     ``compression``: the chunks' (:data:`COMPRESSIONS`). ``map_frame``, ``fixed_frame``: the
     map frame and the recording's fixed frame (the rig's ``world_frame``; nuScenes: global).
@@ -199,10 +240,10 @@ class McapParams:
             if isinstance(v, str) or not all(isinstance(n, str) and n for n in v):
                 raise ValueError(f"McapParams.{key} must be a tuple of names, got {v!r}")
             object.__setattr__(self, key, tuple(v))
-        bad = [k for k in self.layers if k != "occupancy" and k not in LAYERS]
+        bad = [k for k in self.layers if k != "occupancy" and k not in GRID_LAYERS]
         if bad or not self.layers:
             raise ValueError(
-                f"McapParams.layers: {bad or 'none'}; choose from {('occupancy', *LAYERS)}"
+                f"McapParams.layers: {bad or 'none'}; choose from {('occupancy', *GRID_LAYERS)}"
             )
         if self.occupancy_values not in OCCUPANCY_VALUES:
             raise ValueError(
@@ -311,19 +352,17 @@ class McapExporter:
         p, frame = self.params, self.params.map_frame
         grid_layers = tuple(k for k in p.layers if k != "occupancy")
         for name, m in maps.items():
-            r0, c0, h, w = box or m.covered_bounds()
-            if h == 0:
+            b = box or m.covered_bounds()
+            if b[2] == 0:
                 continue
-            masses, cov = m.read(r0, c0, h, w)
-            res = m.grid.resolution
+            cells = MapCells.read(m, b, DYNAMIC_LAYER in grid_layers)
             if "occupancy" in p.layers:
                 msg = occupancy_grid_msg(
-                    masses, cov, r0, c0, res, t_us, frame, self.store, p.thresholds,
-                    p.occupancy_values,
-                )  # fmt: skip
+                    cells, t_us, frame, self.store, p.thresholds, p.occupancy_values
+                )
                 self._write(f"/evgrid/{name}/occupancy", "nav_msgs/msg/OccupancyGrid", t_us, msg)
             if grid_layers:
-                msg = grid_map_msg(masses, r0, c0, res, t_us, frame, self.store, grid_layers)
+                msg = grid_map_msg(cells, t_us, frame, self.store, grid_layers)
                 self._write(f"/evgrid/{name}/grid_map", "grid_map_msgs/msg/GridMap", t_us, msg)
 
     # -- the observer ------------------------------------------------------------------------

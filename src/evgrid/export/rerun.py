@@ -7,6 +7,10 @@ left, z up), so maps, ISMs and the trajectory overlay:
 * ``maps/NAME``: a square of ``window_m`` metres around the vehicle, a textured quad whose
   corners are the window's outer cell corners in the map frame (colours:
   :func:`evgrid.render.map_rgb`, free white, occupied black, unknown grey);
+* ``maps/NAME/dynamic``: the cells called dynamic (score above
+  :attr:`evgrid.fusion.DynamicParams.threshold`) of the window, points at the cells' centres in
+  :data:`evgrid.render.DYNAMIC_COLOUR`, for the maps that keep a score (``final/NAME/dynamic``
+  for the whole map at the end);
 * ``ego``: the ego pose (a transform: translation in metres, yaw about z) at every update;
   ``ego/isms/NAME``: the local ISM grids of the update, quads in the ego frame below it;
 * ``trajectory``: the ego positions (metres); ``final/NAME``: each whole map at :meth:`close`;
@@ -48,13 +52,16 @@ class RerunParams:
     """What a rerun recording holds: ``window_m`` metres around the vehicle at every ``step``-th
     cell (cells read per map and picture: ``(window_m / res / step)^2``), ISMs at every
     ``step``-th cell, pictures at keyframes only unless ``keyframes_only`` is False (the
-    trajectory is logged at every update), ``isms`` whether to log them; ``map_frame`` and
-    ``fixed_frame`` name the frames in ``info``."""
+    trajectory is logged at every update), ``isms`` whether to log them, ``dynamic`` whether to
+    log the cells called dynamic (a point per ``step`` x ``step`` block drawn dynamic, as in the
+    figures: :func:`evgrid.render.called_dynamic`); ``map_frame`` and ``fixed_frame`` name the
+    frames in ``info``."""
 
     window_m: float = 40.0
     step: int = 2
     keyframes_only: bool = True
     isms: bool = True
+    dynamic: bool = True
     map_frame: str = "map"
     fixed_frame: str = "odom"
 
@@ -87,12 +94,37 @@ def _quad(rr: Any, rgb: np.ndarray, corners: np.ndarray) -> Any:
     )
 
 
+def _dynamic_points(
+    rr: Any, m: EvidentialMap, box: tuple[int, int, int, int], step: int, threshold: float
+) -> Any:
+    """The blocks of ``step`` x ``step`` cells of ``box`` ``(r0, c0, h, w)`` drawn as dynamic
+    (:func:`evgrid.render.called_dynamic`), as points in metres at the blocks' centres (none:
+    an empty set, so that the last ones do not linger in the viewer)."""
+    from evgrid.render import DYNAMIC_COLOUR, called_dynamic
+
+    r0, c0, h, w = box
+    i, j = np.nonzero(called_dynamic(m, r0, c0, h, w, step, threshold))
+    res = m.grid.resolution
+    xyz = np.stack(
+        [-(r0 + (i + 0.5) * step) * res, -(c0 + (j + 0.5) * step) * res, np.full(len(i), 0.05)],
+        axis=1,
+    ).astype(np.float32)
+    colour = np.rint(np.asarray(DYNAMIC_COLOUR) * 255).astype(np.uint8)
+    return rr.Points3D(xyz, radii=0.5 * step * res, colors=colour)
+
+
+def _whole_step(m: EvidentialMap, max_cells: int = 2048) -> int:
+    """One cell in how many of a whole map's picture (at most ``max_cells`` a side)."""
+    _, _, h, w = m.covered_bounds()
+    return max(1, -(-max(h, w) // max_cells))
+
+
 def _whole(m: EvidentialMap, max_cells: int = 2048) -> tuple[np.ndarray, np.ndarray]:
     """A whole map as a picture (every ``step``-th cell) and its quad's corners."""
     from evgrid.render import map_rgb, sample_map
 
     r0, c0, h, w = m.covered_bounds()
-    step = max(1, -(-max(h, w) // max_cells))
+    step = _whole_step(m, max_cells)
     pic = map_rgb(sample_map(m, r0, c0, h, w, step)[0])
     hh, ww = pic.shape[:2]
     # the sampled picture covers hh * step rows from r0 (the last sample's cell included)
@@ -173,6 +205,7 @@ class RerunRecorder:
         self.rec.log("/", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         self.trajectory: list[tuple[float, float]] = []
         self._maps: dict[str, EvidentialMap] = {}
+        self._mapset: Any = None  # the run's maps (its dynamic threshold: DynamicParams)
         self._n = 0
         self.placement: MapPlacement | None = None
 
@@ -212,6 +245,7 @@ class RerunRecorder:
         )
         rec.log("ego/position", rr.Points3D([[0.0, 0.0, 0.0]], radii=0.5, colors=[[230, 60, 30]]))
         self._maps = update.maps.maps
+        self._mapset = update.maps
         if not (p.keyframes_only and not update.frame.is_keyframe):
             self._log_trajectory(_TRAJECTORY_POINTS)
             if p.isms:
@@ -230,6 +264,10 @@ class RerunRecorder:
                 hh, ww = pic.shape[:2]
                 corners = quad_corners(r0, c0, hh * p.step, ww * p.step, m.grid.resolution)
                 rec.log(f"maps/{name}", _quad(rr, pic, corners))
+                if p.dynamic and m.dynamic:
+                    th = update.maps.dynamic.threshold
+                    points = _dynamic_points(rr, m, (r0, c0, n, n), p.step, th)
+                    rec.log(f"maps/{name}/dynamic", points)
             if self._out is not None:
                 self._out.drain()  # with the pictures: the trajectory alone is small
 
@@ -252,6 +290,10 @@ class RerunRecorder:
             if m.covered_bounds()[2]:
                 pic, corners = _whole(m)
                 self.rec.log(f"final/{name}", _quad(self.rr, pic, corners), static=True)
+                if self.params.dynamic and m.dynamic:
+                    th = self._mapset.dynamic.threshold
+                    points = _dynamic_points(self.rr, m, m.covered_bounds(), _whole_step(m), th)
+                    self.rec.log(f"final/{name}/dynamic", points, static=True)
         self.rec.flush()
 
     def close(self) -> Path | None:

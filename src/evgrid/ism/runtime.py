@@ -6,7 +6,7 @@ two: ``(1, C, n/p, n/p)`` pooled input -> ``(2, n/p, n/p)`` evidence ``[e_f, e_o
 
 ONNX Runtime fp32 runs the trunk faster than torch eager on one core, with masses equal within
 1e-6 (the figures, with their commit and machine: docs/speed.md); torch stays the training
-framework and the fallback when ``onnxruntime`` is missing (``pip install 'evgrid[fast]'``).
+framework and the fallback when ``onnxruntime`` is missing (the ``fast`` extra).
 The ONNX graph is exported from the loaded model in memory on first use, so a checkpoint is the
 only file to ship.
 """
@@ -19,6 +19,8 @@ import warnings
 from typing import Protocol
 
 import numpy as np
+
+from evgrid import install_hint
 
 __all__ = [
     "RUNTIMES",
@@ -169,7 +171,7 @@ def make_runtime(
         raise ValueError(f"runtime must be one of {RUNTIMES}, got {runtime!r}")
     if runtime == "onnxruntime" and not ort_available():
         raise ImportError(
-            "the onnxruntime runtime needs onnx and onnxruntime: pip install 'evgrid[fast]'"
+            f"the onnxruntime runtime needs onnx and onnxruntime: {install_hint('fast')}"
         )
     if runtime == "auto":
         runtime = "onnxruntime" if ort_available() else "torch"
@@ -177,7 +179,7 @@ def make_runtime(
             _warned_fallback = True
             logger.info(
                 "onnxruntime is not installed: Ev-Net runs on torch, slower than on ONNX Runtime "
-                "(pip install 'evgrid[fast]')"
+                f"({install_hint('fast')})"
             )
     if runtime == "onnxruntime":
         return OrtRuntime(model, in_shape, threads)

@@ -55,7 +55,7 @@ from evgrid.data.radar_variants import RadarRanges
 from evgrid.engine import ENGINES, fan_out
 from evgrid.evaluate import CLASSES
 from evgrid.geometry import GridSpec
-from evgrid.io import atomic_write, write_json
+from evgrid.io import atomic_write, atomic_write_bytes, write_json
 from evgrid.ism.deep import CHANNELS, RadarImageParams, detections_to_image, radar_detections
 from evgrid.ism.evnet import EvNet, EvNetConfig, load_checkpoint, save_checkpoint
 from evgrid.ism.self_returns import SelfReturnParams
@@ -778,7 +778,7 @@ def _train_epoch(run: _Run, epoch: int, on_batch) -> list[float]:
 
 
 def _log_epoch(run: _Run, epoch: int, losses: list[float], seconds: float, writer) -> dict:
-    """Validate, append the epoch's row to ``metrics.csv`` (and tensorboard), write the
+    """Validate, add the epoch's row to ``metrics.csv`` (and tensorboard), write the
     ``last`` and ``best`` checkpoints -> the row."""
     config = run.config
     val, irm, val_loss = evaluate_model(run.model, run.val_loader, run.device)
@@ -792,13 +792,7 @@ def _log_epoch(run: _Run, epoch: int, losses: list[float], seconds: float, write
         "lr": run.sched.get_last_lr()[0],
         "seconds": seconds,
     }
-    csv_path = run.out / "metrics.csv"
-    new = not csv_path.exists() or epoch == 0
-    with open(csv_path, "w" if new else "a", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=_FIELDS)
-        if new:
-            w.writeheader()
-        w.writerow(row)
+    _write_metrics(run.out / "metrics.csv", epoch, row)
     if writer:
         for k, v in row.items():
             if k != "epoch":
@@ -819,6 +813,26 @@ def _log_epoch(run: _Run, epoch: int, losses: list[float], seconds: float, write
         run.best_score, run.best_epoch, run.best = score, epoch, val
         save_checkpoint(run.model, run.out / "best.safetensors", extra)
     return row
+
+
+def _write_metrics(path: Path, epoch: int, row: dict) -> None:
+    """Rewrite ``metrics.csv`` atomically with the rows of the epochs before ``epoch`` (from a
+    resumed run's file) and ``row``: an interrupted write never leaves a torn last line, and
+    an epoch run again after a resume is not listed twice."""
+    rows = []
+    if epoch > 0 and path.is_file():
+        with open(path, newline="", encoding="utf-8") as f:
+            for r in csv.DictReader(f):
+                try:
+                    if int(r["epoch"]) < epoch:
+                        rows.append(r)
+                except (KeyError, TypeError, ValueError):  # not a row of ours: dropped
+                    continue
+    text = io.StringIO()
+    w = csv.DictWriter(text, fieldnames=_FIELDS, extrasaction="ignore")
+    w.writeheader()
+    w.writerows([*rows, row])
+    atomic_write_bytes(path, text.getvalue().encode("utf-8"))
 
 
 def _tensorboard(out: Path):

@@ -323,7 +323,9 @@ def load_rig(path: str | Path) -> RecordingRig:
     try:
         import yaml
     except ImportError:
-        raise ImportError("reading a rig file needs PyYAML (pip install 'evgrid[ros]')") from None
+        from evgrid import install_hint
+
+        raise ImportError(f"reading a rig file needs PyYAML ({install_hint('ros')})") from None
     try:
         d = yaml.safe_load(path.read_text())
     except yaml.YAMLError as e:
