@@ -398,3 +398,36 @@ def test_dynamic_options_take_a_value_after_a_space():
         overrides, _ = options_to_overrides(args, MAP_OPTIONS, RunConfig)
         d = resolve_config(RunConfig, overrides=overrides).mapper.dynamic
         assert (d.enabled, d.gate_maps) == (on, gate), args
+
+
+def test_nav_reads_gated_copies_of_its_inputs_by_default():
+    from evgrid.nav import nav_dense
+
+    grid = GridSpec(16, 2.0)
+    n = grid.n_cells
+    d = DynamicParams(decay=0.5, threshold=0.1)
+    assert d.gate_nav and not d.gate_maps
+    ms = MapSet(grid, names=("ray_ilm", "fused", "nav"), dynamic=d)
+    gated = MapSet(grid, names=("ray_ilm", "fused"), dynamic=replace(d, gate_maps=True))
+    for s in (ms, gated):
+        _step(s, n, ilm=(0.0, 0.8), irm=(0.0, 0.8))
+        _step(s, n, ilm=(0.6, 0.0), irm=(0.6, 0.0))  # the mover left: K_left = 0.48
+    # Table I's maps are not gated (the ghost stays occupied); nav reads gated copies of them
+    assert _cell(ms, "ray_ilm")[1] > 0.5
+    np.testing.assert_allclose(_cell(gated, "ray_ilm"), [0.6, 0.0, 0.4], atol=1e-6)
+    lidar, cov, _, _ = gated["ray_ilm"].to_dense()
+    fused, _, _, _ = gated["fused"].to_dense()
+    scores = np.maximum(
+        gated["ray_ilm"].read_dynamic(*gated["ray_ilm"].bounds()),
+        gated["fused"].read_dynamic(*gated["fused"].bounds()),
+    )
+    want = nav_dense(
+        lidar, fused, ms.nav.margin_cells(grid.resolution), ms.nav.occupied_min, scores, 0.1
+    )
+    got, _, _, _ = ms["nav"].to_dense()
+    np.testing.assert_allclose(got[cov], want[cov], atol=1e-6)
+    assert got[cov][:, 1].max() == 0.0  # no ghost left in nav
+    # --no-dynamic: nav reads the shown maps, as before the score existed
+    plain = MapSet(grid, names=("ray_ilm", "fused", "nav"))
+    assert plain._derived[0][1] is plain.maps["ray_ilm"]
+    assert ms._derived[0][1] is not ms.maps["ray_ilm"]

@@ -488,11 +488,15 @@ class MapSet:
         self.dynamic = dynamic or DynamicParams(enabled=False)
         self.nav = nav or NavParams()
         self.names = tuple(names)
-        # maps read by a rule from maps come first in the pass, and are kept when not shown
+        # maps read by a rule from maps come first in the pass, and are kept when not shown; with
+        # the gate on for nav but not for the shown maps, nav reads gated copies of its inputs
+        # (hidden rows of the same pass: docs/equations.md#the-gate)
+        d = self.dynamic
+        gated_copies = d.enabled and d.gate_nav and not d.gate_maps
         needed = [m for n in self.names if RULES[n].from_maps for m in RULES[n].inputs]
         order = [n for n in self.names if not RULES[n].from_maps]
-        order += [m for m in dict.fromkeys(needed) if m not in order]
-        order += [n for n in self.names if RULES[n].from_maps]
+        hidden = [m for m in dict.fromkeys(needed) if m not in order or gated_copies]
+        derived = [n for n in self.names if RULES[n].from_maps]
         self._rows = [
             _Row(
                 n,
@@ -504,15 +508,20 @@ class MapSet:
                     dynamic=self._scores(n),
                 ),
                 self.params,
-                n in self.names,
+                shown,
             )
-            for n in order
+            for n, shown in [
+                *((n, True) for n in order),
+                *((n, False) for n in hidden),
+                *((n, True) for n in derived),
+            ]
         ]
         self.tile_cells = self._rows[0].map.tile_cells
-        every = {r.name: r.map for r in self._rows}
+        every = {r.name: r.map for r in self._rows if r.shown}
+        inputs = {**every, **{r.name: r.map for r in self._rows if not r.shown}}
         # the maps computed from others when read (nav), each with its input maps
         self._derived = [
-            (every[r.name], *(every[m] for m in r.rule.inputs))
+            (every[r.name], *(inputs[m] for m in r.rule.inputs))
             for r in self._rows
             if r.rule.from_maps
         ]
@@ -556,7 +565,7 @@ class MapSet:
     def _gate(self, row: _Row) -> float:
         """The gate's threshold of a row (docs/equations.md#the-gate); 0: not gated."""
         d = self.dynamic
-        on = d.gate_maps if row.name in MAP_NAMES and row.shown else d.gate_nav
+        on = d.gate_maps if row.shown else d.gate_nav  # the hidden rows are nav's inputs
         return d.threshold if (on and row.map.dynamic) else 0.0
 
     def _plan(self) -> None:
