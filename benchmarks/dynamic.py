@@ -40,16 +40,15 @@ D0 = DynamicParams()
 VARIANTS: dict[str, tuple[DynamicParams, int]] = {
     "default": (D0, 1),
     "no doppler": (replace(D0, doppler_mass=0.0), 1),
-    "doppler > 1 m/s": (replace(D0, doppler_mps=1.0), 1),
     "doppler > 2 m/s": (replace(D0, doppler_mps=2.0), 1),
     "doppler > 3 m/s": (replace(D0, doppler_mps=3.0), 1),
     "radius 0.5 m": (replace(D0, doppler_radius_m=0.5), 1),
     "radius 2 m": (replace(D0, doppler_radius_m=2.0), 1),
+    "doppler mass 0.25": (replace(D0, doppler_mass=0.25), 1),
     "doppler mass 1": (replace(D0, doppler_mass=1.0), 1),
     "decay 0.6": (replace(D0, decay=0.6), 1),
     "decay 0.9": (replace(D0, decay=0.9), 1),
     "support 3": (D0, 3),
-    "support 5": (D0, 5),
     "gate": (replace(D0, gate_maps=True), 1),
     "gate, threshold 0.3": (replace(D0, gate_maps=True, threshold=0.3), 1),
 }

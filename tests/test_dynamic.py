@@ -285,7 +285,7 @@ def test_doppler_cue_hand_computed():
     }
     # outside the local grid at the pose: ignored
     assert len(disc_cells(grid, SE2(5.0, 0.0, 0.0), xy, 2 * res)[0]) == 0
-    d = DynamicParams(decay=0.5, doppler_mass=0.4, doppler_radius_m=2 * res)
+    d = DynamicParams(decay=0.5, doppler_mps=0.5, doppler_mass=0.4, doppler_radius_m=2 * res)
     ms = MapSet(grid, names=("ray_ilm",), dynamic=d)
     isms = {"ray_ilm": _uniform(16, 0.0, 0.0)}
     # at the identity pose local row r is map row r - 8 (the ego sits on the grid's centre)

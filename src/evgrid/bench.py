@@ -14,8 +14,10 @@ Sections of the result:
   (what ``evgrid map`` costs), simulation included.
 * ``kernels_ms``: the algebra and the warp on 512 x 512 grids.
 * ``dynamic_score_ms``: one update of the six maps from 512 x 512 ISM grids (every cell
-  informative, at 45 degrees: the largest window) with the dynamic score on and off, timed in
-  turns (medians), and the difference: what the score costs per update, all maps together.
+  informative, at 45 degrees: the largest window) with the dynamic score on (with the gate on
+  every scored map and the Doppler cue of 16 moving detections) and off, timed in turns
+  (medians), and the difference: what the score costs per update, all maps together; and
+  ``nav_gate``, what the gated copies of nav's inputs add when nav is mapped.
 """
 
 from __future__ import annotations
@@ -270,18 +272,46 @@ def _end_to_end(deep, seed: int, duration_s: float) -> dict[str, Any]:
     }
 
 
+#: Moving radar detections per update in the dynamic score's timing: more than the simulator's
+#: busiest scenes give with five radars.
+BENCH_MOVING_DETECTIONS = 16
+
+
 def _dynamic_cost(grid, a, b, pose, repeat: int) -> dict[str, float]:
-    """Milliseconds of one update of the six maps with the dynamic score on and off (in turns),
-    and the score's cost (their difference)."""
+    """Milliseconds of one update of the six maps with the dynamic score on (the conflict, the
+    gate on every scored map, and the Doppler cue of ``BENCH_MOVING_DETECTIONS`` moving
+    detections in the window) and off, in turns, and the score's cost (their difference);
+    ``nav_gate``: with ``nav`` too, the cost of the gated copies of its inputs (gate_nav on and
+    off, the score on)."""
     from evgrid import fusion
 
     isms = {"ray_ilm": a, "ray_irm": b, "deep_irm": a}
+    rng = np.random.default_rng(1)
+    h = 0.9 * grid.half_extent
+    local = rng.uniform(-h, h, (BENCH_MOVING_DETECTIONS, 2))
+    moving = np.column_stack([pose.apply(local), np.full(len(local), 5.0)])
+    on = fusion.DynamicParams(gate_maps=True)
     sets = {
-        k: fusion.MapSet(grid, dynamic=fusion.DynamicParams(enabled=k == "on"))
+        "on": (fusion.MapSet(grid, dynamic=on), moving),
+        "off": (fusion.MapSet(grid, dynamic=fusion.DynamicParams(enabled=False)), None),
+    }
+    with_nav = (*fusion.MAP_NAMES, fusion.NAV_MAP)
+    sets |= {
+        f"nav_gate_{k}": (
+            fusion.MapSet(grid, names=with_nav, dynamic=fusion.DynamicParams(gate_nav=k == "on")),
+            moving,
+        )
         for k in ("on", "off")
     }
-    ms = interleaved_ms({k: (lambda s=s: s.update(pose, isms)) for k, s in sets.items()}, repeat)
-    return {"on": ms["on"], "off": ms["off"], "cost": ms["on"] - ms["off"]}
+    ms = interleaved_ms(
+        {k: (lambda s=s, m=m: s.update(pose, isms, m)) for k, (s, m) in sets.items()}, repeat
+    )
+    return {
+        "on": ms["on"],
+        "off": ms["off"],
+        "cost": ms["on"] - ms["off"],
+        "nav_gate": ms["nav_gate_on"] - ms["nav_gate_off"],
+    }
 
 
 def run_bench(

@@ -13,8 +13,10 @@ it sees free, such as the road around a moving car).
 from __future__ import annotations
 
 import functools
+import math
 from collections.abc import Sequence
 
+import numba
 import numpy as np
 
 from evgrid.data.frame import RadarSweep, radar_column
@@ -76,8 +78,41 @@ def disc_cells(
     dy = -(c + 0.5) * res - xy[:, 1:2]
     inside = dx * dx + dy * dy <= radius_m * radius_m
     inside |= (off[:, 0] == 0) & (off[:, 1] == 0)  # the detection's own cell
-    keys = np.unique(np.stack([r[inside], c[inside]], 1), axis=0)
-    return keys[:, 0], keys[:, 1]
+    r, c = r[inside], c[inside]
+    # each cell once: marked on a mask over the discs' box (cheaper than sorting the cells)
+    r_lo, c_lo = int(r.min()), int(c.min())
+    mask = np.zeros((int(r.max()) - r_lo + 1, int(c.max()) - c_lo + 1), np.bool_)
+    mask[r - r_lo, c - c_lo] = True
+    rr, cc = np.nonzero(mask)
+    return rr + r_lo, cc + c_lo
+
+
+@numba.njit(cache=True)
+def _not_free(rows, cols, ism, res, n, x0, y0, c, s, out):
+    # out[k]: 1 - m_f / (m_f + m_o) of the ISM cell nearest to map cell k's centre (see
+    # not_free_now); (x0, y0, c, s): the ego pose's position and the cos and sin of its yaw
+    for k in range(len(rows)):
+        dx = -(rows[k] + 0.5) * res - x0
+        dy = -(cols[k] + 0.5) * res - y0
+        r = int(np.rint(n / 2.0 - 0.5 - (c * dx + s * dy) / res))
+        q = int(np.rint(n / 2.0 - 0.5 - (-s * dx + c * dy) / res))
+        w = 1.0
+        if r >= 0 and r < n and q >= 0 and q < n:
+            f, o = np.float64(ism[r, q, 0]), np.float64(ism[r, q, 1])
+            # invalid cells (NaN, negative) say nothing, as the update rules take them
+            if f > 0.0 and o >= 0.0 and np.isfinite(f) and np.isfinite(o):
+                w = o / (o + f)
+        out[k] = w
+
+
+@numba.njit(cache=True)
+def _add_cells(layer, rows, cols, values, r0, c0):
+    # layer[rows - r0, cols - c0] += values where inside the tile
+    ts0, ts1 = layer.shape
+    for k in range(len(rows)):
+        r, q = rows[k] - r0, cols[k] - c0
+        if r >= 0 and r < ts0 and q >= 0 and q < ts1:
+            layer[r, q] += values[k]
 
 
 def not_free_now(
@@ -87,18 +122,9 @@ def not_free_now(
     frame at ego ``pose``) in the local cell nearest to the map cell's centre: 0 where the ISM
     says only free now, 1 where it says only occupied or nothing (vacuous, or outside the local
     grid: the ISM cannot rule a mover out there)."""
-    res, n = grid.resolution, grid.n_cells
-    centres = np.stack([-(rows + 0.5) * res, -(cols + 0.5) * res], 1)
-    local = pose.inverse().apply(centres)
-    r = np.rint(n / 2.0 - 0.5 - local[:, 0] / res).astype(np.int64)
-    c = np.rint(n / 2.0 - 0.5 - local[:, 1] / res).astype(np.int64)
-    inside = (r >= 0) & (r < n) & (c >= 0) & (c < n)
-    out = np.ones(len(rows), np.float32)
-    f = ism[r[inside], c[inside], 0].astype(np.float64)
-    o = ism[r[inside], c[inside], 1].astype(np.float64)
-    # invalid cells (NaN, negative) say nothing, as the update rules take them
-    ok = np.isfinite(f) & np.isfinite(o) & (f > 0.0) & (o >= 0.0)
-    out[inside] = np.where(ok, o / np.where(ok, o + f, 1.0), 1.0)
+    out = np.empty(len(rows), np.float32)
+    c, s = math.cos(pose.yaw), math.sin(pose.yaw)
+    _not_free(rows, cols, ism, grid.resolution, grid.n_cells, pose.x, pose.y, c, s, out)
     return out
 
 
@@ -108,14 +134,8 @@ def add_to_layer(m: EvidentialMap, rows: np.ndarray, cols: np.ndarray, value: np
     if not len(rows):
         return
     ts = m.tile_cells
-    ti, tj = rows // ts, cols // ts
-    key = ti * (1 << 32) + tj
-    order = np.argsort(key, kind="stable")
-    key, ti, tj = key[order], ti[order], tj[order]
-    r, c, v = rows[order] - ti * ts, cols[order] - tj * ts, value[order]
-    starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
-    ends = np.r_[starts[1:], len(key)]
-    for a, b in zip(starts, ends):
-        layer = m.dynamic_tiles.get((int(ti[a]), int(tj[a])))
-        if layer is not None:
-            layer[r[a:b], c[a:b]] += v[a:b]
+    for a in range(int(rows.min()) // ts, int(rows.max()) // ts + 1):
+        for b in range(int(cols.min()) // ts, int(cols.max()) // ts + 1):
+            layer = m.dynamic_tiles.get((a, b))
+            if layer is not None:
+                _add_cells(layer, rows, cols, value, a * ts, b * ts)

@@ -120,11 +120,12 @@ class FusionParams:
 # benchmarks/dynamic.py on simulated scenes (docs/speed.md#the-dynamic-score).
 DYNAMIC_DECAY_DEFAULT = 0.3
 DYNAMIC_THRESHOLD_DEFAULT = 0.1
-# The Doppler cue (docs/equations.md#the-doppler-cue): a pedestrian walks at >= 1 m/s, and the
+# The Doppler cue (docs/equations.md#the-doppler-cue): a pedestrian walks at about 1.4 m/s; the
 # ego-motion compensation of a static target leaves errors of a few tenths of a m/s (odometry
-# speed and yaw rate, the radar's 0.1 m/s Doppler resolution); the disc covers the radar's
-# position error and a part of the object behind its one detection.
-DOPPLER_MPS_DEFAULT = 0.5
+# speed and yaw rate, the radar's 0.1 m/s Doppler resolution) and clutter shows slow false
+# speeds; the disc covers the radar's position error and a part of the object around its one
+# detection. Chosen with benchmarks/dynamic.py on simulated scenes (docs/speed.md).
+DOPPLER_MPS_DEFAULT = 1.0
 DOPPLER_MASS_DEFAULT = 0.5
 DOPPLER_RADIUS_DEFAULT = 1.0
 
