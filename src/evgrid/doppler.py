@@ -12,7 +12,6 @@ it sees free, such as the road around a moving car).
 
 from __future__ import annotations
 
-import functools
 import math
 from collections.abc import Sequence
 
@@ -47,42 +46,41 @@ def moving_detections(sweeps: Sequence[RadarSweep], to_map: SE3, min_speed: floa
     return np.concatenate(parts) if parts else np.zeros((0, 3), np.float64)
 
 
-@functools.lru_cache(maxsize=8)
-def _offsets(resolution: float, radius_m: float) -> np.ndarray:
-    """Integer cell offsets (dr, dc) that a disc of ``radius_m`` around a point of a cell can
-    reach (one cell of margin: the point lies anywhere in its cell)."""
-    k = int(np.ceil(radius_m / resolution)) + 1
-    dr, dc = np.meshgrid(np.arange(-k, k + 1), np.arange(-k, k + 1), indexing="ij")
-    return np.stack([dr.ravel(), dc.ravel()], 1).astype(np.int64)
+@numba.njit(cache=True)
+def _stamp(x, y, res, radius, r_lo, c_lo, mask):
+    # mask[R - r_lo, C - c_lo] = True for every map cell (R, C) whose centre (-(R + 0.5) res,
+    # -(C + 0.5) res) lies within ``radius`` of a point, or that holds one
+    k = int(np.ceil(radius / res)) + 1
+    h, w = mask.shape
+    for p in range(len(x)):
+        r0 = int(np.floor(-x[p] / res))
+        c0 = int(np.floor(-y[p] / res))
+        for r in range(max(r0 - k, r_lo), min(r0 + k + 1, r_lo + h)):
+            dx = -(r + 0.5) * res - x[p]
+            for c in range(max(c0 - k, c_lo), min(c0 + k + 1, c_lo + w)):
+                dy = -(c + 0.5) * res - y[p]
+                if dx * dx + dy * dy <= radius * radius or (r == r0 and c == c0):
+                    mask[r - r_lo, c - c_lo] = True
 
 
 def disc_cells(
     grid: GridSpec, pose: SE2, xy: np.ndarray, radius_m: float
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Map cells ``(rows, cols)`` (each once) whose centre lies within ``radius_m`` of a point of
-    ``xy`` (``(k, 2)`` map frame, m), or that hold one; points outside the local grid at ego
-    ``pose`` are ignored (no map cell there is updated at this step)."""
+    """Map cells ``(rows, cols)`` (each once, in row-major order) whose centre lies within
+    ``radius_m`` of a point of ``xy`` (``(k, 2)`` map frame, m), or that hold one; points outside
+    the local grid at ego ``pose`` are ignored (no map cell there is updated at this step)."""
     xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
     local = pose.inverse().apply(xy)
-    h = grid.half_extent
-    xy = xy[(np.abs(local) < h).all(axis=1)]
+    xy = xy[(np.abs(local) < grid.half_extent).all(axis=1)]
     if not len(xy):
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     res = grid.resolution
     rows, cols = grid.map_xy_to_cell(xy[:, 0], xy[:, 1])
-    off = _offsets(res, radius_m)
-    r = rows[:, None] + off[None, :, 0]
-    c = cols[:, None] + off[None, :, 1]
-    # map cell (R, C) has its centre at x = -(R + 0.5) res, y = -(C + 0.5) res
-    dx = -(r + 0.5) * res - xy[:, 0:1]
-    dy = -(c + 0.5) * res - xy[:, 1:2]
-    inside = dx * dx + dy * dy <= radius_m * radius_m
-    inside |= (off[:, 0] == 0) & (off[:, 1] == 0)  # the detection's own cell
-    r, c = r[inside], c[inside]
+    k = int(np.ceil(radius_m / res)) + 1
     # each cell once: marked on a mask over the discs' box (cheaper than sorting the cells)
-    r_lo, c_lo = int(r.min()), int(c.min())
-    mask = np.zeros((int(r.max()) - r_lo + 1, int(c.max()) - c_lo + 1), np.bool_)
-    mask[r - r_lo, c - c_lo] = True
+    r_lo, c_lo = int(rows.min()) - k, int(cols.min()) - k
+    mask = np.zeros((int(rows.max()) + k + 1 - r_lo, int(cols.max()) + k + 1 - c_lo), np.bool_)
+    _stamp(xy[:, 0].copy(), xy[:, 1].copy(), res, float(radius_m), r_lo, c_lo, mask)
     rr, cc = np.nonzero(mask)
     return rr + r_lo, cc + c_lo
 
@@ -129,13 +127,16 @@ def not_free_now(
 
 
 def add_to_layer(m: EvidentialMap, rows: np.ndarray, cols: np.ndarray, value: np.ndarray) -> None:
-    """Add ``value`` (a float per cell) to the dynamic score of map cells ``(rows, cols)`` of
-    ``m`` where a tile is stored (a cell of no tile was never updated: it has no score)."""
+    """Add ``value`` (a float per cell) to the dynamic score of map cells ``(rows, cols)`` (in
+    row-major order, as :func:`disc_cells` gives them) of ``m`` where a tile is stored (a cell of
+    no tile was never updated: it has no score)."""
     if not len(rows):
         return
     ts = m.tile_cells
     for a in range(int(rows.min()) // ts, int(rows.max()) // ts + 1):
+        # the cells are in row-major order: those of tile row a are one slice
+        i, j = np.searchsorted(rows, (a * ts, (a + 1) * ts))
         for b in range(int(cols.min()) // ts, int(cols.max()) // ts + 1):
             layer = m.dynamic_tiles.get((a, b))
-            if layer is not None:
-                _add_cells(layer, rows, cols, value, a * ts, b * ts)
+            if layer is not None and j > i:
+                _add_cells(layer, rows[i:j], cols[i:j], value[i:j], a * ts, b * ts)
