@@ -431,3 +431,44 @@ def test_nav_reads_gated_copies_of_its_inputs_by_default():
     plain = MapSet(grid, names=("ray_ilm", "fused", "nav"))
     assert plain._derived[0][1] is plain.maps["ray_ilm"]
     assert ms._derived[0][1] is not ms.maps["ray_ilm"]
+
+
+def test_summary_and_table_carry_the_moving_objects():
+    from evgrid.runs import dynamic_table, summarize
+
+    def scene(name, p, r, left):
+        return {
+            "scene": name,
+            "frames": 10,
+            "seconds": 1.0,
+            "dynamic": {"ray_ilm": {"precision": p, "recall": r, "iou": p * r / (p + r - p * r)}},
+            "left_behind_m2": {"ray_ilm": left, "deep_disc": 2 * left},
+        }
+
+    summary = summarize([scene("a", 0.4, 0.6, 1.0), scene("b", 0.2, 0.4, 3.0)])
+    assert summary["dynamic"]["ray_ilm"]["precision"]["mean"] == pytest.approx(0.3)
+    left = summary["left_behind_m2"]
+    assert left["ray_ilm"]["mean"] == pytest.approx(2.0) and left["deep_disc"]["n"] == 2
+    table = dynamic_table(summary)
+    rows = {line.split(" | ")[0]: line for line in table.splitlines() if line.startswith("| `")}
+    assert rows["| `ray_ilm`"].split(" | ")[1].startswith("30.0 (")  # precision, %, interval
+    assert rows["| `ray_ilm`"].endswith("| 2.00 (1.00-3.00) |")
+    assert rows["| `deep_disc`"].startswith("| `deep_disc` | - | - | - | 4.00")  # no score
+
+
+def test_scene_scores_report_the_area_movers_leave_behind():
+    from evgrid.data import SimConfig, simulate_scene
+    from evgrid.mapper import OccupancyMapper
+    from evgrid.observers import SceneScores, TruthTracker
+
+    cfg = MapperConfig(maps=("ray_ilm",))
+    truth = TruthTracker(cfg.grid, cfg.tile_cells)
+    mapper = OccupancyMapper(cfg, observers=(truth,))
+    scores = SceneScores(mapper.maps.maps, truth, track=False)
+    mapper.observers.append(scores)
+    for frame in simulate_scene(9, SimConfig(duration_s=4.0)):
+        mapper.process(frame)
+    assert all("left_behind_m2" in k for k in scores.keyframes if "dynamic" in k)
+    final = scores.final()
+    area = [k["left_behind_m2"]["ray_ilm"] for k in scores.keyframes if "left_behind_m2" in k]
+    assert final["left_behind_m2"]["ray_ilm"] == pytest.approx(np.mean(area))
