@@ -365,3 +365,22 @@ def test_export_refuses_an_existing_file_unless_overwrite(tmp_path):
     r = runner.invoke(app, [*args, "--overwrite"])
     assert r.exit_code == 0, r.output
     assert "wrote" in r.output and (tmp_path / "nav.yaml").is_file()
+
+
+def test_map_with_the_gate_writes_the_moving_objects_table(tmp_path):
+    r = runner.invoke(
+        app,
+        [
+            "map",
+            *("--scenes", "1", "--duration", "2", "--out", str(tmp_path)),
+            *("--maps", "ray_ilm,ray_irm", "--figures", "off"),
+            *("--dynamic", "on", "--dynamic-gate", "on"),
+        ],
+    )
+    assert r.exit_code == 0, r.output
+    config = json.loads((tmp_path / "config.json").read_text())["mapper"]["dynamic"]
+    assert config["enabled"] and config["gate_maps"]
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert set(summary["left_behind_m2"]) == {"ray_ilm", "ray_irm"}
+    table = (tmp_path / "table.md").read_text()
+    assert "**moving objects**" in table and "| `ray_ilm` |" in table
