@@ -1,5 +1,5 @@
 """A rerun recording (``.rrd``) or live viewer of a mapping run: maps, current ISMs, trajectory
-(``pip install 'evgrid[rerun]'``).
+(the ``rerun`` extra: ``evgrid.install_hint("rerun")`` says how to install it).
 
 Everything lives in one 3-D space in metres, the map frame (x forward at the first pose, y
 left, z up), so maps, ISMs and the trajectory overlay:
