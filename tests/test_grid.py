@@ -174,6 +174,77 @@ def test_map_save_load_is_bit_identical(tmp_path):
     assert not list((tmp_path / "maps").glob(".*"))  # no temporary left behind
 
 
+def _same_frame(a, b) -> bool:
+    return (a.kind, a.fixed_frame) == (b.kind, b.fixed_frame) and (
+        a.first_pose is b.first_pose is None
+        or np.array_equal(a.first_pose.matrix(), b.first_pose.matrix())
+    )
+
+
+def test_a_map_file_keeps_its_map_frame_exactly(tmp_path):
+    from evgrid.geometry import SE3
+    from evgrid.grid import MapFrame
+
+    m = _some_map()
+    assert load_map(save_map(m, tmp_path / "none.npz")).frame is None  # not known: none kept
+    pose = SE3.from_quaternion([0.9, 0.1, -0.2, 0.3742], [664_123.25, 3_996_001.125, 1.5])
+    for frame in (MapFrame("first_pose", "odom", pose), MapFrame("world", "global", pose)):
+        back = load_map(save_map(m, tmp_path / f"{frame.kind}.npz", frame))
+        assert _same_frame(back.frame, frame)  # the pose bit for bit
+        assert all(back.tiles[k].tobytes() == m.tiles[k].tobytes() for k in m.tiles)
+    m.frame = MapFrame("world", "map")  # a map's own frame is saved when none is given
+    assert load_map(save_map(m, tmp_path / "own.npz")).frame == MapFrame("world", "map")
+    with pytest.raises(ValueError, match="kind"):
+        MapFrame("ego")
+
+
+def _rewrite_header(path, edit) -> None:
+    import json
+
+    with np.load(path) as z:
+        arrays = {k: z[k] for k in z.files}
+    header = edit(json.loads(arrays["header"].tobytes().decode()))
+    arrays["header"] = np.frombuffer(json.dumps(header).encode(), dtype=np.uint8)
+    np.savez_compressed(path, **arrays)
+
+
+def test_version_1_map_files_still_load_without_a_frame(tmp_path):
+    m = _some_map()
+    path = save_map(m, tmp_path / "v1.npz")
+
+    def as_v1(h):
+        del h["frame"]
+        return {**h, "version": 1}
+
+    _rewrite_header(path, as_v1)
+    back = load_map(path)
+    assert back.frame is None and back.metadata == m.metadata
+    assert all(back.tiles[k].tobytes() == m.tiles[k].tobytes() for k in m.tiles)
+    _rewrite_header(path, lambda h: {**h, "version": 3})
+    with pytest.raises(MapFileError, match="version 3; this evgrid reads 1, 2"):
+        load_map(path)
+    path = save_map(m, tmp_path / "bad.npz")
+    _rewrite_header(path, lambda h: {**h, "frame": {"kind": "ego"}})
+    with pytest.raises(MapFileError, match="bad.npz: header field 'frame' is invalid.*ego"):
+        load_map(path)
+
+
+def test_saved_maps_of_a_run_carry_its_map_frame(tmp_path):
+    from evgrid.config import MapperConfig, OutputConfig
+    from evgrid.data import SimConfig, simulate_scene
+    from evgrid.runs import map_scene
+
+    scene = simulate_scene(4, SimConfig(duration_s=0.5))
+    first = next(iter(scene)).ego_pose
+    outputs = OutputConfig(figures=False, save_maps=True)
+    for kind in ("world", "first_pose"):
+        config = MapperConfig(maps=("ray_ilm",), frame=kind)
+        map_scene(scene, tmp_path / kind, config, outputs, fixed_frame="odom")
+        frame = load_map(tmp_path / kind / "maps" / "ray_ilm.npz").frame
+        assert (frame.kind, frame.fixed_frame) == (kind, "odom")
+        assert np.array_equal(frame.first_pose.matrix(), first.matrix())
+
+
 def test_truncated_and_foreign_files_raise_clear_errors(tmp_path):
     path = save_map(_some_map(), tmp_path / "m.npz")
     data = path.read_bytes()

@@ -221,6 +221,56 @@ def test_dropped_lidar_stamps_are_logged_and_counted_under_their_reason(frames, 
     assert f"stamp {frames[6].timestamp + 60_000_000} us): stamp lies more than" in caplog.text
 
 
+def _lidar_missing(frames) -> tuple[int, dict]:
+    from evgrid.config import MapperConfig
+    from evgrid.mapper import OccupancyMapper
+
+    mapper = OccupancyMapper(MapperConfig(maps=("ray_ilm",)))
+    for f in frames:
+        mapper.process(f)
+    m = mapper.counts()
+    return m["lidar_frames_missing"], m
+
+
+def test_a_skipped_sweep_is_counted_once_under_its_reason_not_as_missing(frames, tmp_path):
+    # message 10 never recorded (truly missing); of the rest, 4 repeats 3's stamp, 6 lies a
+    # minute ahead, 13 lies before frames already made: skipped by the reader for their stamps
+    kept = frames[:10] + frames[11:]
+    shift = {13: -650_000, 4: None, 6: 60_000_000}
+
+    def stamp(k, t):
+        if k not in shift:
+            return t
+        return kept[3].timestamp if shift[k] is None else t + shift[k]
+
+    scene = load_bag(_write(tmp_path / "gaps.mcap", kept, stamp=stamp), LIDAR_ONLY)
+    got = list(scene)
+    c = scene.counts
+    assert (c["lidar_sweeps_backwards"], c["lidar_sweeps_duplicate"], c["lidar_sweeps_future"]) == (
+        1,
+        1,
+        1,
+    )
+    assert sum(f.lidar_skipped for f in got) == 3
+    missing, _ = _lidar_missing(got)
+    assert missing == 1  # frame 10's gap alone; each skipped sweep is counted under its reason
+    # a whole recording: nothing skipped, nothing missing
+    assert _lidar_missing(list(load_bag(_write(tmp_path / "all.mcap", frames), LIDAR_ONLY)))[0] == 0
+
+
+def test_a_frame_the_pose_gate_drops_is_not_also_a_missing_sweep(frames):
+    turned = [
+        dataclasses.replace(f, ego_pose=f.ego_pose @ SE3.from_se2(SE2(0.0, 0.0, math.pi)))
+        if f.index == 6
+        else f
+        for f in frames
+    ]
+    missing, m = _lidar_missing(turned)
+    jumps = {k: v for k, v in m.items() if "jump" in k}
+    assert missing == 0 and sum(jumps.values()) == 1, jumps
+    assert _lidar_missing(frames[:6] + frames[7:])[0] == 1  # a sweep that never came is missing
+
+
 def test_unused_topics_and_a_rig_without_radar_are_said(frames, tmp_path, caplog):
     path = _write(tmp_path / "u.mcap", frames[:3], extra_topics=("/radar_front/points",))
     with caplog.at_level(logging.WARNING, logger="evgrid.data.bag"):
@@ -318,6 +368,8 @@ def test_a_damaged_lidar_file_is_a_counted_skip_naming_it(root, caplog, cut):
         got = list(scene)
     assert len(got) == len(scene) - 1 and 4 not in [g.index for g in got]
     assert scene.stats["frames_damaged"] == 1 and str(f) in caplog.text
+    # the frame after it carries the skip, so the mapper counts its gap under frames_damaged
+    assert [g.lidar_skipped for g in got if g.lidar_skipped] == [1] and got[4].index == 5
     with pytest.raises(NuScenesDataError, match=str(f)):
         scene.frame(4)
 

@@ -33,6 +33,7 @@ _PUBLIC = {
     "EvidentialMap": "evgrid.grid",
     "MapSet": "evgrid.fusion",
     "load_map": "evgrid.grid",
+    "MapFrame": "evgrid.grid",
     "save_map": "evgrid.grid",
     "GridSpec": "evgrid.geometry",
     # data

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from evgrid.geometry import SE2, GridSpec
+from evgrid.geometry import SE2, SE3, GridSpec
 from evgrid.io import atomic_write
 from evgrid.kernels import COARSE, coarse_blocks, count_invalid, load_padded, warp_rows
 from evgrid.mass import vacuous
@@ -35,6 +35,8 @@ logger = logging.getLogger(__name__)
 __all__ = [
     "MapWindow",
     "EvidentialMap",
+    "MapFrame",
+    "MAP_FRAME_KINDS",
     "Warper",
     "warp_to_map",
     "warp_window",
@@ -231,6 +233,7 @@ class EvidentialMap:
         tile_cells: int = 256,
         metadata: dict[str, Any] | None = None,
         dynamic: bool = False,
+        frame: MapFrame | None = None,
     ):
         self.grid = grid or GridSpec()
         if not isinstance(tile_cells, (int, np.integer)) or tile_cells < 8:
@@ -239,6 +242,9 @@ class EvidentialMap:
         self.tiles: dict[tuple[int, int], np.ndarray] = {}
         self.covered_tiles: dict[tuple[int, int], np.ndarray] = {}
         self.metadata: dict[str, Any] = dict(metadata or {})
+        if frame is not None and not isinstance(frame, MapFrame):
+            raise TypeError(f"frame must be a MapFrame or None, got {type(frame).__name__}")
+        self.frame = frame  # where the cells lie in the recording (None: not known)
         self.dynamic = bool(dynamic)
         self.dynamic_tiles: dict[tuple[int, int], np.ndarray] = {}
 
@@ -401,7 +407,61 @@ class EvidentialMap:
 # --- persistence --------------------------------------------------------------------------------
 
 _FORMAT = "evgrid-map"
-_FORMAT_VERSION = 1
+#: 2: the header holds the map frame (``frame``); version 1 files load with ``frame`` None.
+_FORMAT_VERSION = 2
+_READS = (1, 2)
+
+#: The frames a map can be built in (:attr:`evgrid.config.MapperConfig.frame`).
+MAP_FRAME_KINDS: tuple[str, ...] = ("world", "first_pose")
+
+
+@dataclass(frozen=True)
+class MapFrame:
+    """Where a map's cells lie in the recording, kept in its file.
+
+    ``kind``: ``"world"``, the recording's fixed frame ``fixed_frame`` itself (axis-aligned,
+    the map origin at its origin), or ``"first_pose"``, the planar frame of the first ego pose
+    mapped. ``fixed_frame``: the fixed frame's name (odom, nuScenes ``global``, a rig's
+    ``world_frame``; "" when not known). ``first_pose``: the first ego pose mapped, in the fixed
+    frame (None when not known); with ``first_pose`` maps it puts the map back into the
+    recording.
+    """
+
+    kind: str = "world"
+    fixed_frame: str = ""
+    first_pose: SE3 | None = None
+
+    def __post_init__(self) -> None:
+        if self.kind not in MAP_FRAME_KINDS:
+            raise ValueError(f"MapFrame.kind must be one of {MAP_FRAME_KINDS}, got {self.kind!r}")
+        if not isinstance(self.fixed_frame, str):
+            raise ValueError(f"MapFrame.fixed_frame must be a name, got {self.fixed_frame!r}")
+        if self.first_pose is not None and not isinstance(self.first_pose, SE3):
+            raise ValueError(
+                f"MapFrame.first_pose must be an SE3 or None, got {type(self.first_pose).__name__}"
+            )
+
+    @classmethod
+    def of(cls, mapper: Any, fixed_frame: str = "") -> MapFrame:
+        """The frame ``mapper`` (an :class:`~evgrid.mapper.OccupancyMapper`) builds its maps in."""
+        return cls(mapper.config.frame, fixed_frame, mapper.first_pose)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON values; the pose as its 4x4 matrix, rows (floats round-trip exactly)."""
+        pose = None if self.first_pose is None else self.first_pose.matrix().tolist()
+        return {"kind": self.kind, "fixed_frame": self.fixed_frame, "first_pose": pose}
+
+    @classmethod
+    def from_dict(cls, d: Any) -> MapFrame:
+        """The inverse of :meth:`to_dict`; ValueError (or TypeError) naming what is wrong."""
+        if not isinstance(d, dict) or set(d) - {"kind", "fixed_frame", "first_pose"}:
+            raise ValueError(f"a map frame is {{kind, fixed_frame, first_pose}}, got {d!r}")
+        pose = d.get("first_pose")
+        return cls(
+            d.get("kind", "world"),
+            d.get("fixed_frame", ""),
+            None if pose is None else SE3.from_matrix(np.asarray(pose, dtype=np.float64)),
+        )
 
 
 class MapFileError(ValueError):
@@ -443,14 +503,18 @@ def _check_extent(where: str, grid: GridSpec, ts: int, keys, covered_any) -> str
     return None
 
 
-def save_map(m: EvidentialMap, path: str | os.PathLike) -> Path:
-    """Save a map losslessly (compressed ``.npz`` with its grid and metadata), atomically."""
+def save_map(m: EvidentialMap, path: str | os.PathLike, frame: MapFrame | None = None) -> Path:
+    """Save a map losslessly (compressed ``.npz`` with its grid, metadata and map frame:
+    ``frame``, else ``m.frame``), atomically."""
     if not isinstance(m, EvidentialMap):
         raise TypeError(f"save_map needs an EvidentialMap, got {type(m).__name__}")
     if not isinstance(path, (str, os.PathLike)) or not str(path) or Path(path).name in ("", "."):
         raise ValueError(f"save_map: {path!r} names no file; give one such as 'fused.npz'")
     if Path(path).is_dir():
         raise IsADirectoryError(f"save_map: {path} is a folder; give a file name inside it")
+    frame = getattr(m, "frame", None) if frame is None else frame
+    if frame is not None and not isinstance(frame, MapFrame):
+        raise TypeError(f"save_map: frame must be a MapFrame or None, got {type(frame).__name__}")
     keys = sorted(m.tiles)
     header = {
         "format": _FORMAT,
@@ -458,6 +522,7 @@ def save_map(m: EvidentialMap, path: str | os.PathLike) -> Path:
         "spec": m.grid.to_dict(),
         "tile_cells": m.tile_cells,
         "metadata": m.metadata,
+        "frame": None if frame is None else frame.to_dict(),
     }
     ts = m.tile_cells
     why = _check_extent(
@@ -528,7 +593,7 @@ def load_map(path: str | os.PathLike) -> EvidentialMap:
                 raise MapFileError(f"{path}: array 'header' is {hshape} {hdtype}, not JSON bytes")
         with np.load(path, allow_pickle=False) as z:
             header = json.loads(z["header"].tobytes().decode())
-            ts, spec, metadata = _header_fields(path, header)
+            ts, spec, metadata, frame = _header_fields(path, header)
             n_keys = shapes["keys"][0][0] if len(shapes["keys"][0]) == 2 else -1
             want = {  # shape, dtype test, what it is
                 "keys": ((n_keys, 2), lambda d: d.kind == "i", "integer tile keys"),
@@ -569,7 +634,7 @@ def load_map(path: str | os.PathLike) -> EvidentialMap:
             f"{path}: {n_bad} cell(s) hold no valid mass (NaN, inf, negative, or not summing "
             "to 1); the file is corrupt"
         )
-    m = EvidentialMap(spec, ts, metadata)
+    m = EvidentialMap(spec, ts, metadata, frame=frame)
     for k, t, c in zip(keys, tiles, covered):
         key = (int(k[0]), int(k[1]))
         m.tiles[key] = np.ascontiguousarray(t)
@@ -577,15 +642,19 @@ def load_map(path: str | os.PathLike) -> EvidentialMap:
     return m
 
 
-def _header_fields(path: Path, header: Any) -> tuple[int, GridSpec, dict[str, Any]]:
-    """``tile_cells``, the grid and the metadata of a map file's header; MapFileError if bad."""
+def _header_fields(
+    path: Path, header: Any
+) -> tuple[int, GridSpec, dict[str, Any], MapFrame | None]:
+    """``tile_cells``, the grid, the metadata and the map frame (None in version 1 files) of a
+    map file's header; MapFileError if bad."""
     if not isinstance(header, dict) or header.get("format") != _FORMAT:
         fmt = header.get("format") if isinstance(header, dict) else None
         raise MapFileError(f"{path} is not an evgrid map (format {fmt!r})")
-    if header.get("version") != _FORMAT_VERSION:
+    version = header.get("version")
+    if isinstance(version, bool) or version not in _READS:
         raise MapFileError(
-            f"{path} has map format version {header.get('version')!r}; "
-            f"this evgrid reads {_FORMAT_VERSION}"
+            f"{path} has map format version {version!r}; "
+            f"this evgrid reads {', '.join(map(str, _READS))}"
         )
     ts = header.get("tile_cells")
     if isinstance(ts, bool) or not isinstance(ts, int) or not 8 <= ts <= 4096:
@@ -597,7 +666,14 @@ def _header_fields(path: Path, header: Any) -> tuple[int, GridSpec, dict[str, An
         metadata = dict(header.get("metadata", {}))
     except (KeyError, TypeError, ValueError) as e:
         raise MapFileError(f"{path}: header field 'spec' or 'metadata' is invalid ({e})") from e
-    return ts, spec, metadata
+    frame = None
+    if version >= 2 and header.get("frame") is not None:
+        try:
+            frame = MapFrame.from_dict(header["frame"])
+        except (TypeError, ValueError) as e:
+            why = " ".join(str(e).split())[:200]
+            raise MapFileError(f"{path}: header field 'frame' is invalid ({why})") from e
+    return ts, spec, metadata, frame
 
 
 def _first_duplicate(keys: np.ndarray) -> tuple[int, int] | None:

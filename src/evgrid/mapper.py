@@ -107,6 +107,8 @@ class OccupancyMapper:
         self.preprocess = Preprocessor.from_config(config)
         self.poses: PoseGate = self.preprocess.poses
         self.lidar_gaps = GapCounter()
+        self.lidar_frames_missing = 0  # sweeps missing for no reason counted elsewhere
+        self._lidar_explained = 0  # sweeps skipped for a known reason since the last frame mapped
         self.schedule = UpdateSchedule(config.update_rate_hz)
         self.first_pose: SE3 | None = None
         self.timings: dict[str, list[float]] = {}
@@ -124,8 +126,11 @@ class OccupancyMapper:
         t0 = time.perf_counter()
         self.n_frames += 1
         if not self.preprocess.accept(frame):  # an odometry glitch: nothing of it is mapped
+            last = self.lidar_gaps.last
+            if last is None or frame.timestamp > last:  # not stale: its gap is the pose gate's
+                self._lidar_explained += frame.lidar_skipped + 1
             return False
-        self.lidar_gaps.add(frame.timestamp)
+        self._count_lidar_gap(frame)
         for sweep in self.preprocess.radar_sweeps(frame):  # pose-checked and filtered
             self.buffer.push(sweep)
         if not self.schedule.due(frame.timestamp, frame.is_keyframe):
@@ -225,7 +230,7 @@ class OccupancyMapper:
             "radar_sweeps_duplicate": self.buffer.n_duplicate,
             "radar_sweeps_out_of_order": self.buffer.n_out_of_order,
             "radar_sweeps_missing": self.buffer.n_missing,
-            "lidar_frames_missing": self.lidar_gaps.n_missing,
+            "lidar_frames_missing": self.lidar_frames_missing,
             "radar_detections_filtered": self.preprocess.n_radar_filtered,
             **self.preprocess.self_returns.counts(),
             # invalid ISM cells taken as vacuous before the warp, and window cells a rule refused
@@ -233,6 +238,15 @@ class OccupancyMapper:
             "map_cells_rejected": sum(self.maps.n_rejected_cells.values()),
             "radar_detections_out_of_range": getattr(self.deep, "n_dropped", 0),
         }
+
+    def _count_lidar_gap(self, frame: Frame) -> None:
+        """Count the lidar sweeps missing before ``frame``: the gap since the last frame mapped,
+        less the sweeps skipped in it for a known reason (the source's report, the pose gate),
+        so that each skipped sweep is counted once, under that reason."""
+        missing = self.lidar_gaps.add(frame.timestamp)
+        explained = self._lidar_explained + frame.lidar_skipped
+        self._lidar_explained = 0
+        self.lidar_frames_missing += max(missing - explained, 0)
 
     def _time(self, name: str, t0: float) -> float:
         t1 = time.perf_counter()

@@ -136,8 +136,9 @@ def map_scene(
         exporters = _exporters(outputs, out, name, config.frame, fixed_frame)
         try:
             return _map_scene(
-                frames, out, config, outputs, deep, name, progress, observers, source, exporters
-            )
+                frames, out, config, outputs, deep, name, progress, observers, source, exporters,
+                fixed_frame,
+            )  # fmt: skip
         except BaseException:
             # Ctrl-C included: an export not closed is incomplete, and its temporary file goes
             # now rather than whenever the exporter is collected
@@ -171,7 +172,7 @@ def _maps_the_rig_can_make(config: MapperConfig, frames: Any, name: str) -> Mapp
 
 
 def _map_scene(
-    frames, out, config, outputs, deep, name, progress, observers, source, exporters
+    frames, out, config, outputs, deep, name, progress, observers, source, exporters, fixed_frame
 ) -> SceneResult:
     truth = TruthTracker(config.grid, config.tile_cells)
     mapper = OccupancyMapper(config, deep)
@@ -220,10 +221,12 @@ def _map_scene(
                 )
             )
         if outputs.save_maps:
-            from evgrid.grid import save_map
+            from evgrid.grid import MapFrame, save_map
 
+            frame = MapFrame.of(mapper, fixed_frame)  # the file says where its cells lie
             for m_name, m in mapper.maps.maps.items():
-                files[f"map_{m_name}"] = str(save_map(m, out / "maps" / f"{m_name}.npz"))
+                path = out / "maps" / f"{m_name}.npz"
+                files[f"map_{m_name}"] = str(save_map(m, path, frame))
     return SceneResult(name, jsonable(metrics), files, metrics["frames_per_second"])
 
 

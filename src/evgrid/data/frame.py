@@ -152,6 +152,10 @@ class Frame:
     ``occupancy`` is the true occupancy on the local grid of this frame's ego pose (``(n, n)``
     uint8: 0 free, 1 occupied static, 2 occupied dynamic), given by the simulator on
     keyframes and ``None`` elsewhere (nuScenes has no such raster).
+
+    ``lidar_skipped``: lidar sweeps the source skipped just before this one (a bad stamp, a
+    malformed cloud, no pose, a damaged file), counted in its own report under their reasons;
+    the gap they leave is not counted again as missing sweeps.
     """
 
     scene: str
@@ -162,6 +166,7 @@ class Frame:
     lidar: LidarSweep
     radar: Mapping[str, tuple[RadarSweep, ...]] = field(default_factory=dict)
     occupancy: np.ndarray | None = None
+    lidar_skipped: int = 0
 
     def radar_sweeps(self) -> Iterator[RadarSweep]:
         """All radar sweeps of this frame, channel by channel (nuScenes' order, then by name),

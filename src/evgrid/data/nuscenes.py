@@ -27,6 +27,7 @@ never gets ``min_travel_m`` (1 m) away from its first pose are left out.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import os
@@ -279,14 +280,17 @@ class NuScenesScene:
         """The frames; one whose lidar file or ego pose is damaged is skipped, counted
         (``stats["frames_damaged"]``) and logged naming the file and record."""
         self.stats["frames_damaged"] = 0
+        skipped = 0  # since the last frame yielded: the mapper counts their gap as theirs
         for i in range(len(self)):
             try:
                 frame = self.frame(i)
             except NuScenesDataError as e:
                 self.stats["frames_damaged"] += 1
+                skipped += 1
                 logger.warning("scene %r frame %d: %s; frame skipped", self.name, i, e)
                 continue
-            yield frame
+            yield dataclasses.replace(frame, lidar_skipped=skipped) if skipped else frame
+            skipped = 0
 
     def __repr__(self) -> str:
         return f"NuScenesScene({self.name!r}, {len(self)} frames)"

@@ -50,6 +50,11 @@ class GapCounter:
         self._intervals: deque[int] = deque(maxlen=window)
         self.n_missing = 0
 
+    @property
+    def last(self) -> int | None:
+        """The last timestamp added (us), None before the first."""
+        return self._last
+
     def add(self, t_us: int) -> int:
         """Note a delivered timestamp (after the last one); returns how many sweeps were missing
         before it."""

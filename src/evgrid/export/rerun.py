@@ -1,8 +1,9 @@
 """A rerun recording (``.rrd``) or live viewer of a mapping run: maps, current ISMs, trajectory
-(``pip install 'evgrid[rerun]'``).
+(the ``rerun`` extra: ``evgrid.install_hint("rerun")`` says how to install it).
 
-Everything lives in one 3-D space in metres, the map frame (x forward at the first pose, y
-left, z up), so maps, ISMs and the trajectory overlay:
+Everything lives in one 3-D space in metres, the map frame (the recording's fixed frame, or
+the first pose's with ``MapperConfig.frame = "first_pose"``; z up), so maps, ISMs and the
+trajectory overlay:
 
 * ``maps/NAME``: a square of ``window_m`` metres around the vehicle, a textured quad whose
   corners are the window's outer cell corners in the map frame (colours:

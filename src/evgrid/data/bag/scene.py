@@ -342,19 +342,22 @@ class BagScene:
     def _emit(
         self,
         upto_ns: int | None,
-        lidar_q: list[tuple[int, np.ndarray, str]],
+        lidar_q: list[tuple[int, np.ndarray, str, int]],
         radar_q: list[RadarSweep],
         counts: dict[str, int],
         state: dict,
     ) -> Iterator[Frame]:
         """The frames of the queued lidar sweeps whose stamps are ``sync_tolerance_s`` before
-        bag time ``upto_ns`` (all with None), each with the radar sweeps since the last frame."""
+        bag time ``upto_ns`` (all with None), each with the radar sweeps since the last frame and
+        the count of lidar sweeps skipped before it (``Frame.lidar_skipped``)."""
         rig = self.rig
         tol_ns = int(rig.sync_tolerance_s * 1e9)
         while lidar_q and (upto_ns is None or lidar_q[0][0] * 1000 + tol_ns < upto_ns):
-            t, pts, frame_id = lidar_q.pop(0)
+            t, pts, frame_id, skipped = lidar_q.pop(0)
+            skipped += state["carry"]
             ego = self._poses.ego(t)
             if ego is None:
+                state["carry"] = skipped + 1  # this sweep's gap too, at the next frame
                 self._skip(
                     "frames_no_pose",
                     counts,
@@ -380,6 +383,7 @@ class BagScene:
             lidar = LidarSweep(pts, s2e, ego, t, LIDAR_CHANNEL)
             state["index"] = i + 1
             state["last_t"] = t
+            state["carry"] = 0
             yield Frame(
                 scene=self.name,
                 index=i,
@@ -388,6 +392,7 @@ class BagScene:
                 is_keyframe=kf,
                 lidar=lidar,
                 radar=radar,
+                lidar_skipped=skipped,
             )
 
     def __iter__(self) -> Iterator[Frame]:
@@ -395,7 +400,7 @@ class BagScene:
 
         rig = self.rig
         radar_by_topic = {r.topic: r for r in rig.radars}
-        lidar_q: list[tuple[int, np.ndarray, str]] = []
+        lidar_q: list[tuple[int, np.ndarray, str, int]] = []
         radar_q: list[RadarSweep] = []
         counts = dict.fromkeys(
             (
@@ -414,7 +419,8 @@ class BagScene:
         counts.update(self._pose_counts)
         leads: deque[int] = deque(maxlen=9)  # lidar stamp minus bag time (us), last accepted
         index: dict[str, int] = {}
-        state: dict = {"index": 0, "last_t": None, "kf": {}}
+        # skipped: lidar messages skipped since the last one queued, whose gap that one carries
+        state: dict = {"index": 0, "last_t": None, "kf": {}, "skipped": 0, "carry": 0}
 
         topics = {rig.lidar.topic, *radar_by_topic}
         for topic, bag_t, msg in self._rec.messages(topics):
@@ -424,6 +430,7 @@ class BagScene:
             if topic == rig.lidar.topic:
                 reason = self._lidar_stamp(t, bag_t, state["last_t"], lidar_q, leads)
                 if reason is not None:
+                    state["skipped"] += 1
                     self._skip(
                         f"lidar_sweeps_{reason}",
                         counts,
@@ -437,15 +444,17 @@ class BagScene:
                 try:
                     pts = lidar_points(msg, rig.lidar, where)
                 except CloudError as e:
+                    state["skipped"] += 1
                     self._skip("lidar_messages_malformed", counts, "%s: %s; skipped", where, e)
                     continue
                 leads.append(t - bag_t // 1000)
                 # recorded out of order within the tolerance: put it in its place
                 bisect.insort(
                     lidar_q,
-                    (t, pts, rig.lidar.frame or msg.header.frame_id),
+                    (t, pts, rig.lidar.frame or msg.header.frame_id, state["skipped"]),
                     key=lambda q: q[0],
                 )
+                state["skipped"] = 0
             elif state["last_t"] is not None and t <= state["last_t"]:
                 counts["radar_sweeps_late"] += 1
             else:
