@@ -2,8 +2,9 @@
 sensitivity to the parameters, and the area movers leave behind with and without the gate.
 
 Run: ``PYTHONPATH=src python benchmarks/dynamic.py [--seeds 4 9 14] [--duration 10] [--deep]
-[--json out.json]``. Each simulated scene is mapped once: the mapper's maps (``ray_ilm`` and
-``ray_irm``; with ``--deep`` also ``deep_acc`` and ``fused``, which load the shipped Ev-Net)
+[--nav] [--variants NAME ...] [--json out.json]``. Each simulated scene is mapped once: the
+mapper's maps (``ray_ilm`` and ``ray_irm``; with ``--deep`` also ``deep_acc`` and ``fused``,
+which load the shipped Ev-Net; with ``--nav`` also ``nav``, whose area left behind is reported)
 carry the default :class:`~evgrid.fusion.DynamicParams`, and one attached map set per variant
 of :data:`VARIANTS` carries that variant (extra rows of the same one-pass update, fed the same
 Doppler cue). At every keyframe the cells above each threshold of ``--thresholds`` (and, for
@@ -51,6 +52,7 @@ VARIANTS: dict[str, tuple[DynamicParams, int]] = {
     "support 3": (D0, 3),
     "gate": (replace(D0, gate_maps=True), 1),
     "gate, threshold 0.3": (replace(D0, gate_maps=True, threshold=0.3), 1),
+    "no nav gate": (replace(D0, gate_nav=False), 1),
 }
 
 
@@ -87,16 +89,19 @@ class _Counter:
                 for t in self.thresholds:
                     c = self.counts.setdefault((v, name, t), np.zeros(3, np.int64))
                     c += dynamic_confusion(score, t, moving, observed)
+            for name in s.names:
                 area = self._trail.left_behind(s[name], r0, c0, free)[1]
                 self.left.setdefault((v, name), []).append(area)
 
 
-def map_scene(seed: int, duration_s: float, maps: tuple[str, ...], thresholds) -> _Counter:
+def map_scene(
+    seed: int, duration_s: float, maps: tuple[str, ...], thresholds, variants: list[str]
+) -> _Counter:
     config = replace(MapperConfig(maps=maps), dynamic=D0)
     extra = {
-        v: MapSet(config.grid, config.fusion, maps, config.tile_cells, d)
+        v: MapSet(config.grid, config.fusion, maps, config.tile_cells, d, nav=config.nav)
         for v, (d, _) in VARIANTS.items()
-        if v != "default"
+        if v != "default" and v in variants
     }
     counter = _Counter({}, thresholds)
     mapper = OccupancyMapper(config, observers=(counter,), extra=tuple(extra.values()))
@@ -112,14 +117,18 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=10.0, help="seconds of each scene")
     ap.add_argument("--deep", action="store_true", help="also deep_acc and fused (Ev-Net)")
     ap.add_argument("--thresholds", type=float, nargs="+", default=[0.05, 0.1, 0.2, 0.3, 0.5])
+    ap.add_argument("--nav", action="store_true", help="also nav (and so fused, with Ev-Net)")
+    ap.add_argument("--variants", nargs="+", default=list(VARIANTS), help="of VARIANTS")
     ap.add_argument("--json", help="write the pooled counts and areas here")
     args = ap.parse_args()
     maps = ("ray_ilm", "ray_irm", *(("deep_acc", "fused") if args.deep else ()))
+    maps += ("nav",) if args.nav else ()
+    variants = ["default", *(v for v in args.variants if v != "default")]
     total: dict = {}
     left: dict = {}
     for seed in args.seeds:
         t = time.perf_counter()
-        c = map_scene(seed, args.duration, maps, args.thresholds)
+        c = map_scene(seed, args.duration, maps, args.thresholds, variants)
         for k, v in c.counts.items():
             total[k] = total.get(k, 0) + v
         for k, v in c.left.items():
@@ -131,17 +140,18 @@ def main() -> None:
     for name in names:
         print(f"\n{name}\n\n| variant | " + " | ".join(f"> {t:g}" for t in args.thresholds) + " |")
         print("|---" * (len(args.thresholds) + 1) + "|")
-        for v in VARIANTS:
+        for v in variants:
             cells = []
             for t in args.thresholds:
                 s = detection_scores(*map(int, total[(v, name, t)]))
                 mark = "*" if t == D0.threshold else ""
                 cells.append(f"{s['precision']:.2f} / {s['recall']:.2f}{mark}")
             print(f"| {v} | " + " | ".join(cells) + " |")
-    print("\nleft behind (m^2, mean over keyframes):\n\n| variant | " + " | ".join(names) + " |")
-    print("|---" * (len(names) + 1) + "|")
-    for v in VARIANTS:
-        print(f"| {v} | " + " | ".join(f"{np.mean(left[(v, n)]):.2f}" for n in names) + " |")
+    shown = sorted({k[1] for k in left}, key=maps.index)
+    print("\nleft behind (m^2, mean over keyframes):\n\n| variant | " + " | ".join(shown) + " |")
+    print("|---" * (len(shown) + 1) + "|")
+    for v in variants:
+        print(f"| {v} | " + " | ".join(f"{np.mean(left[(v, n)]):.2f}" for n in shown) + " |")
     if args.json:
         with open(args.json, "w") as f:
             json.dump(
