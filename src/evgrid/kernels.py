@@ -312,6 +312,14 @@ def _span(spans, i, w):
 # bad[j] flags invalid ISM cells; returns their number. The kernels below loop rows over them.
 
 
+@numba.njit(inline="always", **_CHECKED)
+def _ism_cell(ism_, p):
+    # The ISM cell at flat index p of a row as float64 masses and whether they are masses
+    # (_valid_cell): how every rule opens a cell.
+    f, o, u = np.float64(ism_[p]), np.float64(ism_[p + 1]), np.float64(ism_[p + 2])
+    return f, o, u, _valid_cell(f, o, u)
+
+
 @numba.njit(inline="always", **_JIT)
 def _conflict_split(f1, o1, f2, o2):
     # The conflict K = f1 o2 + o1 f2 of Dempster's rule (paper eq. (7)), map 1 and ISM 2, split
@@ -337,8 +345,7 @@ def _dempster_row(mp_, ism_, bad, n, s_, decay, scored, gate):
     for j in range(n):
         p = 3 * j
         f1, o1, u1 = np.float64(mp_[p]), np.float64(mp_[p + 1]), np.float64(mp_[p + 2])
-        f2, o2, u2 = np.float64(ism_[p]), np.float64(ism_[p + 1]), np.float64(ism_[p + 2])
-        ok = _valid_cell(f2, o2, u2)
+        f2, o2, u2, ok = _ism_cell(ism_, p)
         bad[j] = 0 if ok else 1
         if scored:
             arrived, left = _conflict_split(f1, o1, f2, o2)
@@ -362,8 +369,7 @@ def _deep_replace_row(mp_, ism_, bad, n, m_u_min):
     # (docs/decisions.md#the-six-maps).
     for j in range(n):
         p = 3 * j
-        f2, o2, u2 = np.float64(ism_[p]), np.float64(ism_[p + 1]), np.float64(ism_[p + 2])
-        ok = _valid_cell(f2, o2, u2)
+        f2, o2, u2, ok = _ism_cell(ism_, p)
         bad[j] = 0 if ok else 1
         f, o, u = _normalise_cell(f2, o2, u2)
         f, o, u = _limit_unknown_cell(f, o, u, m_u_min)
@@ -381,8 +387,7 @@ def _deep_disc_row(mp_, ism_, bad, n, m_u_min, alpha):
     for j in range(n):
         p = 3 * j
         f1, o1, u1 = np.float64(mp_[p]), np.float64(mp_[p + 1]), np.float64(mp_[p + 2])
-        f2, o2, u2 = np.float64(ism_[p]), np.float64(ism_[p + 1]), np.float64(ism_[p + 2])
-        ok = _valid_cell(f2, o2, u2)
+        f2, o2, u2, ok = _ism_cell(ism_, p)
         bad[j] = 0 if ok else 1
         f, o, u = _deep_disc_cell(f1, o1, u1, f2, o2, u2, m_u_min, alpha)
         keep = u2 >= 1.0 or not ok
@@ -400,15 +405,13 @@ def _fused_row(mp_, deep_, irm_, bad, n, m_u_min, alpha):
     for j in range(n):
         p = 3 * j
         f1, o1, u1 = np.float64(mp_[p]), np.float64(mp_[p + 1]), np.float64(mp_[p + 2])
-        fd, od, ud = np.float64(deep_[p]), np.float64(deep_[p + 1]), np.float64(deep_[p + 2])
-        ok_d = _valid_cell(fd, od, ud)
+        fd, od, ud, ok_d = _ism_cell(deep_, p)
         f, o, u = _deep_disc_cell(f1, o1, u1, fd, od, ud, m_u_min, alpha)
         keep = ud >= 1.0 or not ok_d
         f = f1 if keep else f
         o = o1 if keep else o
         u = u1 if keep else u
-        fr, or_, ur = np.float64(irm_[p]), np.float64(irm_[p + 1]), np.float64(irm_[p + 2])
-        ok_r = _valid_cell(fr, or_, ur)
+        fr, or_, ur, ok_r = _ism_cell(irm_, p)
         bad[j] = (0 if ok_d else 1) + (0 if ok_r else 1)
         f2, o2, u2 = _dempster_cell(f, o, u, fr, or_, ur)
         keep = ur >= 1.0 or not ok_r
@@ -426,8 +429,7 @@ def _dynamic_row(mp_, ism_, s_, n, decay, gate):
     # ``gate`` > 0, a gated cell (_gated) moves its occupied mass to unknown before the rule.
     for j in range(n):
         p = 3 * j
-        f2, o2, u2 = np.float64(ism_[p]), np.float64(ism_[p + 1]), np.float64(ism_[p + 2])
-        ok = _valid_cell(f2, o2, u2)
+        f2, o2, u2, ok = _ism_cell(ism_, p)
         o1 = np.float64(mp_[p + 1])
         arrived, left = _conflict_split(np.float64(mp_[p]), o1, f2, o2)
         k = arrived + left
