@@ -452,7 +452,12 @@ class MapSet:
 
     With ``dynamic`` enabled (:class:`DynamicParams`; default off), the maps with a Dempster
     step on an ISM (:attr:`dynamic_maps`) keep a dynamic score per cell beside their masses,
-    updated in the same pass (:meth:`~evgrid.grid.EvidentialMap.read_dynamic` reads it).
+    updated in the same pass (:meth:`~evgrid.grid.EvidentialMap.read_dynamic` reads it), plus
+    the Doppler cue of the ``moving`` detections given to :meth:`update`. With its gate on
+    (``gate_maps``) those maps shed the occupied mass of cells scored dynamic; with
+    ``gate_nav`` (and not ``gate_maps``) ``nav`` reads gated copies of ``ray_ilm`` and
+    ``fused``, hidden rows of the same pass (twice their memory), so the shown maps stay the
+    paper's (docs/equations.md#the-gate).
     """
 
     def __init__(
