@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import pytest
 
 from evgrid.config import (
@@ -24,10 +26,14 @@ def test_a_run_writes_the_exports_it_is_asked_for(tmp_path):
     scene = simulate_scene(4, SimConfig(duration_s=1.0))
     outputs = OutputConfig(figures=False, exports=("nav2", "mcap"))
     res = map_scene(scene, tmp_path / "run", MapperConfig(maps=("ray_ilm", "ray_irm")), outputs)
-    # the navigation map under map_saver's names (ray_ilm: the run has neither nav nor fused)
+    # the navigation map under map_saver's names: a run exporting for robots from a rig with a
+    # lidar and a radar maps nav too (not the fused map, whose radar free space passes through
+    # walls), and config.json says so
     nav2 = tmp_path / "run" / "nav2"
     assert sorted(p.name for p in nav2.iterdir()) == ["map.pgm", "map.yaml"]
-    assert "the navigation map: 'ray_ilm'" in (nav2 / "map.yaml").read_text()
+    assert "the navigation map: 'nav'" in (nav2 / "map.yaml").read_text()
+    config = json.loads((tmp_path / "run" / "config.json").read_text())
+    assert config["mapper"]["maps"] == ["ray_ilm", "ray_irm", "nav"]
     assert (tmp_path / "run" / f"{scene.name}.mcap").stat().st_size > 0
     assert set(res.files) >= {"export_nav2", "export_mcap", "metrics", "config"}
 
@@ -147,3 +153,11 @@ def test_a_run_without_a_results_folder_maps_and_refuses_exports():
     assert res.metrics["updates"] > 0 and res.files == {}
     with pytest.raises(ValueError, match="exports need a results folder"):
         map_scene(scene, None, MapperConfig(maps=("ray_ilm",)), OutputConfig(exports=("nav2",)))
+
+
+def test_a_run_exporting_nothing_for_robots_maps_what_was_asked(tmp_path):
+    scene = simulate_scene(4, SimConfig(duration_s=1.0))
+    cfg = MapperConfig(maps=("ray_ilm", "ray_irm"))
+    map_scene(scene, tmp_path / "run", cfg, OutputConfig(figures=False, exports=("rerun",)))
+    config = json.loads((tmp_path / "run" / "config.json").read_text())
+    assert config["mapper"]["maps"] == ["ray_ilm", "ray_irm"]

@@ -127,7 +127,7 @@ def map_scene(
 
     name = name or getattr(frames, "name", "scene")
     fixed_frame = fixed_frame or fixed_frame_of(None, frames)
-    config = _maps_the_rig_can_make(config, frames, name)
+    config = _maps_the_rig_can_make(config, frames, name, outputs.exports)
     with (
         results_folder(out_dir, overwrite)
         if out_dir is not None
@@ -147,12 +147,24 @@ def map_scene(
             raise
 
 
-def _maps_the_rig_can_make(config: MapperConfig, frames: Any, name: str) -> MapperConfig:
+def _maps_the_rig_can_make(
+    config: MapperConfig, frames: Any, name: str, exports: tuple[str, ...] = ()
+) -> MapperConfig:
     """A recording whose rig names no radar gives no radar maps: the deep IRM never runs on
-    detections from no sensor (docs/ros.md)."""
+    detections from no sensor (docs/ros.md). A rig with a lidar and a radar whose run exports
+    for robots (nav2, or the MCAP's window) also maps ``nav``, the map to navigate on."""
+    from evgrid.fusion import NAV_MAP, RULES
+
     if getattr(frames, "has_radar", True):
-        return config
-    from evgrid.fusion import RULES
+        if NAV_MAP in config.maps or not {"nav2", "mcap"} & set(exports):
+            return config
+        logging.getLogger(__name__).info(
+            "%s: mapping the navigation map %r too, for the %s export",
+            name,
+            NAV_MAP,
+            " and ".join(e for e in exports if e in ("nav2", "mcap")),
+        )
+        return replace(config, maps=(*config.maps, NAV_MAP))
 
     keep = tuple(m for m in config.maps if set(RULES[m].isms) <= {"ray_ilm"})
     if not keep:
