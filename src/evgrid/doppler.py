@@ -63,6 +63,26 @@ def _stamp(x, y, res, radius, r_lo, c_lo, mask):
                     mask[r - r_lo, c - c_lo] = True
 
 
+@numba.njit(cache=True)
+def _marked(mask, r_lo, c_lo):
+    # np.nonzero(mask) + (r_lo, c_lo), row-major, without numpy's generic path (the mask spans
+    # the discs' box, most of it empty)
+    n = 0
+    for r in range(mask.shape[0]):
+        for c in range(mask.shape[1]):
+            n += mask[r, c]
+    rows = np.empty(n, np.int64)
+    cols = np.empty(n, np.int64)
+    k = 0
+    for r in range(mask.shape[0]):
+        for c in range(mask.shape[1]):
+            if mask[r, c]:
+                rows[k] = r + r_lo
+                cols[k] = c + c_lo
+                k += 1
+    return rows, cols
+
+
 def disc_cells(
     grid: GridSpec, pose: SE2, xy: np.ndarray, radius_m: float
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -81,8 +101,7 @@ def disc_cells(
     r_lo, c_lo = int(rows.min()) - k, int(cols.min()) - k
     mask = np.zeros((int(rows.max()) + k + 1 - r_lo, int(cols.max()) + k + 1 - c_lo), np.bool_)
     _stamp(xy[:, 0].copy(), xy[:, 1].copy(), res, float(radius_m), r_lo, c_lo, mask)
-    rr, cc = np.nonzero(mask)
-    return rr + r_lo, cc + c_lo
+    return _marked(mask, r_lo, c_lo)
 
 
 @numba.njit(cache=True)
