@@ -337,6 +337,17 @@ def _gated(s, gate, f2, o2, u2, ok):
 
 
 @numba.njit(inline="always", **_CHECKED)
+def _score_cell(s, decay, f1, o1, u1, f2, o2, u2, ok, gate):
+    # One cell's dynamic score s <- decay s + K_arr + K_left (an invalid ISM cell adds nothing)
+    # and the gate on the new score (_gated): the new score and the map cell's (m_o, m_u) to
+    # combine, its occupied mass moved to unknown where gated.
+    arrived, left = _conflict_split(f1, o1, f2, o2)
+    s = decay * s + (arrived + left if ok else 0.0)
+    g = _gated(s, gate, f2, o2, u2, ok)
+    return s, (0.0 if g else o1), (u1 + o1 if g else u1)
+
+
+@numba.njit(inline="always", **_CHECKED)
 def _dempster_row(mp_, ism_, bad, n, s_, decay, scored, gate):
     # map <- map (+)_D ISM, paper eq. (5): the ray_ilm, deep_acc and ray_irm maps. With
     # ``scored`` (a constant where inlined), also the dynamic score s_ <- decay s_ + K_arr +
@@ -348,12 +359,8 @@ def _dempster_row(mp_, ism_, bad, n, s_, decay, scored, gate):
         f2, o2, u2, ok = _ism_cell(ism_, p)
         bad[j] = 0 if ok else 1
         if scored:
-            arrived, left = _conflict_split(f1, o1, f2, o2)
-            s = decay * np.float64(s_[j]) + (arrived + left if ok else 0.0)
+            s, o1, u1 = _score_cell(np.float64(s_[j]), decay, f1, o1, u1, f2, o2, u2, ok, gate)
             s_[j] = s
-            g = _gated(s, gate, f2, o2, u2, ok)
-            u1 = u1 + o1 if g else u1
-            o1 = 0.0 if g else o1
         f, o, u = _dempster_cell(f1, o1, u1, f2, o2, u2)
         keep = u2 >= 1.0 or not ok
         mp_[p] = f1 if keep else f
@@ -430,15 +437,12 @@ def _dynamic_row(mp_, ism_, s_, n, decay, gate):
     for j in range(n):
         p = 3 * j
         f2, o2, u2, ok = _ism_cell(ism_, p)
-        o1 = np.float64(mp_[p + 1])
-        arrived, left = _conflict_split(np.float64(mp_[p]), o1, f2, o2)
-        k = arrived + left
-        s = decay * np.float64(s_[j]) + (k if ok else 0.0)
+        f1, o1, u1 = np.float64(mp_[p]), np.float64(mp_[p + 1]), np.float64(mp_[p + 2])
+        s, o, u = _score_cell(np.float64(s_[j]), decay, f1, o1, u1, f2, o2, u2, ok, gate)
         s_[j] = s
         if gate > 0.0:
-            g = _gated(s, gate, f2, o2, u2, ok)
-            mp_[p + 2] = np.float64(mp_[p + 2]) + o1 if g else mp_[p + 2]
-            mp_[p + 1] = 0.0 if g else mp_[p + 1]
+            mp_[p + 1] = o
+            mp_[p + 2] = u
 
 
 #: Kernel codes of the update rules; :data:`evgrid.fusion.RULES` says which map uses which.
