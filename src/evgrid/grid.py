@@ -44,6 +44,7 @@ __all__ = [
     "save_map",
     "load_map",
     "MapFileError",
+    "tile_pieces",
 ]
 
 
@@ -219,6 +220,26 @@ def warp_to_map(local: np.ndarray, pose: SE2, grid: GridSpec) -> MapWindow:
     return Warper(grid).warp(local, pose)
 
 
+def tile_pieces(
+    tile_cells: int, r0: int, c0: int, h: int, w: int
+) -> Iterator[tuple[tuple[int, int], slice, slice, slice, slice]]:
+    """The tiles of ``tile_cells`` a side that map cells ``[r0:r0+h, c0:c0+w]`` meet: for each,
+    (tile key, tile rows, tile cols, window rows, window cols), the slices of the same cells
+    (:meth:`EvidentialMap.pieces`, and any other layer tiled the same way)."""
+    ts = tile_cells
+    for ti in range(r0 // ts, (r0 + h - 1) // ts + 1):
+        ra, rb = max(r0, ti * ts), min(r0 + h, (ti + 1) * ts)
+        for tj in range(c0 // ts, (c0 + w - 1) // ts + 1):
+            ca, cb = max(c0, tj * ts), min(c0 + w, (tj + 1) * ts)
+            yield (
+                (ti, tj),
+                slice(ra - ti * ts, rb - ti * ts),
+                slice(ca - tj * ts, cb - tj * ts),
+                slice(ra - r0, rb - r0),
+                slice(ca - c0, cb - c0),
+            )
+
+
 class EvidentialMap:
     """A mass grid in the map frame, stored as tiles created where local grids reach.
 
@@ -280,18 +301,7 @@ class EvidentialMap:
     ) -> Iterator[tuple[tuple[int, int], slice, slice, slice, slice]]:
         """The tiles that map cells ``[r0:r0+h, c0:c0+w]`` meet, stored or not: for each, (tile
         key, tile rows, tile cols, window rows, window cols), the slices of the same cells."""
-        ts = self.tile_cells
-        for ti in range(r0 // ts, (r0 + h - 1) // ts + 1):
-            ra, rb = max(r0, ti * ts), min(r0 + h, (ti + 1) * ts)
-            for tj in range(c0 // ts, (c0 + w - 1) // ts + 1):
-                ca, cb = max(c0, tj * ts), min(c0 + w, (tj + 1) * ts)
-                yield (
-                    (ti, tj),
-                    slice(ra - ti * ts, rb - ti * ts),
-                    slice(ca - tj * ts, cb - tj * ts),
-                    slice(ra - r0, rb - r0),
-                    slice(ca - c0, cb - c0),
-                )
+        return tile_pieces(self.tile_cells, r0, c0, h, w)
 
     def apply(
         self,

@@ -23,7 +23,7 @@ from evgrid.evaluate import (
     tile_keys,
 )
 from evgrid.geometry import GridSpec
-from evgrid.grid import EvidentialMap, MapWindow, Warper
+from evgrid.grid import EvidentialMap, MapWindow, Warper, tile_pieces
 from evgrid.mapper import MapUpdate
 
 __all__ = [
@@ -32,7 +32,6 @@ __all__ = [
     "SceneScores",
     "GifRecorder",
     "MoverTrail",
-    "moving_and_observed",
     "truth_masks",
 ]
 
@@ -132,14 +131,6 @@ def truth_masks(
     return truth.r0, truth.c0, moving, observed, free
 
 
-def moving_and_observed(
-    update: MapUpdate, warper: Warper
-) -> tuple[int, int, np.ndarray, np.ndarray] | None:
-    """``(r0, c0, moving, observed)`` of :func:`truth_masks`."""
-    found = truth_masks(update, warper)
-    return None if found is None else found[:4]
-
-
 class MoverTrail:
     """The map cells a moving object covered at some keyframe so far (the simulator's truth),
     and the area movers leave behind: cells truly free now, covered by a moving object earlier
@@ -153,30 +144,20 @@ class MoverTrail:
     def add(self, r0: int, c0: int, moving: np.ndarray) -> None:
         """Mark the ``moving`` cells (boolean ``(h, w)``, [0, 0] at map cell (r0, c0))."""
         ts = self.tile_cells
-        h, w = moving.shape
-        for ti in range(r0 // ts, (r0 + h - 1) // ts + 1):
-            ra, rb = max(r0, ti * ts), min(r0 + h, (ti + 1) * ts)
-            for tj in range(c0 // ts, (c0 + w - 1) // ts + 1):
-                ca, cb = max(c0, tj * ts), min(c0 + w, (tj + 1) * ts)
-                part = moving[ra - r0 : rb - r0, ca - c0 : cb - c0]
-                if not part.any():
-                    continue
-                t = self.tiles.get((ti, tj))
-                if t is None:
-                    t = self.tiles[(ti, tj)] = np.zeros((ts, ts), np.bool_)
-                t[ra - ti * ts : rb - ti * ts, ca - tj * ts : cb - tj * ts] |= part
+        for key, tr, tc, wr, wc in tile_pieces(ts, r0, c0, *moving.shape):
+            part = moving[wr, wc]
+            if part.any():
+                if key not in self.tiles:
+                    self.tiles[key] = np.zeros((ts, ts), np.bool_)
+                self.tiles[key][tr, tc] |= part
 
     def read(self, r0: int, c0: int, h: int, w: int) -> np.ndarray:
         """Dense ``(h, w)`` boolean copy of cells ``[r0:r0+h, c0:c0+w]``."""
         out = np.zeros((h, w), np.bool_)
-        ts = self.tile_cells
-        for (ti, tj), t in self.tiles.items():
-            ra, rb = max(r0, ti * ts), min(r0 + h, (ti + 1) * ts)
-            ca, cb = max(c0, tj * ts), min(c0 + w, (tj + 1) * ts)
-            if ra < rb and ca < cb:
-                out[ra - r0 : rb - r0, ca - c0 : cb - c0] = t[
-                    ra - ti * ts : rb - ti * ts, ca - tj * ts : cb - tj * ts
-                ]
+        for key, tr, tc, wr, wc in tile_pieces(self.tile_cells, r0, c0, h, w):
+            t = self.tiles.get(key)
+            if t is not None:
+                out[wr, wc] = t[tr, tc]
         return out
 
     def left_behind(
