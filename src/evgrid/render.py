@@ -367,6 +367,16 @@ def _box_keys(m, r0: int, c0: int, h: int, w: int) -> list[tuple[int, int]]:
     ]
 
 
+def _sampled_shape(name: str, step: int, h: int, w: int) -> tuple[int, int]:
+    """The shape of every ``step``-th cell of an ``h`` x ``w`` box; ``name`` is the caller, for
+    the error when the step or the box is not valid."""
+    if step < 1 or h < 0 or w < 0:
+        raise ValueError(
+            f"{name} needs step >= 1 and a non-negative box, got step {step}, box {h} x {w}"
+        )
+    return -(-h // step), -(-w // step)
+
+
 def sample_map(m, r0: int, c0: int, h: int, w: int, step: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """Every ``step``-th map cell of ``[r0, r0+h) x [c0, c0+w)``: masses and coverage, read
     tile by tile.
@@ -374,11 +384,7 @@ def sample_map(m, r0: int, c0: int, h: int, w: int, step: int = 1) -> tuple[np.n
     Only tiles that exist are touched (at most those the box meets), so a picture of a window
     costs the same anywhere on a long drive, and a picture of a whole map grows with its area.
     """
-    if step < 1 or h < 0 or w < 0:
-        raise ValueError(
-            f"sample_map needs step >= 1 and a non-negative box, got step {step}, box {h} x {w}"
-        )
-    hh, ww = -(-h // step), -(-w // step)
+    hh, ww = _sampled_shape("sample_map", step, h, w)
     out = vacuous((hh, ww))
     cov = np.zeros((hh, ww), dtype=np.bool_)
     ts = m.tile_cells
@@ -417,11 +423,7 @@ def called_dynamic(m, r0: int, c0: int, h: int, w: int, step: int, threshold: fl
         raise ValueError(
             f"map {m.metadata.get('rule', '?')!r} keeps no dynamic layer (dynamic off)"
         )
-    if step < 1 or h < 0 or w < 0:
-        raise ValueError(
-            f"called_dynamic needs step >= 1 and a non-negative box, got step {step}, box {h} x {w}"
-        )
-    hh, ww = -(-h // step), -(-w // step)
+    hh, ww = _sampled_shape("called_dynamic", step, h, w)
     n_called = np.zeros((hh, ww), dtype=np.int64)
     ts = m.tile_cells
     for ti, tj in _box_keys(m, r0, c0, h, w):
