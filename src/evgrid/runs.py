@@ -474,18 +474,21 @@ def summarize(per_scene: list[dict[str, Any]]) -> dict[str, Any]:
     return jsonable(out)
 
 
+def _ci_cell(ci: Mapping[str, float] | None, scale: float, fmt: str) -> str:
+    """A table cell of a bootstrap interval (``mean``, ``lo``, ``hi``, ``n`` scenes), scaled:
+    the mean, with the interval once there are two scenes; n/a without any."""
+    if not ci or ci["n"] == 0:
+        return "n/a"
+    v = format(ci["mean"] * scale, fmt)
+    if ci["n"] < 2:
+        return v
+    return f"{v} ({format(ci['lo'] * scale, fmt)}-{format(ci['hi'] * scale, fmt)})"
+
+
 def dynamic_table(summary: Mapping[str, Any]) -> str:
     """Markdown: per map, precision, recall and IoU of the cells called dynamic against the moving
     objects, and the area movers left behind that it calls occupied (mean over scenes, 95 %
     bootstrap interval)."""
-
-    def cell(ci: Mapping[str, float] | None, scale: float, fmt: str) -> str:
-        if not ci or ci["n"] == 0:
-            return "n/a"
-        v = format(ci["mean"] * scale, fmt)
-        if ci["n"] < 2:
-            return v
-        return f"{v} ({format(ci['lo'] * scale, fmt)}-{format(ci['hi'] * scale, fmt)})"
 
     dyn = summary.get("dynamic", {})
     left = summary.get("left_behind_m2", {})
@@ -499,8 +502,8 @@ def dynamic_table(summary: Mapping[str, Any]) -> str:
     ]
     for name in dict.fromkeys([*dyn, *left]):
         d = dyn.get(name, {})
-        row = [cell(d.get(k), 100, ".1f") if d else "-" for k in ("precision", "recall", "iou")]
-        row.append(cell(left.get(name), 1, ".2f"))
+        row = [_ci_cell(d.get(k), 100, ".1f") if d else "-" for k in ("precision", "recall", "iou")]
+        row.append(_ci_cell(left.get(name), 1, ".2f"))
         lines.append(f"| `{name}` | " + " | ".join(row) + " |")
     return "\n".join(lines) + "\n"
 
@@ -526,21 +529,11 @@ def convergence_table(conv: Mapping[str, Any]) -> str:
         "|" + "---|" * (1 + 3 * len(ts)),
     ]
 
-    def cell(ci: Mapping[str, float], scale: float, fmt: str) -> str:
-        if ci["n"] == 0:
-            return "n/a"
-        v = format(ci["mean"] * scale, fmt)
-        return (
-            v
-            if ci["n"] < 2
-            else f"{v} ({format(ci['lo'] * scale, fmt)}-{format(ci['hi'] * scale, fmt)})"
-        )
-
     for name, q in conv["maps"].items():
         row = (
-            [cell(c, 100, ".1f") for c in q["free"]]
-            + [cell(c, 100, ".1f") for c in q["occupied"]]
-            + [cell(c, 1, ".0f") for c in q["area_m2"]]
+            [_ci_cell(c, 100, ".1f") for c in q["free"]]
+            + [_ci_cell(c, 100, ".1f") for c in q["occupied"]]
+            + [_ci_cell(c, 1, ".0f") for c in q["area_m2"]]
         )
         lines.append(f"| `{name}` | " + " | ".join(row) + " |")
     return "\n".join(lines) + "\n"
