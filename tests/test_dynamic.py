@@ -9,7 +9,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from evgrid.classes import FREE
 from evgrid.config import MapperConfig
+from evgrid.evaluate import classify
 from evgrid.fusion import DynamicParams, MapSet
 from evgrid.geometry import SE2, GridSpec
 from tests.test_golden_maps import GOLDEN, POSES, _digest, _isms, mapper_maps
@@ -408,29 +410,43 @@ def test_nav_reads_gated_copies_of_its_inputs_by_default():
     d = DynamicParams(decay=0.5, threshold=0.1)
     assert d.gate_nav and not d.gate_maps
     ms = MapSet(grid, names=("ray_ilm", "fused", "nav"), dynamic=d)
+    alone = MapSet(grid, names=("nav",), dynamic=d)  # keeps the ungated lidar map hidden
     gated = MapSet(grid, names=("ray_ilm", "fused"), dynamic=replace(d, gate_maps=True))
-    for s in (ms, gated):
+    sets = (ms, alone, gated)
+    for s in sets:
         _step(s, n, ilm=(0.0, 0.8), irm=(0.0, 0.8))
         _step(s, n, ilm=(0.6, 0.0), irm=(0.6, 0.0))  # the mover left: K_left = 0.48
     # Table I's maps are not gated (the ghost stays occupied); nav reads gated copies of them
     assert _cell(ms, "ray_ilm")[1] > 0.5
     np.testing.assert_allclose(_cell(gated, "ray_ilm"), [0.6, 0.0, 0.4], atol=1e-6)
-    lidar, cov, _, _ = gated["ray_ilm"].to_dense()
-    fused, _, _, _ = gated["fused"].to_dense()
-    scores = np.maximum(
-        gated["ray_ilm"].read_dynamic(*gated["ray_ilm"].bounds()),
-        gated["fused"].read_dynamic(*gated["fused"].bounds()),
-    )
-    want = nav_dense(
-        lidar, fused, ms.nav.margin_cells(grid.resolution), ms.nav.occupied_min, scores, 0.1
-    )
-    got, _, _, _ = ms["nav"].to_dense()
-    np.testing.assert_allclose(got[cov], want[cov], atol=1e-6)
-    assert got[cov][:, 1].max() == 0.0  # no ghost left in nav
+
+    def want() -> np.ndarray:
+        lidar, cov, _, _ = gated["ray_ilm"].to_dense()
+        fused, _, _, _ = gated["fused"].to_dense()
+        scores = np.maximum(
+            gated["ray_ilm"].read_dynamic(*gated["ray_ilm"].bounds()),
+            gated["fused"].read_dynamic(*gated["fused"].bounds()),
+        )
+        r, occupied_min = ms.nav.margin_cells(grid.resolution), ms.nav.occupied_min
+        plain = ms["ray_ilm"].to_dense()[0]
+        return nav_dense(lidar, fused, r, occupied_min, scores, 0.1, plain)[cov]
+
+    cov = ms["nav"].to_dense()[1]
+    np.testing.assert_allclose(ms["nav"].to_dense()[0][cov], want(), atol=1e-6)
+    np.testing.assert_array_equal(alone["nav"].to_dense()[0], ms["nav"].to_dense()[0])
+    # no ghost left in nav, and no free space where the ungated lidar map still says occupied:
+    # the gate takes the cell to unknown
+    np.testing.assert_allclose(ms["nav"].to_dense()[0][cov], [[0.0, 0.0, 1.0]] * cov.sum())
+    # once the lidar map's own evidence is free-dominant (0.512 > 0.390), nav is free
+    for s in sets:
+        _step(s, n, ilm=(0.6, 0.0), irm=(0.6, 0.0))
+    np.testing.assert_allclose(_cell(ms, "ray_ilm"), [0.512, 0.390, 0.098], atol=1e-3)
+    np.testing.assert_allclose(ms["nav"].to_dense()[0][cov], want(), atol=1e-6)
+    assert (classify(ms["nav"].to_dense()[0][cov]) == FREE).all()
     # --no-dynamic: nav reads the shown maps, as before the score existed
     plain = MapSet(grid, names=("ray_ilm", "fused", "nav"))
-    assert plain._derived[0][1] is plain.maps["ray_ilm"]
-    assert ms._derived[0][1] is not ms.maps["ray_ilm"]
+    assert plain._derived[0][1] is plain.maps["ray_ilm"] and plain._derived[0][3] is None
+    assert ms._derived[0][1] is not ms.maps["ray_ilm"] and ms._derived[0][3] is ms.maps["ray_ilm"]
 
 
 def test_summary_and_table_carry_the_moving_objects():

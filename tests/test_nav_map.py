@@ -115,6 +115,37 @@ def test_a_cell_the_lidar_saw_occupied_is_never_free_in_nav(seed, steps, m_u_min
     np.testing.assert_array_equal(alone["nav"].to_dense()[0], nav)
 
 
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), steps=st.integers(2, 6), show_lidar=st.booleans())
+def test_with_the_gate_a_cell_the_lidar_map_calls_occupied_is_never_free_in_nav(
+    seed, steps, show_lidar
+):
+    """With the dynamic score on, nav reads gated copies of its inputs (gate_nav): the gate may
+    take a cell the (ungated) lidar map holds occupied-dominant to unknown, never to free; with
+    the lidar map shown or kept hidden for nav alike."""
+    from evgrid.fusion import DynamicParams
+
+    grid = GridSpec(40, 4.0)
+    rng = np.random.default_rng(seed)
+    d = DynamicParams(decay=0.5, threshold=0.05)
+    both = MapSet(grid, names=("ray_ilm", "fused", "nav"), dynamic=d)
+    alone = MapSet(grid, names=("nav", "ray_ilm") if show_lidar else ("nav",), dynamic=d)
+    plain = MapSet(grid, names=("ray_ilm",))  # the lidar map without any score or gate
+    for _ in range(steps):
+        pose = SE2(*rng.uniform(-2, 2, 2), rng.uniform(-np.pi, np.pi))
+        isms = _isms(rng, grid)
+        for s in (both, alone, plain):
+            s.update(pose, isms)
+    lidar, cov, _, _ = plain["ray_ilm"].to_dense()
+    nav = both["nav"].to_dense()[0]
+    mass.validate(nav)
+    occupied_dominant = cov & (lidar[..., 1] > lidar[..., 0])
+    assert occupied_dominant.any()
+    assert not (classify(nav)[occupied_dominant] == FREE).any()
+    assert (nav[occupied_dominant][:, 0] == 0.0).all()
+    np.testing.assert_array_equal(alone["nav"].to_dense()[0], nav)
+
+
 def test_nav_holds_more_free_space_than_the_lidar_map():
     # the fused map fills cells the lidar did not see: not a copy of the lidar map
     grid = GridSpec(32, 4.0)

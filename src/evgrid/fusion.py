@@ -418,6 +418,7 @@ class _Row:
     map: EvidentialMap
     params: FusionParams
     shown: bool  # False: kept only as an input of a rule from maps (not in MapSet.maps)
+    plain: bool = False  # never gated: the ungated lidar map beside nav's gated copies
 
 
 def _check_pose(pose: SE2) -> None:
@@ -503,6 +504,10 @@ class MapSet:
         order = [n for n in self.names if not RULES[n].from_maps]
         hidden = [m for m in dict.fromkeys(needed) if m not in order or gated_copies]
         derived = [n for n in self.names if RULES[n].from_maps]
+        # beside gated copies nav also reads the lidar map ungated: the gate may take a cell
+        # the lidar map calls occupied to unknown in nav, never to free
+        lidar = RULES["nav"].inputs[0]  # nav = L (+)_D F'
+        plain = [lidar] if gated_copies and derived and lidar not in order else []
         self._rows = [
             _Row(
                 n,
@@ -511,23 +516,31 @@ class MapSet:
                     self.grid,
                     tile_cells,
                     {"rule": n, "m_u_min": self.params.m_u_min, "alpha": self.params.alpha},
-                    dynamic=self._scores(n),
+                    dynamic=self._scores(n) and not is_plain,
                 ),
                 self.params,
                 shown,
+                is_plain,
             )
-            for n, shown in [
-                *((n, True) for n in order),
-                *((n, False) for n in hidden),
-                *((n, True) for n in derived),
+            for n, shown, is_plain in [
+                *((n, True, False) for n in order),
+                *((n, False, False) for n in hidden),
+                *((n, False, True) for n in plain),
+                *((n, True, False) for n in derived),
             ]
         ]
         self.tile_cells = self._rows[0].map.tile_cells
         every = {r.name: r.map for r in self._rows if r.shown}
-        inputs = {**every, **{r.name: r.map for r in self._rows if not r.shown}}
-        # the maps computed from others when read (nav), each with its input maps
+        inputs = {**every, **{r.name: r.map for r in self._rows if not (r.shown or r.plain)}}
+        ungated = (
+            ({**every, **{r.name: r.map for r in self._rows if r.plain}}[lidar],)
+            if gated_copies and derived
+            else (None,)
+        )
+        # the maps computed from others when read (nav), each with its input maps and, beside
+        # gated copies, the ungated lidar map
         self._derived = [
-            (every[r.name], *(inputs[m] for m in r.rule.inputs))
+            (every[r.name], *(inputs[m] for m in r.rule.inputs), *ungated)
             for r in self._rows
             if r.rule.from_maps
         ]
@@ -571,7 +584,7 @@ class MapSet:
     def _gate(self, row: _Row) -> float:
         """The gate's threshold of a row (docs/equations.md#the-gate); 0: not gated."""
         d = self.dynamic
-        on = d.gate_maps if row.shown else d.gate_nav  # the hidden rows are nav's inputs
+        on = d.gate_maps if row.shown else d.gate_nav and not row.plain  # hidden: nav's inputs
         return d.threshold if (on and row.map.dynamic) else 0.0
 
     def _plan(self) -> None:
@@ -675,8 +688,8 @@ class MapSet:
         r = self.nav.margin_cells(self.grid.resolution)
         avoid = self.nav.avoid_moving and self.dynamic.enabled
         moving_min = self.dynamic.threshold if avoid else math.inf
-        for nav, lidar, fused in self._derived:
-            refresh(nav, lidar, fused, self._stale, r, self.nav.occupied_min, moving_min)
+        for nav, lidar, fused, plain in self._derived:
+            refresh(nav, lidar, fused, self._stale, r, self.nav.occupied_min, moving_min, plain)
         self._stale = None
         self.last_ms["nav"] = self.last_ms.get("nav", 0.0) + (time.perf_counter() - t0) * 1e3
 

@@ -494,21 +494,26 @@ def update_rows(code, mp, mrs, a, ars, b, brs, h, w, spans, m_u_min, alpha):
 
 
 @numba.njit(inline="always", **_JIT)
-def _nav_cell(fl, ol, ul, ff, of, uf, clear):
+def _nav_cell(fl, ol, ul, ff, of, uf, clear, held):
     # F' = F with its free mass as unknown unless the cell is clear, and its occupied mass as
-    # unknown where the lidar's evidence is free-dominant; then L (+)_D F', eq. (5).
+    # unknown where the lidar's evidence is free-dominant; then L (+)_D F', eq. (5). ``held``:
+    # the ungated lidar map says occupied (m_o > m_f) where L is a gated copy: the gate may
+    # take the cell to unknown, never to free (docs/equations.md#the-gate).
     f2 = ff if clear else 0.0
     o2 = 0.0 if fl > ol else of
     u2 = uf + (ff - f2) + (of - o2)
-    return _dempster_cell(fl, ol, ul, f2, o2, u2)
+    f, o, u = _dempster_cell(fl, ol, ul, f2, o2, u2)
+    return (0.0, o, u + f) if held else (f, o, u)
 
 
 @numba.njit(**_CHECKED)
-def nav_cells(lidar, fused, moving, out, r, occupied_min, moving_min):
+def nav_cells(lidar, fused, moving, plain, held, out, r, occupied_min, moving_min):
     """The navigation map (evgrid.nav) of the cells ``r`` in from every edge of the dense lidar
     and fused maps ``(h + 2r, w + 2r, 3)``, into ``out`` ``(h, w, 3)``: a cell is clear when no
     cell within ``r`` cells (a square) holds lidar occupied mass, fused occupied mass above
-    ``occupied_min``, or a dynamic score ``moving`` ``(h + 2r, w + 2r)`` above ``moving_min``."""
+    ``occupied_min``, or a dynamic score ``moving`` ``(h + 2r, w + 2r)`` above ``moving_min``.
+    With ``held``, ``lidar`` is a gated copy and ``plain`` the ungated lidar map: a cell that
+    ``plain`` calls occupied-dominant keeps no free mass (without, ``plain`` is not read)."""
     # blocking cells are counted in an integral image: each cell's clearance is four reads
     hh, ww = lidar.shape[0], lidar.shape[1]
     acc = np.zeros((hh + 1, ww + 1), np.int32)
@@ -531,6 +536,7 @@ def nav_cells(lidar, fused, moving, out, r, occupied_min, moving_min):
                 np.float64(fused[a, b, 1]),
                 np.float64(fused[a, b, 2]),
                 n == 0,
+                held and plain[a, b, 1] > plain[a, b, 0],
             )
             out[i, j, 0] = f
             out[i, j, 1] = o

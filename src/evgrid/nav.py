@@ -8,7 +8,8 @@ map F, cell by cell and over a small neighbourhood (docs/equations.md#the-naviga
   return there) or fused occupied mass above ``occupied_min``;
 * F' is F with its free mass counted as unknown where the cell is not clear, and its occupied
   mass counted as unknown where the lidar's evidence is free-dominant (``m_f(L) > m_o(L)``);
-* ``nav = L (+)_D F'`` (Dempster's rule, paper eq. (5)).
+* ``nav = L (+)_D F'`` (Dempster's rule, paper eq. (5)); where L is a gated copy (the dynamic
+  score's gate), a cell the ungated lidar map holds occupied-dominant keeps no free mass.
 
 So a cell the lidar saw occupied is never freed by the radar or the prior, nor are the cells
 around it, and the lidar's free space stays free. nav keeps no memory of its own: it is
@@ -74,16 +75,22 @@ def nav_dense(
     occupied_min: float = 1.0,
     moving: np.ndarray | None = None,
     moving_min: float = math.inf,
+    plain: np.ndarray | None = None,
 ) -> np.ndarray:
     """nav of dense ``(h, w, 3)`` float32 lidar and fused maps (cells beyond the edges are
     vacuous); ``margin_cells`` 0 and ``occupied_min`` 1 look at each cell alone. ``moving``
-    ``(h, w)``: a dynamic score per cell; cells above ``moving_min`` block like a return."""
+    ``(h, w)``: a dynamic score per cell; cells above ``moving_min`` block like a return.
+    ``plain``: the ungated lidar map when ``lidar_map`` is a gated copy (the gate): a cell it
+    calls occupied-dominant keeps no free mass."""
     _check_map_view("lidar_map", lidar_map)
     _check_map_view("fused_map", fused_map)
-    if lidar_map.shape != fused_map.shape:
-        raise ValueError(
-            f"nav: the lidar map {lidar_map.shape} and fused map {fused_map.shape} differ in shape"
-        )
+    for name, other in (("fused map", fused_map), ("ungated lidar map", plain)):
+        if other is not None and other.shape != lidar_map.shape:
+            raise ValueError(
+                f"nav: the lidar map {lidar_map.shape} and {name} {other.shape} differ in shape"
+            )
+    if plain is not None:
+        _check_map_view("plain", plain)
     if isinstance(margin_cells, bool) or not isinstance(margin_cells, (int, np.integer)):
         raise TypeError(f"nav: margin_cells must be an int, got {margin_cells!r}")
     if margin_cells < 0:
@@ -94,13 +101,14 @@ def nav_dense(
     vac = ((0.0, 0.0), (0.0, 0.0), (0.0, 1.0))  # vacuous beyond the edges: m_u = 1
     lp = np.pad(lidar_map, pad, constant_values=vac)
     fp = np.pad(fused_map, pad, constant_values=vac)
+    pp = lp if plain is None else np.pad(plain, pad, constant_values=vac)
     mp = np.zeros((h + 2 * r, w + 2 * r), np.float32)
     if moving is not None:
         if np.shape(moving) != (h, w):
             raise ValueError(f"nav: moving must have shape {(h, w)}, got {np.shape(moving)}")
         mp[r : r + h, r : r + w] = moving
     out = np.empty((h, w, 3), np.float32)
-    nav_cells(lp, fp, mp, out, r, float(occupied_min), float(moving_min))
+    nav_cells(lp, fp, mp, pp, plain is not None, out, r, float(occupied_min), float(moving_min))
     return out
 
 
@@ -112,11 +120,13 @@ def refresh(
     margin_cells: int,
     occupied_min: float,
     moving_min: float = math.inf,
+    plain: EvidentialMap | None = None,
 ) -> None:
     """Recompute ``nav`` where the cells ``box`` (r0, c0, h, w) of ``lidar`` or ``fused`` changed:
     over the box grown by the margin, reading the two maps over the box grown by twice it. With
     a finite ``moving_min``, cells whose dynamic score (the larger of the two maps') exceeds it
-    block the fused map's free mass like a lidar return."""
+    block the fused map's free mass like a lidar return. ``plain``: the ungated lidar map when
+    ``lidar`` is a gated copy (see :func:`nav_dense`)."""
     r = int(margin_cells)
     r0, c0, h, w = box
     r0, c0, h, w = r0 - r, c0 - r, h + 2 * r, w + 2 * r  # the cells whose nav can change
@@ -129,7 +139,8 @@ def refresh(
             if m.dynamic:
                 np.maximum(moving, m.read_dynamic(*read), out=moving)
     out = np.empty((h, w, 3), np.float32)
-    nav_cells(lm, fm, moving, out, r, float(occupied_min), float(moving_min))
+    pm = lm if plain is None else plain.read(*read)[0]
+    nav_cells(lm, fm, moving, pm, plain is not None, out, r, float(occupied_min), float(moving_min))
     cov = (lcov | fcov)[r : r + h, r : r + w]
     for key, tr, tc, wr, wc in nav.pieces(r0, c0, h, w):
         piece = cov[wr, wc]
