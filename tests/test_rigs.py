@@ -229,6 +229,8 @@ def test_gap_counter_and_buffer_count_missing_sweeps():
     g = GapCounter()
     missing = [g.add(t) for t in (0, 100, 200, 300, 600, 700, 1000)]
     assert missing == [0, 0, 0, 0, 2, 0, 2] and g.n_missing == 4
+    # an older stamp counts nothing and does not move the last one back: 1100 is no gap
+    assert (g.add(500), g.last, g.add(1100), g.n_missing) == (0, 1000, 0, 4)
     buf = RadarBuffer(3)
     pts = np.zeros((1, 12), np.float32)
     for t in (0, 75_000, 150_000, 225_000, 525_000, 525_000, 450_000):

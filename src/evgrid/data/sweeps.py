@@ -56,10 +56,13 @@ class GapCounter:
         return self._last
 
     def add(self, t_us: int) -> int:
-        """Note a delivered timestamp (after the last one); returns how many sweeps were missing
-        before it."""
-        last, self._last = self._last, int(t_us)
-        if last is None or t_us <= last:
+        """Note a delivered timestamp; returns how many sweeps were missing before it. A stamp
+        at or before the last one counts nothing and does not move the last one back."""
+        last = self._last
+        if last is not None and t_us <= last:
+            return 0
+        self._last = int(t_us)
+        if last is None:
             return 0
         gap = int(t_us) - last
         missing = 0
