@@ -34,6 +34,7 @@ __all__ = [
     "atomic_write_text",
     "jsonable",
     "refuse_existing",
+    "write_error",
     "write_json",
 ]
 
@@ -67,7 +68,7 @@ class FileWriteError(OSError):
         return f"{self.path}: {self.strerror}{code}; nothing was written under that name"
 
 
-def _named(path: Path, e: BaseException) -> BaseException:
+def write_error(path: Path, e: BaseException) -> BaseException:
     """``e`` as an error naming ``path`` (OS errors), or ``e`` itself (anything else)."""
     if isinstance(e, OSError) and not isinstance(e, (FileWriteError, FileExistsError)):
         return FileWriteError(path, e)
@@ -118,7 +119,7 @@ class AtomicFile:
                 prefix="." + self.path.name + ".", suffix=".part", dir=self.path.parent
             )
         except OSError as e:
-            raise _named(self.path, e) from e
+            raise write_error(self.path, e) from e
         self.tmp = Path(tmp)
         text = {"encoding": "utf-8"} if mode == "w" else {}
         self.file: IO = os.fdopen(fd, mode, **text)
@@ -135,7 +136,7 @@ class AtomicFile:
             return self.file.write(data)
         except BaseException as e:
             self.abort()
-            raise _named(self.path, e) from e
+            raise write_error(self.path, e) from e
 
     def tell(self) -> int:
         return self.file.tell()
@@ -155,7 +156,7 @@ class AtomicFile:
                 os.unlink(self.tmp)
         except BaseException as e:
             self.abort()
-            raise _named(self.path, e) from e
+            raise write_error(self.path, e) from e
         self._cleanup.detach()
         return self.path
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from evgrid.io import AtomicFile, _named, refuse_existing
+from evgrid.io import AtomicFile, refuse_existing, write_error
 from evgrid.io import FileWriteError as ExportFileError
 from evgrid.io import TargetExistsError as ExportExistsError
 
@@ -23,7 +23,7 @@ __all__ = [
     "target_path",
     "refuse_existing",
     "write_all",
-    "_named",
+    "write_error",
 ]
 
 

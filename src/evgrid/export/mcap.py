@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from evgrid.export._files import AtomicFile, _named, target_path
+from evgrid.export._files import AtomicFile, target_path, write_error
 from evgrid.export._place import MapPlacement, fixed_in_map
 from evgrid.export.nav2 import (
     OCCUPANCY_VALUES,
@@ -280,7 +280,7 @@ def _open_mcap(path: Path, compression: str, overwrite: bool) -> tuple[AtomicFil
         w.start(profile="ros2", library="evgrid")
     except BaseException as e:
         f.abort()
-        raise _named(path, e) from e
+        raise write_error(path, e) from e
     return f, w
 
 
@@ -335,7 +335,7 @@ class McapExporter:
             return fn(*args)
         except BaseException as e:
             self._file.abort()
-            raise _named(self.path, e) from e
+            raise write_error(self.path, e) from e
 
     def write_maps(
         self,

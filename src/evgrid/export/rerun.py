@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from evgrid.export._files import AtomicFile, _named, target_path
+from evgrid.export._files import AtomicFile, target_path, write_error
 from evgrid.export._place import MapPlacement
 from evgrid.grid import EvidentialMap
 
@@ -157,7 +157,7 @@ class _RrdFile:
             self.stream = rec.binary_stream()
         except BaseException as e:
             self.file.abort()
-            raise _named(path, e) from e
+            raise write_error(path, e) from e
 
     def drain(self) -> None:
         data = self.stream.read(flush=True)
@@ -219,7 +219,7 @@ class RerunRecorder:
             return fn(*args)
         except BaseException as e:
             self._out.file.abort()
-            raise _named(self.path, e) from e
+            raise write_error(self.path, e) from e
 
     def _on_update(self, update: Any) -> None:
         from evgrid.render import map_rgb, sample_map
@@ -330,4 +330,4 @@ def write_map_rrd(
         return out.commit()
     except BaseException as e:
         out.file.abort()
-        raise _named(out.file.path, e) from e
+        raise write_error(out.file.path, e) from e
