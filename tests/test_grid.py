@@ -174,6 +174,37 @@ def test_map_save_load_is_bit_identical(tmp_path):
     assert not list((tmp_path / "maps").glob(".*"))  # no temporary left behind
 
 
+def test_a_map_file_keeps_the_dynamic_score_and_checks_it(tmp_path):
+    from evgrid.fusion import DynamicParams, MapSet
+    from evgrid.geometry import SE2
+    from evgrid.grid import MapFileError
+
+    grid = GridSpec(32, 4.0)
+    rng = np.random.default_rng(2)
+    ms = MapSet(grid, names=("ray_ilm",), dynamic=DynamicParams(decay=0.5), tile_cells=16)
+    for k in range(3):
+        ms.update(SE2(0.3 * k, 0.0, 0.2 * k), {"ray_ilm": random_masses(rng, grid.shape)})
+    m = ms["ray_ilm"]
+    assert m.dynamic and max(float(t.max()) for t in m.dynamic_tiles.values()) > 0
+    back = load_map(save_map(m, tmp_path / "scored.npz"))
+    assert back.dynamic and back.dynamic_tiles.keys() == m.dynamic_tiles.keys()
+    for k in m.tiles:
+        assert back.dynamic_tiles[k].tobytes() == m.dynamic_tiles[k].tobytes()
+        assert back.tiles[k].tobytes() == m.tiles[k].tobytes()
+    assert not load_map(save_map(_some_map(), tmp_path / "plain.npz")).dynamic
+    # a corrupt score is refused, naming the field
+    with np.load(tmp_path / "scored.npz") as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["dynamic"][0, 0, 0] = np.nan
+    np.savez_compressed(tmp_path / "bad.npz", **arrays)
+    with pytest.raises(MapFileError, match="bad.npz: field 'dynamic'"):
+        load_map(tmp_path / "bad.npz")
+    arrays["dynamic"] = arrays["dynamic"][:, :2]
+    np.savez_compressed(tmp_path / "short.npz", **arrays)
+    with pytest.raises(MapFileError, match="array 'dynamic'"):
+        load_map(tmp_path / "short.npz")
+
+
 def _same_frame(a, b) -> bool:
     return (a.kind, a.fixed_frame) == (b.kind, b.fixed_frame) and (
         a.first_pose is b.first_pose is None

@@ -514,8 +514,8 @@ def _check_extent(where: str, grid: GridSpec, ts: int, keys, covered_any) -> str
 
 
 def save_map(m: EvidentialMap, path: str | os.PathLike, frame: MapFrame | None = None) -> Path:
-    """Save a map losslessly (compressed ``.npz`` with its grid, metadata and map frame:
-    ``frame``, else ``m.frame``), atomically."""
+    """Save a map losslessly (compressed ``.npz`` with its grid, metadata, map frame:
+    ``frame``, else ``m.frame``, and its dynamic score where it keeps one), atomically."""
     if not isinstance(m, EvidentialMap):
         raise TypeError(f"save_map needs an EvidentialMap, got {type(m).__name__}")
     if not isinstance(path, (str, os.PathLike)) or not str(path) or Path(path).name in ("", "."):
@@ -554,6 +554,12 @@ def save_map(m: EvidentialMap, path: str | os.PathLike, frame: MapFrame | None =
         if keys
         else np.zeros((0, ts, ts), bool),
     }
+    if m.dynamic:  # an optional array: readers that do not know it load the masses alone
+        arrays["dynamic"] = (
+            np.stack([m.dynamic_tiles[k] for k in keys])
+            if keys
+            else np.zeros((0, ts, ts), np.float32)
+        )
     return atomic_write(path, lambda f: np.savez_compressed(f, **arrays))
 
 
@@ -597,7 +603,7 @@ def load_map(path: str | os.PathLike) -> EvidentialMap:
             names = {n.removesuffix(".npy") for n in zf.namelist()}
             if not set(_ARRAYS) <= names:
                 raise MapFileError(f"{path} is not an evgrid map (arrays {sorted(names)})")
-            shapes = {n: _declared(path, zf, n) for n in _ARRAYS}
+            shapes = {n: _declared(path, zf, n) for n in (*_ARRAYS, "dynamic") if n in names}
             hshape, hdtype = shapes["header"]
             if len(hshape) != 1 or hdtype != np.uint8 or hshape[0] > _MAX_HEADER_BYTES:
                 raise MapFileError(f"{path}: array 'header' is {hshape} {hdtype}, not JSON bytes")
@@ -609,8 +615,11 @@ def load_map(path: str | os.PathLike) -> EvidentialMap:
                 "keys": ((n_keys, 2), lambda d: d.kind == "i", "integer tile keys"),
                 "tiles": ((n_keys, ts, ts, 3), lambda d: d == np.float32, "float32 masses"),
                 "covered": ((n_keys, ts, ts), lambda d: d == np.bool_, "bool coverage"),
+                "dynamic": ((n_keys, ts, ts), lambda d: d == np.float32, "float32 scores"),
             }
             for name, (shape, ok, what) in want.items():
+                if name not in shapes:
+                    continue
                 got_shape, got_dtype = shapes[name]
                 if got_shape != shape or not ok(got_dtype):
                     raise MapFileError(
@@ -618,6 +627,7 @@ def load_map(path: str | os.PathLike) -> EvidentialMap:
                         f"the header's tile_cells {ts} and {n_keys} keys make it {shape} {what}"
                     )
             keys, tiles, covered = z["keys"], z["tiles"], z["covered"]
+            scores = z["dynamic"] if "dynamic" in shapes else None
     except (MapFileError, FileNotFoundError):
         raise
     except Exception as e:  # noqa: BLE001 - whatever a corrupt file makes zipfile or numpy raise
@@ -644,11 +654,17 @@ def load_map(path: str | os.PathLike) -> EvidentialMap:
             f"{path}: {n_bad} cell(s) hold no valid mass (NaN, inf, negative, or not summing "
             "to 1); the file is corrupt"
         )
-    m = EvidentialMap(spec, ts, metadata, frame=frame)
-    for k, t, c in zip(keys, tiles, covered):
+    if scores is not None and not (np.isfinite(scores) & (scores >= 0)).all():
+        raise MapFileError(
+            f"{path}: field 'dynamic': a dynamic score is negative, NaN or inf; the file is corrupt"
+        )
+    m = EvidentialMap(spec, ts, metadata, frame=frame, dynamic=scores is not None)
+    for i, (k, t, c) in enumerate(zip(keys, tiles, covered)):
         key = (int(k[0]), int(k[1]))
         m.tiles[key] = np.ascontiguousarray(t)
         m.covered_tiles[key] = np.ascontiguousarray(c)
+        if scores is not None:
+            m.dynamic_tiles[key] = np.ascontiguousarray(scores[i])
     return m
 
 
