@@ -119,6 +119,33 @@ def test_config_show_prints_a_config_that_reloads(tmp_path):
     assert r.exit_code != 0
 
 
+def test_config_show_reads_every_kind_of_config_file(tmp_path):
+    # simulate and bench write config files of their own kinds; a fresh process (nothing
+    # imported yet that registers them) shows them as they are
+    import subprocess
+    import sys
+
+    from evgrid.bench import BenchOptions
+    from evgrid.config import document
+    from evgrid.sim_writer import SimulateConfig, SimulateOptions
+
+    files = {
+        "sim.json": document(SimulateConfig(SimulateOptions(seed=7))),
+        "bench.json": document(BenchOptions(duration=0.5)),
+    }
+    for name, d in files.items():
+        (tmp_path / name).write_text(json.dumps(d))
+        code = (
+            "import json, sys; from evgrid.config import load_config, document; "
+            "print(json.dumps(document(load_config(sys.argv[1], None))))"
+        )
+        out = subprocess.run(
+            [sys.executable, "-c", code, str(tmp_path / name)], capture_output=True, text=True
+        )
+        assert out.returncode == 0, out.stderr
+        assert json.loads(out.stdout) == d
+
+
 def test_a_training_run_writes_a_config_that_trains_again(tmp_path):
     pytest.importorskip("torch")
     from evgrid.train_run import TrainRunConfig, train_config_from_args

@@ -64,6 +64,9 @@ def _register() -> None:
     FORMATS[BenchOptions] = CONFIG_FORMAT  # the config file tags and checks its kind
 
 
+_register()  # at import, so that config.load_config knows the kind
+
+
 def bench_options(values: dict, config: str | os.PathLike | None = None) -> BenchOptions:
     """The bench's options: the config file at ``config`` (errors name it), else the defaults,
     with ``values`` (field -> value, the options given on the command line) over them."""

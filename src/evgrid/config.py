@@ -13,6 +13,7 @@ See docs/config.md.
 from __future__ import annotations
 
 import dataclasses
+import importlib
 import json
 import os
 import types
@@ -348,6 +349,14 @@ def _read_json(path: Path) -> Any:
         raise ConfigError(f"{path}: not a readable JSON config ({e})") from None
 
 
+#: The kinds of config file that other modules own, imported when a file names them.
+_KIND_OWNERS = {
+    "evgrid-train": "evgrid.train_run",
+    "evgrid-simulate": "evgrid.sim_writer",
+    "evgrid-bench": "evgrid.bench",
+}
+
+
 def load_config(path: str | os.PathLike, cls: type | None = RunConfig) -> Any:
     """Read a config file of kind ``cls`` (None: the kind its ``format`` names); every section
     must be there, paths are taken relative to the file's folder; raises :class:`ConfigError`
@@ -355,8 +364,8 @@ def load_config(path: str | os.PathLike, cls: type | None = RunConfig) -> Any:
     if cls is None:
         d = _read_json(Path(path))
         tag = d.get("format", FORMATS[RunConfig]) if isinstance(d, dict) else None
-        if tag == "evgrid-train":
-            import evgrid.train_run  # noqa: F401 (registers the training config)
+        if tag in _KIND_OWNERS:
+            importlib.import_module(_KIND_OWNERS[tag])  # registers its kind in FORMATS
         kinds = {t: c for c, t in FORMATS.items()}
         if tag not in kinds:
             raise ConfigError(f"{path}: not an evgrid config (format {tag!r}; known {list(kinds)})")

@@ -118,6 +118,9 @@ def _register() -> None:
     CONFIG_FORMATS[SimulateConfig] = CONFIG_FORMAT  # config.json tags and checks its kind
 
 
+_register()  # at import, so that config.load_config knows the kind
+
+
 def simulate_options(values: dict, config: str | Path | None = None) -> SimulateOptions:
     """The options of a simulate run: the ``config.json`` at ``config`` (of an earlier run;
     errors name the file and field), else the defaults, with ``values`` (field -> value, from
