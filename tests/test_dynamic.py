@@ -272,21 +272,45 @@ def test_gate_is_off_for_the_papers_maps_by_default_golden():
 # --- the Doppler cue (docs/equations.md#the-doppler-cue) --------------------------------------
 
 
-def test_doppler_cue_hand_computed():
-    from evgrid.doppler import disc_cells
+def _disc_cells(grid, pose, box, xy, radius):
+    from evgrid.doppler import disc_runs
 
+    ptr, runs = disc_runs(grid, pose, box, xy, radius)
+    assert ptr[0] == 0 and ptr[-1] == len(runs) and (np.diff(ptr) >= 0).all()
+    cells = []
+    for i in range(box[2]):
+        row = runs[ptr[i] : ptr[i + 1]]
+        assert (row[:, 1] > row[:, 0]).all() and (row[1:, 0] > row[:-1, 1]).all()  # disjoint
+        cells += [(box[0] + i, box[1] + c) for a, b in row for c in range(a, b)]
+    return cells
+
+
+def test_doppler_discs_as_runs_hand_computed():
     grid = GridSpec(16, 2.0)  # 0.125 m cells
     res = grid.resolution
+    box = (-8, -8, 16, 16)  # the window at the identity pose
     # the centre of map cell (3, 5): x = -(3 + 0.5) res, y = -(5 + 0.5) res
     xy = np.array([[-3.5 * res, -5.5 * res]])
-    rows, cols = disc_cells(grid, SE2(), xy, 2 * res)
+    disc = {(a, b) for a in range(-2, 3) for b in range(-2, 3) if a * a + b * b <= 4}
     # centres within 2 cells: the cell, 4 at 1, 4 at sqrt(2), 4 at 2 (not (2, 1): sqrt(5) > 2)
-    assert len(rows) == 13
-    assert set(zip(rows - 3, cols - 5)) == {
-        (a, b) for a in range(-2, 3) for b in range(-2, 3) if a * a + b * b <= 4
-    }
+    cells = _disc_cells(grid, SE2(), box, xy, 2 * res)
+    assert len(cells) == 13 and {(r - 3, c - 5) for r, c in cells} == disc
+    # two discs that overlap: each cell once, a row's runs merged
+    two = np.array([[-3.5 * res, -5.5 * res], [-3.5 * res, -2.5 * res], [-3.5 * res, -5.5 * res]])
+    cells = _disc_cells(grid, SE2(), box, two, 2 * res)
+    assert sorted(cells) == sorted({(3 + a, 5 + b - d) for a, b in disc for d in (0, 3)})
+    # a radius below half a cell: the cell that holds the point
+    assert _disc_cells(grid, SE2(), box, xy, 0.1 * res) == [(3, 5)]
+    # clipped to the window
+    assert {c for _, c in _disc_cells(grid, SE2(), (-8, 4, 16, 3), xy, 2 * res)} == {4, 5, 6}
     # outside the local grid at the pose: ignored
-    assert len(disc_cells(grid, SE2(5.0, 0.0, 0.0), xy, 2 * res)[0]) == 0
+    assert _disc_cells(grid, SE2(5.0, 0.0, 0.0), box, xy, 2 * res) == []
+
+
+def test_doppler_cue_hand_computed():
+    grid = GridSpec(16, 2.0)  # 0.125 m cells
+    res = grid.resolution
+    xy = np.array([[-3.5 * res, -5.5 * res]])  # the centre of map cell (3, 5)
     d = DynamicParams(decay=0.5, doppler_mps=0.5, doppler_mass=0.4, doppler_radius_m=2 * res)
     ms = MapSet(grid, names=("ray_ilm",), dynamic=d)
     isms = {"ray_ilm": _uniform(16, 0.0, 0.0)}
@@ -308,6 +332,59 @@ def test_doppler_cue_hand_computed():
     s = ms["ray_ilm"].read_dynamic(r0, c0, h, w)
     # K = 0.6 * 0.2 + 0.2 * 0.6 = 0.24 (the map cell (0.6, 0.2, 0.2) meets the same ISM cell)
     assert s[3 - r0, 5 - c0] == pytest.approx(0.5 * 0.1 + 0.24 + 0.1)
+
+
+def test_doppler_cue_in_the_pass_reads_the_nearest_ism_cell_hand_computed():
+    # the cue, added in the pass, reads the local ISM cell nearest to the map cell's centre,
+    # not the bilinear sample that the Dempster step combines
+    grid = GridSpec(16, 2.0)
+    res = grid.resolution
+    ism = _uniform(16, 0.0, 0.0)
+    ism[8:12] = (0.6, 0.2, 0.2)  # map rows 0-3 at the identity pose
+    ism[12:] = (0.0, 0.3, 0.7)  # map rows 4-7
+    d = DynamicParams(decay=0.5, doppler_mps=0.5, doppler_mass=0.4, doppler_radius_m=2 * res)
+    ms = MapSet(grid, names=("ray_ilm",), dynamic=d)
+    pose = SE2(-0.3 * res, 0.0, 0.0)  # map row 4's centre is 0.3 cells from local row 11
+    ms.update(pose, {"ray_ilm": ism}, np.array([[-4.0 * res, -5.5 * res, 3.0]]))
+    window = ms.windows(pose)["ray_ilm"]
+    sample = window.masses[4 - window.r0, 5 - window.c0]
+    assert sample == pytest.approx((0.3 * 0.6, 0.3 * 0.2 + 0.7 * 0.3, 0.3 * 0.2 + 0.7 * 0.7))
+    s = ms["ray_ilm"].read_dynamic(0, 0, 8, 8)
+    # the disc of 2 cells round the edge of cells (3, 5) and (4, 5): rows 2-5, columns 4-6
+    assert (s > 0).sum() == 12 and (s[2:6, 4:7] > 0).all()
+    # 0.4 (1 - m_f / (m_f + m_o)): 0.4 * 0.2 / 0.8 on rows 2-3, 0.4 on rows 4-5 (their nearest
+    # ISM cell says only occupied; the sample would give 0.4 * 0.27 / 0.45)
+    assert s[2, 5] == pytest.approx(0.1) and s[3, 5] == pytest.approx(0.1)
+    assert s[4, 5] == pytest.approx(0.4) and s[5, 5] == pytest.approx(0.4)
+
+
+def test_doppler_cue_counts_for_the_next_updates_gate():
+    # the cue is added after the gate: this update's gate does not see it, the next one does
+    grid = GridSpec(16, 2.0)
+    res = grid.resolution
+    d = DynamicParams(decay=0.3, threshold=0.5, gate_maps=True, doppler_mps=0.5, doppler_mass=1.0)
+    cue, twin = (
+        MapSet(grid, names=("ray_ilm",), dynamic=d),
+        MapSet(grid, names=("ray_ilm",), dynamic=replace(d, doppler_mass=0.0)),
+    )
+    here = np.array([[-3.5 * res, -5.5 * res, 3.0]])  # map cell (3, 5)
+    for ms in (cue, twin):
+        ms.update(SE2(), {"ray_ilm": _uniform(16, 0.2, 0.6)}, None)  # occupied
+        ms.update(SE2(), {"ray_ilm": _uniform(16, 0.6, 0.2)}, here)  # free now
+    # K = 0.6 * 0.6 + 0.2 * 0.2 = 0.4 < 0.5: not gated; then the cue adds 1.0 * 0.2 / 0.8
+    s = cue["ray_ilm"].read_dynamic(3, 5, 1, 1)[0, 0]
+    assert s == pytest.approx(0.4 + 0.25) and s > d.threshold
+    assert np.array_equal(cue["ray_ilm"].read(3, 5, 1, 1)[0], twin["ray_ilm"].read(3, 5, 1, 1)[0])
+    for ms in (cue, twin):
+        ms.update(SE2(), {"ray_ilm": _uniform(16, 0.6, 0.2)}, None)
+    # the map (0.28, 0.28, 0.04) / 0.6 meets (0.6, 0.2, 0.2): K = 0.8 * 0.28 / 0.6; with the
+    # cue 0.3 * 0.65 + K > 0.5 is gated (m_o to m_u first), without it 0.3 * 0.4 + K is not
+    k = 0.8 * 0.28 / 0.6
+    assert cue["ray_ilm"].read_dynamic(3, 5, 1, 1)[0, 0] == pytest.approx(0.3 * 0.65 + k)
+    assert twin["ray_ilm"].read_dynamic(3, 5, 1, 1)[0, 0] == pytest.approx(0.3 * 0.4 + k)
+    assert (
+        cue["ray_ilm"].read(3, 5, 1, 1)[0][0, 0, 1] < twin["ray_ilm"].read(3, 5, 1, 1)[0][0, 0, 1]
+    )
 
 
 def test_doppler_cue_finds_the_simulators_movers():

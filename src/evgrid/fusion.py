@@ -588,20 +588,27 @@ class MapSet:
         return d.threshold if (on and row.map.dynamic) else 0.0
 
     def _plan(self) -> None:
-        """The pass's table: per row (kernel code, first input, last input) and (m_u_min, alpha,
-        decay, gate), decay 0 for a map without a dynamic score, gate 0 for one not gated."""
+        """The pass's table: per row (kernel code, first input, last input, Doppler disc set) and
+        (m_u_min, alpha, decay, gate, Doppler mass), decay 0 for a map without a dynamic score,
+        gate 0 for one not gated, disc set -1 for one without the Doppler cue; the disc sets are
+        :attr:`_discs`' (speed, radius) (docs/equations.md#the-doppler-cue)."""
         slot = {i: s for s, i in enumerate(self.required_isms)}
         codes, params, rows_, owners = [], [], [], []
+        discs: dict[tuple[float, float], int] = {}
         for s in (self, *self._attached):
             updated = [r for r in s._rows if not r.rule.from_maps]  # nav is computed when read
+            d = s.dynamic
             for r in updated:
-                codes.append((r.rule.kernel, slot[r.rule.inputs[0]], slot[r.rule.inputs[-1]]))
-                decay = s.dynamic.decay if r.map.dynamic else 0.0
-                params.append((r.params.m_u_min, r.params.alpha, decay, s._gate(r)))
+                cue = r.map.dynamic and d.doppler_mass > 0.0
+                q = discs.setdefault((d.doppler_mps, d.doppler_radius_m), len(discs)) if cue else -1
+                codes.append((r.rule.kernel, slot[r.rule.inputs[0]], slot[r.rule.inputs[-1]], q))
+                decay = d.decay if r.map.dynamic else 0.0
+                params.append((r.params.m_u_min, r.params.alpha, decay, s._gate(r), d.doppler_mass))
             rows_ += updated
             owners += [s] * len(updated)
-        self._codes = np.array(codes, dtype=np.int64).reshape(-1, 3)
-        self._params = np.array(params, dtype=np.float64).reshape(-1, 4)
+        self._discs = tuple(discs)
+        self._codes = np.array(codes, dtype=np.int64).reshape(-1, 4)
+        self._params = np.array(params, dtype=np.float64).reshape(-1, 5)
         self._pass_rows: list[_Row] = rows_
         self._pass_owners: list[MapSet] = owners
 
@@ -647,8 +654,8 @@ class MapSet:
 
         ``moving``: ``(k, 3)`` map-frame position (m) and compensated Doppler speed (m/s) of
         radar detections (:func:`evgrid.doppler.moving_detections`), the Doppler cue of the
-        dynamic score: those faster than each set's ``dynamic.doppler_mps`` count (added after
-        the pass; those outside the local grid are ignored).
+        dynamic score: those faster than each set's ``dynamic.doppler_mps`` count (added in the
+        pass, after the gate; those outside the local grid are ignored).
 
         Cells of an ISM grid that are not masses are taken as vacuous and counted in
         :attr:`n_rejected`. Returns, per map of this set, the cells its rule rejected.
@@ -664,9 +671,7 @@ class MapSet:
             warper.load(isms[name])
         t1 = time.perf_counter()
         box = warp_window(self.grid, pose)
-        rejected = self._pass(pose, box)
-        if moving is not None and len(moving):
-            self._doppler(pose, moving, isms)
+        rejected = self._pass(pose, box, self._disc_runs(pose, box, moving))
         self.last_ms = {"warp": (t1 - t0) * 1e3, "fuse": (time.perf_counter() - t1) * 1e3}
         for s in (self, *self._attached):
             s.n_updates += 1
@@ -693,9 +698,11 @@ class MapSet:
         self._stale = None
         self.last_ms["nav"] = self.last_ms.get("nav", 0.0) + (time.perf_counter() - t0) * 1e3
 
-    def _pass(self, pose: SE2, box: tuple[int, int, int, int]) -> np.ndarray:
+    def _pass(
+        self, pose: SE2, box: tuple[int, int, int, int], discs: tuple[np.ndarray, np.ndarray]
+    ) -> np.ndarray:
         """The one pass over the window ``box`` at ``pose``: the ISMs of the last load, every
-        row's rule."""
+        row's rule, and the Doppler cue on the window rows' runs ``discs`` (:meth:`_disc_runs`)."""
         grid, n = self.grid, self.grid.n_cells
         r0, c0, h, w = box
         affine = window_affine(grid, pose, r0, c0)
@@ -743,30 +750,29 @@ class MapSet:
                 self._params,
                 self._bufs,
                 rejected,
+                *discs,
             )
         return rejected
 
-    def _doppler(self, pose: SE2, moving: np.ndarray, isms: Mapping[str, np.ndarray]) -> None:
-        """The Doppler cue: ``doppler_mass`` times the share of the map's ISM (that of its Dempster
-        step) that is not free, added once to the score of every map cell within
-        ``doppler_radius_m`` of a moving detection (docs/equations.md#the-doppler-cue)."""
-        from evgrid.doppler import add_to_layer, disc_cells, not_free_now
+    def _disc_runs(
+        self, pose: SE2, box: tuple[int, int, int, int], moving: np.ndarray | None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The cells of the Doppler cue's discs in window ``box``, per disc set of :attr:`_discs`:
+        ``ptr`` ``(sets, h + 1)`` into ``runs`` ``(n, 2)``, the runs of window row i of set q
+        being ``runs[ptr[q, i]:ptr[q, i + 1]]`` (:func:`evgrid.doppler.disc_runs`)."""
+        h = box[2]
+        if moving is None or not len(moving) or not self._discs:
+            return np.zeros((len(self._discs), h + 1), np.int64), np.zeros((0, 2), np.int64)
+        from evgrid.doppler import disc_runs
 
         moving = np.asarray(moving, dtype=np.float64).reshape(-1, 3)
-        cells: dict[tuple[float, float], tuple[np.ndarray, np.ndarray]] = {}
-        weights: dict[tuple[float, float, str], np.ndarray] = {}
-        for row, owner in zip(self._pass_rows, self._pass_owners):
-            d = owner.dynamic
-            key = (d.doppler_mps, d.doppler_radius_m)
-            if not row.map.dynamic or d.doppler_mass <= 0.0:
-                continue
-            if key not in cells:
-                fast = moving[moving[:, 2] > d.doppler_mps, :2]
-                cells[key] = disc_cells(self.grid, pose, fast, d.doppler_radius_m)
-            ism = row.rule.inputs[-1]
-            if (*key, ism) not in weights:
-                weights[(*key, ism)] = not_free_now(self.grid, pose, *cells[key], isms[ism])
-            add_to_layer(row.map, *cells[key], np.float32(d.doppler_mass) * weights[(*key, ism)])
+        ptrs, runs, n = [], [], 0
+        for mps, radius in self._discs:
+            ptr, r = disc_runs(self.grid, pose, box, moving[moving[:, 2] > mps, :2], radius)
+            ptrs.append(ptr + n)
+            runs.append(r)
+            n += len(r)
+        return np.stack(ptrs), np.concatenate(runs)
 
     def windows(self, pose: SE2) -> dict[str, MapWindow]:
         """The ISM grids of the last :meth:`update` warped whole into map windows at ``pose``.

@@ -445,6 +445,20 @@ def _dynamic_row(mp_, ism_, s_, n, decay, gate):
             mp_[p + 2] = u
 
 
+@numba.njit(inline="always", **_CHECKED)
+def _doppler_row(s_, src, srs, a, b, du_dj, dv_dj, runs, k0, k1, lo, hi, mu):
+    # The Doppler cue (docs/equations.md#the-doppler-cue) on a row whose cells [lo, hi) are s_,
+    # cell j at padded source position (a + j du_dj, b + j dv_dj): s <- s + mu (1 - m_f / (m_f +
+    # m_o)) of the source cell nearest to it (vacuous outside the grid and where invalid: adds
+    # mu), on the cells of runs [k0, k1) (columns [runs[k, 0], runs[k, 1])).
+    for k in range(k0, k1):
+        for j in range(max(runs[k, 0], lo), min(runs[k, 1], hi)):
+            p = int(np.rint(a + j * du_dj)) * srs + 3 * int(np.rint(b + j * dv_dj))
+            f, o = np.float64(src[p]), np.float64(src[p + 1])
+            w = o / (o + f) if f > 0.0 else 1.0
+            s_[j - lo] = np.float64(s_[j - lo]) + mu * w
+
+
 #: Kernel codes of the update rules; :data:`evgrid.fusion.RULES` says which map uses which.
 #: RULE_NAV is not a row of the pass: nav is computed from two maps by nav_cells when read.
 RULE_DEMPSTER, RULE_DEEP_REPLACE, RULE_DEEP_DISC, RULE_FUSED, RULE_NAV = 0, 1, 2, 3, 4
@@ -874,6 +888,8 @@ def warp_update(
     params,
     bufs,
     rejected,
+    dptr,
+    druns,
 ):
     # One tile piece of a window, every map at once: window rows [wa, wb) and columns
     # [wc0, wc1) are tile cells (tr0 + i - wa, tc0 + j - wc0). Each row's covered cells are
@@ -885,7 +901,9 @@ def warp_update(
     # decay > 0 (a rule of DYNAMIC_RULES) first adds its Dempster step's conflict to its dynamic
     # layer ``dyns[k]`` (flat, a float per cell), from the map cells before the update; masses
     # are the same unless the row's gate (> 0: the gate's threshold,
-    # docs/equations.md#the-gate) is on.
+    # docs/equations.md#the-gate) is on. After the rule, a scored row with a Doppler cue
+    # (``rules[k, 3]`` = q >= 0, mass ``params[k, 4]``) adds it on window row i's cells of
+    # ``druns[dptr[q, i]:dptr[q, i + 1]]`` (evgrid.doppler.disc_runs).
     idx = np.empty(BLOCK, dtype=np.int64)
     frac = np.empty(2 * BLOCK, dtype=np.float32)
     bad = np.zeros(ts, np.uint8)
@@ -895,7 +913,7 @@ def warp_update(
         if hi <= lo:
             continue
         band = i // BLOCK
-        a = u00 + i * du_di + 1.0  # the row's padded source position, for the prefetch hints
+        a = u00 + i * du_di + 1.0  # the row's padded source position (prefetch, Doppler cue)
         b = v00 + i * dv_di + 1.0
         j = lo
         while j < hi:
@@ -930,17 +948,33 @@ def warp_update(
         t = (tr0 + i - wa) * ts + tc0 + lo - wc0  # the row's first cell in the tiles
         for k in range(len(tiles)):
             mp_ = tiles[k][3 * t : 3 * (t + m)]
-            code, x, y = rules[k, 0], rules[k, 1], rules[k, 2]
+            code, x, y, q = rules[k, 0], rules[k, 1], rules[k, 2], rules[k, 3]
             decay, gate = params[k, 2], params[k, 3]
             if decay > 0.0 and code == RULE_DEMPSTER:  # the score in the rule's own loop
                 rejected[k] += _dempster_row(
                     mp_, bufs[x], bad, m, dyns[k][t : t + m], decay, True, gate
                 )
-                covs[k][t : t + m] = True
-                continue
-            if decay > 0.0:  # fused: the last input is the ISM of the Dempster step
-                _dynamic_row(mp_, bufs[y], dyns[k][t : t + m], m, decay, gate)
-            rejected[k] += _rule_row(
-                code, mp_, bufs[x], bufs[y], bad, m, params[k, 0], params[k, 1]
-            )
+            else:
+                if decay > 0.0:  # fused: the last input is the ISM of the Dempster step
+                    _dynamic_row(mp_, bufs[y], dyns[k][t : t + m], m, decay, gate)
+                rejected[k] += _rule_row(
+                    code, mp_, bufs[x], bufs[y], bad, m, params[k, 0], params[k, 1]
+                )
             covs[k][t : t + m] = True
+            k0, k1 = (dptr[q, i], dptr[q, i + 1]) if q >= 0 else (0, 0)
+            if k1 > k0:  # after the gate: it counts from the next update on
+                _doppler_row(
+                    dyns[k][t : t + m],
+                    src[y],
+                    srs,
+                    a,
+                    b,
+                    du_dj,
+                    dv_dj,
+                    druns,
+                    k0,
+                    k1,
+                    lo,
+                    hi,
+                    params[k, 4],
+                )
