@@ -234,7 +234,8 @@ def test_gate_hand_computed():
 def test_gate_keeps_what_the_ism_says_occupied_and_what_scores_low():
     grid = GridSpec(16, 2.0)
     n = grid.n_cells
-    d = DynamicParams(decay=0.5, threshold=0.3, gate_maps=True)
+    # the gate reads its own threshold, not the call's (threshold 0.01 calls the cell dynamic)
+    d = DynamicParams(decay=0.5, threshold=0.01, gate_threshold=0.3, gate_maps=True)
     ms = MapSet(grid, names=("ray_ilm",), dynamic=d)
     _step(ms, n, ilm=(0.0, 0.8), irm=(0.0, 0.0))
     # K_left = 0.8 * 0.3 = 0.24 <= 0.3: no gate, eq. (5) as without it
@@ -243,7 +244,7 @@ def test_gate_keeps_what_the_ism_says_occupied_and_what_scores_low():
         _cell(ms, "ray_ilm"), np.array([0.2 * 0.3, 0.8 * 0.7, 0.2 * 0.7]) / (1 - 0.24), rtol=1e-6
     )
     # an ISM that says occupied (0.5 > 0.2) is never gated, whatever the score
-    ms = MapSet(grid, names=("ray_ilm",), dynamic=replace(d, threshold=0.01))
+    ms = MapSet(grid, names=("ray_ilm",), dynamic=replace(d, gate_threshold=0.01))
     _step(ms, n, ilm=(0.0, 0.8), irm=(0.0, 0.0))
     _step(ms, n, ilm=(0.2, 0.5), irm=(0.0, 0.0))  # K_left = 0.16 > 0.01
     f1, o1, u1, f2, o2, u2 = 0.0, 0.8, 0.2, 0.2, 0.5, 0.3
@@ -362,7 +363,9 @@ def test_doppler_cue_counts_for_the_next_updates_gate():
     # the cue is added after the gate: this update's gate does not see it, the next one does
     grid = GridSpec(16, 2.0)
     res = grid.resolution
-    d = DynamicParams(decay=0.3, threshold=0.5, gate_maps=True, doppler_mps=0.5, doppler_mass=1.0)
+    d = DynamicParams(
+        decay=0.3, gate_threshold=0.5, gate_maps=True, doppler_mps=0.5, doppler_mass=1.0
+    )
     cue, twin = (
         MapSet(grid, names=("ray_ilm",), dynamic=d),
         MapSet(grid, names=("ray_ilm",), dynamic=replace(d, doppler_mass=0.0)),
@@ -373,7 +376,7 @@ def test_doppler_cue_counts_for_the_next_updates_gate():
         ms.update(SE2(), {"ray_ilm": _uniform(16, 0.6, 0.2)}, here)  # free now
     # K = 0.6 * 0.6 + 0.2 * 0.2 = 0.4 < 0.5: not gated; then the cue adds 1.0 * 0.2 / 0.8
     s = cue["ray_ilm"].read_dynamic(3, 5, 1, 1)[0, 0]
-    assert s == pytest.approx(0.4 + 0.25) and s > d.threshold
+    assert s == pytest.approx(0.4 + 0.25) and s > d.gate_threshold
     assert np.array_equal(cue["ray_ilm"].read(3, 5, 1, 1)[0], twin["ray_ilm"].read(3, 5, 1, 1)[0])
     for ms in (cue, twin):
         ms.update(SE2(), {"ray_ilm": _uniform(16, 0.6, 0.2)}, None)

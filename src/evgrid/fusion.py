@@ -120,6 +120,7 @@ class FusionParams:
 # benchmarks/dynamic.py on simulated scenes (docs/speed.md#the-dynamic-score).
 DYNAMIC_DECAY_DEFAULT = 0.3
 DYNAMIC_THRESHOLD_DEFAULT = 0.1
+GATE_THRESHOLD_DEFAULT = 0.05
 # The Doppler cue (docs/equations.md#the-doppler-cue): a pedestrian walks at about 1.4 m/s; the
 # ego-motion compensation of a static target leaves errors of a few tenths of a m/s (odometry
 # speed and yaw rate, the radar's 0.1 m/s Doppler resolution) and clutter shows slow false
@@ -143,9 +144,10 @@ class DynamicParams:
     of each radar whose ego-motion compensated Doppler speed exceeds ``doppler_mps`` (m/s) add
     ``doppler_mass`` (>= 0; 0: no cue) to the score once per update.
 
-    The gate: a scored cell whose score exceeds ``threshold`` moves its occupied mass to unknown
-    before a Dempster step whose ISM does not say occupied; ``gate_maps`` gates the paper's
-    maps (off by default: Table I stays the paper's), ``gate_nav`` the navigation map's inputs.
+    The gate: a scored cell whose score exceeds ``gate_threshold`` (> 0) moves its occupied mass
+    to unknown before a Dempster step whose ISM does not say occupied; ``gate_maps`` gates the
+    paper's maps (off by default: Table I stays the paper's), ``gate_nav`` the navigation map's
+    inputs.
     """
 
     enabled: bool = True
@@ -156,6 +158,7 @@ class DynamicParams:
     doppler_radius_m: float = DOPPLER_RADIUS_DEFAULT
     gate_maps: bool = False
     gate_nav: bool = True
+    gate_threshold: float = GATE_THRESHOLD_DEFAULT
 
     def __post_init__(self) -> None:
         for name in ("enabled", "gate_maps", "gate_nav"):
@@ -165,6 +168,7 @@ class DynamicParams:
                 )
         check_number(self, "decay", min=0.0, max=1.0, min_open=True)
         check_number(self, "threshold", min=0.0, min_open=True)
+        check_number(self, "gate_threshold", min=0.0, min_open=True)
         check_number(self, "doppler_mps", min=0.0)
         check_number(self, "doppler_mass", min=0.0)
         check_number(self, "doppler_radius_m", min=0.0, max=10.0)
@@ -585,7 +589,7 @@ class MapSet:
         """The gate's threshold of a row (docs/equations.md#the-gate); 0: not gated."""
         d = self.dynamic
         on = d.gate_maps if row.shown else d.gate_nav and not row.plain  # hidden: nav's inputs
-        return d.threshold if (on and row.map.dynamic) else 0.0
+        return d.gate_threshold if (on and row.map.dynamic) else 0.0
 
     def _plan(self) -> None:
         """The pass's table: per row (kernel code, first input, last input, Doppler disc set) and
