@@ -3,19 +3,19 @@ sensitivity to the parameters, and the area movers leave behind with and without
 
 Run: ``PYTHONPATH=src python benchmarks/dynamic.py [--seeds 4 9 14] [--duration 10] [--deep]
 [--nav] [--variants NAME ...] [--rules NAME ...] [--json out.json]``. Each simulated scene is
-mapped once: the mapper's maps (``ray_ilm`` and ``ray_irm``; with ``--deep`` also ``deep_acc`` and ``fused``,
-which load the shipped Ev-Net; with ``--nav`` also ``nav``, whose area left behind is reported)
-carry the default :class:`~evgrid.fusion.DynamicParams`, and one attached map set per variant
-of :data:`VARIANTS` carries that variant (extra rows of the same one-pass update, fed the same
-Doppler cue). At every keyframe the cells above each threshold of ``--thresholds`` (and, for
-``support`` k, the cells whose k x k neighbourhood holds one) are compared with the truth mask
-(:func:`evgrid.observers.truth_masks`: cells of moving objects that the current ray ILM or ray
-IRM observed); counts are pooled over keyframes and scenes. The area movers leave behind
-(:class:`evgrid.observers.MoverTrail`) is averaged over keyframes and scenes. Prints one table
-per map: precision / recall / IoU per (variant, threshold), the default marked, for each call
-rule of ``--rules`` (:data:`CALL_RULES`: prototypes of calls that also read the current lidar
-ISM); then the areas, and what the gate costs on static structure (truly occupied cells no
-mover covered, against the truth at the scene's end).
+mapped once: the mapper's maps (``ray_ilm`` and ``ray_irm``; with ``--deep`` also ``deep_acc``
+and ``fused``, which load the shipped Ev-Net; with ``--nav`` also ``nav``, whose area left
+behind is reported) carry the default :class:`~evgrid.fusion.DynamicParams`, and one attached
+map set per variant of :data:`VARIANTS` carries that variant (extra rows of the same one-pass
+update, fed the same Doppler cue). At every keyframe the cells above each threshold of
+``--thresholds`` (and, for ``support`` k, the cells whose k x k neighbourhood holds one) are
+compared with the truth mask (:func:`evgrid.observers.truth_masks`: cells of moving objects that
+the current ray ILM or ray IRM observed); counts are pooled over keyframes and scenes. The area
+movers leave behind (:class:`evgrid.observers.MoverTrail`) is averaged over keyframes and
+scenes. Prints one table per map: precision / recall / IoU per (variant, threshold), the default
+marked, for each call rule of ``--rules`` (:data:`CALL_RULES`: prototypes of calls that also
+read the current lidar ISM); then the areas, and what the gate costs on static structure (truly
+occupied cells no mover covered, against the truth at the scene's end).
 
 Measures and prints; asserts nothing.
 """
