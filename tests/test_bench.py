@@ -4,6 +4,7 @@ end-to-end run."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 from evgrid.bench import interleaved_ms, run_bench
@@ -57,3 +58,6 @@ def test_run_bench_reports_components_rig_and_end_to_end(tmp_path):
         and res["rig"]["fused_only"]["updates"] == res["rig"]["frames"]
     )
     assert res["end_to_end"]["frames"] > 0 and res["end_to_end"]["frames_per_second"] > 0
+    dyn = res["dynamic_score_ms"]
+    assert dyn["scene_on"] > 0 and dyn["scene_off"] > 0
+    assert dyn["scene_cost"] == pytest.approx(dyn["scene_on"] - dyn["scene_off"])

@@ -17,7 +17,9 @@ Sections of the result:
   informative, at 45 degrees: the largest window) with the dynamic score on (with the gate on
   every scored map and the Doppler cue of 64 moving detections) and off, timed in turns
   (medians), and the difference: what the score costs per update, all maps together; and
-  ``nav_gate``, what the gated copies of nav's inputs add when nav is mapped.
+  ``nav_gate``, what the gated copies of nav's inputs add when nav is mapped. ``scene_on``,
+  ``scene_off``, ``scene_cost``: the same for the six maps' pass on the simulated scene (its
+  ISMs and moving detections, the score at its defaults), whole runs in turns.
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ import platform
 import tempfile
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -135,13 +137,17 @@ def interleaved_ms(fns: dict[str, Any], repeat: int = 20) -> dict[str, float]:
 
 
 def _map_frames(
-    frames: Sequence, maps: tuple[str, ...], deep, update_rate_hz: float = 10.0
+    frames: Sequence, maps: tuple[str, ...], deep, update_rate_hz: float = 10.0, dynamic=None
 ) -> tuple[Any, np.ndarray]:
-    """Map ``frames``; return the mapper and each frame's ``process`` time (ms)."""
+    """Map ``frames`` (``dynamic``: a :class:`~evgrid.fusion.DynamicParams`, else the
+    default); return the mapper and each frame's ``process`` time (ms)."""
     from evgrid.config import MapperConfig
     from evgrid.mapper import OccupancyMapper
 
-    mapper = OccupancyMapper(MapperConfig(maps=maps, update_rate_hz=update_rate_hz), deep=deep)
+    config = MapperConfig(maps=maps, update_rate_hz=update_rate_hz)
+    if dynamic is not None:
+        config = replace(config, dynamic=dynamic)
+    mapper = OccupancyMapper(config, deep=deep)
     ts = np.empty(len(frames))
     for k, f in enumerate(frames):
         t = time.perf_counter()
@@ -317,6 +323,22 @@ def _dynamic_cost(grid, a, b, pose, repeat: int) -> dict[str, float]:
     }
 
 
+def _dynamic_scene_cost(frames: Sequence, deep, repeats: int) -> dict[str, float]:
+    """The six maps' pass (``fuse``, ms per update: the median of each run's median) on the
+    bench scene with the dynamic score at its defaults (conflict, Doppler cue) and off, whole
+    runs in turns, and the difference: what the score costs on a real drive."""
+    from evgrid import fusion
+
+    med: dict[str, list[float]] = {"on": [], "off": []}
+    for _ in range(repeats):
+        for k in med:
+            d = fusion.DynamicParams(enabled=k == "on")
+            mapper, _ = _map_frames(frames, fusion.MAP_NAMES, deep, dynamic=d)
+            med[k].append(float(np.median(mapper.timings["fuse"])))
+    on, off = float(np.median(med["on"])), float(np.median(med["off"]))
+    return {"scene_on": on, "scene_off": off, "scene_cost": on - off}
+
+
 def run_bench(
     duration_s: float = 6.0,
     checkpoint: str | None = None,
@@ -374,7 +396,8 @@ def run_bench(
         ),
     }
     result: dict[str, Any] = {
-        "dynamic_score_ms": _dynamic_cost(grid, a, b, pose, rep),
+        "dynamic_score_ms": _dynamic_cost(grid, a, b, pose, rep)
+        | _dynamic_scene_cost(frames, deep, repeats),
         "machine": {
             "processor": platform.processor() or platform.machine(),
             "cpus": os.cpu_count(),
