@@ -185,18 +185,19 @@ def test_ctrl_c_stops_cleanly_keeps_whole_files_and_resumes(tmp_path):
     p = _evgrid(*args, "3", "--export", "mcap", "--out", str(out))
     # the exporter's temporary file of the second scene (evgrid.export._files.AtomicFile)
     scene2 = out / "sim-000009"
-    deadline = time.time() + 300
+    t0 = time.time()
     while (
-        not list(scene2.glob(".sim-000009.mcap.*.part"))
+        not (seen := list(scene2.glob(".sim-000009.mcap.*.part")))
         and p.poll() is None
-        and time.time() < deadline
+        and time.time() < t0 + 300
     ):
         time.sleep(0.02)
-    # at once: the scene takes about two seconds, and a fast machine once finished it within a
-    # wait of half a second here, so the run ended without an interruption
+    # at once: the scene takes seconds, but a fast machine once finished it within a wait of
+    # half a second here, so the run ended without an interruption
+    state = f"after {time.time() - t0:.1f} s: part {seen}, exit {p.poll()}"
     p.send_signal(signal.SIGINT)
-    _, err = p.communicate(timeout=120)
-    assert p.returncode == 130, err
+    stdout, err = p.communicate(timeout=120)
+    assert p.returncode == 130, f"{state}\nstderr: {err[-2000:]}\nstdout: {stdout[-2000:]}"
     assert "interrupted: 1 of 2 scene(s) complete" in err and "--resume" in err, err
     assert (out / "sim-000004" / "sim-000004.mcap").is_file()
     assert not list(out.rglob(".partial-*")) and not list(out.rglob("*.tmp"))
