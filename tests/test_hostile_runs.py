@@ -26,6 +26,14 @@ SRC = str(Path(__file__).resolve().parents[1] / "src")
 FAST = ["--maps", "ray_ilm,ray_irm", "--no-figures", "--duration", "1"]
 
 
+def _default_sigint() -> None:
+    # the child's Ctrl-C as a terminal's: a test process (a pytest-xdist worker, or a library an
+    # earlier test loaded) may ignore or block SIGINT, and a child inherits both; Python then
+    # installs no KeyboardInterrupt and the run ignores the signal
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+
+
 def _evgrid(*args: str) -> subprocess.Popen:
     env = {**os.environ, "PYTHONPATH": SRC + os.pathsep + os.environ.get("PYTHONPATH", "")}
     return subprocess.Popen(
@@ -34,6 +42,7 @@ def _evgrid(*args: str) -> subprocess.Popen:
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
+        preexec_fn=_default_sigint,
     )
 
 
