@@ -351,7 +351,7 @@ def _score_cell(s, decay, f1, o1, u1, f2, o2, u2, ok, gate):
 def _dempster_row(mp_, ism_, bad, n, s_, decay, scored, gate):
     # map <- map (+)_D ISM, paper eq. (5): the ray_ilm, deep_acc and ray_irm maps. With
     # ``scored`` (a constant where inlined), also the dynamic score s_ <- decay s_ + K_arr +
-    # K_left from the same map and ISM cells (see _dynamic_row), and with ``gate`` > 0 the
+    # K_left from the same map and ISM cells (see _score_cell), and with ``gate`` > 0 the
     # gate on the new score (_gated): one loop over the cells.
     for j in range(n):
         p = 3 * j
@@ -405,20 +405,28 @@ def _deep_disc_row(mp_, ism_, bad, n, m_u_min, alpha):
 
 
 @numba.njit(inline="always", **_CHECKED)
-def _fused_row(mp_, deep_, irm_, bad, n, m_u_min, alpha):
+def _fused_row(mp_, deep_, irm_, bad, n, m_u_min, alpha, s_, decay, scored, gate):
     # fused: the deep_disc step (paper eq. (29) with eqs. (15), (8), (35)) with the deep IRM,
     # then Dempster (eq. (5)) with the ray IRM of the same step (docs/decisions.md#the-six-maps).
-    # An invalid cell of either ISM skips that ISM's step only; both count.
+    # An invalid cell of either ISM skips that ISM's step only; both count. With ``scored`` (a
+    # constant where inlined), first the dynamic score s_ <- decay s_ + K_arr + K_left of the
+    # map cell before the whole update and the ray IRM cell of the Dempster step, and with
+    # ``gate`` > 0 the gate on the new score (_gated) before both steps: one loop over the cells.
     for j in range(n):
         p = 3 * j
         f1, o1, u1 = np.float64(mp_[p]), np.float64(mp_[p + 1]), np.float64(mp_[p + 2])
+        fr, or_, ur, ok_r = _ism_cell(irm_, p)
+        if scored:
+            s, o1, u1 = _score_cell(np.float64(s_[j]), decay, f1, o1, u1, fr, or_, ur, ok_r, gate)
+            s_[j] = s
+            # the gated cell as the map holds it (float32), as when the gate wrote it first
+            u1 = np.float64(np.float32(u1))
         fd, od, ud, ok_d = _ism_cell(deep_, p)
         f, o, u = _deep_disc_cell(f1, o1, u1, fd, od, ud, m_u_min, alpha)
         keep = ud >= 1.0 or not ok_d
         f = f1 if keep else f
         o = o1 if keep else o
         u = u1 if keep else u
-        fr, or_, ur, ok_r = _ism_cell(irm_, p)
         bad[j] = (0 if ok_d else 1) + (0 if ok_r else 1)
         f2, o2, u2 = _dempster_cell(f, o, u, fr, or_, ur)
         keep = ur >= 1.0 or not ok_r
@@ -426,23 +434,6 @@ def _fused_row(mp_, deep_, irm_, bad, n, m_u_min, alpha):
         mp_[p + 1] = o if keep else o2
         mp_[p + 2] = u if keep else u2
     return _row_sum(bad, n)
-
-
-@numba.njit(inline="always", **_CHECKED)
-def _dynamic_row(mp_, ism_, s_, n, decay, gate):
-    # s <- decay s + K_arr + K_left per cell of the row, from the map cell before its update
-    # and the ISM cell the Dempster step combines it with; an invalid ISM cell adds nothing (the
-    # rule leaves the map cell untouched there), a vacuous one adds 0 as its K is 0. With
-    # ``gate`` > 0, a gated cell (_gated) moves its occupied mass to unknown before the rule.
-    for j in range(n):
-        p = 3 * j
-        f2, o2, u2, ok = _ism_cell(ism_, p)
-        f1, o1, u1 = np.float64(mp_[p]), np.float64(mp_[p + 1]), np.float64(mp_[p + 2])
-        s, o, u = _score_cell(np.float64(s_[j]), decay, f1, o1, u1, f2, o2, u2, ok, gate)
-        s_[j] = s
-        if gate > 0.0:
-            mp_[p + 1] = o
-            mp_[p + 2] = u
 
 
 @numba.njit(inline="always", **_CHECKED)
@@ -476,7 +467,7 @@ def _rule_row(code, mp_, a, b, bad, n, m_u_min, alpha):
         return _deep_replace_row(mp_, a, bad, n, m_u_min)
     elif code == RULE_DEEP_DISC:
         return _deep_disc_row(mp_, a, bad, n, m_u_min, alpha)
-    return _fused_row(mp_, a, b, bad, n, m_u_min, alpha)
+    return _fused_row(mp_, a, b, bad, n, m_u_min, alpha, a, 0.0, False, 0.0)
 
 
 @numba.njit(**_CHECKED)
@@ -954,9 +945,21 @@ def warp_update(
                 rejected[k] += _dempster_row(
                     mp_, bufs[x], bad, m, dyns[k][t : t + m], decay, True, gate
                 )
+            elif decay > 0.0:  # fused: the last input is the ISM of the Dempster step
+                rejected[k] += _fused_row(
+                    mp_,
+                    bufs[x],
+                    bufs[y],
+                    bad,
+                    m,
+                    params[k, 0],
+                    params[k, 1],
+                    dyns[k][t : t + m],
+                    decay,
+                    True,
+                    gate,
+                )
             else:
-                if decay > 0.0:  # fused: the last input is the ISM of the Dempster step
-                    _dynamic_row(mp_, bufs[y], dyns[k][t : t + m], m, decay, gate)
                 rejected[k] += _rule_row(
                     code, mp_, bufs[x], bufs[y], bad, m, params[k, 0], params[k, 1]
                 )
