@@ -437,17 +437,36 @@ def _fused_row(mp_, deep_, irm_, bad, n, m_u_min, alpha, s_, decay, scored, gate
 
 
 @numba.njit(inline="always", **_CHECKED)
-def _doppler_row(s_, src, srs, a, b, du_dj, dv_dj, runs, k0, k1, lo, hi, mu):
-    # The Doppler cue (docs/equations.md#the-doppler-cue) on a row whose cells [lo, hi) are s_,
-    # cell j at padded source position (a + j du_dj, b + j dv_dj): s <- s + mu (1 - m_f / (m_f +
-    # m_o)) of the source cell nearest to it (vacuous outside the grid and where invalid: adds
-    # mu), on the cells of runs [k0, k1) (columns [runs[k, 0], runs[k, 1])).
+def _disc_cells(runs, k0, k1, lo, hi, a, b, du_dj, dv_dj, srs, dj, dp):
+    # The Doppler cue's cells of a row whose cells [lo, hi) are at padded source positions (a + j
+    # du_dj, b + j dv_dj): dj[c] = j - lo for the cells j of runs [k0, k1) (columns [runs[k, 0],
+    # runs[k, 1])), dp[c] the flat index of the source cell nearest to cell j (the same in every
+    # ISM's padded grid); returns their number. Computed once per row for every map and ISM.
+    c = 0
     for k in range(k0, k1):
         for j in range(max(runs[k, 0], lo), min(runs[k, 1], hi)):
-            p = int(np.rint(a + j * du_dj)) * srs + 3 * int(np.rint(b + j * dv_dj))
-            f, o = np.float64(src[p]), np.float64(src[p + 1])
-            w = o / (o + f) if f > 0.0 else 1.0
-            s_[j - lo] = np.float64(s_[j - lo]) + mu * w
+            dj[c] = j - lo
+            dp[c] = int(np.rint(a + j * du_dj)) * srs + 3 * int(np.rint(b + j * dv_dj))
+            c += 1
+    return c
+
+
+@numba.njit(inline="always", **_CHECKED)
+def _disc_weights(src, dp, nd, dw):
+    # dw[c] = 1 - m_f / (m_f + m_o) of the ISM cell src[dp[c]:] (1 where vacuous or invalid: a
+    # padded grid holds invalid cells as vacuous), c < nd: once per row and ISM.
+    for c in range(nd):
+        f, o = np.float64(src[dp[c]]), np.float64(src[dp[c] + 1])
+        dw[c] = o / (o + f) if f > 0.0 else 1.0
+
+
+@numba.njit(inline="always", **_CHECKED)
+def _doppler_row(s_, dj, dw, nd, mu):
+    # The Doppler cue (docs/equations.md#the-doppler-cue) on a row's score cells s_: s <- s + mu
+    # (1 - m_f / (m_f + m_o)) of the source cell nearest to each disc cell (_disc_cells and
+    # _disc_weights of the map's ISM).
+    for c in range(nd):
+        s_[dj[c]] = np.float64(s_[dj[c]]) + mu * dw[c]
 
 
 #: Kernel codes of the update rules; :data:`evgrid.fusion.RULES` says which map uses which.
@@ -898,11 +917,19 @@ def warp_update(
     idx = np.empty(BLOCK, dtype=np.int64)
     frac = np.empty(2 * BLOCK, dtype=np.float32)
     bad = np.zeros(ts, np.uint8)
+    # the Doppler cue's cells of the row (_disc_cells) of disc set dq, and per ISM the disc set
+    # whose weights dw holds (_disc_weights), -1: none yet
+    dj = np.empty(ts, np.int64)
+    dp = np.empty(ts, np.int64)
+    dw = np.empty((len(src), ts), np.float64)
+    wrow = np.empty(len(src), np.int64)
+    nd = 0
     for i in range(wa, wb):
         lo = max(spans[i, 0], wc0)
         hi = min(spans[i, 1], wc1)
         if hi <= lo:
             continue
+        dq = -1
         band = i // BLOCK
         a = u00 + i * du_di + 1.0  # the row's padded source position (prefetch, Doppler cue)
         b = v00 + i * dv_di + 1.0
@@ -966,18 +993,11 @@ def warp_update(
             covs[k][t : t + m] = True
             k0, k1 = (dptr[q, i], dptr[q, i + 1]) if q >= 0 else (0, 0)
             if k1 > k0:  # after the gate: it counts from the next update on
-                _doppler_row(
-                    dyns[k][t : t + m],
-                    src[y],
-                    srs,
-                    a,
-                    b,
-                    du_dj,
-                    dv_dj,
-                    druns,
-                    k0,
-                    k1,
-                    lo,
-                    hi,
-                    params[k, 4],
-                )
+                if q != dq:  # the row's disc cells and their source cells, once for all maps
+                    nd = _disc_cells(druns, k0, k1, lo, hi, a, b, du_dj, dv_dj, srs, dj, dp)
+                    dq = q
+                    wrow[:] = -1
+                if wrow[y] != q:  # their weights, once per ISM
+                    _disc_weights(src[y], dp, nd, dw[y])
+                    wrow[y] = q
+                _doppler_row(dyns[k][t : t + m], dj, dw[y], nd, params[k, 4])
