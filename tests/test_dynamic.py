@@ -359,6 +359,31 @@ def test_doppler_cue_in_the_pass_reads_the_nearest_ism_cell_hand_computed():
     assert s[4, 5] == pytest.approx(0.4) and s[5, 5] == pytest.approx(0.4)
 
 
+def test_doppler_cue_reads_each_maps_own_ism_and_disc_set():
+    # the pass finds a row's disc cells once and the not-free shares once per ISM, for all maps:
+    # each map still reads its own Dempster step's ISM (fused: the ray IRM), and a set attached
+    # with another radius its own discs (a first update: no conflict, the score is the cue)
+    grid = GridSpec(16, 2.0)
+    res = grid.resolution
+    names = ("ray_ilm", "deep_acc", "ray_irm", "fused")
+    d = DynamicParams(decay=0.5, doppler_mps=0.5, doppler_mass=0.4, doppler_radius_m=2 * res)
+    ms = MapSet(grid, names=names, dynamic=d)
+    small = MapSet(grid, names=("ray_irm",), dynamic=replace(d, doppler_radius_m=0.1 * res))
+    ms.attach(small)
+    isms = {
+        "ray_ilm": _uniform(16, 0.6, 0.2),  # 1 - m_f / (m_f + m_o) = 0.25
+        "ray_irm": _uniform(16, 0.2, 0.6),  # 0.75
+        "deep_irm": _uniform(16, 0.0, 0.0),  # vacuous: 1
+    }
+    ms.update(SE2(), isms, np.array([[-3.5 * res, -5.5 * res, 3.0]]))  # map cell (3, 5)
+    for name, share in zip(names, (0.25, 1.0, 0.75, 0.75)):
+        s = ms[name].read_dynamic(0, 0, 8, 8)
+        assert (s > 0).sum() == 13, name
+        assert s[3, 5] == pytest.approx(0.4 * share) and s[1, 5] == pytest.approx(0.4 * share)
+    s = small["ray_irm"].read_dynamic(0, 0, 8, 8)
+    assert (s > 0).sum() == 1 and s[3, 5] == pytest.approx(0.4 * 0.75)
+
+
 def test_doppler_cue_counts_for_the_next_updates_gate():
     # the cue is added after the gate: this update's gate does not see it, the next one does
     grid = GridSpec(16, 2.0)
