@@ -15,7 +15,9 @@ movers leave behind (:class:`evgrid.observers.MoverTrail`) is averaged over keyf
 scenes. Prints one table per map: precision / recall / IoU per (variant, threshold), the default
 marked, for each call rule of ``--rules`` (:data:`CALL_RULES`: prototypes of calls that also
 read the current lidar ISM); then the areas, and what the gate costs on static structure (truly
-occupied cells no mover covered, against the truth at the scene's end).
+occupied cells no mover covered, against the truth at the scene's end). ``--centred-discs``
+centres the Doppler cue's discs on their detections (the rule before 2026-12-03) instead of
+behind them.
 
 Measures and prints; asserts nothing.
 """
@@ -45,17 +47,18 @@ D0 = DynamicParams()
 VARIANTS: dict[str, tuple[DynamicParams, int]] = {
     "default": (D0, 1),
     "no doppler": (replace(D0, doppler_mass=0.0), 1),
-    "doppler > 2 m/s": (replace(D0, doppler_mps=2.0), 1),
+    "doppler > 1 m/s": (replace(D0, doppler_mps=1.0), 1),
     "doppler > 3 m/s": (replace(D0, doppler_mps=3.0), 1),
     "radius 0.5 m": (replace(D0, doppler_radius_m=0.5), 1),
-    "radius 2 m": (replace(D0, doppler_radius_m=2.0), 1),
+    "radius 0.75 m": (replace(D0, doppler_radius_m=0.75), 1),
+    "radius 1.5 m": (replace(D0, doppler_radius_m=1.5), 1),
     "doppler mass 0.25": (replace(D0, doppler_mass=0.25), 1),
     "doppler mass 1": (replace(D0, doppler_mass=1.0), 1),
+    "decay 0.5": (replace(D0, decay=0.5), 1),
     "decay 0.6": (replace(D0, decay=0.6), 1),
     "decay 0.9": (replace(D0, decay=0.9), 1),
     "support 3": (D0, 3),
     "gate": (replace(D0, gate_maps=True), 1),
-    "gate, threshold 0.3": (replace(D0, gate_maps=True, threshold=0.3), 1),
     "no nav gate": (replace(D0, gate_nav=False), 1),
     "gate at 0.05": (replace(D0, gate_maps=True, gate_threshold=0.05), 1),
     "gate at 0.02": (replace(D0, gate_maps=True, gate_threshold=0.02), 1),
@@ -205,8 +208,17 @@ def main() -> None:
     ap.add_argument(
         "--rules", nargs="+", default=["score"], choices=list(CALL_RULES), help="call rules"
     )
+    ap.add_argument(
+        "--centred-discs",
+        action="store_true",
+        help="the Doppler cue's discs centred on their detections (before 2026-12-03), not behind",
+    )
     ap.add_argument("--json", help="write the pooled counts and areas here")
     args = ap.parse_args()
+    if args.centred_discs:
+        import evgrid.doppler
+
+        evgrid.doppler.disc_centres = lambda moving, radius_m: moving[:, :2]
     maps = ("ray_ilm", "ray_irm", *(("deep_acc", "fused") if args.deep else ()))
     maps += ("nav",) if args.nav else ()
     variants = ["default", *(v for v in args.variants if v != "default")]

@@ -74,10 +74,15 @@ def test_dynamic_score_split_and_decay_hand_computed():
     _step(ms, n, ilm=(0.0, 0.0), irm=(0.0, 0.0))
     assert np.allclose(score("ray_ilm"), s_ilm, rtol=1e-6)
     assert np.allclose(score("fused"), 0.5 * s_fused, rtol=1e-6)
-    # fourth: something leaves: m_o(map) m_f(ISM)
+    # fourth: the ISM says free as much as occupied (not free now): both directions add
     m = cell("ray_ilm")
+    _step(ms, n, ilm=(0.3, 0.3), irm=(0.0, 0.0))
+    s_ilm = 0.5 * s_ilm + m[0] * 0.3 + m[1] * 0.3
+    assert np.allclose(score("ray_ilm"), s_ilm, rtol=1e-6)
+    # fifth: the ISM sees the cells free now: whatever moved there is gone, the score is 0
     _step(ms, n, ilm=(0.8, 0.0), irm=(0.0, 0.0))
-    assert np.allclose(score("ray_ilm"), 0.5 * s_ilm + m[1] * 0.8, rtol=1e-6)
+    assert score("ray_ilm").max() == 0.0
+    assert np.allclose(score("fused"), 0.5**3 * s_fused, rtol=1e-6)  # vacuous ray IRM: decays
 
 
 def test_invalid_ism_cells_add_nothing_to_the_score():
@@ -260,7 +265,8 @@ def test_gate_is_off_for_the_papers_maps_by_default_golden():
     rng = np.random.default_rng(20261202)
     for pose in POSES:
         # a Doppler cue too: it raises scores, never a mass
-        maps.update(pose, _isms(rng, grid.n_cells), np.array([[pose.x, pose.y, 5.0]]))
+        near = [[pose.x + 2.0, pose.y, 5.0, pose.x, pose.y]]  # 2 m ahead, seen from the ego
+        maps.update(pose, _isms(rng, grid.n_cells), np.array(near))
     assert {n: _digest(maps[n]) for n in maps.names} == json.loads(GOLDEN.read_text())["fusion"]
     gated = MapSet(grid, dynamic=DynamicParams(gate_maps=True))
     rng = np.random.default_rng(20261202)
@@ -284,6 +290,40 @@ def _disc_cells(grid, pose, box, xy, radius):
         assert (row[:, 1] > row[:, 0]).all() and (row[1:, 0] > row[:-1, 1]).all()  # disjoint
         cells += [(box[0] + i, box[1] + c) for a, b in row for c in range(a, b)]
     return cells
+
+
+def _moving(centre, speed: float, radius: float) -> np.ndarray:
+    """A ``(1, 5)`` moving detection whose disc of ``radius`` is centred on ``centre``: the
+    detection ``radius`` before it, seen by a radar 10 m further along +x."""
+    x, y = centre
+    return np.array([[x + radius, y, speed, x + radius + 10.0, y]])
+
+
+def test_doppler_discs_lie_behind_the_detection_hand_computed():
+    from evgrid.doppler import disc_centres
+
+    # the radar at the origin: a detection at (3, 4) m has its disc's centre 1 m further out
+    moving = np.array([[3.0, 4.0, 5.0, 0.0, 0.0], [-2.0, 0.0, 5.0, 1.0, 0.0]])
+    np.testing.assert_allclose(disc_centres(moving, 1.0), [[3.6, 4.8], [-3.0, 0.0]])
+    # a detection on the radar itself: no line of sight, the disc stays on it
+    np.testing.assert_array_equal(
+        disc_centres(np.array([[1.0, 2.0, 5.0, 1.0, 2.0]]), 1.0), [[1, 2]]
+    )
+    # in a map update the detection's own cell is in its disc (on the near edge)
+    grid = GridSpec(16, 2.0)  # 0.125 m cells
+    res = grid.resolution
+    d = DynamicParams(doppler_mps=0.5, doppler_mass=0.4, doppler_radius_m=2 * res)
+    ms = MapSet(grid, names=("ray_ilm",), dynamic=d)
+    det = np.array([[-3.5 * res, -5.5 * res, 3.0, 5.0, -5.5 * res]])  # map cell (3, 5), radar at +x
+    ms.update(SE2(), {"ray_ilm": _uniform(16, 0.0, 0.0)}, det)
+    s = ms["ray_ilm"].read_dynamic(0, 0, 8, 8)
+    # x decreases with the row: the disc of 2 cells round cell (5, 5), rows 3-7
+    assert s[3, 5] == pytest.approx(0.4) and s[7, 5] == pytest.approx(0.4)
+    assert s[2, 5] == 0.0 and (s[3:8, 5] > 0).all() and (s > 0).sum() == 13
+    with pytest.raises(ValueError, match=r"moving must be \(k, 5\).*\(1, 3\)"):
+        ms.update(SE2(), {"ray_ilm": _uniform(16, 0.0, 0.0)}, det[:, :3])
+    with pytest.raises(ValueError, match=r"moving has 1 row\(s\) with NaN"):
+        ms.update(SE2(), {"ray_ilm": _uniform(16, 0.0, 0.0)}, det * np.array([1, 1, np.nan, 1, 1]))
 
 
 def test_doppler_discs_as_runs_hand_computed():
@@ -319,9 +359,9 @@ def test_doppler_cue_hand_computed():
     isms["ray_ilm"][8:12] = (0.6, 0.2, 0.2)  # map rows 0-3
     isms["ray_ilm"][13] = (0.0, 0.3, 0.7)  # map row 5
     slow = MapSet(grid, names=("ray_ilm",), dynamic=d)
-    slow.update(SE2(), isms, np.array([[*xy[0], 0.4]]))  # not faster than doppler_mps: nothing
+    slow.update(SE2(), isms, _moving(xy[0], 0.4, 2 * res))  # not faster than doppler_mps: nothing
     assert slow["ray_ilm"].read_dynamic(*slow["ray_ilm"].bounds()).max() == 0.0
-    ms.update(SE2(), isms, np.array([[*xy[0], 0.6]]))
+    ms.update(SE2(), isms, _moving(xy[0], 0.6, 2 * res))
     r0, c0, h, w = ms["ray_ilm"].bounds()
     s = ms["ray_ilm"].read_dynamic(r0, c0, h, w)
     assert (s > 0).sum() == 13
@@ -329,10 +369,13 @@ def test_doppler_cue_hand_computed():
     # (vacuous: nothing rules a mover out) and row 5 (only occupied); no conflict at first
     assert s[3 - r0, 5 - c0] == pytest.approx(0.4 * 0.2 / 0.8)
     assert s[4 - r0, 5 - c0] == pytest.approx(0.4) and s[5 - r0, 5 - c0] == pytest.approx(0.4)
-    ms.update(SE2(), isms, np.array([[*xy[0], 0.6], [*xy[0], 9.0]]))  # one disc: added once
+    two = np.concatenate([_moving(xy[0], 0.6, 2 * res), _moving(xy[0], 9.0, 2 * res)])
+    ms.update(SE2(), isms, two)  # one disc: added once
     s = ms["ray_ilm"].read_dynamic(r0, c0, h, w)
-    # K = 0.6 * 0.2 + 0.2 * 0.6 = 0.24 (the map cell (0.6, 0.2, 0.2) meets the same ISM cell)
-    assert s[3 - r0, 5 - c0] == pytest.approx(0.5 * 0.1 + 0.24 + 0.1)
+    # row 3: the ISM sees it free (0.6 > 0.2): its score restarts from 0, then the cue's 0.1
+    assert s[3 - r0, 5 - c0] == pytest.approx(0.1)
+    # row 5: decay, no conflict (the map cell (0, 0.3, 0.7) meets the same ISM cell), the cue
+    assert s[5 - r0, 5 - c0] == pytest.approx(0.5 * 0.4 + 0.4)
 
 
 def test_doppler_cue_in_the_pass_reads_the_nearest_ism_cell_hand_computed():
@@ -346,7 +389,7 @@ def test_doppler_cue_in_the_pass_reads_the_nearest_ism_cell_hand_computed():
     d = DynamicParams(decay=0.5, doppler_mps=0.5, doppler_mass=0.4, doppler_radius_m=2 * res)
     ms = MapSet(grid, names=("ray_ilm",), dynamic=d)
     pose = SE2(-0.3 * res, 0.0, 0.0)  # map row 4's centre is 0.3 cells from local row 11
-    ms.update(pose, {"ray_ilm": ism}, np.array([[-4.0 * res, -5.5 * res, 3.0]]))
+    ms.update(pose, {"ray_ilm": ism}, _moving((-4.0 * res, -5.5 * res), 3.0, 2 * res))
     window = ms.windows(pose)["ray_ilm"]
     sample = window.masses[4 - window.r0, 5 - window.c0]
     assert sample == pytest.approx((0.3 * 0.6, 0.3 * 0.2 + 0.7 * 0.3, 0.3 * 0.2 + 0.7 * 0.7))
@@ -395,21 +438,22 @@ def test_doppler_cue_counts_for_the_next_updates_gate():
         MapSet(grid, names=("ray_ilm",), dynamic=d),
         MapSet(grid, names=("ray_ilm",), dynamic=replace(d, doppler_mass=0.0)),
     )
-    here = np.array([[-3.5 * res, -5.5 * res, 3.0]])  # map cell (3, 5)
+    here = _moving((-3.5 * res, -5.5 * res), 3.0, d.doppler_radius_m)  # round map cell (3, 5)
+    tie = _uniform(16, 0.4, 0.4)  # not occupied (the gate may act) nor free (the score stays)
     for ms in (cue, twin):
         ms.update(SE2(), {"ray_ilm": _uniform(16, 0.2, 0.6)}, None)  # occupied
-        ms.update(SE2(), {"ray_ilm": _uniform(16, 0.6, 0.2)}, here)  # free now
-    # K = 0.6 * 0.6 + 0.2 * 0.2 = 0.4 < 0.5: not gated; then the cue adds 1.0 * 0.2 / 0.8
+        ms.update(SE2(), {"ray_ilm": tie}, here)
+    # K = 0.2 * 0.4 + 0.6 * 0.4 = 0.32 < 0.5: not gated; then the cue adds 1.0 * 0.4 / 0.8
     s = cue["ray_ilm"].read_dynamic(3, 5, 1, 1)[0, 0]
-    assert s == pytest.approx(0.4 + 0.25) and s > d.gate_threshold
+    assert s == pytest.approx(0.32 + 0.5) and s > d.gate_threshold
     assert np.array_equal(cue["ray_ilm"].read(3, 5, 1, 1)[0], twin["ray_ilm"].read(3, 5, 1, 1)[0])
     for ms in (cue, twin):
-        ms.update(SE2(), {"ray_ilm": _uniform(16, 0.6, 0.2)}, None)
-    # the map (0.28, 0.28, 0.04) / 0.6 meets (0.6, 0.2, 0.2): K = 0.8 * 0.28 / 0.6; with the
-    # cue 0.3 * 0.65 + K > 0.5 is gated (m_o to m_u first), without it 0.3 * 0.4 + K is not
-    k = 0.8 * 0.28 / 0.6
-    assert cue["ray_ilm"].read_dynamic(3, 5, 1, 1)[0, 0] == pytest.approx(0.3 * 0.65 + k)
-    assert twin["ray_ilm"].read_dynamic(3, 5, 1, 1)[0, 0] == pytest.approx(0.3 * 0.4 + k)
+        ms.update(SE2(), {"ray_ilm": tie}, None)
+    # the map (0.2, 0.44, 0.04) / 0.68 meets the tie: K = 0.4 * 0.64 / 0.68; with the cue
+    # 0.3 * 0.82 + K > 0.5 is gated (m_o to m_u first), without it 0.3 * 0.32 + K is not
+    k = 0.4 * 0.64 / 0.68
+    assert cue["ray_ilm"].read_dynamic(3, 5, 1, 1)[0, 0] == pytest.approx(0.3 * 0.82 + k)
+    assert twin["ray_ilm"].read_dynamic(3, 5, 1, 1)[0, 0] == pytest.approx(0.3 * 0.32 + k)
     assert (
         cue["ray_ilm"].read(3, 5, 1, 1)[0][0, 0, 1] < twin["ray_ilm"].read(3, 5, 1, 1)[0][0, 0, 1]
     )
@@ -460,10 +504,11 @@ def test_doppler_cue_from_a_bag_radar_scan():
     compensate(pts, np.array([5.0, 0.0, 0.0]))
     sweep = RadarSweep(pts, SE3.identity(), SE3.identity(), 0, "RADAR_FRONT")
     xy = moving_detections([sweep], SE3.identity(), 0.5)
-    assert xy.shape == (1, 3)
-    # its own radial speed: -8 m/s + the sensor's 5 m/s along the line of sight, 5 cos(0.1)
-    want = [12.0 * np.cos(0.1), 12.0 * np.sin(0.1), 8.0 - 5.0 * np.cos(0.1)]
-    np.testing.assert_allclose(xy[0], want, rtol=1e-5)
+    assert xy.shape == (1, 5)
+    # its own radial speed: -8 m/s + the sensor's 5 m/s along the line of sight, 5 cos(0.1);
+    # the radar at the origin
+    want = [12.0 * np.cos(0.1), 12.0 * np.sin(0.1), 8.0 - 5.0 * np.cos(0.1), 0.0, 0.0]
+    np.testing.assert_allclose(xy[0], want, rtol=1e-5, atol=1e-12)
 
 
 # --- the area movers leave behind ---------------------------------------------------------------

@@ -298,7 +298,8 @@ def _dynamic_cost(grid, a, b, pose, repeat: int) -> dict[str, float]:
     rng = np.random.default_rng(1)
     h = 0.9 * grid.half_extent
     local = rng.uniform(-h, h, (BENCH_MOVING_DETECTIONS, 2))
-    moving = np.column_stack([pose.apply(local), np.full(len(local), 5.0)])
+    radar = np.broadcast_to(pose.apply(np.zeros((1, 2))), local.shape)
+    moving = np.column_stack([pose.apply(local), np.full(len(local), 5.0), radar])
     on = fusion.DynamicParams(gate_maps=True)
     sets = {
         "on": (fusion.MapSet(grid, dynamic=on), moving),

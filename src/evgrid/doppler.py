@@ -3,11 +3,11 @@
 Every source fills the radar columns ``vx_comp, vy_comp`` with the ego-motion compensated
 Doppler velocity (nuScenes stores it; the simulator and the bag decoder compensate the raw
 radial speed with the odometry), so a detection's own speed is the length of that vector. The
-newest sweep of each radar gives the detections faster than ``doppler_mps``; their positions in
-the map frame go to :meth:`evgrid.fusion.MapSet.update`, which adds to the score of the map
-cells within ``doppler_radius_m`` of any of them ``doppler_mass`` times the share of its ISM's
-evidence that is not free now (the disc says something moves near; the ISM rules out the cells
-it sees free, such as the road around a moving car).
+newest sweep of each radar gives the detections faster than ``doppler_mps``; their positions and
+the radar's in the map frame go to :meth:`evgrid.fusion.MapSet.update`, which adds to the score
+of the map cells of a disc of ``doppler_radius_m`` behind each of them (the detection is the
+object's surface that faces the radar; the disc touches it from behind) ``doppler_mass`` times
+the share of its ISM's evidence that is not free now (the ISM rules out the cells it sees free).
 """
 
 from __future__ import annotations
@@ -20,16 +20,17 @@ import numpy as np
 from evgrid.data.frame import RadarSweep, radar_column
 from evgrid.geometry import SE2, SE3, GridSpec
 
-__all__ = ["moving_detections", "disc_runs"]
+__all__ = ["moving_detections", "disc_centres", "disc_runs"]
 
 _X, _VX, _VY = (radar_column(c) for c in ("x", "vx_comp", "vy_comp"))
 
 
 def moving_detections(sweeps: Sequence[RadarSweep], to_map: SE3, min_speed: float) -> np.ndarray:
-    """``(k, 3)`` float64: map-frame position (m) and speed (m/s) of the detections of ``sweeps``
-    whose ego-motion compensated Doppler speed ``|(vx_comp, vy_comp)|`` exceeds ``min_speed``;
-    ``to_map`` takes the global frame to the map frame. Each sweep moves with its own ego pose
-    and extrinsics; detections with a non-finite position or velocity are skipped."""
+    """``(k, 5)`` float64: map-frame position (m), speed (m/s) and the radar's map-frame position
+    (m) of the detections of ``sweeps`` whose ego-motion compensated Doppler speed ``|(vx_comp,
+    vy_comp)|`` exceeds ``min_speed``; ``to_map`` takes the global frame to the map frame. Each
+    sweep moves with its own ego pose and extrinsics; detections with a non-finite position or
+    velocity are skipped."""
     parts = []
     for s in sweeps:
         p = s.points
@@ -39,9 +40,23 @@ def moving_detections(sweeps: Sequence[RadarSweep], to_map: SE3, min_speed: floa
         xyz = p[:, _X : _X + 3].astype(np.float64)
         fast = (speed > min_speed) & np.isfinite(xyz).all(axis=1)  # NaN speeds compare False
         if fast.any():
-            xy = (to_map @ s.ego_pose @ s.sensor_to_ego).apply(xyz[fast])[:, :2]
-            parts.append(np.column_stack([xy, speed[fast]]))
-    return np.concatenate(parts) if parts else np.zeros((0, 3), np.float64)
+            to = to_map @ s.ego_pose @ s.sensor_to_ego
+            xy = to.apply(xyz[fast])[:, :2]
+            radar = np.broadcast_to(to.apply(np.zeros((1, 3)))[:, :2], xy.shape)
+            parts.append(np.column_stack([xy, speed[fast], radar]))
+    return np.concatenate(parts) if parts else np.zeros((0, 5), np.float64)
+
+
+def disc_centres(moving: np.ndarray, radius_m: float) -> np.ndarray:
+    """``(k, 2)``: the centres of the Doppler cue's discs of ``moving`` (``(k, 5)``, as
+    :func:`moving_detections` gives): ``radius_m`` behind each detection on the radar's line of
+    sight through it, so that the disc touches the detection from behind (a detection is the
+    near surface of its object; the object extends away from the radar). A detection at the
+    radar's own position keeps its disc centred on it."""
+    xy, radar = moving[:, :2], moving[:, 3:5]
+    d = xy - radar
+    n = np.hypot(d[:, 0], d[:, 1])[:, None]
+    return xy + np.divide(radius_m * d, n, out=np.zeros_like(d), where=n > 0.0)
 
 
 @numba.njit(cache=True)

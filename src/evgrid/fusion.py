@@ -119,14 +119,14 @@ class FusionParams:
 # Defaults of the dynamic score (docs/equations.md#the-dynamic-score): chosen with
 # benchmarks/dynamic.py on simulated scenes (docs/speed.md#the-dynamic-score).
 DYNAMIC_DECAY_DEFAULT = 0.3
-DYNAMIC_THRESHOLD_DEFAULT = 0.1
-GATE_THRESHOLD_DEFAULT = 0.05
-# The Doppler cue (docs/equations.md#the-doppler-cue): a pedestrian walks at about 1.4 m/s; the
-# ego-motion compensation of a static target leaves errors of a few tenths of a m/s (odometry
-# speed and yaw rate, the radar's 0.1 m/s Doppler resolution) and clutter shows slow false
-# speeds; the disc covers the radar's position error and a part of the object around its one
-# detection. Chosen with benchmarks/dynamic.py on simulated scenes (docs/speed.md).
-DOPPLER_MPS_DEFAULT = 1.0
+DYNAMIC_THRESHOLD_DEFAULT = 0.2
+GATE_THRESHOLD_DEFAULT = 0.03
+# The Doppler cue (docs/equations.md#the-doppler-cue): the ego-motion compensation of a static
+# target leaves errors of a few tenths of a m/s (odometry speed and yaw rate, the radar's 0.1 m/s
+# Doppler resolution) and clutter shows slow false speeds; the disc behind a detection covers a
+# part of its object. Chosen with benchmarks/dynamic.py on simulated scenes (tuning seeds, checked
+# on held-out ones).
+DOPPLER_MPS_DEFAULT = 2.0
 DOPPLER_MASS_DEFAULT = 0.5
 DOPPLER_RADIUS_DEFAULT = 1.0
 
@@ -140,9 +140,13 @@ class DynamicParams:
     ``threshold`` is called dynamic. ``enabled=False`` keeps no score (the maps are the same
     either way unless gated). ``decay`` in (0, 1], ``threshold`` > 0.
 
-    The Doppler cue: cells within ``doppler_radius_m`` (m) of a detection of the newest sweep
-    of each radar whose ego-motion compensated Doppler speed exceeds ``doppler_mps`` (m/s) add
-    ``doppler_mass`` (>= 0; 0: no cue) to the score once per update.
+    A cell the ISM of its Dempster step sees free now keeps no score (whatever moved there is
+    gone).
+
+    The Doppler cue: cells of a disc of radius ``doppler_radius_m`` (m) that touches from behind
+    (seen from its radar) a detection of the newest sweep of each radar whose ego-motion
+    compensated Doppler speed exceeds ``doppler_mps`` (m/s) add ``doppler_mass`` (>= 0; 0: no
+    cue) times the ISM's not-free share to the score once per update.
 
     The gate: a scored cell whose score exceeds ``gate_threshold`` (> 0) moves its occupied mass
     to unknown before a Dempster step whose ISM does not say occupied; ``gate_maps`` gates the
@@ -585,6 +589,12 @@ class MapSet:
             default=0,
         )
 
+    @property
+    def doppler_mps_min(self) -> float | None:
+        """The lowest ``doppler_mps`` of this set and those attached to it among those with the
+        Doppler cue (m/s), or None if none has it: the detections an update needs."""
+        return min((mps for mps, _ in self._discs), default=None)
+
     def _gate(self, row: _Row) -> float:
         """The gate's threshold of a row (docs/equations.md#the-gate); 0: not gated."""
         d = self.dynamic
@@ -656,10 +666,11 @@ class MapSet:
         """Fuse one time step: local ISM grids ``(n, n, 3)`` keyed by ISM name, taken at ego
         ``pose`` (m, rad) in the map frame; every map of this set and of the sets attached to it.
 
-        ``moving``: ``(k, 3)`` map-frame position (m) and compensated Doppler speed (m/s) of
-        radar detections (:func:`evgrid.doppler.moving_detections`), the Doppler cue of the
-        dynamic score: those faster than each set's ``dynamic.doppler_mps`` count (added in the
-        pass, after the gate; those outside the local grid are ignored).
+        ``moving``: ``(k, 5)`` map-frame position (m), compensated Doppler speed (m/s) and the
+        radar's map-frame position (m) of radar detections
+        (:func:`evgrid.doppler.moving_detections`), the Doppler cue of the dynamic score: those
+        faster than each set's ``dynamic.doppler_mps`` count, each with a disc behind it (added
+        in the pass, after the gate; discs outside the local grid are ignored).
 
         Cells of an ISM grid that are not masses are taken as vacuous and counted in
         :attr:`n_rejected`. Returns, per map of this set, the cells its rule rejected.
@@ -667,6 +678,16 @@ class MapSet:
         if self._host is not None:
             raise ValueError("this map set is attached to another: update that one")
         _check_pose(pose)
+        if moving is not None:
+            moving = np.asarray(moving, dtype=np.float64)
+            if moving.ndim != 2 or moving.shape[1] != 5:
+                raise ValueError(
+                    f"moving must be (k, 5) (x, y, speed, radar x, radar y), got shape "
+                    f"{moving.shape}"
+                )
+            if not np.isfinite(moving).all():
+                bad = int((~np.isfinite(moving)).any(axis=1).sum())
+                raise ValueError(f"moving has {bad} row(s) with NaN or inf")
         missing = [i for i in self.required_isms if i not in isms]
         if missing:
             raise ValueError(f"missing ISM grid(s) {missing}; these maps need {self.required_isms}")
@@ -767,12 +788,12 @@ class MapSet:
         h = box[2]
         if moving is None or not len(moving) or not self._discs:
             return np.zeros((len(self._discs), h + 1), np.int64), np.zeros((0, 2), np.int64)
-        from evgrid.doppler import disc_runs
+        from evgrid.doppler import disc_centres, disc_runs
 
-        moving = np.asarray(moving, dtype=np.float64).reshape(-1, 3)
         ptrs, runs, n = [], [], 0
         for mps, radius in self._discs:
-            ptr, r = disc_runs(self.grid, pose, box, moving[moving[:, 2] > mps, :2], radius)
+            centres = disc_centres(moving[moving[:, 2] > mps], radius)
+            ptr, r = disc_runs(self.grid, pose, box, centres, radius)
             ptrs.append(ptr + n)
             runs.append(r)
             n += len(r)

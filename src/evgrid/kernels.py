@@ -339,12 +339,14 @@ def _gated(s, gate, f2, o2, u2, ok):
 @numba.njit(inline="always", **_CHECKED)
 def _score_cell(s, decay, f1, o1, u1, f2, o2, u2, ok, gate):
     # One cell's dynamic score s <- decay s + K_arr + K_left (an invalid ISM cell adds nothing)
-    # and the gate on the new score (_gated): the new score and the map cell's (m_o, m_u) to
-    # combine, its occupied mass moved to unknown where gated.
+    # and the gate on the new score (_gated): the score to keep, 0 where the valid, informative
+    # ISM says free now (m_f > m_o: whatever moved there is gone), and the map cell's (m_o, m_u)
+    # to combine, its occupied mass moved to unknown where gated.
     arrived, left = _conflict_split(f1, o1, f2, o2)
     s = decay * s + (arrived + left if ok else 0.0)
     g = _gated(s, gate, f2, o2, u2, ok)
-    return s, (0.0 if g else o1), (u1 + o1 if g else u1)
+    seen_free = ok and u2 < 1.0 and f2 > o2
+    return (0.0 if seen_free else s), (0.0 if g else o1), (u1 + o1 if g else u1)
 
 
 @numba.njit(inline="always", **_CHECKED)

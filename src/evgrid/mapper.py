@@ -185,12 +185,13 @@ class OccupancyMapper:
         return out
 
     def moving_detections(self) -> np.ndarray | None:
-        """The Doppler cue of the dynamic score: map-frame positions and speeds ``(k, 3)`` of the
-        detections faster than ``dynamic.doppler_mps`` in the newest sweep of each radar, each
-        sweep once (a sweep already used by an earlier update adds nothing); None with the score
-        off. The attached map sets see these (those faster than their own ``doppler_mps``)."""
-        d = self.config.dynamic
-        if not d.enabled or d.doppler_mass <= 0.0 or self.first_pose is None:
+        """The Doppler cue of the dynamic score: ``(k, 5)`` map-frame positions, speeds and radar
+        positions of the detections in the newest sweep of each radar faster than the lowest
+        ``doppler_mps`` of the map sets updated (this one and those attached: each keeps those
+        faster than its own), each sweep once (a sweep already used by an earlier update adds
+        nothing); None where no map set has the cue."""
+        mps = self.maps.doppler_mps_min
+        if mps is None or self.first_pose is None:
             return None
         from evgrid.doppler import moving_detections
 
@@ -198,7 +199,7 @@ class OccupancyMapper:
         for s in new:
             self._doppler_seen[s.channel] = s.timestamp
         to_map = SE3.identity() if self.config.frame == "world" else self.first_pose.inverse()
-        return moving_detections(new, to_map, d.doppler_mps)
+        return moving_detections(new, to_map, mps)
 
     def pose_in_map(self, ego_pose: SE3) -> SE2:
         """The planar ego pose in the map frame (m, rad).
