@@ -61,7 +61,9 @@ VARIANTS: dict[str, tuple[DynamicParams, int]] = {
     "gate": (replace(D0, gate_maps=True), 1),
     "no nav gate": (replace(D0, gate_nav=False), 1),
     "gate at 0.05": (replace(D0, gate_maps=True, gate_threshold=0.05), 1),
+    "gate at 0.03": (replace(D0, gate_maps=True, gate_threshold=0.03), 1),
     "gate at 0.02": (replace(D0, gate_maps=True, gate_threshold=0.02), 1),
+    "doppler > 1 m/s, gate": (replace(D0, doppler_mps=1.0, gate_maps=True), 1),
 }
 
 
