@@ -23,7 +23,7 @@ import numba
 import numpy as np
 
 from evgrid import fusion
-from evgrid.bench import BENCH_MOVING_DETECTIONS, interleaved_ms
+from evgrid.bench import bench_moving_detections, interleaved_ms
 from evgrid.geometry import SE2, GridSpec
 
 
@@ -38,10 +38,7 @@ def main() -> None:
     b = rng.dirichlet([1, 1, 1], grid.shape).astype(np.float32)
     pose = SE2(3.3, -1.7, math.radians(45))
     isms = {"ray_ilm": a, "ray_irm": b, "deep_irm": a}
-    rng = np.random.default_rng(1)  # the detections of evgrid.bench._dynamic_cost
-    h = 0.9 * grid.half_extent
-    local = rng.uniform(-h, h, (BENCH_MOVING_DETECTIONS, 2))
-    moving = np.column_stack([pose.apply(local), np.full(len(local), 5.0)])
+    moving = bench_moving_detections(grid, pose)  # those of evgrid.bench._dynamic_cost
     d = fusion.DynamicParams
     sets = {
         "off": (fusion.MapSet(grid, dynamic=d(enabled=False)), None),

@@ -418,7 +418,8 @@ def test_doppler_cue_reads_each_maps_own_ism_and_disc_set():
         "ray_irm": _uniform(16, 0.2, 0.6),  # 0.75
         "deep_irm": _uniform(16, 0.0, 0.0),  # vacuous: 1
     }
-    ms.update(SE2(), isms, np.array([[-3.5 * res, -5.5 * res, 3.0]]))  # map cell (3, 5)
+    # map cell (3, 5), seen from its own position: each set's disc is centred on it
+    ms.update(SE2(), isms, np.array([[-3.5 * res, -5.5 * res, 3.0, -3.5 * res, -5.5 * res]]))
     for name, share in zip(names, (0.25, 1.0, 0.75, 0.75)):
         s = ms[name].read_dynamic(0, 0, 8, 8)
         assert (s > 0).sum() == 13, name

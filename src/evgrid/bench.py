@@ -286,6 +286,17 @@ def _end_to_end(deep, seed: int, duration_s: float) -> dict[str, Any]:
 BENCH_MOVING_DETECTIONS = 64
 
 
+def bench_moving_detections(grid, pose) -> np.ndarray:
+    """The moving detections of the dynamic score's worst case: ``BENCH_MOVING_DETECTIONS``
+    spread over 90 % of the local grid at ``pose``, at 5 m/s, seen from the ego's position
+    (``(k, 5)``, as :func:`evgrid.doppler.moving_detections` gives)."""
+    rng = np.random.default_rng(1)
+    h = 0.9 * grid.half_extent
+    local = rng.uniform(-h, h, (BENCH_MOVING_DETECTIONS, 2))
+    radar = np.broadcast_to(pose.apply(np.zeros((1, 2))), local.shape)
+    return np.column_stack([pose.apply(local), np.full(len(local), 5.0), radar])
+
+
 def _dynamic_cost(grid, a, b, pose, repeat: int) -> dict[str, float]:
     """Milliseconds of one update of the six maps with the dynamic score on (the conflict, the
     gate on every scored map, and the Doppler cue of ``BENCH_MOVING_DETECTIONS`` moving
@@ -295,11 +306,7 @@ def _dynamic_cost(grid, a, b, pose, repeat: int) -> dict[str, float]:
     from evgrid import fusion
 
     isms = {"ray_ilm": a, "ray_irm": b, "deep_irm": a}
-    rng = np.random.default_rng(1)
-    h = 0.9 * grid.half_extent
-    local = rng.uniform(-h, h, (BENCH_MOVING_DETECTIONS, 2))
-    radar = np.broadcast_to(pose.apply(np.zeros((1, 2))), local.shape)
-    moving = np.column_stack([pose.apply(local), np.full(len(local), 5.0), radar])
+    moving = bench_moving_detections(grid, pose)
     on = fusion.DynamicParams(gate_maps=True)
     sets = {
         "on": (fusion.MapSet(grid, dynamic=on), moving),
