@@ -345,8 +345,8 @@ def _score_cell(s, decay, f1, o1, u1, f2, o2, u2, ok, gate):
     arrived, left = _conflict_split(f1, o1, f2, o2)
     s = decay * s + (arrived + left if ok else 0.0)
     g = _gated(s, gate, f2, o2, u2, ok)
-    seen_free = ok and u2 < 1.0 and f2 > o2
-    return (0.0 if seen_free else s), (0.0 if g else o1), (u1 + o1 if g else u1)
+    kept = (f2 <= o2) | (u2 >= 1.0) | (not ok)  # not seen free now; bitwise: one vector select
+    return s * kept, (0.0 if g else o1), (u1 + o1 if g else u1)
 
 
 @numba.njit(inline="always", **_CHECKED)
