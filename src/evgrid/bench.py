@@ -293,7 +293,7 @@ def bench_moving_detections(grid, pose) -> np.ndarray:
     rng = np.random.default_rng(1)
     h = 0.9 * grid.half_extent
     local = rng.uniform(-h, h, (BENCH_MOVING_DETECTIONS, 2))
-    radar = np.broadcast_to(pose.apply(np.zeros((1, 2))), local.shape)
+    radar = np.broadcast_to((pose.x, pose.y), local.shape)
     return np.column_stack([pose.apply(local), np.full(len(local), 5.0), radar])
 
 

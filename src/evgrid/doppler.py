@@ -42,7 +42,7 @@ def moving_detections(sweeps: Sequence[RadarSweep], to_map: SE3, min_speed: floa
         if fast.any():
             to = to_map @ s.ego_pose @ s.sensor_to_ego
             xy = to.apply(xyz[fast])[:, :2]
-            radar = np.broadcast_to(to.apply(np.zeros((1, 3)))[:, :2], xy.shape)
+            radar = np.broadcast_to(to.translation[:2], xy.shape)  # the sensor's origin
             parts.append(np.column_stack([xy, speed[fast], radar]))
     return np.concatenate(parts) if parts else np.zeros((0, 5), np.float64)
 
