@@ -20,11 +20,11 @@ from pathlib import Path
 import numpy as np
 
 from evgrid.config import MapperConfig
-from evgrid.data import SimConfig, simulate_scene
 from evgrid.data.bag import load_bag
 from evgrid.data.bag_writer import write_bag
-from evgrid.data.sim.store import load_sim_scene, save_sim_scene
 from evgrid.mapper import OccupancyMapper
+from evgrid_sim import SimConfig, simulate_scene
+from evgrid_sim.store import load_sim_scene, save_sim_scene
 
 
 def read_fps(scene) -> tuple[float, int]:

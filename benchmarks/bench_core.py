@@ -19,7 +19,7 @@ os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 
 from evgrid import fusion, mass  # noqa: E402
-from evgrid.bench import timings_ms  # noqa: E402
+from evgrid_sim.bench import timings_ms  # noqa: E402
 
 timeit = functools.partial(timings_ms, repeat=30)
 from evgrid.geometry import SE2, GridSpec  # noqa: E402
@@ -76,7 +76,7 @@ def main() -> None:
         )
 
     from evgrid.ism import ray_ilm
-    from evgrid.ism.synthetic import street_lidar_sweep
+    from evgrid_sim.synthetic import street_lidar_sweep
 
     ilm = ray_ilm(street_lidar_sweep())  # a real ray ILM grid: a 15 m disc in a 40 m square
     for deg in (0, 45):

@@ -79,7 +79,7 @@ def main() -> None:
     ap.add_argument("--extrapolate-km2", type=float, default=0.2)
     args = ap.parse_args()
 
-    from evgrid.data import SimConfig, simulate_scene
+    from evgrid_sim import SimConfig, simulate_scene
 
     frames = list(simulate_scene(args.seed, SimConfig(duration_s=args.duration)))
     xy = [f.ego_pose.translation[:2] for f in frames]

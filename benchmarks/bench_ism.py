@@ -8,7 +8,7 @@ compiles or loads the numba kernels). Targets (issue 3), printed, not asserted:
 * ray IRM of 5 radars x 10 sweeps x 100 detections: <= 15 ms;
 * OctoMap (0.1 m, 15 m max range) inserting the same lidar sweep: expected >= 100x slower.
 
-Data: the synthetic street of :mod:`evgrid.ism.synthetic` (facades, parked cars, a truck,
+Data: the synthetic street of :mod:`evgrid_sim.synthetic` (facades, parked cars, a truck,
 poles; lidar shaped like the nuScenes LIDAR_TOP; the five nuScenes radars on a vehicle
 driving at 8 m/s), plus an "open road" radar case in which every detection lies beyond the
 grid, so that every cone runs to the grid's edge (the IRM's worst case).
@@ -32,7 +32,7 @@ import numpy as np  # noqa: E402
 from evgrid.data.frame import RadarSweep  # noqa: E402
 from evgrid.geometry import GridSpec  # noqa: E402
 from evgrid.ism import ray_ilm, ray_irm  # noqa: E402
-from evgrid.ism.synthetic import street_lidar_sweep, street_radar_sweeps  # noqa: E402
+from evgrid_sim.synthetic import street_lidar_sweep, street_radar_sweeps  # noqa: E402
 
 
 def timed(fn: Callable[[], object], repeats: int) -> tuple[float, float]:

@@ -26,7 +26,7 @@ import torch
 
 from evgrid.ism.deep import DeepIrm, evidence_to_masses, radar_image
 from evgrid.ism.runtime import OrtRuntime, evnet_trunk, make_runtime, ort_available, trunk_onnx
-from evgrid.ism.synthetic import street_radar_sweeps
+from evgrid_sim.synthetic import street_radar_sweeps
 
 
 def _reduced(model, pooled: np.ndarray) -> dict:

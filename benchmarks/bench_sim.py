@@ -16,7 +16,7 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 from evgrid.data.frame import RADAR_CHANNELS  # noqa: E402
-from evgrid.data.sim import RADAR_CLUTTER, RADAR_GHOST, SimConfig, simulate_scene  # noqa: E402
+from evgrid_sim import RADAR_CLUTTER, RADAR_GHOST, SimConfig, simulate_scene  # noqa: E402
 
 
 def _occupancy_stats(scene, frame) -> tuple[float, float, float]:

@@ -18,9 +18,9 @@ os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from evgrid.data.radar_filter import RadarFilter  # noqa: E402
-from evgrid.data.sim import RadarConfig, SimConfig, WorldConfig, simulate_scene  # noqa: E402
-from evgrid.data.sim.radar import RADAR_CLUTTER, RADAR_GHOST, RADAR_REAL  # noqa: E402
+from evgrid.preprocess import RadarFilter  # noqa: E402
+from evgrid_sim import RadarConfig, SimConfig, WorldConfig, simulate_scene  # noqa: E402
+from evgrid_sim.radar import RADAR_CLUTTER, RADAR_GHOST, RADAR_REAL  # noqa: E402
 
 _NUSC = RadarFilter("nuscenes")
 _SRC_MINI = (

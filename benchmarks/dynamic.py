@@ -34,12 +34,12 @@ from scipy.ndimage import distance_transform_edt, maximum_filter
 
 from evgrid.classes import FREE, OCCUPIED
 from evgrid.config import MapperConfig
-from evgrid.data import SimConfig, simulate_scene
 from evgrid.evaluate import detection_scores, dynamic_confusion, tile_confusions_vs_truth
 from evgrid.fusion import DynamicParams, MapSet
 from evgrid.grid import EvidentialMap, Warper
 from evgrid.mapper import MapUpdate, OccupancyMapper
 from evgrid.observers import MoverTrail, TruthTracker, truth_masks
+from evgrid_sim import SimConfig, simulate_scene
 
 D0 = DynamicParams()
 #: Variants of the default: (name, DynamicParams, support) with support the side of the

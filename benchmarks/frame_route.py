@@ -21,10 +21,10 @@ import evgrid
 
 
 def main() -> None:
-    from evgrid.data import SimConfig, simulate_scene
     from evgrid.data.bag_writer import write_bag
     from evgrid.mapper import OccupancyMapper
     from evgrid.sources import BagSource
+    from evgrid_sim import SimConfig, simulate_scene
 
     pkg = Path(evgrid.__file__).parent
     with tempfile.TemporaryDirectory() as tmp:

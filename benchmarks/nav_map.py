@@ -28,13 +28,13 @@ import numpy as np
 from evgrid import mass
 from evgrid.classes import FREE, OCCUPIED
 from evgrid.config import MapperConfig
-from evgrid.data import SimConfig, simulate_scene
 from evgrid.evaluate import iou_from_confusion, tile_confusions_vs_truth
 from evgrid.fusion import MapSet
 from evgrid.grid import EvidentialMap, Warper
 from evgrid.mapper import OccupancyMapper
 from evgrid.nav import NavParams
 from evgrid.observers import TruthTracker
+from evgrid_sim import SimConfig, simulate_scene
 
 MAPS = ("ray_ilm", "fused", "nav")
 PARTS = ("all", "static", "moving")

@@ -29,12 +29,12 @@ import numpy as np
 from evgrid.classes import OCCUPIED
 from evgrid.config import MapperConfig
 from evgrid.data.mounts import NUSCENES_CAR, OTHER_VEHICLES, Vehicle
-from evgrid.data.sim import SimConfig, simulate_scene
-from evgrid.data.sim.config import LidarConfig, SimRadarRig
-from evgrid.data.sim.lidar import EGO_HIT, LidarModel
 from evgrid.evaluate import classify, free_fraction_near_path
-from evgrid.ism.self_returns import SelfReturnFilter, SelfReturnParams
 from evgrid.mapper import OccupancyMapper
+from evgrid.preprocess import SelfReturnFilter, SelfReturnParams
+from evgrid_sim import SimConfig, simulate_scene
+from evgrid_sim.config import LidarConfig, SimRadarRig
+from evgrid_sim.lidar import EGO_HIT, LidarModel
 
 RIGS = {
     "nuscenes (20 Hz lidar, 5 x 13 Hz radar)": (20.0, SimRadarRig()),

@@ -15,7 +15,6 @@ pytest.importorskip("mcap")
 pytest.importorskip("yaml")
 
 from evgrid.config import MapperConfig  # noqa: E402
-from evgrid.data import SimConfig, simulate_scene  # noqa: E402
 from evgrid.data.bag import BagError, RecordingRig, RigError, TransformBuffer, load_bag, load_rig  # noqa: E402
 from evgrid.data.bag_writer import write_bag, write_rig  # noqa: E402
 from evgrid.data.frame import RADAR_COLUMNS  # noqa: E402
@@ -31,6 +30,7 @@ from evgrid.ros import (  # noqa: E402
     transform_to_se3,
 )
 from evgrid.sources import BagSource, source_from_dict, source_to_dict  # noqa: E402
+from evgrid_sim import SimConfig, simulate_scene  # noqa: E402
 
 
 @pytest.fixture(scope="module")

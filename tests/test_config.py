@@ -21,11 +21,10 @@ from evgrid.config import (
     resolve_config,
     to_dict,
 )
-from evgrid.data.radar_filter import RadarFilter
-from evgrid.data.radar_variants import TRAINING_RANGES, RadarRanges
-from evgrid.data.sim import SimConfig
 from evgrid.geometry import GridSpec
-from evgrid.ism.self_returns import BodyBox
+from evgrid.preprocess import BodyBox, RadarFilter
+from evgrid_sim import SimConfig
+from evgrid_sim.radar_variants import TRAINING_RANGES, RadarRanges
 
 runner = CliRunner()
 
@@ -125,9 +124,9 @@ def test_config_show_reads_every_kind_of_config_file(tmp_path):
     import subprocess
     import sys
 
-    from evgrid.bench import BenchOptions
     from evgrid.config import document
-    from evgrid.sim_writer import SimulateConfig, SimulateOptions
+    from evgrid_sim.bench import BenchOptions
+    from evgrid_sim.writer import SimulateConfig, SimulateOptions
 
     files = {
         "sim.json": document(SimulateConfig(SimulateOptions(seed=7))),

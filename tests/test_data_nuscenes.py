@@ -20,7 +20,7 @@ from evgrid.data.nuscenes_format import (
     write_nuscenes,
     write_radar_pcd,
 )
-from evgrid.data.sim import EgoConfig, SimConfig, WorldConfig, simulate_scene
+from evgrid_sim import EgoConfig, SimConfig, WorldConfig, simulate_scene
 
 pytest.importorskip("nuscenes")
 from nuscenes.nuscenes import NuScenes  # noqa: E402

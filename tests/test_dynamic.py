@@ -176,9 +176,9 @@ def test_dynamic_confusion_and_scores_hand_counted():
 
 
 def test_scene_scores_score_the_dynamic_layer_against_moving_objects():
-    from evgrid.data import SimConfig, simulate_scene
     from evgrid.mapper import OccupancyMapper
     from evgrid.observers import SceneScores, TruthTracker
+    from evgrid_sim import SimConfig, simulate_scene
 
     cfg = MapperConfig(maps=("ray_ilm", "ray_irm"))
     truth = TruthTracker(cfg.grid, cfg.tile_cells)
@@ -196,7 +196,7 @@ def test_scene_scores_score_the_dynamic_layer_against_moving_objects():
 
 
 def test_bench_times_the_score_on_and_off():
-    from evgrid.bench import _dynamic_cost
+    from evgrid_sim.bench import _dynamic_cost
 
     rng = np.random.default_rng(0)
     grid = GridSpec(64, 8.0)
@@ -461,8 +461,8 @@ def test_doppler_cue_counts_for_the_next_updates_gate():
 
 
 def test_doppler_cue_finds_the_simulators_movers():
-    from evgrid.data import SimConfig, simulate_scene
     from evgrid.mapper import OccupancyMapper
+    from evgrid_sim import SimConfig, simulate_scene
 
     cfg = MapperConfig(maps=("ray_ilm",), frame="first_pose")
     mapper = OccupancyMapper(cfg)
@@ -624,9 +624,9 @@ def test_summary_and_table_carry_the_moving_objects():
 
 
 def test_scene_scores_report_the_area_movers_leave_behind():
-    from evgrid.data import SimConfig, simulate_scene
     from evgrid.mapper import OccupancyMapper
     from evgrid.observers import SceneScores, TruthTracker
+    from evgrid_sim import SimConfig, simulate_scene
 
     cfg = MapperConfig(maps=("ray_ilm",))
     truth = TruthTracker(cfg.grid, cfg.tile_cells)

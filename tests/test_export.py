@@ -10,7 +10,6 @@ import pytest
 
 import evgrid
 from evgrid.config import MapperConfig
-from evgrid.data import SimConfig, simulate_scene
 from evgrid.export import FORMATS, export_map, make_observer
 from evgrid.export.mcap import DYNAMIC_STEP, LAYERS, McapParams
 from evgrid.export.nav2 import (
@@ -26,6 +25,7 @@ from evgrid.export.nav2 import (
 from evgrid.geometry import SE2, GridSpec
 from evgrid.grid import EvidentialMap
 from evgrid.mapper import OccupancyMapper
+from evgrid_sim import SimConfig, simulate_scene
 
 O, F, U = OCCUPIED, FREE, UNKNOWN  # noqa: E741 (reads as the map it checks)
 

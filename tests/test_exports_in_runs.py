@@ -14,11 +14,11 @@ from evgrid.config import (
     RunConfig,
     config_from_args,
 )
-from evgrid.data import SimConfig, simulate_scene
 from evgrid.export.mcap import McapParams
 from evgrid.export.nav2 import Nav2Params
 from evgrid.export.rerun import RerunParams
 from evgrid.runs import map_scene
+from evgrid_sim import SimConfig, simulate_scene
 
 
 def test_a_run_writes_the_exports_it_is_asked_for(tmp_path):

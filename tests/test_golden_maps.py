@@ -88,9 +88,9 @@ def mapper_maps(dynamic: bool = True) -> dict[str, np.ndarray]:
     recording's fixed frame, MapperConfig.frame), as ``{"NAME/TR_TC/masses" | covered: tile}``;
     ``dynamic``: with the dynamic score on (the default) or off."""
     from evgrid.config import MapperConfig
-    from evgrid.data import SimConfig, simulate_scene
     from evgrid.fusion import DynamicParams
     from evgrid.mapper import OccupancyMapper
+    from evgrid_sim import SimConfig, simulate_scene
 
     config = MapperConfig(
         maps=("ray_ilm", "ray_irm"), frame="first_pose", dynamic=DynamicParams(enabled=dynamic)

@@ -262,8 +262,8 @@ def test_version_1_map_files_still_load_without_a_frame(tmp_path):
 
 def test_saved_maps_of_a_run_carry_its_map_frame(tmp_path):
     from evgrid.config import MapperConfig, OutputConfig
-    from evgrid.data import SimConfig, simulate_scene
     from evgrid.runs import map_scene
+    from evgrid_sim import SimConfig, simulate_scene
 
     scene = simulate_scene(4, SimConfig(duration_s=0.5))
     first = next(iter(scene)).ego_pose

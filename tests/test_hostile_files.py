@@ -16,11 +16,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from evgrid.data import SimConfig, simulate_scene
-from evgrid.data.sim.store import SceneFileError, load_sim_scene, save_sim_scene
 from evgrid.fusion import MapSet
 from evgrid.geometry import SE2, GridSpec
 from evgrid.grid import MapFileError, load_map, save_map
+from evgrid_sim import SimConfig, simulate_scene
+from evgrid_sim.store import SceneFileError, load_sim_scene, save_sim_scene
 from tests.strategies import random_masses
 
 

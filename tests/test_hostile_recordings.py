@@ -14,10 +14,11 @@ import numpy as np
 import pytest
 
 from evgrid.config import PoseLimits
-from evgrid.data import LIDAR_COLUMNS, SimConfig, simulate_scene
+from evgrid.data import LIDAR_COLUMNS
 from evgrid.data.frame import LidarSweep
 from evgrid.geometry import SE2, SE3
 from evgrid.preprocess import PoseGate
+from evgrid_sim import SimConfig, simulate_scene
 
 
 @pytest.fixture(scope="module")

@@ -110,11 +110,11 @@ def test_from_a_parent_folder_the_hint_is_relative(monkeypatch):
 
 
 def _package_copy(base: Path, *parts: str):
-    """evgrid's ``__init__`` copied to ``base/parts/evgrid`` and loaded from there."""
+    """evgrid's ``package`` module copied to ``base/parts/evgrid`` and loaded from there."""
     pkg = base.joinpath(*parts, "evgrid")
     pkg.mkdir(parents=True)
-    shutil.copy(ROOT / "src" / "evgrid" / "__init__.py", pkg / "__init__.py")
-    spec = importlib.util.spec_from_file_location("evgrid_copy", pkg / "__init__.py")
+    shutil.copy(ROOT / "src" / "evgrid" / "package.py", pkg / "package.py")
+    spec = importlib.util.spec_from_file_location("evgrid_copy", pkg / "package.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod
@@ -152,7 +152,7 @@ def test_no_module_writes_its_own_hint():
     own = [
         f"{p.relative_to(ROOT)}:{i}"
         for p in sorted(src.rglob("*.py"))
-        if p.name != "__init__.py" or p.parent != src
+        if p.name != "package.py" or p.parent != src
         for i, line in enumerate(p.read_text().splitlines(), 1)
         if re.search(r"[\"'].*pip install", line) and "``" not in line
     ]

@@ -88,9 +88,9 @@ def test_deep_irm_refuses_a_checkpoint_for_another_grid(tmp_path):
 
 
 def test_shipped_checkpoint_loads_and_predicts_masses():
-    from evgrid.data import SimConfig, simulate_scene
     from evgrid.data.sweeps import RadarBuffer
     from evgrid.ism.deep import default_checkpoint
+    from evgrid_sim import SimConfig, simulate_scene
 
     path = default_checkpoint()
     assert path.is_file() and path.stat().st_size < 5 * 2**20

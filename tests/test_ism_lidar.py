@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 from evgrid.data.frame import LidarSweep
 from evgrid.geometry import SE3, GridSpec
 from evgrid.ism import IsmResult, RayIlmParams, ray_ilm, ray_ilm_with_stats
-from evgrid.ism.synthetic import cast_lidar
+from evgrid_sim.synthetic import cast_lidar
 
 GRID = GridSpec()  # 512 cells over 40 m
 RES = GRID.resolution

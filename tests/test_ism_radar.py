@@ -17,7 +17,7 @@ from evgrid.data import RadarBuffer
 from evgrid.data.frame import RADAR_COLUMNS, Frame, LidarSweep, RadarSweep
 from evgrid.geometry import SE3, GridSpec
 from evgrid.ism import IsmResult, RayIrmParams, ray_irm, ray_irm_with_stats, ray_irm_xy
-from evgrid.ism.synthetic import street_radar_sweeps
+from evgrid_sim.synthetic import street_radar_sweeps
 
 GRID = GridSpec()
 RES = GRID.resolution

@@ -9,7 +9,6 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from evgrid.data import SimConfig, simulate_scene
 from evgrid.ism.evnet import EvNetConfig
 from evgrid.learn.train import (
     CacheError,
@@ -20,6 +19,7 @@ from evgrid.learn.train import (
     scene_shard,
 )
 from evgrid.sources import SimSource
+from evgrid_sim import SimConfig, simulate_scene
 
 CFG = TrainConfig(
     epochs=1,

@@ -10,9 +10,9 @@ import pytest
 import torch
 
 from evgrid.classes import FREE, OCCUPIED, UNKNOWN
-from evgrid.data import SimConfig, simulate_scene
 from evgrid.ism.evnet import EvNet, EvNetConfig, load_checkpoint
 from evgrid.learn.train import RadarDataset, TrainConfig, build_cache, ilm_classes, train
+from evgrid_sim import SimConfig, simulate_scene
 
 CFG = TrainConfig(
     epochs=2,

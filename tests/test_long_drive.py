@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 
 from evgrid.config import MapperConfig, OutputConfig, PoseLimits
-from evgrid.data import SimConfig, simulate_scene
 from evgrid.geometry import SE3
 from evgrid.mapper import OccupancyMapper, PoseError
 from evgrid.observers import GifRecorder, SceneScores, TruthTracker
 from evgrid.runs import map_scene
+from evgrid_sim import SimConfig, simulate_scene
 
 ILM_ONLY = MapperConfig(maps=("ray_ilm",))
 

@@ -10,8 +10,6 @@ import torch
 
 from evgrid import mass
 from evgrid.config import MapperConfig, OutputConfig
-from evgrid.data import SimConfig, simulate_scene
-from evgrid.data.sim import WorldConfig
 from evgrid.fusion import MAP_NAMES
 from evgrid.geometry import GridSpec
 from evgrid.ism import RayIlmParams, RayIrmParams, ray_ilm, ray_irm
@@ -19,6 +17,7 @@ from evgrid.ism.deep import CHANNELS, DeepIrm
 from evgrid.ism.evnet import EvNet, EvNetConfig, save_checkpoint
 from evgrid.mapper import OccupancyMapper
 from evgrid.runs import choose_m_u_min, map_scene
+from evgrid_sim import SimConfig, WorldConfig, simulate_scene
 
 
 @pytest.fixture(scope="module")

@@ -12,9 +12,7 @@ import numpy as np
 import pytest
 
 from evgrid.config import MapperConfig
-from evgrid.data import SimConfig, simulate_scene
 from evgrid.data.mounts import LIDAR_MOUNT, NUSCENES_CAR, OTHER_VEHICLES
-from evgrid.data.sim.config import LidarConfig
 from evgrid.geometry import SE2, SE3
 from evgrid.mapper import OccupancyMapper
 from evgrid.preprocess import (
@@ -26,6 +24,8 @@ from evgrid.preprocess import (
     SelfReturnFilter,
     SelfReturnParams,
 )
+from evgrid_sim import SimConfig, simulate_scene
+from evgrid_sim.config import LidarConfig
 
 sys.path.insert(0, str(Path(__file__).parents[1] / "benchmarks"))
 from rigs_self_returns import occupied_near_path, vehicle_scene  # noqa: E402
@@ -38,37 +38,16 @@ def frames():
     return list(simulate_scene(5, SimConfig(duration_s=1.0)))
 
 
-def test_old_import_paths_are_the_same_objects():
-    from evgrid import preprocess
-    from evgrid.data import radar_filter
-    from evgrid.ism import self_returns
+def test_the_mapper_hands_on_the_pose_gate_of_preprocess():
     from evgrid.mapper import PoseError as MapperPoseError
     from evgrid.mapper import PoseGate as MapperPoseGate
     from evgrid.preprocess import PoseError
 
-    assert (
-        self_returns.SelfReturnFilter is SelfReturnFilter
-        and radar_filter.RadarFilter is RadarFilter
-    )
     assert MapperPoseGate is PoseGate and MapperPoseError is PoseError
-    # the old module is a thin re-export: a star import gives the self-return names, each the
-    # object evgrid.preprocess holds, and nothing else
-    names: dict = {}
-    exec("from evgrid.ism.self_returns import *", names)
-    names.pop("__builtins__")
-    assert sorted(names) == [
-        "BodyBox",
-        "NUSCENES_BODY",
-        "SELF_RETURN_MODES",
-        "SelfReturnFilter",
-        "SelfReturnParams",
-        "parse_body_box",
-    ]
-    assert all(v is getattr(preprocess, k) for k, v in names.items())
 
 
 def test_the_vehicle_is_described_once():
-    from evgrid.data.sim.lidar import EGO_BODY_BOXES
+    from evgrid_sim.lidar import EGO_BODY_BOXES
 
     assert NUSCENES_BODY.as_tuple() == NUSCENES_CAR.clearance
     assert np.array_equal(EGO_BODY_BOXES, NUSCENES_CAR.body_boxes)

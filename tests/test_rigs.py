@@ -14,22 +14,23 @@ from evgrid.config import MapperConfig, RunConfig, from_dict
 from evgrid.data import RadarSweep, radar_column
 from evgrid.data.frame import LidarSweep
 from evgrid.data.mounts import LIDAR_MOUNT, RADAR_MOUNTS
-from evgrid.data.radar_filter import RadarFilter, check_trained_filter
-from evgrid.data.sim import SimConfig, simulate_scene
-from evgrid.data.sim.config import LidarConfig, SimRadarRig, SweepFaults
-from evgrid.data.sim.lidar import EGO_HIT
 from evgrid.data.sweeps import GapCounter, RadarBuffer
 from evgrid.evaluate import free_fraction_near_path
 from evgrid.geometry import SE3
 from evgrid.ism import ray_ilm
-from evgrid.ism.self_returns import (
+from evgrid.mapper import OccupancyMapper
+from evgrid.preprocess import (
     NUSCENES_BODY,
     BodyBox,
+    RadarFilter,
     SelfReturnFilter,
     SelfReturnParams,
+    check_trained_filter,
     parse_body_box,
 )
-from evgrid.mapper import OccupancyMapper
+from evgrid_sim import SimConfig, simulate_scene
+from evgrid_sim.config import LidarConfig, SimRadarRig, SweepFaults
+from evgrid_sim.lidar import EGO_HIT
 from tests.helpers import driving_sweeps
 
 RIG = SimRadarRig(
@@ -335,7 +336,7 @@ def test_config_round_trip_with_rig_fields():
 def test_cli_options_reach_the_mapper_config():
     # the command line's options are overrides of the config (evgrid.config.config_from_args)
     from evgrid.config import config_from_args
-    from evgrid.sim_writer import SimulateOptions
+    from evgrid_sim.writer import SimulateOptions
 
     def mapper(*args):
         return config_from_args(RunConfig, list(args)).mapper
@@ -369,7 +370,7 @@ def test_cli_options_reach_the_mapper_config():
 
 
 def test_body_hits_hand_computed():
-    from evgrid.data.sim.lidar import body_hits
+    from evgrid_sim.lidar import body_hits
 
     box = np.array([[0.0, -1.0, 0.0, 2.0, 1.0, 1.0]])
     dirs = np.array(

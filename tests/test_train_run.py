@@ -127,8 +127,8 @@ def test_a_recording_is_a_training_source(tmp_path):
     pytest.importorskip("rosbags")
     pytest.importorskip("mcap")
     pytest.importorskip("yaml")
-    from evgrid.data import SimConfig, simulate_scene
     from evgrid.data.bag_writer import write_bag
+    from evgrid_sim import SimConfig, simulate_scene
 
     bags = {}
     for seed, name in ((3, "drive"), (4, "check")):

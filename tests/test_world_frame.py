@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 
 from evgrid.config import ConfigError, MapperConfig, OutputConfig, RunConfig
-from evgrid.data import SimConfig, simulate_scene
 from evgrid.geometry import SE2, SE3
 from evgrid.grid import load_map, save_map, warp_window, window_affine
 from evgrid.mapper import OccupancyMapper
 from evgrid.runs import map_scene
 from evgrid.sources import BagSource, NuScenesSource, SimSource, fixed_frame_of
+from evgrid_sim import SimConfig, simulate_scene
 
 MAPS = ("ray_ilm", "ray_irm")
 #: 1e7 m along x and -1e7 m along y: a whole number of 0.078125 m cells (1.28e8), so the maps

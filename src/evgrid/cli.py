@@ -192,7 +192,7 @@ def simulate(
     """
     from evgrid.config import options_to_overrides
     from evgrid.console import bar
-    from evgrid.sim_writer import SimulateOptions, check_out, simulate_options, write_simulated
+    from evgrid_sim.writer import SimulateOptions, check_out, simulate_options, write_simulated
 
     _, values = options_to_overrides(ctx.args, {}, SimulateOptions, SimulateOptions)
     opts, out = simulate_options(values, config), check_out(out)
@@ -342,8 +342,8 @@ def bench(
 
     from click.core import ParameterSource
 
-    from evgrid.bench import bench_options, run_bench, write_bench_config
     from evgrid.io import write_json
+    from evgrid_sim.bench import bench_options, run_bench, write_bench_config
 
     given = {
         "duration": seconds, "checkpoint": str(checkpoint) if checkpoint else None,

@@ -23,7 +23,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from evgrid.data.radar_filter import RadarFilter
 from evgrid.export.mcap import McapParams
 from evgrid.export.nav2 import Nav2Params
 from evgrid.export.rerun import RerunParams
@@ -33,8 +32,8 @@ from evgrid.ism.deep import RadarImageParams
 from evgrid.ism.lidar import RayIlmParams
 from evgrid.ism.radar import RayIrmParams
 from evgrid.ism.runtime import RUNTIMES
-from evgrid.ism.self_returns import SelfReturnParams
 from evgrid.nav import NavParams
+from evgrid.preprocess import PoseLimits, RadarFilter, SelfReturnParams
 from evgrid.serial import ConfigError, from_dict, to_dict
 from evgrid.validation import check_choice, check_int, check_number
 
@@ -88,31 +87,6 @@ def available_cores() -> int:
         return len(os.sched_getaffinity(0))
     except (AttributeError, OSError):
         return os.cpu_count() or 1
-
-
-@dataclass(frozen=True)
-class PoseLimits:
-    """What a vehicle can do between two frames; a pose beyond it is an odometry glitch, not motion.
-
-    A frame whose ego pose moved faster than ``max_speed_mps`` or turned faster than
-    ``max_yaw_rate_dps`` since the last accepted frame (each plus a small slack for pose noise)
-    is skipped and reported; if no plausible pose comes back within ``max_glitch_s`` the run
-    stops with an error naming the time. Positions beyond ``max_position_m`` from the global
-    origin are errors (no map frame is that large).
-    """
-
-    max_speed_mps: float = 100.0
-    max_yaw_rate_dps: float = 360.0
-    slack_m: float = 1.0
-    slack_deg: float = 10.0
-    max_glitch_s: float = 2.0
-    max_position_m: float = 1e8
-
-    def __post_init__(self) -> None:
-        for name in ("max_speed_mps", "max_yaw_rate_dps", "max_glitch_s", "max_position_m"):
-            check_number(self, name, min=0.0, min_open=True)
-        for name in ("slack_m", "slack_deg"):
-            check_number(self, name, min=0.0)
 
 
 @dataclass(frozen=True)
@@ -276,9 +250,9 @@ FORMATS: dict[type, str] = {RunConfig: "evgrid-run", SweepConfig: "evgrid-sweep"
 
 def document(obj: Any) -> dict[str, Any]:
     """A config as the JSON a results folder keeps: format tag, version, evgrid version, fields."""
-    import evgrid
+    from evgrid.package import __version__
 
-    tag = {"format": FORMATS[type(obj)], "version": _FORMAT_VERSION, "evgrid": evgrid.__version__}
+    tag = {"format": FORMATS[type(obj)], "version": _FORMAT_VERSION, "evgrid": __version__}
     return {**tag, **to_dict(obj)}
 
 
@@ -352,8 +326,8 @@ def _read_json(path: Path) -> Any:
 #: The kinds of config file that other modules own, imported when a file names them.
 _KIND_OWNERS = {
     "evgrid-train": "evgrid.train_run",
-    "evgrid-simulate": "evgrid.sim_writer",
-    "evgrid-bench": "evgrid.bench",
+    "evgrid-simulate": "evgrid_sim.writer",
+    "evgrid-bench": "evgrid_sim.bench",
 }
 
 
@@ -659,7 +633,7 @@ def config_from_args(
 COMMAND_OPTIONS: dict[str, tuple[str | None, str]] = {
     "map": ("evgrid.config:MAP_OPTIONS", "evgrid.sources:DataOptions"),
     "train": ("evgrid.train_run:TRAIN_OPTIONS", "evgrid.train_run:TrainData"),
-    "simulate": (None, "evgrid.sim_writer:SimulateOptions"),
+    "simulate": (None, "evgrid_sim.writer:SimulateOptions"),
     "sweep-m-u-min": ("evgrid.config:SWEEP_OPTIONS", "evgrid.sources:DataOptions"),
 }
 

@@ -33,7 +33,7 @@ import tempfile
 from collections.abc import Callable, Iterator
 from typing import Any
 
-from evgrid.engine import _DIED, Outcome, _one_line
+from evgrid.engine_local import _DIED, Outcome, _one_line
 
 __all__ = ["RayEngineError", "fan_out_ray", "ray_session", "CONNECT_TIMEOUT_S"]
 
@@ -41,7 +41,7 @@ log = logging.getLogger(__name__)
 
 
 def _needs_ray() -> str:
-    from evgrid import install_hint
+    from evgrid.package import install_hint
 
     return f"the ray engine needs the 'ray' extra: {install_hint('ray')}"
 

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from evgrid.geometry import SE2, GridSpec
+from evgrid.geometry import MAX_POSE_M, SE2, GridSpec
 from evgrid.grid import EvidentialMap, MapWindow, Warper, warp_window, window_affine
 from evgrid.kernels import (
     BLOCK,
@@ -59,7 +59,6 @@ __all__ = [
     "MAP_NAMES",
     "NAV_MAP",
     "ISM_NAMES",
-    "MAX_POSE_M",
     "FusionParams",
     "DynamicParams",
     "UpdateRule",
@@ -87,9 +86,6 @@ MAP_NAMES: tuple[str, ...] = (
 NAV_MAP = "nav"
 #: The three inverse sensor models that feed them.
 ISM_NAMES: tuple[str, ...] = ("ray_ilm", "ray_irm", "deep_irm")
-#: Poses farther than this (m) from the map frame's origin are refused: real fixed frames such
-#: as UTM reach 1e7 m, and beyond 1e8 m float64 positions lose the grid's resolution.
-MAX_POSE_M = 1e8
 
 # Default lower limit on the deep ISM's unknown mass; the paper gives no value
 # (docs/decisions.md#default-lower-limit-on-unknown-mass).

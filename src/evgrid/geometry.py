@@ -34,6 +34,10 @@ import numpy as np
 
 from evgrid.validation import check_int, check_number
 
+#: Poses farther than this (m) from the map frame's origin are refused: real fixed frames such
+#: as UTM reach 1e7 m, and beyond 1e8 m float64 positions lose the grid's resolution.
+MAX_POSE_M = 1e8
+
 __all__ = ["GridSpec", "SE2", "SE3", "quaternion_to_matrix", "matrix_to_quaternion"]
 
 

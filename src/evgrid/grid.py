@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from evgrid.geometry import SE2, SE3, GridSpec
+from evgrid.geometry import MAX_POSE_M, SE2, SE3, GridSpec
 from evgrid.io import atomic_write
 from evgrid.kernels import COARSE, coarse_blocks, count_invalid, load_padded, warp_rows
 from evgrid.mass import vacuous
@@ -486,12 +486,10 @@ _ARRAYS = ("header", "keys", "tiles", "covered")
 def _check_extent(where: str, grid: GridSpec, ts: int, keys, covered_any) -> str | None:
     """Why tile ``keys`` cannot belong to a map of ``grid`` (None if they can).
 
-    Every tile must lie within :data:`evgrid.fusion.MAX_POSE_M` (plus a local grid) of the
+    Every tile must lie within :data:`evgrid.geometry.MAX_POSE_M` (plus a local grid) of the
     origin, and the tiles holding covered cells must span at least one local grid
     (``n_cells`` a side): each update covers a whole local grid.
     """
-    from evgrid.fusion import MAX_POSE_M
-
     if len(keys) == 0:
         return None
     limit = (MAX_POSE_M + grid.length_m) / grid.resolution / ts + 1

@@ -206,7 +206,7 @@ class OccupancyMapper:
 
         ``config.frame == "world"``: the map frame is the recording's fixed frame, so the pose
         is the ego pose's planar part (x, y, yaw about z), and maps, files and exports need no
-        transform; poses up to :data:`evgrid.fusion.MAX_POSE_M` from its origin keep the
+        transform; poses up to :data:`evgrid.geometry.MAX_POSE_M` from its origin keep the
         warp's precision in float64 (docs/conventions.md#map-frame). ``"first_pose"``: the
         first ego pose's frame, as in the paper's figures. ``first_pose`` keeps the first
         ego pose in the fixed frame either way.

@@ -48,18 +48,15 @@ import logging
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numba
 import numpy as np
 
 from evgrid.data.frame import Frame, LidarSweep, RadarSweep, radar_column
 from evgrid.data.mounts import NUSCENES_CAR
-from evgrid.geometry import SE3
+from evgrid.geometry import MAX_POSE_M, SE3
 from evgrid.validation import check_choice, check_number
-
-if TYPE_CHECKING:
-    from evgrid.config import PoseLimits
 
 __all__ = [
     "Preprocessor",
@@ -632,14 +629,37 @@ def _where(frame: Frame) -> str:
     return f"scene {frame.scene!r} frame {frame.index} (t = {frame.timestamp} us)"
 
 
+@dataclass(frozen=True)
+class PoseLimits:
+    """What a vehicle can do between two frames; a pose beyond it is an odometry glitch, not motion.
+
+    A frame whose ego pose moved faster than ``max_speed_mps`` or turned faster than
+    ``max_yaw_rate_dps`` since the last accepted frame (each plus a small slack for pose noise)
+    is skipped and reported; if no plausible pose comes back within ``max_glitch_s`` the run
+    stops with an error naming the time. Positions beyond ``max_position_m`` from the global
+    origin are errors (no map frame is that large).
+    """
+
+    max_speed_mps: float = 100.0
+    max_yaw_rate_dps: float = 360.0
+    slack_m: float = 1.0
+    slack_deg: float = 10.0
+    max_glitch_s: float = 2.0
+    max_position_m: float = MAX_POSE_M
+
+    def __post_init__(self) -> None:
+        for name in ("max_speed_mps", "max_yaw_rate_dps", "max_glitch_s", "max_position_m"):
+            check_number(self, name, min=0.0, min_open=True)
+        for name in ("slack_m", "slack_deg"):
+            check_number(self, name, min=0.0)
+
+
 class PoseGate:
     """Odometry sanity: frames whose ego pose jumped or turned further than a vehicle can since
     the last accepted frame are skipped, counted, logged."""
 
     def __init__(self, limits: PoseLimits | None = None):
         if limits is None:
-            from evgrid.config import PoseLimits
-
             limits = PoseLimits()
         self.limits = limits
         self._last: tuple[int, float, float, float] | None = None  # t_us, x, y, yaw last accepted

@@ -66,7 +66,7 @@ def require(module: str, extra: str = "ros") -> Any:
     """Import an optional dependency, or raise ImportError saying how to install it."""
     import importlib
 
-    from evgrid import install_hint
+    from evgrid.package import install_hint
 
     try:
         return importlib.import_module(module)

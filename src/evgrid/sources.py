@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Protocol
 
 from evgrid.data.frame import Scene
-from evgrid.data.radar_variants import RadarRanges, RadarVariant
+from evgrid_sim.radar_variants import RadarRanges, RadarVariant
 
 __all__ = [
     "SceneSource",
@@ -100,19 +100,19 @@ class SimSource:
 
     def config(self, seed: int):
         """The simulator's configuration of scene ``seed``."""
-        from evgrid.data.sim import SimConfig
+        from evgrid_sim import SimConfig
 
         config = SimConfig(duration_s=self.duration_s)
         radar = self.radar_ranges.draw(seed) if self.radar_ranges is not None else self.radar
         return radar.apply(config) if radar is not None else config
 
     def names(self) -> list[str]:
-        from evgrid.data.sim.scene import scene_name
+        from evgrid_sim.scene import scene_name
 
         return [scene_name(s) for s in self.seeds]
 
     def load(self, name: str) -> Scene:
-        from evgrid.data.sim import simulate_scene
+        from evgrid_sim import simulate_scene
 
         by_name = dict(zip(self.names(), self.seeds))
         if name not in by_name:
@@ -171,7 +171,7 @@ class SimFilesSource:
         )
 
     def load(self, name: str) -> Scene:
-        from evgrid.data.sim.store import load_sim_scene
+        from evgrid_sim.store import load_sim_scene
 
         for e in self._index():
             if e["name"] == name:
@@ -325,7 +325,7 @@ def _kinds() -> dict[str, type]:
 def source_to_dict(source: SceneSource) -> dict | None:
     """A source as plain JSON (``{"kind": ..., fields}``) for a run's config.json; None for
     sources of other kinds."""
-    from evgrid.config import to_dict
+    from evgrid.serial import to_dict
 
     for kind, cls in _kinds().items():
         if type(source) is cls:
@@ -335,7 +335,7 @@ def source_to_dict(source: SceneSource) -> dict | None:
 
 def source_from_dict(d: dict) -> SceneSource:
     """Inverse of :func:`source_to_dict`; raises ConfigError naming the bad field."""
-    from evgrid.config import ConfigError, from_dict
+    from evgrid.serial import ConfigError, from_dict
 
     kinds = _kinds()
     if not isinstance(d, dict) or d.get("kind") not in kinds:

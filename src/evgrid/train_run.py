@@ -99,8 +99,8 @@ class TrainData:
 
     def overrides(self) -> list[tuple[str, Any]]:
         """The config fields these options decide: both sources, the seed, the radar ranges."""
-        from evgrid.data.radar_variants import TRAINING_RANGES
         from evgrid.sources import BagSource, NuScenesSource, SimSource, source_to_dict
+        from evgrid_sim.radar_variants import TRAINING_RANGES
 
         ranges = None
         if self.bag or self.val_bag:
@@ -370,7 +370,7 @@ def train_config_from_args(
 
 
 def _transfer_one(args: tuple) -> dict:
-    from evgrid.learn.transfer import measure_transfer
+    from evgrid_sim.transfer import measure_transfer
 
     ckpt, name, source, cache = args
     return measure_transfer(ckpt, {name: source}, cache)[name]
@@ -392,7 +392,7 @@ def run_transfer(
     from evgrid.engine import fan_out
     from evgrid.io import atomic_write_text, write_json
     from evgrid.ism.deep import default_checkpoint
-    from evgrid.learn.transfer import transfer_markdown, transfer_sources
+    from evgrid_sim.transfer import transfer_markdown, transfer_sources
 
     out = Path(out)
     sources = transfer_sources(scenes, seed, duration_s)

@@ -1,8 +1,8 @@
-"""Sensor data: the frame contract, the built-in simulator and the nuScenes loader.
+"""Sensor data: the frame contract, recordings and the nuScenes loader (the simulator is the
+package ``evgrid_sim``).
 
-The frame contract (:mod:`evgrid.data.frame`) is imported eagerly; the simulator (numba) and
-the nuScenes modules load on first use of one of their names, so ``import evgrid.data`` stays
-light.
+The frame contract (:mod:`evgrid.data.frame`) is imported eagerly; the nuScenes modules load
+on first use of one of their names, so ``import evgrid.data`` stays light.
 """
 
 from __future__ import annotations
@@ -24,19 +24,6 @@ from evgrid.data.frame import (
 from evgrid.data.sweeps import RadarBuffer, last_sweeps
 
 _LAZY = {
-    "SimConfig": "evgrid.data.sim",
-    "LidarConfig": "evgrid.data.sim",
-    "RadarConfig": "evgrid.data.sim",
-    "EgoConfig": "evgrid.data.sim",
-    "WorldConfig": "evgrid.data.sim",
-    "SimScene": "evgrid.data.sim",
-    "simulate_scene": "evgrid.data.sim",
-    "RADAR_REAL": "evgrid.data.sim",
-    "RADAR_CLUTTER": "evgrid.data.sim",
-    "RADAR_GHOST": "evgrid.data.sim",
-    "save_sim_scene": "evgrid.data.sim.store",
-    "load_sim_scene": "evgrid.data.sim.store",
-    "StoredScene": "evgrid.data.sim.store",
     "write_nuscenes": "evgrid.data.nuscenes_format",
     "load_nuscenes": "evgrid.data.nuscenes",
     "nuscenes_splits": "evgrid.data.nuscenes",

@@ -4,7 +4,7 @@
 from the ground), its body as axis-aligned boxes (what the simulated lidar sees of it) and the
 clearance box that holds the whole body (what the self-return filter removes by default). The
 nuScenes car, :data:`NUSCENES_CAR`, is the one such description; the simulator's mounts and body
-(``evgrid.data.sim``), the synthetic test scans (:mod:`evgrid.ism.synthetic`) and the
+(``evgrid_sim``), the synthetic test scans (:mod:`evgrid_sim.synthetic`) and the
 self-return filter's prior (:data:`evgrid.preprocess.NUSCENES_BODY`) are derived from it.
 
 Translations are those of the nuScenes ``calibrated_sensor`` records; the rotations are

@@ -37,7 +37,6 @@ from typing import Any
 
 import numpy as np
 
-from evgrid import install_hint
 from evgrid.data.frame import LIDAR_CHANNEL, Frame, LidarSweep, RadarSweep
 from evgrid.data.nuscenes_format import (
     radar_pcd_to_columns,
@@ -46,6 +45,7 @@ from evgrid.data.nuscenes_format import (
 )
 from evgrid.data.sweeps import GapCounter, channel_order
 from evgrid.geometry import SE3
+from evgrid.package import install_hint
 
 __all__ = [
     "load_nuscenes",

@@ -20,7 +20,7 @@ from typing import Protocol
 
 import numpy as np
 
-from evgrid import install_hint
+from evgrid.package import install_hint
 
 __all__ = [
     "RUNTIMES",

@@ -50,16 +50,14 @@ from torch.utils.data import DataLoader, Dataset
 
 from evgrid.classes import FREE, OCCUPIED, UNKNOWN
 from evgrid.data.frame import Frame
-from evgrid.data.radar_filter import RadarFilter
-from evgrid.data.radar_variants import RadarRanges
 from evgrid.engine import ENGINES, fan_out
 from evgrid.evaluate import CLASSES
 from evgrid.geometry import GridSpec
 from evgrid.io import atomic_write, atomic_write_bytes, write_json
 from evgrid.ism.deep import CHANNELS, RadarImageParams, detections_to_image, radar_detections
 from evgrid.ism.evnet import EvNet, EvNetConfig, load_checkpoint, save_checkpoint
-from evgrid.ism.self_returns import SelfReturnParams
 from evgrid.learn.loss import evidential_loss
+from evgrid.preprocess import RadarFilter, SelfReturnParams
 from evgrid.validation import check_choice, check_int, check_number
 
 __all__ = [
@@ -108,9 +106,10 @@ class TrainConfig:
     radar_filter: RadarFilter = field(default_factory=RadarFilter)  # as in mapping
     #: the targets' ray ILM filter of the vehicle's own returns, as in mapping
     self_returns: SelfReturnParams = field(default_factory=SelfReturnParams)
-    #: Simulated data only: a radar drawn per scene from these ranges (None: the calibrated
-    #: radar).
-    radar_ranges: RadarRanges | None = None
+    #: Simulated data only: the ranges the simulated sources draw a radar per scene from, as
+    #: JSON (``evgrid_sim.radar_variants.RadarRanges``; None: the calibrated radar). Recorded
+    #: here for the cache key and the checkpoint; the source does the drawing.
+    radar_ranges: dict[str, Any] | None = None
     #: Checkpoint to fine-tune from (None: train from scratch); see :func:`fine_tune_config`.
     init: str | None = None
     #: What builds the sample cache: ``local`` (a process pool) or ``ray``
@@ -151,7 +150,7 @@ class TrainConfig:
                 "v": 3,
                 "radar_filter": self.radar_filter.to_dict(),
                 "self_returns": asdict(self.self_returns),
-                "radar_ranges": self.radar_ranges.to_dict() if self.radar_ranges else None,
+                "radar_ranges": self.radar_ranges,
             },
             sort_keys=True,
         )

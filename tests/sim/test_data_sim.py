@@ -1,4 +1,4 @@
-"""The driving simulator (evgrid.data.sim): determinism, the frame contract, sensor statistics,
+"""The driving simulator (evgrid_sim): determinism, the frame contract, sensor statistics,
 geometry against the true occupancy, radar physics on hand-made worlds, configuration."""
 
 from __future__ import annotations
@@ -12,7 +12,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from evgrid.data import RADAR_CHANNELS, RADAR_COLUMNS, Frame, radar_column
-from evgrid.data.sim import (
+from evgrid.preprocess import NUSCENES_BODY
+from evgrid_sim import (
     LIDAR_MOUNT,
     RADAR_CLUTTER,
     RADAR_GHOST,
@@ -25,13 +26,12 @@ from evgrid.data.sim import (
     WorldConfig,
     simulate_scene,
 )
-from evgrid.data.sim import materials as M
-from evgrid.data.sim.lidar import LidarModel
-from evgrid.data.sim.radar import RadarModel
-from evgrid.data.sim.raycast import pack_boxes
-from evgrid.data.sim.store import load_sim_scene, save_sim_scene
-from evgrid.data.sim.world import Movers, World, plan_drive
-from evgrid.ism.self_returns import NUSCENES_BODY
+from evgrid_sim import materials as M
+from evgrid_sim.lidar import LidarModel
+from evgrid_sim.radar import RadarModel
+from evgrid_sim.raycast import pack_boxes
+from evgrid_sim.store import load_sim_scene, save_sim_scene
+from evgrid_sim.world import Movers, World, plan_drive
 
 SHORT = 3.0  # seconds: 60 frames, 6 keyframes, about 39 sweeps a radar
 
@@ -536,7 +536,7 @@ def test_npz_scene_file_round_trip(tmp_path):
 def test_bounds_prefilter_never_hides_an_overlap(offset, yaw_a, yaw_b, half):
     """The world builder skips the exact footprint test for boxes whose axis-aligned bounds do not
     touch; that must never skip a pair that overlaps."""
-    from evgrid.data.sim.world import _aabbs, _overlap, _touch
+    from evgrid_sim.world import _aabbs, _overlap, _touch
 
     a = pack_boxes(
         np.zeros(1),

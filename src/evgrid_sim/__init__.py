@@ -1,15 +1,15 @@
 """The built-in nuScenes-like driving simulator (docs/decisions.md#simulated-data): seeded,
 deterministic, numba-fast.
 
->>> from evgrid.data.sim import simulate_scene, SimConfig
+>>> from evgrid_sim import simulate_scene, SimConfig
 >>> scene = simulate_scene(seed=0, config=SimConfig(duration_s=1.0))
 >>> frame = next(iter(scene))   # a Frame: lidar sweep, radar sweeps, ego pose, true occupancy
 """
 
 from evgrid.data.mounts import LIDAR_MOUNT, RADAR_MOUNTS, SENSOR_MOUNTS, SensorMount
-from evgrid.data.sim.config import EgoConfig, LidarConfig, RadarConfig, SimConfig, WorldConfig
-from evgrid.data.sim.radar import RADAR_CLUTTER, RADAR_GHOST, RADAR_LABEL_NAMES, RADAR_REAL
-from evgrid.data.sim.scene import (
+from evgrid_sim.config import EgoConfig, LidarConfig, RadarConfig, SimConfig, WorldConfig
+from evgrid_sim.radar import RADAR_CLUTTER, RADAR_GHOST, RADAR_LABEL_NAMES, RADAR_REAL
+from evgrid_sim.scene import (
     OCC_DYNAMIC,
     OCC_FREE,
     OCC_STATIC,
@@ -17,7 +17,7 @@ from evgrid.data.sim.scene import (
     scene_name,
     simulate_scene,
 )
-from evgrid.data.sim.world import World
+from evgrid_sim.world import World
 
 __all__ = [
     "EgoConfig",

@@ -24,10 +24,10 @@ import numba
 import numpy as np
 
 from evgrid.data.mounts import LIDAR_MOUNT, NUSCENES_CAR, SensorMount
-from evgrid.data.sim import materials as M
-from evgrid.data.sim.config import LidarConfig
-from evgrid.data.sim.raycast import HIT_NONE, lidar_cast
-from evgrid.data.sim.world import World
+from evgrid_sim import materials as M
+from evgrid_sim.config import LidarConfig
+from evgrid_sim.raycast import HIT_NONE, lidar_cast
+from evgrid_sim.world import World
 
 __all__ = ["LidarModel", "EGO_BODY_BOXES", "EGO_HIT"]
 

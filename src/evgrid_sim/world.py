@@ -14,10 +14,11 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from evgrid.data.sim import materials as M
-from evgrid.data.sim.config import SimConfig
-from evgrid.data.sim.raycast import GridIndex, pack_boxes
-from evgrid.data.sim.trajectory import (
+from evgrid.geometry import SE2
+from evgrid_sim import materials as M
+from evgrid_sim.config import SimConfig
+from evgrid_sim.raycast import GridIndex, pack_boxes
+from evgrid_sim.trajectory import (
     LANE_OFFSET_M,
     Route,
     StreetGrid,
@@ -28,7 +29,6 @@ from evgrid.data.sim.trajectory import (
     make_street_grid,
     plan_route,
 )
-from evgrid.geometry import SE2
 
 __all__ = [
     "World",

@@ -363,7 +363,7 @@ class SimRadarRig:
 
 @dataclass(frozen=True)
 class SimConfig:
-    """Everything :func:`~evgrid.data.sim.simulate_scene` needs besides the seed."""
+    """Everything :func:`~evgrid_sim.simulate_scene` needs besides the seed."""
 
     #: Scene length in seconds (nuScenes scenes last about 20 s).
     duration_s: float = 20.0

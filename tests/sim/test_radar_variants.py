@@ -9,15 +9,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from evgrid.data.frame import RADAR_CHANNELS
-from evgrid.data.radar_variants import (
+from evgrid.sources import SimSource, source_from_dict, source_to_dict
+from evgrid_sim.config import RadarConfig, SimConfig
+from evgrid_sim.radar_variants import (
     NOMINAL,
     OUT_OF_RANGE,
     TRAINING_RANGES,
     RadarRanges,
     RadarVariant,
 )
-from evgrid.data.sim.config import RadarConfig, SimConfig
-from evgrid.sources import SimSource, source_from_dict, source_to_dict
 
 
 def test_a_variant_changes_the_radar_by_hand_computed_amounts():
@@ -122,7 +122,7 @@ def test_same_seed_same_town_whatever_the_radar():
 
 def test_transfer_scores_each_radar_on_the_same_scenes(tmp_path):
     from evgrid.ism.deep import default_checkpoint
-    from evgrid.learn.transfer import (
+    from evgrid_sim.transfer import (
         CALIBRATED,
         measure_transfer,
         transfer_markdown,
@@ -171,7 +171,7 @@ def test_transfer_makes_samples_as_the_checkpoint_was_trained(tmp_path):
     from evgrid.ism.deep import default_checkpoint
     from evgrid.ism.evnet import load_checkpoint, save_checkpoint
     from evgrid.learn.train import TrainConfig
-    from evgrid.learn.transfer import CALIBRATED, measure_transfer, transfer_sources
+    from evgrid_sim.transfer import CALIBRATED, measure_transfer, transfer_sources
 
     ck = load_checkpoint(default_checkpoint())
     picked = {CALIBRATED: transfer_sources(1, 1000, 1.0)[CALIBRATED]}

@@ -59,7 +59,7 @@ class SimulateOptions:
     sweep_faults: float = 0.0
 
     def __post_init__(self) -> None:
-        from evgrid.data.sim.config import ENVIRONMENTS
+        from evgrid_sim.config import ENVIRONMENTS
 
         if self.format not in FORMATS:
             raise ValueError(f"--format must be one of {', '.join(FORMATS)}, got {self.format!r}")
@@ -74,8 +74,8 @@ class SimulateOptions:
 
     def sim_config(self):
         """The simulator's configuration these options describe."""
-        from evgrid.data.sim import SimConfig, WorldConfig
-        from evgrid.data.sim.config import LidarConfig, SimRadarRig, SweepFaults
+        from evgrid_sim import SimConfig, WorldConfig
+        from evgrid_sim.config import LidarConfig, SimRadarRig, SweepFaults
 
         rig = SimRadarRig()
         if self.radar_channels:
@@ -170,9 +170,9 @@ def check_out(out: str | Path) -> Path:
 
 
 def _write_npz(seeds, config, out: Path, overwrite: bool, tick) -> list[str]:
-    from evgrid.data.sim import simulate_scene
-    from evgrid.data.sim.store import save_sim_scene
     from evgrid.sources import sim_split
+    from evgrid_sim import simulate_scene
+    from evgrid_sim.store import save_sim_scene
 
     index_path = out / "index.json"
     index = json.loads(index_path.read_text())["scenes"] if index_path.is_file() else []
@@ -203,8 +203,8 @@ def _write_npz(seeds, config, out: Path, overwrite: bool, tick) -> list[str]:
 
 def _write_nuscenes(seeds, config, out: Path, version: str, overwrite: bool, tick) -> list[str]:
     from evgrid.data.nuscenes_format import write_nuscenes
-    from evgrid.data.sim import simulate_scene
     from evgrid.sources import sim_split
+    from evgrid_sim import simulate_scene
 
     splits: dict[str, list[str]] = {"train": [], "val": []}
     sims = [simulate_scene(s, config) for s in seeds]
@@ -227,7 +227,7 @@ def _write_nuscenes(seeds, config, out: Path, version: str, overwrite: bool, tic
 def _write_recordings(seeds, config, out: Path, fmt: str, overwrite: bool, tick) -> list[str]:
     """Simulated scenes as recordings with their rig files (what `evgrid map --bag --rig` reads)."""
     from evgrid.data.bag_writer import write_bag
-    from evgrid.data.sim import simulate_scene
+    from evgrid_sim import simulate_scene
 
     storage, suffix = _BAGS[fmt]
     names = []

@@ -20,7 +20,7 @@ from evgrid.data.frame import RADAR_CHANNELS
 from evgrid.validation import check_number
 
 if TYPE_CHECKING:
-    from evgrid.data.sim.config import SimConfig
+    from evgrid_sim.config import SimConfig
 
 __all__ = ["RadarVariant", "RadarRanges", "TRAINING_RANGES", "OUT_OF_RANGE", "NOMINAL"]
 
@@ -163,7 +163,7 @@ class RadarRanges:
             or _FRONT not in v.channels
         ):
             out.append("channels")
-        from evgrid.data.sim.config import RadarConfig
+        from evgrid_sim.config import RadarConfig
 
         if not self._in("rate_hz", RadarConfig().rate_hz if v.rate_hz is None else v.rate_hz):
             out.append("rate_hz")

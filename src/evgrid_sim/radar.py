@@ -40,10 +40,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from evgrid.data.mounts import SensorMount
-from evgrid.data.sim import materials as M
-from evgrid.data.sim.config import RadarConfig
-from evgrid.data.sim.raycast import radar_cast
-from evgrid.data.sim.world import World
+from evgrid_sim import materials as M
+from evgrid_sim.config import RadarConfig
+from evgrid_sim.raycast import radar_cast
+from evgrid_sim.world import World
 
 __all__ = ["RadarModel", "RADAR_REAL", "RADAR_CLUTTER", "RADAR_GHOST", "RADAR_LABEL_NAMES"]
 

@@ -236,8 +236,8 @@ def _deep_parts(deep, sweeps, ego_pose, now_us: int, repeat: int) -> dict[str, A
 def _rig(deep, seed: int, duration_s: float) -> dict[str, Any]:
     """Per-frame time of a 10 Hz lidar + 4 Hz radar rig, every frame a map update."""
     from evgrid import fusion
-    from evgrid.data import SimConfig, simulate_scene
-    from evgrid.data.sim.config import LidarConfig, RadarConfig
+    from evgrid_sim import SimConfig, simulate_scene
+    from evgrid_sim.config import LidarConfig, RadarConfig
 
     cfg = SimConfig(
         duration_s=duration_s,
@@ -262,8 +262,8 @@ def _rig(deep, seed: int, duration_s: float) -> dict[str, Any]:
 
 def _end_to_end(deep, seed: int, duration_s: float) -> dict[str, Any]:
     """Frames per second of mapping a simulated scene (simulation, maps, scores, figures, GIF)."""
-    from evgrid.data import SimConfig, simulate_scene
     from evgrid.runs import map_scene
+    from evgrid_sim import SimConfig, simulate_scene
 
     scene = simulate_scene(seed, SimConfig(duration_s=duration_s))
     with tempfile.TemporaryDirectory() as tmp:
@@ -366,10 +366,10 @@ def run_bench(
     import torch
 
     from evgrid import fusion, mass
-    from evgrid.data import SimConfig, simulate_scene
     from evgrid.geometry import SE2, GridSpec
     from evgrid.grid import Warper
     from evgrid.ism.deep import DeepIrm
+    from evgrid_sim import SimConfig, simulate_scene
 
     numba.set_num_threads(1)
     torch.set_num_threads(1)

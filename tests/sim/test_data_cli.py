@@ -9,8 +9,8 @@ import pytest
 from typer.testing import CliRunner
 
 from evgrid.cli import app
-from evgrid.data.sim import SimConfig, WorldConfig, simulate_scene
-from evgrid.data.sim.store import load_sim_scene
+from evgrid_sim import SimConfig, WorldConfig, simulate_scene
+from evgrid_sim.store import load_sim_scene
 
 runner = CliRunner()
 

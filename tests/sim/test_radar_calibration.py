@@ -10,8 +10,8 @@ import pytest
 
 from evgrid.data.frame import radar_column
 from evgrid.data.mounts import SensorMount
-from evgrid.data.radar_filter import RadarFilter
-from evgrid.data.sim import (
+from evgrid.preprocess import RadarFilter
+from evgrid_sim import (
     RADAR_CLUTTER,
     RADAR_GHOST,
     RADAR_REAL,
@@ -20,9 +20,9 @@ from evgrid.data.sim import (
     WorldConfig,
     simulate_scene,
 )
-from evgrid.data.sim import materials as M
-from evgrid.data.sim.radar import RadarModel
-from evgrid.data.sim.world import World
+from evgrid_sim import materials as M
+from evgrid_sim.radar import RadarModel
+from evgrid_sim.world import World
 
 #: A radar at the ego origin looking along +x (ego at the global origin), so sensor = global frame.
 _MOUNT = SensorMount("RADAR_FRONT", 0.0, 0.0, 0.5, 0.0)

@@ -15,8 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from evgrid.data.sim.config import EgoConfig
 from evgrid.geometry import SE2
+from evgrid_sim.config import EgoConfig
 
 __all__ = [
     "StreetGrid",

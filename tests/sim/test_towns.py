@@ -10,11 +10,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from evgrid.data.sim import SimConfig, WorldConfig
-from evgrid.data.sim import materials as M
-from evgrid.data.sim.raycast import pack_boxes
-from evgrid.data.sim.trajectory import Warp
-from evgrid.data.sim.world import _aabbs, _ego_boxes, _overlap, _touch, generate_world, plan_drive
+from evgrid_sim import SimConfig, WorldConfig
+from evgrid_sim import materials as M
+from evgrid_sim.raycast import pack_boxes
+from evgrid_sim.trajectory import Warp
+from evgrid_sim.world import _aabbs, _ego_boxes, _overlap, _touch, generate_world, plan_drive
 
 SEEDS = range(12)
 

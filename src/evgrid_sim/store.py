@@ -41,10 +41,10 @@ import numpy as np
 
 from evgrid.data import frame as contract
 from evgrid.data.frame import LIDAR_CHANNEL, RADAR_CHANNELS, Frame, LidarSweep, RadarSweep
-from evgrid.data.sim.materials import CLASS_NAMES
-from evgrid.data.sim.scene import SimScene
 from evgrid.geometry import SE3
 from evgrid.io import atomic_open
+from evgrid_sim.materials import CLASS_NAMES
+from evgrid_sim.scene import SimScene
 
 __all__ = ["save_sim_scene", "load_sim_scene", "StoredScene", "SceneFileError", "SIM_NPZ_FORMAT"]
 

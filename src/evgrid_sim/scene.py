@@ -14,13 +14,13 @@ import numpy as np
 
 from evgrid.data.frame import LIDAR_CHANNEL, RADAR_CHANNELS, Frame, LidarSweep, RadarSweep
 from evgrid.data.mounts import LIDAR_MOUNT, RADAR_MOUNTS
-from evgrid.data.sim.config import SimConfig
-from evgrid.data.sim.lidar import LidarModel
-from evgrid.data.sim.radar import RadarModel
-from evgrid.data.sim.raycast import pack_boxes, rasterize_boxes
-from evgrid.data.sim.trajectory import Trajectory
-from evgrid.data.sim.world import World, generate_world
 from evgrid.geometry import SE2, SE3
+from evgrid_sim.config import SimConfig
+from evgrid_sim.lidar import LidarModel
+from evgrid_sim.radar import RadarModel
+from evgrid_sim.raycast import pack_boxes, rasterize_boxes
+from evgrid_sim.trajectory import Trajectory
+from evgrid_sim.world import World, generate_world
 
 __all__ = ["SimScene", "simulate_scene", "scene_name", "OCC_FREE", "OCC_STATIC", "OCC_DYNAMIC"]
 

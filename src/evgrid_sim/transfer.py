@@ -2,7 +2,7 @@
 
 The same held-out simulated scenes (same towns, drives and lidar) are seen through radars
 inside the training ranges and through each radar of
-:data:`~evgrid.data.radar_variants.OUT_OF_RANGE`; on each, the deep IRM's single-frame cell
+:data:`~evgrid_sim.radar_variants.OUT_OF_RANGE`; on each, the deep IRM's single-frame cell
 classes are scored against the ray ILM (the training target), next to the ray IRM's.
 """
 
@@ -18,11 +18,11 @@ import torch
 from torch.utils.data import DataLoader
 
 from evgrid.config import from_dict
-from evgrid.data.radar_filter import RadarFilter
-from evgrid.data.radar_variants import NOMINAL, OUT_OF_RANGE, TRAINING_RANGES, RadarRanges
 from evgrid.ism.evnet import load_checkpoint
 from evgrid.learn.train import RadarDataset, TrainConfig, build_cache, evaluate_model
+from evgrid.preprocess import RadarFilter
 from evgrid.sources import SimSource
+from evgrid_sim.radar_variants import NOMINAL, OUT_OF_RANGE, TRAINING_RANGES, RadarRanges
 
 __all__ = ["IN_RANGE", "CALIBRATED", "transfer_sources", "measure_transfer", "transfer_markdown"]
 

@@ -1,0 +1,1 @@
+"""The simulator package evgrid_sim: its own tests."""
