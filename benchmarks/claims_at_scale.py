@@ -46,7 +46,8 @@ from evgrid.runs import convergence_table, map_scene, summarize  # noqa: E402
 from evgrid.sources import SimSource  # noqa: E402
 
 DEEP_MAPS = ("deep_acc", "deep_replace", "deep_disc")
-# The scenes the shipped checkpoint and the m_u_min choice saw (docs/decisions.md, README).
+# The scenes the shipped checkpoint and the m_u_min choice saw (docs/decisions.md,
+# docs/training.md).
 SWEEP_SEEDS = (4, 9, 14, 19)
 
 

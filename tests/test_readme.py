@@ -1,4 +1,4 @@
-"""Every Python block of the README runs as written."""
+"""Every Python block of the README and of the API tour (docs/api.md) runs as written."""
 
 from __future__ import annotations
 
@@ -9,11 +9,21 @@ from pathlib import Path
 
 import pytest
 
-README = Path(__file__).resolve().parents[1] / "README.md"
-BLOCKS = re.findall(r"```python\n(.*?)```", README.read_text(), re.S)
+ROOT = Path(__file__).resolve().parents[1]
+PAGES = {"readme": ROOT / "README.md", "api": ROOT / "docs" / "api.md"}
+BLOCKS = {
+    f"{page}-block{i}": code
+    for page, path in PAGES.items()
+    for i, code in enumerate(re.findall(r"```python\n(.*?)```", path.read_text(), re.S))
+}
 
 
-@pytest.mark.parametrize("code", BLOCKS, ids=[f"block{i}" for i in range(len(BLOCKS))])
+def test_every_page_has_python_blocks():
+    for page in PAGES:
+        assert any(k.startswith(f"{page}-") for k in BLOCKS), f"no python block in {PAGES[page]}"
+
+
+@pytest.mark.parametrize("code", list(BLOCKS.values()), ids=list(BLOCKS))
 def test_readme_python_block_runs(code, tmp_path):
     if code.startswith("# requires: nuScenes"):
         pytest.skip("needs the nuScenes dataset on disk")
