@@ -231,7 +231,9 @@ def test_the_maps_edges_are_vacuous_not_blocking():
 
 def _blocked(lidar, fused, r, occupied_min):
     """Brute force: the cells within r (square) of a lidar return or a fused obstacle."""
-    hit = (lidar[..., 1] > 0) | (fused[..., 1] > occupied_min)
+    # in float64 as the kernel compares: numpy 1.x would round the threshold to float32
+    # (0.9999999999999999 to 1.0) against a float32 map
+    hit = (lidar[..., 1] > 0) | (fused[..., 1].astype(np.float64) > occupied_min)
     h, w = hit.shape
     out = np.zeros_like(hit)
     for i, j in zip(*np.nonzero(hit)):
