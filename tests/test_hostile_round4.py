@@ -1,0 +1,202 @@
+"""Hostile input, round 4 (issue 39): files read whole that never end or nest too deep, sizes that
+would eat the machine's memory, locks of other hosts, sweeps of strings, a second tf parent, rig
+topics that are not names (docs/hostile-input.md). Each case says what a user saw before."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import socket
+
+import numpy as np
+import pytest
+
+from evgrid.config import ConfigError, load_config
+from evgrid.data.frame import LIDAR_COLUMNS, LidarSweep
+from evgrid.geometry import SE3
+from evgrid.io import READ_LIMITS, InputFileError, load_json_bounded, read_bounded
+from evgrid.outdir import LOCK_NAME, RunLockedError, break_lock, results_folder
+
+# --- files read whole ------------------------------------------------------------------------------
+
+
+def test_a_device_as_config_is_refused_after_the_limit_not_read_forever():
+    # before: /dev/zero read 3.35 GB in 10 s, then `evgrid: error: MemoryError`
+    with pytest.raises(ConfigError, match=r"^/dev/zero: more than 16 MiB, the most a config"):
+        load_config("/dev/zero")
+
+
+def test_a_huge_file_as_config_is_refused_by_its_size_unread(tmp_path):
+    big = tmp_path / "drive.mcap"
+    with open(big, "wb") as f:
+        f.truncate(5 * 2**30)  # sparse: 5 GiB reported, nothing on disk
+    with pytest.raises(ConfigError, match=r"drive\.mcap: more than 16 MiB.*it holds 5 GiB"):
+        load_config(big)
+
+
+def test_a_deep_json_config_names_the_file_and_depth(tmp_path):
+    # before: `maximum recursion depth exceeded while decoding a JSON array from a unicode string`
+    deep = tmp_path / "deep.json"
+    deep.write_text("[" * 200_000 + "]" * 200_000)
+    with pytest.raises(ConfigError, match=r"deep\.json: JSON nested 200000 levels deep"):
+        load_config(deep)
+
+
+def test_an_integer_of_5001_digits_names_the_file_and_position(tmp_path):
+    # before: Python's `Exceeds the limit (4300 digits) for integer string conversion ...`
+    p = tmp_path / "long.json"
+    p.write_text('{"mapper": {\n  "threads": ' + "7" * 5001 + "}}")
+    with pytest.raises(ConfigError, match=r"long\.json: an integer of 5001 digits at line 2 column 14"):
+        load_config(p)
+
+
+def test_the_bounded_reader_reads_up_to_its_limit_and_no_further(tmp_path):
+    p = tmp_path / "t.json"
+    p.write_text(json.dumps({"a": [1, "[[[["]}))
+    assert load_json_bounded(p, "config") == {"a": [1, "[[[["]}
+    assert read_bounded(p, "config", limit=p.stat().st_size) == p.read_bytes()
+    with pytest.raises(InputFileError, match=r"t\.json: more than"):
+        read_bounded(p, "config", limit=p.stat().st_size - 1)
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)  # a pipe reports size 0, as a device does
+    pid = os.fork()
+    if pid == 0:  # the writer: more than the limit, then it ends
+        with open(fifo, "wb") as f:
+            f.write(b"x" * 100)
+        os._exit(0)
+    try:
+        with pytest.raises(InputFileError, match="more than 64 B"):
+            read_bounded(fifo, "config", limit=64)
+    finally:
+        os.waitpid(pid, 0)
+    assert set(READ_LIMITS) == {"config", "rig", "nuScenes table"}
+
+
+def test_a_rig_file_that_is_huge_deep_or_holds_a_long_integer_names_the_file(tmp_path):
+    pytest.importorskip("yaml")
+    from evgrid.data.bag import RigError, load_rig
+
+    big = tmp_path / "big.yaml"
+    with open(big, "wb") as f:
+        f.truncate(READ_LIMITS["rig"] + 1)
+    with pytest.raises(RigError, match=r"big\.yaml: more than 16 MiB, the most a rig file"):
+        load_rig(big)
+    deep = tmp_path / "deep.yaml"
+    deep.write_text("[" * 20_000 + "]" * 20_000)
+    with pytest.raises(RigError, match=r"deep\.yaml: nested deeper than the YAML reader goes"):
+        load_rig(deep)
+    long = tmp_path / "long.yaml"
+    long.write_text("lidar: {topic: /lidar}\nsync_tolerance_s: " + "1" * 5001 + "\n")
+    with pytest.raises(RigError, match=r"long\.yaml: a value YAML cannot read: Exceeds the limit"):
+        load_rig(long)
+
+
+def test_a_nuscenes_table_that_is_a_device_or_too_large_is_refused_before_the_devkit(tmp_path):
+    from evgrid.data.nuscenes import NuScenesDataError, _check_table_sizes
+
+    (tmp_path / "scene.json").write_text("[]")
+    _check_table_sizes(tmp_path)
+    (tmp_path / "sample_data.json").symlink_to("/dev/zero")
+    with pytest.raises(NuScenesDataError, match=r"sample_data\.json: not a regular file"):
+        _check_table_sizes(tmp_path)
+    (tmp_path / "sample_data.json").unlink()
+    with open(tmp_path / "ego_pose.json", "wb") as f:
+        f.truncate(READ_LIMITS["nuScenes table"] + 1)
+    with pytest.raises(NuScenesDataError, match=r"ego_pose\.json: 4,294,967,297 bytes, more than the 4 GiB"):
+        _check_table_sizes(tmp_path)
+
+
+# --- locks -----------------------------------------------------------------------------------------
+
+
+def _foreign_lock(out, host="a-container-gone"):
+    out.mkdir(parents=True, exist_ok=True)
+    (out / LOCK_NAME).write_text(json.dumps({"pid": 1, "host": host, "started": 1.7e9}))
+
+
+def test_a_lock_of_another_host_says_it_may_be_stale_and_how_to_clear_it(tmp_path):
+    # before: `OUT is in use by another evgrid run (pid 1 on HOST, lock ...); wait for it or
+    # choose another --out`, also with --overwrite, and nothing said how to clear it
+    out = tmp_path / "run"
+    _foreign_lock(out)
+    for overwrite in (False, True):  # --overwrite alone does not break another host's lock
+        with pytest.raises(RunLockedError) as e:
+            with results_folder(out, overwrite=overwrite):
+                pass
+        msg = str(e.value)
+        assert "pid 1 on host 'a-container-gone'" in msg and "may be stale" in msg
+        assert f"evgrid unlock {out}" in msg and "--overwrite does not clear it" in msg
+    assert break_lock(out)["host"] == "a-container-gone"
+    with results_folder(out, overwrite=True):
+        assert json.loads((out / LOCK_NAME).read_text())["pid"] == os.getpid()
+    assert break_lock(out) is None  # released, nothing to clear
+
+
+def test_break_lock_refuses_the_lock_of_a_live_run_on_this_host(tmp_path):
+    out = tmp_path / "run"
+    out.mkdir()
+    holder = {"pid": os.getppid(), "host": socket.gethostname(), "started": 1.7e9}
+    (out / LOCK_NAME).write_text(json.dumps(holder))
+    with pytest.raises(RunLockedError, match="live evgrid run.*its lock is not stale"):
+        break_lock(out)
+    assert (out / LOCK_NAME).exists()
+
+
+def test_a_garbage_lock_says_what_it_holds(tmp_path):
+    # before: `OUT: could not take the lock OUT/.evgrid.lock`, no reason
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / LOCK_NAME).write_text("garbage")
+    with pytest.raises(RunLockedError) as e:
+        with results_folder(out):
+            pass
+    msg = str(e.value)
+    assert "holds 'garbage', not an evgrid lock" in msg and "s ago" in msg
+    assert f"evgrid unlock {out}" in msg
+    assert break_lock(out) is None and not (out / LOCK_NAME).exists()
+
+
+def test_an_old_garbage_lock_is_taken_over_with_the_reason(tmp_path, caplog):
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / LOCK_NAME).write_text("")
+    os.utime(out / LOCK_NAME, (1e9, 1e9))
+    with caplog.at_level(logging.WARNING, logger="evgrid.outdir"):
+        with results_folder(out):
+            pass
+    assert "it is empty, not an evgrid lock" in caplog.text
+
+
+# --- sweeps and images -----------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "points, says",
+    [
+        (np.full((3, 5), "1.5"), "strings"),
+        (np.ones((3, 5), np.complex64) * (1 + 2j), "complex numbers"),
+        (np.ones((3, 5), bool), "booleans"),
+        (np.array([[1, 2, 3, 4, 5]] * 3, dtype=object), "Python objects"),
+    ],
+)
+def test_a_lidar_sweep_of_strings_or_complex_numbers_is_refused(points, says):
+    # before: converted silently ("1.5" -> 1.5, 1+2j -> 1 with a ComplexWarning)
+    with pytest.raises(ValueError, match=rf"LidarSweep.points must hold real numbers.*{says}"):
+        LidarSweep(points, SE3.identity(), SE3.identity(), 0)
+    assert len(LIDAR_COLUMNS) == 5
+
+
+def test_deep_irm_predict_image_names_a_list_and_a_nan_channel():
+    from evgrid.ism.deep import CHANNELS, DeepIrm
+
+    deep = DeepIrm()
+    n = deep.grid.n_cells
+    # before: AttributeError: 'list' object has no attribute 'shape'
+    with pytest.raises(TypeError, match="image must be a numpy array.*got list"):
+        deep.predict_image(np.zeros((len(CHANNELS), n, n)).tolist())
+    image = np.zeros((len(CHANNELS), n, n), np.float32)
+    image[1, 3, 4] = np.nan
+    # before: `e: evidence must be finite`
+    with pytest.raises(ValueError, match=r"not finite \(NaN or inf\) in channel\(s\) 1 \(rcs\)"):
+        deep.predict_image(image)
