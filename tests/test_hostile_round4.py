@@ -18,7 +18,7 @@ from evgrid.geometry import SE3
 from evgrid.io import READ_LIMITS, InputFileError, load_json_bounded, read_bounded
 from evgrid.outdir import LOCK_NAME, RunLockedError, break_lock, results_folder
 
-# --- files read whole ------------------------------------------------------------------------------
+# --- files read whole ---
 
 
 def test_a_device_as_config_is_refused_after_the_limit_not_read_forever():
@@ -47,7 +47,8 @@ def test_an_integer_of_5001_digits_names_the_file_and_position(tmp_path):
     # before: Python's `Exceeds the limit (4300 digits) for integer string conversion ...`
     p = tmp_path / "long.json"
     p.write_text('{"mapper": {\n  "threads": ' + "7" * 5001 + "}}")
-    with pytest.raises(ConfigError, match=r"long\.json: an integer of 5001 digits at line 2 column 14"):
+    says = r"long\.json: an integer of 5001 digits at line 2 column 14"
+    with pytest.raises(ConfigError, match=says):
         load_config(p)
 
 
@@ -103,11 +104,12 @@ def test_a_nuscenes_table_that_is_a_device_or_too_large_is_refused_before_the_de
     (tmp_path / "sample_data.json").unlink()
     with open(tmp_path / "ego_pose.json", "wb") as f:
         f.truncate(READ_LIMITS["nuScenes table"] + 1)
-    with pytest.raises(NuScenesDataError, match=r"ego_pose\.json: 4,294,967,297 bytes, more than the 4 GiB"):
+    says = r"ego_pose\.json: 4,294,967,297 bytes, more than the 4 GiB"
+    with pytest.raises(NuScenesDataError, match=says):
         _check_table_sizes(tmp_path)
 
 
-# --- locks -----------------------------------------------------------------------------------------
+# --- locks ---
 
 
 def _foreign_lock(out, host="a-container-gone"):
@@ -168,7 +170,7 @@ def test_an_old_garbage_lock_is_taken_over_with_the_reason(tmp_path, caplog):
     assert "it is empty, not an evgrid lock" in caplog.text
 
 
-# --- sweeps and images -----------------------------------------------------------------------------
+# --- sweeps and images ---
 
 
 @pytest.mark.parametrize(
