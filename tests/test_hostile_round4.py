@@ -202,3 +202,102 @@ def test_deep_irm_predict_image_names_a_list_and_a_nan_channel():
     # before: `e: evidence must be finite`
     with pytest.raises(ValueError, match=r"not finite \(NaN or inf\) in channel\(s\) 1 \(rcs\)"):
         deep.predict_image(image)
+
+
+# --- sizes: the memory budget ---
+
+
+def _outputs(**kw):
+    from evgrid.config import OutputConfig
+
+    return OutputConfig(**kw)
+
+
+@pytest.mark.parametrize(
+    "window_m, says",
+    [(1200.0, "5.05 GiB"), (3000.0, "31.6 GiB"), (1e9, "PiB")],
+)
+def test_an_mcap_window_beyond_the_budget_is_refused_naming_the_option(window_m, says):
+    # before: a 2 s scene mapped, then 4.8 GB reached (1200 m), `Unable to allocate 16.5 GiB`
+    # (3000 m) or `array is too big` (1e9 m), naming no option
+    from evgrid.budget import BudgetError, check_budget
+    from evgrid.config import MapperConfig
+    from evgrid.export.mcap import McapParams
+
+    outputs = _outputs(exports=("mcap",), mcap=McapParams(window_m=window_m))
+    with pytest.raises(BudgetError) as e:
+        check_budget(MapperConfig(), outputs, budget=4 * 2**30)
+    msg = str(e.value)
+    assert msg.startswith("outputs.mcap.window_m (--mcap-window): an MCAP window of")
+    assert says in msg and "more than the memory budget of 4 GiB" in msg
+    assert "EVGRID_MEMORY_BUDGET_GB" in msg
+    check_budget(MapperConfig(), _outputs(exports=("mcap",)), budget=4 * 2**30)  # 40 m
+
+
+def test_a_gif_window_of_1e7_m_is_refused_before_mapping():
+    # before: `Unable to allocate 2.73 PiB` after the scene was mapped
+    from evgrid.budget import BudgetError, check_budget
+    from evgrid.config import RunConfig
+
+    cfg = RunConfig(outputs=_outputs(gif_window_m=1e7))
+    with pytest.raises(
+        BudgetError, match=r"^outputs\.gif_window_m: a GIF of up to 240 frames.*PiB"
+    ):
+        check_budget(cfg, budget=2**30)
+    check_budget(RunConfig(outputs=_outputs(gif_window_m=1e7, figures=False)), budget=2**30)
+
+
+def test_grids_tiles_and_their_sum_are_bounded_by_the_budget():
+    from dataclasses import replace
+
+    from evgrid.budget import BudgetError, check_budget, costs
+    from evgrid.config import MapperConfig
+    from evgrid.geometry import GridSpec
+
+    base = MapperConfig()
+    with pytest.raises(BudgetError, match=r"^mapper\.grid\.n_cells: 6 map\(s\).* 24 GiB"):
+        check_budget(replace(base, grid=GridSpec(8192, 640.0)), budget=8 * 2**30)
+    with pytest.raises(BudgetError, match=r"^mapper\.tile_cells: 4 tiles of 4096 x 4096"):
+        check_budget(replace(base, tile_cells=4096), budget=2**30)
+    each = sum(c.bytes for c in costs(base, _outputs()))
+    check_budget(base, _outputs(), budget=int(each) + 1)
+    with pytest.raises(BudgetError, match=r"^this run would take .* x 2 scenes at once"):
+        check_budget(base, _outputs(), workers=2, budget=int(each) + 1)
+
+
+def test_the_budget_comes_from_the_environment_or_a_quarter_of_the_memory():
+    from evgrid.budget import BUDGET_ENV, machine_memory, memory_budget
+
+    assert memory_budget({}) == int(machine_memory() * 0.25)
+    assert memory_budget({BUDGET_ENV: "1.5"}) == 1_500_000_000
+    for bad in ("-1", "nan", "lots"):
+        with pytest.raises(ConfigError, match=f"{BUDGET_ENV}='{bad}': must be a positive"):
+            memory_budget({BUDGET_ENV: bad})
+
+
+def test_the_mcap_window_cost_bounds_what_its_write_allocates(tmp_path):
+    # the estimate is an upper bound of the arrays the export allocates (tracemalloc sees numpy)
+    import tracemalloc
+
+    pytest.importorskip("mcap")
+    from evgrid.budget import costs
+    from evgrid.config import MapperConfig
+    from evgrid.export.mcap import McapExporter, McapParams
+    from evgrid.grid import EvidentialMap
+
+    grid = MapperConfig().grid
+    for layers in (("occupancy",), ("occupancy", "m_free", "m_occupied", "m_unknown", "dynamic")):
+        params = McapParams(window_m=40.0, layers=layers)
+        ex = McapExporter(tmp_path / f"{len(layers)}.mcap", params)
+        n = grid.n_cells
+        tracemalloc.start()
+        ex.write_maps({"fused": EvidentialMap(grid, dynamic=True)}, 0, (0, 0, n, n))
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+        ex.abort()
+        (est,) = [
+            c.bytes
+            for c in costs(MapperConfig(), _outputs(exports=("mcap",), mcap=params))
+            if c.key == "outputs.mcap.window_m"
+        ]
+        assert peak <= est <= 1.5 * peak, (layers, peak, est)
