@@ -14,7 +14,7 @@ import pytest
 
 from evgrid.config import ConfigError, load_config
 from evgrid.data.frame import LIDAR_COLUMNS, LidarSweep
-from evgrid.geometry import SE3
+from evgrid.geometry import SE2, SE3
 from evgrid.io import READ_LIMITS, InputFileError, load_json_bounded, read_bounded
 from evgrid.outdir import LOCK_NAME, RunLockedError, break_lock, results_folder
 
@@ -301,3 +301,97 @@ def test_the_mcap_window_cost_bounds_what_its_write_allocates(tmp_path):
             if c.key == "outputs.mcap.window_m"
         ]
         assert peak <= est <= 1.5 * peak, (layers, peak, est)
+
+
+# --- rigs and /tf ---
+
+
+def _rig_error(tmp_path, rig: dict) -> str:
+    yaml = pytest.importorskip("yaml")
+    from evgrid.data.bag import RigError, load_rig
+
+    path = tmp_path / "rig.yaml"
+    path.write_text(yaml.safe_dump(rig))
+    with pytest.raises(RigError) as e:
+        load_rig(path)
+    return str(e.value)
+
+
+def test_a_topic_that_is_no_string_is_said_so_not_missing(tmp_path):
+    # before: `'lidar' must give at least a 'topic'` (as if it were missing)
+    msg = _rig_error(tmp_path, {"lidar": {"topic": 5}})
+    assert msg.endswith(
+        "rig.yaml: lidar.topic must be a topic name (a string such as /lidar), got 5"
+    )
+    msg = _rig_error(tmp_path, {"lidar": {"topic": "/l"}, "radars": [{"topic": ["/r"]}]})
+    assert "radars[0].topic must be a topic name" in msg and "['/r']" in msg
+
+
+def test_the_lidar_topic_listed_as_a_radar_is_refused_naming_it(tmp_path):
+    # before: accepted, and the radar entry ignored without a word
+    msg = _rig_error(tmp_path, {"lidar": {"topic": "/points"}, "radars": [{"topic": "/points"}]})
+    assert "radars[0]: topic '/points' is the lidar's topic too" in msg
+
+
+def _tf(buf, parent, t_us, x):
+    return buf.add(parent, "base_link", t_us, (x, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))
+
+
+def test_a_second_tf_parent_is_kept_apart_logged_and_counted(caplog):
+    # before: map -> base_link samples were stored as odom -> base_link (poses jumping between
+    # the two) and `map` was in no edge: "frame(s) ['map'] not in /tf" with world_frame: map
+    from evgrid.data.bag.transforms import TransformBuffer
+
+    buf = TransformBuffer()
+    with caplog.at_level(logging.WARNING, logger="evgrid.data.bag.transforms"):
+        for k in range(5):
+            assert _tf(buf, "odom", k * 100_000, float(k))
+            assert _tf(buf, "/map", k * 100_000, 1000.0 + k)
+    assert "map" in buf.frames() and buf.second_parents == {"base_link": {"map": 5}}
+    said = [r.getMessage() for r in caplog.records]
+    assert len(said) == 1 and "'base_link' has a second parent 'map' besides 'odom'" in said[0]
+    assert buf.parent("base_link") == "odom"
+    assert buf.lookup("odom", "base_link", 250_000).translation[0] == pytest.approx(2.5)
+    assert buf.lookup("map", "base_link", 250_000).translation[0] == pytest.approx(1002.5)
+    assert buf.span("map", "base_link") == (0, 400_000)
+    # map -> odom -> base_link, the tree REP 105 asks for, still climbs through odom
+    buf2 = TransformBuffer()
+    for k in range(5):
+        _tf(buf2, "odom", k * 100_000, float(k))
+        buf2.add("map", "odom", k * 100_000, (10.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))
+    assert buf2.lookup("map", "base_link", 100_000).translation[0] == pytest.approx(11.0)
+    assert buf2.second_parents == {}
+
+
+def test_a_recording_with_two_parents_for_base_link_maps_in_the_world_frame_asked(tmp_path):
+    pytest.importorskip("rosbags")
+    pytest.importorskip("mcap")
+    pytest.importorskip("yaml")
+    from evgrid.data.bag import load_bag
+    from evgrid.ros import RecordingWriter, columns_to_cloud, tf_message, transform_msg, us_to_stamp
+    from evgrid_sim import SimConfig, simulate_scene
+
+    frames = list(simulate_scene(3, SimConfig(duration_s=0.4)))
+    shift = SE3.from_se2(SE2(500.0, 0.0, 0.0))
+    path = tmp_path / "two.mcap"
+    w = RecordingWriter(path, "plain-mcap")
+    s, t0 = w.store, frames[0].timestamp
+    static = transform_msg("base_link", "LIDAR_TOP", t0, frames[0].lidar.sensor_to_ego, s)
+    w.write("/tf_static", "tf2_msgs/msg/TFMessage", t0 * 1000, tf_message([static], s))
+    for f in frames:
+        t = f.timestamp
+        both = [
+            transform_msg("odom", "base_link", t, f.ego_pose, s),
+            transform_msg("map", "base_link", t, shift @ f.ego_pose, s),
+        ]
+        w.write("/tf", "tf2_msgs/msg/TFMessage", t * 1000, tf_message(both, s))
+        sec, ns = us_to_stamp(t)
+        cloud = columns_to_cloud(f.lidar.points, LIDAR_COLUMNS, sec, ns, "LIDAR_TOP", s)
+        w.write("/lidar", "sensor_msgs/msg/PointCloud2", t * 1000, cloud)
+    w.close()
+    for world, dx in (("map", 500.0), ("odom", 0.0)):
+        got = list(load_bag(path, {"lidar": {"topic": "/lidar"}, "world_frame": world}))
+        assert len(got) == len(frames)
+        for g, f in zip(got, frames, strict=True):
+            want = f.ego_pose.translation[0] + dx
+            assert g.ego_pose.translation[0] == pytest.approx(want, abs=1e-6)
