@@ -29,7 +29,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from evgrid.io import write_json
+from evgrid.io import load_json_bounded, write_json
 
 __all__ = [
     "ResultsExistError",
@@ -305,9 +305,9 @@ def is_complete(scene_dir: str | os.PathLike, config_hash: str) -> dict[str, Any
     """A scene's metrics when its marker holds ``config_hash`` (results of the same config)."""
     scene_dir = Path(scene_dir)
     try:
-        marker = json.loads((scene_dir / MARKER_NAME).read_text())
+        marker = load_json_bounded(scene_dir / MARKER_NAME, "config")
         if marker.get("config_sha256") != config_hash:
             return None
-        return json.loads((scene_dir / "metrics.json").read_text())
+        return load_json_bounded(scene_dir / "metrics.json", "config")
     except (OSError, ValueError, AttributeError):
         return None
