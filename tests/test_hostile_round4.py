@@ -78,6 +78,10 @@ def test_a_rig_file_that_is_huge_deep_or_holds_a_long_integer_names_the_file(tmp
     pytest.importorskip("yaml")
     from evgrid.data.bag import RigError, load_rig
 
+    with pytest.raises(RigError, match=r"^/dev/zero: more than 16 MiB, the most a rig file"):
+        load_rig("/dev/zero")  # before: `no rig file at /dev/zero`
+    with pytest.raises(RigError, match="a folder, not a rig file"):
+        load_rig(tmp_path)
     big = tmp_path / "big.yaml"
     with open(big, "wb") as f:
         f.truncate(READ_LIMITS["rig"] + 1)

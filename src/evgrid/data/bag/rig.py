@@ -332,8 +332,10 @@ def load_rig(path: str | Path) -> RecordingRig:
     """Read a rig file (YAML); raises :class:`RigError` (or FileNotFoundError) naming the
     problem."""
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise FileNotFoundError(f"no rig file at {path}")
+    if path.is_dir():
+        raise RigError(f"{path}: a folder, not a rig file")
     try:
         import yaml
     except ImportError:
