@@ -315,10 +315,14 @@ def _absolute_path(v: Any, base: Path) -> Any:
 
 
 def _read_json(path: Path) -> Any:
+    from evgrid.io import InputFileError, load_json_bounded  # at most 16 MiB, read bounded
+
     try:
-        return json.loads(path.read_text())
+        return load_json_bounded(path, "config")
     except FileNotFoundError:
         raise ConfigError(f"{path}: no such config file") from None
+    except InputFileError as e:
+        raise ConfigError(str(e)) from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
         raise ConfigError(f"{path}: not a readable JSON config ({e})") from None
 

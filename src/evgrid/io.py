@@ -7,6 +7,11 @@ next to the target, then a rename), JSON.
   that is dropped without :meth:`AtomicFile.commit` removes it too (garbage collection or the
   interpreter's exit).
 * Every error names the file it is about (a full disk says which file).
+* Files read whole (configs, rigs, JSON tables) are read through :func:`read_bounded`: at most
+  a limit of bytes per kind of file (:data:`READ_LIMITS`), whatever size the file reports (a
+  device such as ``/dev/zero`` reports 0 and never ends); :func:`load_json_bounded` also turns
+  JSON nested too deep for Python's parser, or an integer too long for ``int``, into one line
+  naming the file.
 """
 
 from __future__ import annotations
@@ -15,6 +20,9 @@ import errno
 import json
 import math
 import os
+import re
+import stat
+import sys
 import tempfile
 import weakref
 from collections.abc import Callable, Iterable, Iterator
@@ -27,13 +35,18 @@ import numpy as np
 __all__ = [
     "AtomicFile",
     "FileWriteError",
+    "InputFileError",
+    "READ_LIMITS",
     "TargetExistsError",
     "atomic_open",
     "atomic_write",
     "atomic_write_bytes",
     "atomic_write_text",
     "jsonable",
+    "load_json_bounded",
+    "read_bounded",
     "refuse_existing",
+    "size_text",
     "write_error",
     "write_json",
 ]
@@ -223,3 +236,107 @@ def write_json(path: str | os.PathLike, obj: Any) -> Path:
     text = json.dumps(jsonable(obj), indent=2)
     atomic_write_text(path, text + "\n")
     return Path(path)
+
+
+# --- files read whole --------------------------------------------------------------------------
+
+#: The most bytes a file of each kind may hold when it is read whole. A config or rig of evgrid
+#: is a few kB; nuScenes' largest table (v1.0-trainval's ``sample_data.json``) is some hundred
+#: MB, so the tables get 4 GiB. Past the limit the file is refused before it is parsed: a
+#: recording passed as ``--config`` by mistake is not read into memory.
+READ_LIMITS: dict[str, int] = {
+    "config": 16 * 2**20,
+    "rig": 16 * 2**20,
+    "nuScenes table": 4 * 2**30,
+}
+
+
+class InputFileError(ValueError):
+    """A file read whole is too large, nested too deep or holds a value Python cannot read;
+    the message names the file."""
+
+
+def size_text(n: float) -> str:
+    """``n`` bytes in the largest binary unit below it (``16 MiB``, ``2.73 PiB``)."""
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB", "PiB"):
+        if abs(n) < 1024 or unit == "PiB":
+            return f"{n:.3g} {unit}" if unit != "B" else f"{int(n)} B"
+        n /= 1024
+    raise AssertionError  # unreachable
+
+
+def read_bounded(path: str | os.PathLike, kind: str, limit: int | None = None) -> bytes:
+    """The bytes of ``path``, a file of ``kind`` (a key of :data:`READ_LIMITS`), or
+    :class:`InputFileError` when it holds more than ``limit`` bytes (default: the kind's limit).
+
+    A regular file's reported size is checked first; anything else (a device, a pipe) is read
+    up to ``limit + 1`` bytes, as its reported size says nothing.
+    """
+    limit = READ_LIMITS[kind] if limit is None else limit
+    too_big = (
+        f"{path}: more than {size_text(limit)}, the most a {kind} file may hold; is it the "
+        f"right file?"
+    )
+    with open(path, "rb") as f:
+        st = os.fstat(f.fileno())
+        if stat.S_ISREG(st.st_mode) and st.st_size > limit:
+            raise InputFileError(too_big + f" (it holds {size_text(st.st_size)})")
+        data = f.read(limit + 1)
+    if len(data) > limit:
+        raise InputFileError(too_big)
+    return data
+
+
+class _LongInteger(ValueError):
+    def __init__(self, digits: str):
+        super().__init__(digits)
+        self.digits = digits
+
+
+def _parse_int(s: str) -> int:
+    limit = sys.get_int_max_str_digits() if hasattr(sys, "get_int_max_str_digits") else 0
+    if limit and len(s.lstrip("-")) > limit:
+        raise _LongInteger(s)
+    return int(s)
+
+
+def _line_col(text: str, pos: int) -> str:
+    line = text.count("\n", 0, pos) + 1
+    return f"line {line} column {pos - (text.rfind(chr(10), 0, pos) + 1) + 1}"
+
+
+def load_json_bounded(path: str | os.PathLike, kind: str, limit: int | None = None) -> Any:
+    """The JSON value of ``path`` read by :func:`read_bounded`; :class:`InputFileError` naming
+    the file for a file too large, not UTF-8, nested deeper than Python's parser goes (its
+    recursion limit, about a thousand levels), or holding an integer of more digits than
+    Python converts (4300); ``json.JSONDecodeError`` (a ``ValueError``) for invalid JSON."""
+    text_bytes = read_bounded(path, kind, limit)
+    try:
+        text = text_bytes.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise InputFileError(f"{path}: not UTF-8 text (byte {e.start}); is it the right file?")
+    try:
+        return json.loads(text, parse_int=_parse_int)
+    except RecursionError:
+        depth = _max_depth(text)
+        raise InputFileError(
+            f"{path}: JSON nested {depth} levels deep, deeper than Python's JSON parser reads "
+            f"(about {sys.getrecursionlimit()}); a {kind} file nests a few levels"
+        ) from None
+    except _LongInteger as e:
+        pos = text.find(e.digits)
+        where = _line_col(text, pos) if pos >= 0 else "somewhere"
+        raise InputFileError(
+            f"{path}: an integer of {len(e.digits.lstrip('-'))} digits at {where}, more than "
+            f"the {sys.get_int_max_str_digits()} Python reads"
+        ) from None
+
+
+def _max_depth(text: str) -> int:
+    """The deepest nesting of ``[``/``{`` in JSON ``text`` (brackets inside strings ignored)."""
+    body = re.sub(r'"(?:[^"\\]|\\.)*"', '""', text)
+    opens = np.frombuffer(body.encode(), dtype=np.uint8)
+    step = np.isin(opens, (ord("["), ord("{"))).astype(np.int64) - np.isin(
+        opens, (ord("]"), ord("}"))
+    )
+    return int(np.cumsum(step).max(initial=0))

@@ -9,7 +9,10 @@ One policy for every command that writes a results folder (docs/config.md#result
   the same config are kept). A file is never a results folder.
 * A run holds ``OUT/.evgrid.lock`` (pid, host, start), created atomically: a second run into the
   same folder is refused naming the holder; a lock whose process is gone (a killed run) is taken
-  over with a warning.
+  over with a warning. A lock of another host cannot be checked (a container gets a new host
+  name at every start): it is refused saying it may be stale and how to clear it
+  (:func:`break_lock`); ``--overwrite`` does not clear it. A lock file that is no lock (garbage)
+  is taken over when older than a few seconds, else refused saying what it holds.
 * Each scene folder gets ``.complete`` last, holding the hash of the config it was made with;
   ``--resume`` skips exactly the scenes whose marker matches.
 """
@@ -26,7 +29,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from evgrid.io import write_json
+from evgrid.io import load_json_bounded, write_json
 
 __all__ = [
     "ResultsExistError",
@@ -36,6 +39,8 @@ __all__ = [
     "default_out",
     "results_folder",
     "locked",
+    "break_lock",
+    "BREAK_LOCK_HINT",
     "is_complete",
     "mark_complete",
 ]
@@ -86,36 +91,138 @@ def _pid_alive(pid: int) -> bool:
     return True
 
 
+#: How a user clears a lock that may be stale (the command line's way to call break_lock).
+BREAK_LOCK_HINT = "evgrid unlock {out}"
+
+#: A lock file younger than this that holds no lock may be one being written right now.
+_FRESH_S = 5.0
+
+
+def _read_holder(lock: Path) -> tuple[dict[str, Any] | None, str]:
+    """The lock's holder ``{"pid", "host", "started"}``, or None and why the file is no lock."""
+    try:
+        raw = lock.read_bytes()[:4096]
+    except IsADirectoryError:
+        return None, "it is a folder, not a lock file"
+    except OSError as e:
+        return None, f"it cannot be read ({e.strerror or e})"
+    try:
+        holder = json.loads(raw)
+        return {
+            "pid": int(holder["pid"]),
+            "host": str(holder["host"]),
+            "started": holder.get("started"),
+        }, ""
+    except (ValueError, KeyError, TypeError, AttributeError):
+        text = raw[:60].decode("utf-8", errors="replace")
+        return None, (
+            f"it holds {text!r}{'...' if len(raw) > 60 else ''}, not an evgrid lock (a JSON "
+            "object with pid and host)"
+            if raw
+            else "it is empty, not an evgrid lock (a JSON object with pid and host)"
+        )
+
+
+def _started(holder: dict[str, Any]) -> str:
+    t = holder.get("started")
+    if not isinstance(t, (int, float)):
+        return ""
+    return ", started " + time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(t))
+
+
 def _take_lock(out: Path) -> Path:
     lock = out / LOCK_NAME
     me = {"pid": os.getpid(), "host": socket.gethostname(), "started": time.time()}
+    why = ""
     for _ in range(3):
         try:
             fd = os.open(lock, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
         except FileExistsError:
-            try:
-                holder = json.loads(lock.read_text())
-                pid, host = int(holder["pid"]), str(holder["host"])
-            except (OSError, ValueError, KeyError, TypeError):
-                holder, pid, host = None, -1, "?"
-            if holder is None and time.time() - lock.stat().st_mtime < 5:
-                time.sleep(0.2)  # being written by its holder right now
-                continue
-            if holder is not None and (host != me["host"] or _pid_alive(pid)):
+            holder, why = _read_holder(lock)
+            if holder is None:
+                try:
+                    age = time.time() - lock.stat().st_mtime
+                except FileNotFoundError:
+                    continue  # its holder just released it
+                if age < _FRESH_S and not lock.is_dir():
+                    why += f", written {age:.1f} s ago (perhaps by a run starting right now)"
+                    time.sleep(0.2)  # being written by its holder right now
+                    continue
+                log.warning("%s: taking over the lock file %s: %s", out, lock, why)
+            elif holder["host"] != me["host"]:
+                hint = BREAK_LOCK_HINT.format(out=out)
                 raise RunLockedError(
-                    f"{out} is in use by another evgrid run (pid {pid} on {host}, lock {lock}); "
-                    "wait for it or choose another --out"
+                    f"{out} is locked by pid {holder['pid']} on host {holder['host']!r}"
+                    f"{_started(holder)} (lock {lock}); that is not this host "
+                    f"({me['host']!r}), so evgrid cannot tell whether that run still lives. The "
+                    "lock may be stale (a container gets a new host name at every start): if "
+                    f"no run writes into {out}, clear it with `{hint}`; --overwrite does not "
+                    "clear it"
                 ) from None
-            log.warning(
-                "%s: taking over the lock of a run that is gone (pid %s on %s)", out, pid, host
-            )
-            with contextlib.suppress(FileNotFoundError):
-                lock.unlink()
+            elif _pid_alive(holder["pid"]):
+                raise RunLockedError(
+                    f"{out} is in use by another evgrid run (pid {holder['pid']} on "
+                    f"{holder['host']}{_started(holder)}, lock {lock}); wait for it or choose "
+                    "another --out"
+                ) from None
+            else:
+                log.warning(
+                    "%s: taking over the lock of a run that is gone (pid %s on %s)",
+                    out,
+                    holder["pid"],
+                    holder["host"],
+                )
+            _remove_lock(lock)
             continue
         with os.fdopen(fd, "w") as f:
             json.dump(me, f)
         return lock
-    raise RunLockedError(f"{out}: could not take the lock {lock}")
+    hint = BREAK_LOCK_HINT.format(out=out)
+    raise RunLockedError(
+        f"{out}: could not take the lock {lock}: {why or 'another run took it first'}; if no "
+        f"run writes into {out}, clear it with `{hint}`"
+    )
+
+
+def _remove_lock(lock: Path) -> None:
+    if lock.is_dir() and not lock.is_symlink():
+        with contextlib.suppress(OSError):
+            lock.rmdir()  # an empty folder in the lock's place; a full one is refused below
+        return
+    with contextlib.suppress(FileNotFoundError):
+        lock.unlink()
+
+
+def break_lock(out: str | os.PathLike) -> dict[str, Any] | None:
+    """Remove ``out``'s lock, stale or foreign (what ``evgrid unlock OUT`` does); returns the
+    holder it named (None: the lock held no holder, or there was none). A lock held by a live
+    process of this host is refused: that run still writes into ``out``."""
+    out = Path(out)
+    lock = out / LOCK_NAME
+    if not (lock.exists() or lock.is_symlink()):
+        log.info("%s: no lock to clear", out)
+        return None
+    holder, why = _read_holder(lock)
+    if holder is not None and holder["host"] == socket.gethostname():
+        if _pid_alive(holder["pid"]) and holder["pid"] != os.getpid():
+            raise RunLockedError(
+                f"{out} is in use by a live evgrid run (pid {holder['pid']} on this host"
+                f"{_started(holder)}); stop it first, its lock is not stale"
+            )
+    _remove_lock(lock)
+    if lock.exists():
+        raise RunLockedError(f"{out}: could not clear the lock {lock}: {why}; remove it by hand")
+    if holder is not None:
+        log.warning(
+            "%s: cleared the lock of pid %s on %s%s",
+            out,
+            holder["pid"],
+            holder["host"],
+            _started(holder),
+        )
+    else:
+        log.warning("%s: cleared the lock file %s (%s)", out, lock, why)
+    return holder
 
 
 @contextlib.contextmanager
@@ -198,9 +305,9 @@ def is_complete(scene_dir: str | os.PathLike, config_hash: str) -> dict[str, Any
     """A scene's metrics when its marker holds ``config_hash`` (results of the same config)."""
     scene_dir = Path(scene_dir)
     try:
-        marker = json.loads((scene_dir / MARKER_NAME).read_text())
+        marker = load_json_bounded(scene_dir / MARKER_NAME, "config")
         if marker.get("config_sha256") != config_hash:
             return None
-        return json.loads((scene_dir / "metrics.json").read_text())
+        return load_json_bounded(scene_dir / "metrics.json", "config")
     except (OSError, ValueError, AttributeError):
         return None

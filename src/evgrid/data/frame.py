@@ -84,12 +84,27 @@ def channel_order(channel: str) -> tuple[int, str]:
     return known, channel
 
 
+_KINDS = {
+    "U": "strings",
+    "S": "bytes",
+    "c": "complex numbers",
+    "O": "Python objects",
+    "b": "booleans",
+}
+
+
 def _check_points(points: np.ndarray, n_cols: int, what: str) -> np.ndarray:
     p = np.asarray(points)
     if p.ndim != 2 or p.shape[1] != n_cols:
         raise ValueError(
             f"{what}.points must have shape (n, {n_cols}), got {p.shape}"
             + (" (transposed? pass points.T)" if p.ndim == 2 and p.shape[0] < p.shape[1] else "")
+        )
+    if p.dtype.kind not in "fiu":
+        # numpy would turn strings ('1.5') into numbers and drop an imaginary part silently
+        raise ValueError(
+            f"{what}.points must hold real numbers (float or integer), got dtype {p.dtype} "
+            f"({_KINDS.get(p.dtype.kind, 'not numbers')})"
         )
     return np.ascontiguousarray(p, dtype=np.float32)
 

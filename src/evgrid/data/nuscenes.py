@@ -31,6 +31,7 @@ import dataclasses
 import json
 import logging
 import os
+import stat
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
@@ -45,6 +46,7 @@ from evgrid.data.nuscenes_format import (
 )
 from evgrid.data.sweeps import GapCounter, channel_order
 from evgrid.geometry import SE3
+from evgrid.io import READ_LIMITS, InputFileError, load_json_bounded, size_text
 from evgrid.package import install_hint
 
 __all__ = [
@@ -120,8 +122,9 @@ def _diagnose(table_root: Path, err: Exception) -> NuScenesDataError | None:
         if not f.is_file():
             continue
         try:
-            with open(f, encoding="utf-8") as fh:
-                records = json.load(fh)
+            records = load_json_bounded(f, "nuScenes table")
+        except InputFileError as e:
+            return NuScenesDataError(str(e))
         except json.JSONDecodeError as e:
             return NuScenesDataError(
                 f"{f}: not valid JSON at line {e.lineno} column {e.colno} ({e.msg}); the file "
@@ -178,8 +181,10 @@ def nuscenes_splits(dataroot: str | os.PathLike, version: str) -> dict[str, list
         ) from e
     custom = Path(dataroot) / version / "splits.json"
     if custom.is_file():
-        with open(custom, encoding="utf-8") as f:
-            data = json.load(f)
+        try:
+            data = load_json_bounded(custom, "nuScenes table")
+        except ValueError as e:  # too large or deep, or not JSON
+            raise NuScenesError(f"{str(custom)!r}: not a readable splits file ({e})") from None
         if not isinstance(data, dict) or not all(isinstance(v, list) for v in data.values()):
             raise NuScenesError(f"{str(custom)!r} must map split names to lists of scene names")
         splits.update({str(k): [str(s) for s in v] for k, v in data.items()})
@@ -409,13 +414,29 @@ class NuScenesScenes(list):
         self.dropped: dict[str, str] = {}
 
 
+def _check_table_sizes(table_root: Path) -> None:
+    """The devkit reads each table whole: one that is no regular file (a device never ends) or
+    larger than READ_LIMITS["nuScenes table"] is refused naming it, before the devkit opens it."""
+    limit = READ_LIMITS["nuScenes table"]
+    for f in sorted(table_root.glob("*.json")):
+        st = f.stat()
+        if not stat.S_ISREG(st.st_mode):
+            raise NuScenesDataError(f"{f}: not a regular file; a nuScenes table is a JSON file")
+        if st.st_size > limit:
+            raise NuScenesDataError(
+                f"{f}: {st.st_size:,} bytes, more than the {size_text(limit)} a nuScenes "
+                "table may hold; is it the right file?"
+            )
+
+
 def _open(NuScenes: Any, root: Path, version: str, verbose: bool) -> Any:
     """The devkit's database, its tables checked; NuScenesDataError naming the damaged table
     file (JSON cut short), record and key instead of the devkit's bare errors."""
     table_root = root / version
+    _check_table_sizes(table_root)
     try:
         nusc = NuScenes(version=version, dataroot=str(root), verbose=verbose)
-    except (json.JSONDecodeError, KeyError, TypeError) as e:
+    except (ValueError, RecursionError, KeyError, TypeError) as e:
         found = _diagnose(table_root, e)
         if found is not None:
             raise found from None

@@ -593,9 +593,23 @@ class DeepIrm:
         from evgrid.mass import from_evidence
 
         torch = self._torch
+        if not isinstance(image, np.ndarray):
+            raise TypeError(
+                f"predict_image: image must be a numpy array (C, n, n) as radar_image makes, got "
+                f"{type(image).__name__}"
+            )
         if image.shape != (len(CHANNELS), self.grid.n_cells, self.grid.n_cells):
             raise ValueError(
                 f"input image must be {(len(CHANNELS),) + self.grid.shape}, got {image.shape}"
+            )
+        if image.dtype.kind not in "fiu":
+            raise TypeError(f"predict_image: image must hold real numbers, got dtype {image.dtype}")
+        bad = ~np.isfinite(image).all(axis=(1, 2))
+        if bad.any():
+            # else Ev-Net turns it into NaN evidence: "e: evidence must be finite", naming nothing
+            raise ValueError(
+                "predict_image: the input image is not finite (NaN or inf) in channel(s) "
+                + ", ".join(f"{i} ({CHANNELS[i]})" for i in np.flatnonzero(bad))
             )
         x = torch.from_numpy(np.ascontiguousarray(image, dtype=np.float32))[None]
         with torch.inference_mode():

@@ -53,6 +53,12 @@ def _name(v: Any, where: str, key: str) -> str | None:
     return v
 
 
+def _topic(v: Any, where: str, key: str) -> str:
+    if not (isinstance(v, str) and v):
+        raise RigError(f"{where}: {key} must be a topic name (a string such as /lidar), got {v!r}")
+    return v
+
+
 def _fields(d: Any, allowed: tuple[str, ...], where: str) -> dict[str, str]:
     if d is None:
         return {}
@@ -160,8 +166,9 @@ class RecordingRig:
         silently ignored line)."""
         _keys(d, _TOP_KEYS, where)
         lid = d.get("lidar")
-        if not isinstance(lid, Mapping) or not isinstance(lid.get("topic"), str):
+        if not isinstance(lid, Mapping) or lid.get("topic") is None:
             raise RigError(f"{where}: 'lidar' must give at least a 'topic'")
+        _topic(lid["topic"], where, "lidar.topic")
         _keys(lid, ("topic", "frame", "fields"), where, "lidar")
         lidar = LidarTopic(
             lid["topic"],
@@ -174,8 +181,15 @@ class RecordingRig:
             raise RigError(f"{where}: 'radars' must be a list of radar entries")
         for i, r in enumerate(entries):
             w = f"radars[{i}]"
-            if not isinstance(r, Mapping) or not isinstance(r.get("topic"), str):
+            if not isinstance(r, Mapping) or r.get("topic") is None:
                 raise RigError(f"{where} {w}: each radar needs a 'topic'")
+            _topic(r["topic"], where, f"{w}.topic")
+            if r["topic"] == lidar.topic:
+                # one topic's clouds cannot be both: the entry would be ignored without a word
+                raise RigError(
+                    f"{where} {w}: topic {r['topic']!r} is the lidar's topic too; a topic is the "
+                    "lidar or a radar, not both"
+                )
             _keys(r, ("topic", "channel", "frame", "fields", "compensated"), where, w)
             ch = r.get("channel") or r["topic"].strip("/").replace("/", "_").upper()
             comp = r.get("compensated", True)
@@ -318,16 +332,26 @@ def load_rig(path: str | Path) -> RecordingRig:
     """Read a rig file (YAML); raises :class:`RigError` (or FileNotFoundError) naming the
     problem."""
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise FileNotFoundError(f"no rig file at {path}")
+    if path.is_dir():
+        raise RigError(f"{path}: a folder, not a rig file")
     try:
         import yaml
     except ImportError:
         from evgrid import install_hint
 
         raise ImportError(f"reading a rig file needs PyYAML ({install_hint('ros')})") from None
+    from evgrid.io import InputFileError, read_bounded
+
     try:
-        d = yaml.safe_load(path.read_text())
+        d = yaml.safe_load(read_bounded(path, "rig"))  # at most 16 MiB (READ_LIMITS)
+    except InputFileError as e:
+        raise RigError(str(e)) from None
     except yaml.YAMLError as e:
         raise RigError(f"{path}: not valid YAML: {str(e).splitlines()[0]}") from None
+    except RecursionError:
+        raise RigError(f"{path}: nested deeper than the YAML reader goes; not a rig file") from None
+    except ValueError as e:  # PyYAML's int() of an integer of more than 4300 digits
+        raise RigError(f"{path}: a value YAML cannot read: {str(e).split(';')[0]}") from None
     return RecordingRig.from_dict(d, str(path))

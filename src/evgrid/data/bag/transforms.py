@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import math
 
 import numpy as np
@@ -10,19 +11,29 @@ from evgrid.geometry import SE3
 
 __all__ = ["TransformBuffer"]
 
+logger = logging.getLogger(__name__)
+
 
 class TransformBuffer:
     """The tf tree over time: per child frame its parent and samples; static edges apart.
 
     :meth:`lookup` gives the pose of a frame in an ancestor frame at a time, interpolating
     every dynamic edge on the way (and returning a stored sample itself when the time is one).
+
+    tf allows a frame one parent. A frame that a recording gives a second (dynamic) parent,
+    such as ``map -> base_link`` beside ``odom -> base_link``, keeps each parent's samples
+    apart (mixing them would jump between two poses); it is logged once and counted in
+    :attr:`second_parents` (child -> {parent: samples}), and a lookup climbs through the parent
+    from which the frame asked for is reached, the first one when both reach it.
     """
 
     def __init__(self, max_gap_us: int = 100_000):
         self.max_gap_us = max_gap_us
-        self._dyn: dict[str, tuple[str, list[int], list[tuple]]] = {}
+        # child -> {parent: (stamps, samples)}, parents in the order they appeared
+        self._dyn: dict[str, dict[str, tuple[list[int], list[tuple]]]] = {}
         self._static: dict[str, tuple[str, SE3]] = {}
-        self._arrays: dict[str, tuple[str, np.ndarray, np.ndarray, np.ndarray]] = {}
+        self._arrays: dict[tuple[str, str], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        self.second_parents: dict[str, dict[str, int]] = {}
 
     def add(
         self,
@@ -45,42 +56,86 @@ class TransformBuffer:
 
             self._static[child] = (parent, transform_to_se3(translation, q_xyzw))
             return True
-        p, ts, vals = self._dyn.setdefault(child, (parent, [], []))
+        edges = self._dyn.setdefault(child, {})
+        if parent not in edges and edges:
+            first = next(iter(edges))
+            logger.warning(
+                "tf: frame %r has a second parent %r besides %r (first at stamp %d us); tf "
+                "allows one parent a frame: their samples are kept apart, and a lookup uses the "
+                "parent that leads to the frame it asks for",
+                child,
+                parent,
+                first,
+                int(t_us),
+            )
+        if parent != next(iter(edges), parent):
+            seconds = self.second_parents.setdefault(child, {})
+            seconds[parent] = seconds.get(parent, 0) + 1
+        ts, vals = edges.setdefault(parent, ([], []))
         ts.append(int(t_us))
         vals.append((*translation, *q_xyzw))
-        self._arrays.pop(child, None)
+        self._arrays.pop((child, parent), None)
         return True
 
     def frames(self) -> set[str]:
         """Every frame named as a child or a parent."""
         out = set(self._dyn) | set(self._static)
-        out |= {p for p, *_ in self._dyn.values()} | {p for p, _ in self._static.values()}
+        out |= {p for edges in self._dyn.values() for p in edges}
+        out |= {p for p, _ in self._static.values()}
         return out
 
-    def _edge(self, child: str) -> tuple[str, np.ndarray, np.ndarray, np.ndarray]:
-        a = self._arrays.get(child)
+    def _edge(self, child: str, parent: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        a = self._arrays.get((child, parent))
         if a is None:
-            parent, ts, vals = self._dyn[child]
+            ts, vals = self._dyn[child][parent]
             t = np.asarray(ts, dtype=np.int64)
             v = np.asarray(vals, dtype=np.float64)
             order = np.argsort(t, kind="stable")
             t, v = t[order], v[order]
-            a = self._arrays[child] = (parent, t, v[:, :3], v[:, 3:])
+            a = self._arrays[(child, parent)] = (t, v[:, :3], v[:, 3:])
         return a
 
     def parent(self, child: str) -> str | None:
-        """The parent frame of ``child`` (dynamic edges first), or None for a root."""
+        """The parent frame of ``child`` (dynamic edges first, the first parent seen), or None
+        for a root."""
         child = child.lstrip("/")
         if child in self._dyn:
-            return self._dyn[child][0]
+            return next(iter(self._dyn[child]))
         if child in self._static:
             return self._static[child][0]
         return None
 
-    def _sample(self, child: str, t_us: int) -> SE3 | None:
+    def _parents(self, frame: str) -> list[str]:
+        out = list(self._dyn.get(frame, ()))
+        if frame in self._static and not out:
+            out.append(self._static[frame][0])
+        return out
+
+    def _parent_toward(self, frame: str, target: str) -> str | None:
+        """The parent of ``frame`` to climb through towards ``target``: the first from which
+        ``target`` is reached (the first parent when none is)."""
+        parents = self._parents(frame)
+        if len(parents) > 1:
+            for p in parents:
+                if self._reaches(p, target):
+                    return p
+        return parents[0] if parents else None
+
+    def _reaches(self, frame: str, target: str) -> bool:
+        todo, seen = [frame], set()
+        while todo:
+            f = todo.pop()
+            if f == target:
+                return True
+            if f not in seen:
+                seen.add(f)
+                todo.extend(self._parents(f))
+        return False
+
+    def _sample(self, child: str, parent: str, t_us: int) -> SE3 | None:
         from evgrid.ros import transform_to_se3
 
-        _, ts, trans, quat = self._edge(child)
+        ts, trans, quat = self._edge(child, parent)
         i = int(np.searchsorted(ts, t_us))
         if i < len(ts) and ts[i] == t_us:
             return transform_to_se3(trans[i], quat[i])
@@ -98,18 +153,17 @@ class TransformBuffer:
         """Times (us) over which every dynamic transform from ``source`` up to ``target`` has
         samples."""
         lo, hi = -(2**62), 2**62
-        frame, seen = source.lstrip("/"), set()
-        while frame != target.lstrip("/"):
+        target, frame, seen = target.lstrip("/"), source.lstrip("/"), set()
+        while frame != target:
             if frame in seen:
                 return None
             seen.add(frame)
-            if frame in self._dyn:
-                parent, ts, _, _ = self._edge(frame)
-                lo, hi = max(lo, int(ts[0])), min(hi, int(ts[-1]))
-            elif frame in self._static:
-                parent = self._static[frame][0]
-            else:
+            parent = self._parent_toward(frame, target)
+            if parent is None:
                 return None
+            if frame in self._dyn:
+                ts = self._edge(frame, parent)[0]
+                lo, hi = max(lo, int(ts[0])), min(hi, int(ts[-1]))
             frame = parent
         return lo, hi
 
@@ -123,15 +177,15 @@ class TransformBuffer:
             if frame in seen:
                 return None
             seen.add(frame)
+            parent = self._parent_toward(frame, target)
+            if parent is None:
+                return None
             if frame in self._dyn:
-                parent = self._dyn[frame][0]
-                step = self._sample(frame, t_us)
+                step = self._sample(frame, parent, t_us)
                 if step is None:
                     return None
-            elif frame in self._static:
-                parent, step = self._static[frame]
             else:
-                return None
+                step = self._static[frame][1]
             pose = step if pose is None else step @ pose
             frame = parent
         return pose if pose is not None else SE3.identity()
