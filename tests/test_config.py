@@ -134,7 +134,7 @@ def test_config_show_reads_every_kind_of_config_file(tmp_path):
     for name, d in files.items():
         (tmp_path / name).write_text(json.dumps(d))
         code = (
-            "import json, sys; from evgrid.cli.groups import load_config, document; "
+            "import json, sys, evgrid.cli.groups; from evgrid.config import load_config, document; "
             "print(json.dumps(document(load_config(sys.argv[1], None))))"
         )
         out = subprocess.run(

@@ -169,9 +169,8 @@ def show(
     """Print the config a map run would use (or a --config file of any kind) as JSON."""
     import json
 
-    from evgrid.cli.groups import load_config
-    from evgrid.cli.options import config_from_args
-    from evgrid.config import RunConfig, document
+    from evgrid.cli.options import config_from_args  # registers the cli's kinds of config file
+    from evgrid.config import RunConfig, document, load_config
 
     if defaults and (config or sets or ctx.args):
         raise typer.BadParameter("--defaults shows the defaults: give no other option")

@@ -1,6 +1,5 @@
-"""Option groups: dataclasses whose fields are a command's options (``--sim-dir`` is ``sim_dir``,
-parsed by :func:`evgrid.cli.options.options_to_overrides`), and the config files of ``evgrid
-simulate`` and ``evgrid bench``, which are their options (``format`` tags registered here)."""
+"""Option groups: dataclasses whose fields are a command's options (``--sim-dir`` is
+``sim_dir``); those of simulate and bench are also config files (their kinds registered here)."""
 
 from __future__ import annotations
 
@@ -9,11 +8,8 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from evgrid.config import FORMATS, KIND_MODULES, document, load_config, resolve_config, to_dict
+from evgrid.config import FORMATS, KIND_MODULES, document, resolve_config, to_dict
 from evgrid.validation import check_int, check_number
-
-__all__ = ["DataOptions", "TrainData", "SimulateOptions", "SimulateConfig", "BenchOptions"]
-__all__ += ["simulate_options", "bench_options", "write_bench_config", "load_config"]
 
 
 def _abs(path: str) -> str:
@@ -208,9 +204,8 @@ KIND_MODULES["evgrid-train"] = "evgrid.train_run"  # imports torch: only for suc
 
 
 def simulate_options(values: dict, config: str | Path | None = None) -> SimulateOptions:
-    """The options of a simulate run: the ``config.json`` at ``config`` (of an earlier run;
-    errors name the file and field), else the defaults, with ``values`` (field -> value, from
-    the command line) over them."""
+    """A simulate run's options: the ``config.json`` of an earlier run (errors name the file and
+    field), else the defaults, with ``values`` (field -> value, from the command line) over them."""
     if config is None:
         return SimulateOptions(**values)
     overrides = [(f"simulate.{k}", v) for k, v in values.items()]
@@ -218,13 +213,10 @@ def simulate_options(values: dict, config: str | Path | None = None) -> Simulate
 
 
 def bench_options(values: dict, config: str | os.PathLike | None = None) -> BenchOptions:
-    """The bench's options: the config file at ``config`` (errors name it), else the defaults,
-    with ``values`` (field -> value, the options given on the command line) over them."""
-    return (
-        resolve_config(BenchOptions, config, list(values.items()))
-        if config
-        else BenchOptions(**values)
-    )
+    """The bench's options: as :func:`simulate_options`, from a bench's ``.config.json``."""
+    if config is None:
+        return BenchOptions(**values)
+    return resolve_config(BenchOptions, config, list(values.items()))
 
 
 def write_bench_config(opts: BenchOptions, out: str | os.PathLike) -> Path:

@@ -1,11 +1,7 @@
-"""The one override parser: a command's words (``--m-u-min 0.4``, ``--scenes 2``, ``--set
-KEY=VALUE``) as overrides of config fields, in the order a config is resolved
-(:func:`evgrid.config.resolve_config` parses each value by its field's type).
-
-A command takes short options, each an override of one or more config fields (its table:
-:data:`MAP_OPTIONS`, :data:`SWEEP_OPTIONS`, :data:`TRAIN_OPTIONS`), and an option group, one
-option per field of a dataclass (:mod:`evgrid.cli.groups`); ``--set`` sets any field.
-"""
+"""The one override parser: a command's words as overrides of config fields, whose values
+:func:`evgrid.config.resolve_config` parses by the field's type. A command takes short options,
+each an override of config fields (its table), an option group (one option per field of a
+dataclass, :mod:`evgrid.cli.groups`), and ``--set KEY=VALUE`` for any field."""
 
 from __future__ import annotations
 
@@ -17,45 +13,27 @@ from pathlib import Path
 from typing import Any
 
 from evgrid.cli.groups import DataOptions, SimulateOptions, TrainData
-from evgrid.config import (
-    FALSE_WORDS,
-    TRUE_WORDS,
-    ConfigError,
-    SweepConfig,
-    field_type,
-    parse_value,
-    resolve_config,
-)
-from evgrid.sources import source_to_dict
 
-__all__ = ["MAP_OPTIONS", "SWEEP_OPTIONS", "TRAIN_OPTIONS", "parse_overrides"]
-__all__ += ["options_to_overrides", "config_from_args", "train_config_from_args", "options_help"]
+from evgrid.config import ConfigError, SweepConfig, resolve_config  # isort: skip
+from evgrid.config import FALSE_WORDS, TRUE_WORDS, field_type, parse_value  # isort: skip
+from evgrid.sources import source_to_dict
 
 #: The short options of a mapping run, each an override of config fields (``--set KEY=VALUE``
 #: sets any field). ``KEY=VALUE`` entries are implied, applied first.
 MAP_OPTIONS: dict[str, tuple[str, ...]] = {
-    "checkpoint": ("mapper.checkpoint",),
-    "m-u-min": ("mapper.fusion.m_u_min",),
-    "dynamic": ("mapper.dynamic.enabled",),
-    "dynamic-gate": ("mapper.dynamic.gate_maps",),
-    "update-rate": ("mapper.update_rate_hz",),
-    "maps": ("mapper.maps",),
+    "checkpoint": ("mapper.checkpoint",), "m-u-min": ("mapper.fusion.m_u_min",),
+    "dynamic": ("mapper.dynamic.enabled",), "dynamic-gate": ("mapper.dynamic.gate_maps",),
+    "update-rate": ("mapper.update_rate_hz",), "maps": ("mapper.maps",),
     "lidar-min-range": ("mapper.lidar.min_range_m",),
     "max-speed": ("mapper.poses.max_speed_mps",),
-    "self-returns": ("mapper.self_returns.mode",),
-    "body-box": (
+    "self-returns": ("mapper.self_returns.mode",), "body-box": (
         "mapper.self_returns.mode=box", "mapper.self_returns.body", "mapper.self_returns.prior",
     ),
-    "radar-filter": ("mapper.radar_filter.mode",),
-    "threads": ("mapper.threads",),
-    "save-maps": ("outputs.save_maps",),
-    "figures": ("outputs.figures",),
-    "export": ("outputs.exports",),
-    "mcap-window": ("outputs.mcap.window_m",),
-    "mcap-rate": ("outputs.mcap.rate_hz",),
-    "mcap-maps": ("outputs.mcap.maps",),
-    "mcap-layers": ("outputs.mcap.layers",),
-    "map-frame": ("mapper.frame",),
+    "radar-filter": ("mapper.radar_filter.mode",), "threads": ("mapper.threads",),
+    "save-maps": ("outputs.save_maps",), "figures": ("outputs.figures",),
+    "export": ("outputs.exports",), "mcap-window": ("outputs.mcap.window_m",),
+    "mcap-rate": ("outputs.mcap.rate_hz",), "mcap-maps": ("outputs.mcap.maps",),
+    "mcap-layers": ("outputs.mcap.layers",), "map-frame": ("mapper.frame",),
     "viewer": ("outputs.viewer",),
 }  # fmt: skip
 
@@ -159,18 +137,14 @@ def options_to_overrides(
     return implied + given, values
 
 
-def options_help(aliases: Mapping[str, tuple[str, ...]], plain: type | None = None) -> str:
-    """The options of :func:`options_to_overrides`, one a line, for a command's help."""
-    lines = [f"--{n}: {', '.join(keys)}" for n, keys in aliases.items()]
-    defaults = {f.name: f.default for f in dataclasses.fields(plain)} if plain else {}
-    lines += [f"--{n} (default {defaults[f]!r})" for n, (f, _) in _dashed(plain).items()]
-    return "\b\n" + "\n".join(lines)  # \b: click keeps the lines as they are
-
-
 def command_options_help(command: str) -> str:
-    """The end of a command's help: the options it takes from the config."""
+    """The end of a command's help: the options it takes from the config, one a line."""
     aliases, plain = COMMAND_OPTIONS.get(command, COMMAND_OPTIONS["map"])
-    return f"Config options (--set KEY=VALUE sets any field):\n\n{options_help(aliases, plain)}"
+    lines = [f"--{n}: {', '.join(keys)}" for n, keys in aliases.items()]
+    defaults = {f.name: f.default for f in dataclasses.fields(plain)}
+    lines += [f"--{n} (default {defaults[f]!r})" for n, (f, _) in _dashed(plain).items()]
+    # \b: click keeps the lines as they are
+    return "Config options (--set KEY=VALUE sets any field):\n\n\b\n" + "\n".join(lines)
 
 
 def _file(path: Any, resume: Any) -> Any:
