@@ -8,13 +8,13 @@ import pytest
 from typer.testing import CliRunner
 
 from evgrid.cli import app
+from evgrid.cli.options import config_from_args
 from evgrid.config import (
     ConfigError,
     MapperConfig,
     OutputConfig,
     RunConfig,
     SweepConfig,
-    config_from_args,
     document,
     from_dict,
     load_config,
@@ -124,9 +124,8 @@ def test_config_show_reads_every_kind_of_config_file(tmp_path):
     import subprocess
     import sys
 
+    from evgrid.cli.groups import BenchOptions, SimulateConfig, SimulateOptions
     from evgrid.config import document
-    from evgrid_sim.bench import BenchOptions
-    from evgrid_sim.writer import SimulateConfig, SimulateOptions
 
     files = {
         "sim.json": document(SimulateConfig(SimulateOptions(seed=7))),
@@ -135,7 +134,7 @@ def test_config_show_reads_every_kind_of_config_file(tmp_path):
     for name, d in files.items():
         (tmp_path / name).write_text(json.dumps(d))
         code = (
-            "import json, sys; from evgrid.config import load_config, document; "
+            "import json, sys, evgrid.cli.groups; from evgrid.config import load_config, document; "
             "print(json.dumps(document(load_config(sys.argv[1], None))))"
         )
         out = subprocess.run(
@@ -147,7 +146,8 @@ def test_config_show_reads_every_kind_of_config_file(tmp_path):
 
 def test_a_training_run_writes_a_config_that_trains_again(tmp_path):
     pytest.importorskip("torch")
-    from evgrid.train_run import TrainRunConfig, train_config_from_args
+    from evgrid.cli.options import train_config_from_args
+    from evgrid.train_run import TrainRunConfig
 
     args = [
         "--scenes", "1", "--val-scenes", "1", "--duration", "0.6", "--epochs", "1",

@@ -138,7 +138,8 @@ def test_golden_mapper_maps_with_the_score_off():
 
 
 def test_dynamic_on_off_is_a_named_override():
-    from evgrid.config import MAP_OPTIONS, RunConfig, options_to_overrides, resolve_config
+    from evgrid.cli.options import MAP_OPTIONS, options_to_overrides
+    from evgrid.config import RunConfig, resolve_config
 
     assert MAP_OPTIONS["dynamic"] == ("mapper.dynamic.enabled",)
     # a bool option: --dynamic=on|off, or --dynamic / --no-dynamic
@@ -539,7 +540,8 @@ def test_left_behind_hand_computed():
 
 
 def test_dynamic_options_take_a_value_after_a_space():
-    from evgrid.config import MAP_OPTIONS, RunConfig, options_to_overrides, resolve_config
+    from evgrid.cli.options import MAP_OPTIONS, options_to_overrides
+    from evgrid.config import RunConfig, resolve_config
 
     for args, on, gate in (
         (["--dynamic", "off"], False, False),

@@ -6,14 +6,8 @@ import json
 
 import pytest
 
-from evgrid.config import (
-    MAP_OPTIONS,
-    ConfigError,
-    MapperConfig,
-    OutputConfig,
-    RunConfig,
-    config_from_args,
-)
+from evgrid.cli.options import MAP_OPTIONS, config_from_args
+from evgrid.config import ConfigError, MapperConfig, OutputConfig, RunConfig
 from evgrid.export.mcap import McapParams
 from evgrid.export.nav2 import Nav2Params
 from evgrid.export.rerun import RerunParams

@@ -20,15 +20,11 @@ from typer.testing import CliRunner
 pytest.importorskip("torch")
 
 from evgrid.cli import app  # noqa: E402
+from evgrid.cli.options import train_config_from_args  # noqa: E402
 from evgrid.config import document, load_config  # noqa: E402
 from evgrid.ism.deep import default_checkpoint  # noqa: E402
 from evgrid.ism.evnet import load_checkpoint  # noqa: E402
-from evgrid.train_run import (  # noqa: E402
-    TrainRunConfig,
-    _build_caches,
-    _wait_for_cache,
-    train_config_from_args,
-)
+from evgrid.train_run import TrainRunConfig, _build_caches, _wait_for_cache  # noqa: E402
 
 runner = CliRunner()
 

@@ -5,7 +5,7 @@ naming its source and scene); ``evgrid map --config OUT/config.json`` reads it b
 same scenes the same way (KISS-ICP's rule: a results folder reproduces its run). A config is
 resolved in one place, :func:`resolve_config`: the file (or the defaults), then overrides
 ``KEY=VALUE`` with dotted keys such as ``mapper.fusion.m_u_min=0.4``; the command line's options
-are such overrides (:data:`MAP_OPTIONS`). :func:`to_dict` and :func:`from_dict` serialise every
+are such overrides (evgrid.cli.options). :func:`to_dict` and :func:`from_dict` serialise every
 parameter dataclass of evgrid: unknown keys and bad values are errors naming the field.
 See docs/config.md.
 """
@@ -51,11 +51,8 @@ __all__ = [
     "load_config",
     "load_run_config",
     "resolve_config",
-    "parse_overrides",
-    "options_to_overrides",
-    "MAP_OPTIONS",
-    "SWEEP_OPTIONS",
-    "config_from_args",
+    "parse_value",
+    "field_type",
     "available_cores",
 ]
 
@@ -244,7 +241,8 @@ class SweepConfig:
             raise ValueError(f"SweepConfig.values must be masses in [0, 1], got {self.values}")
 
 
-#: The ``format`` tag of each kind of config file (evgrid.train_run adds ``evgrid-train``).
+#: The ``format`` tag of each kind of config file (evgrid.train_run adds ``evgrid-train``, the
+#: command line those of ``evgrid simulate`` and ``evgrid bench``).
 FORMATS: dict[type, str] = {RunConfig: "evgrid-run", SweepConfig: "evgrid-sweep"}
 
 
@@ -327,12 +325,9 @@ def _read_json(path: Path) -> Any:
         raise ConfigError(f"{path}: not a readable JSON config ({e})") from None
 
 
-#: The kinds of config file that other modules own, imported when a file names them.
-_KIND_OWNERS = {
-    "evgrid-train": "evgrid.train_run",
-    "evgrid-simulate": "evgrid_sim.writer",
-    "evgrid-bench": "evgrid_sim.bench",
-}
+#: Kinds of config file whose owner registers them in :data:`FORMATS` at its import, and is
+#: imported only when a file names it (kind -> module); the command line fills it.
+KIND_MODULES: dict[str, str] = {}
 
 
 def load_config(path: str | os.PathLike, cls: type | None = RunConfig) -> Any:
@@ -342,8 +337,8 @@ def load_config(path: str | os.PathLike, cls: type | None = RunConfig) -> Any:
     if cls is None:
         d = _read_json(Path(path))
         tag = d.get("format", FORMATS[RunConfig]) if isinstance(d, dict) else None
-        if tag in _KIND_OWNERS:
-            importlib.import_module(_KIND_OWNERS[tag])  # registers its kind in FORMATS
+        if tag in KIND_MODULES:
+            importlib.import_module(KIND_MODULES[tag])  # registers its kind in FORMATS
         kinds = {t: c for c, t in FORMATS.items()}
         if tag not in kinds:
             raise ConfigError(f"{path}: not an evgrid config (format {tag!r}; known {list(kinds)})")
@@ -400,7 +395,7 @@ def _override(cls: type, d: dict, key: str, value: Any, where: str) -> None:
             tp = Any
         if i == len(parts) - 1:
             if isinstance(value, str):
-                value = _parse(tp, value, f"{where}: {key}")
+                value = parse_value(tp, value, f"{where}: {key}")
             if part in PATH_KEYS and isinstance(value, str):
                 value = os.path.abspath(value)  # given on the command line: from here
             node[part] = value
@@ -422,11 +417,13 @@ def _optional_dataclass(tp: Any) -> Any:
     return None
 
 
-_TRUE, _FALSE = ("true", "yes", "on", "1"), ("false", "no", "off", "0")
+#: The words a boolean field reads from text (docs/config.md).
+TRUE_WORDS, FALSE_WORDS = ("true", "yes", "on", "1"), ("false", "no", "off", "0")
 
 
-def _parse(tp: Any, text: str, where: str) -> Any:
-    """A command-line string as a value of type ``tp`` (plain JSON, as a config file holds)."""
+def parse_value(tp: Any, text: str, where: str) -> Any:
+    """Text (an override's value) as a value of a field of type ``tp``, in plain JSON as a
+    config file holds it."""
     origin, args = typing.get_origin(tp), typing.get_args(tp)
     s = text.strip()
     try:
@@ -434,11 +431,11 @@ def _parse(tp: Any, text: str, where: str) -> Any:
             if s.lower() in ("none", "null") and type(None) in args:
                 return None
             inner = [a for a in args if a is not type(None)]
-            return _parse(inner[0], text, where) if len(inner) == 1 else json.loads(s)
+            return parse_value(inner[0], text, where) if len(inner) == 1 else json.loads(s)
         if tp is bool:
-            if s.lower() not in _TRUE + _FALSE:
+            if s.lower() not in TRUE_WORDS + FALSE_WORDS:
                 raise ValueError(f"expected true or false, got {text!r}")
-            return s.lower() in _TRUE
+            return s.lower() in TRUE_WORDS
         if tp in (int, float):
             return tp(s)
         if tp is str:
@@ -448,14 +445,14 @@ def _parse(tp: Any, text: str, where: str) -> Any:
         if origin is tuple:
             parts = [p.strip() for p in s.split(",") if p.strip()]
             kinds = [args[0]] * len(parts) if len(args) == 2 and args[1] is Ellipsis else args
-            return [_parse(k, p, where) for k, p in zip(kinds, parts)]
+            return [parse_value(k, p, where) for k, p in zip(kinds, parts)]
         if dataclasses.is_dataclass(tp):  # "a,b,c": its fields in order (a box: x0,y0,...)
             fs = [f for f in dataclasses.fields(tp) if f.init]
             parts = s.split(",")
             hints = typing.get_type_hints(tp)
             if len(parts) != len(fs):
                 raise ValueError(f"expected {len(fs)} values {[f.name for f in fs]}, got {text!r}")
-            return {f.name: _parse(hints[f.name], p, where) for f, p in zip(fs, parts)}
+            return {f.name: parse_value(hints[f.name], p, where) for f, p in zip(fs, parts)}
     except ConfigError:
         raise
     except (ValueError, json.JSONDecodeError) as e:
@@ -466,49 +463,9 @@ def _parse(tp: Any, text: str, where: str) -> Any:
         return text
 
 
-def parse_overrides(items: Iterable[str]) -> list[tuple[str, str]]:
-    """``["mapper.fusion.m_u_min=0.4", ...]`` (``--set``) as ``(key, text)`` pairs."""
-    out = []
-    for item in items:
-        key, sep, value = item.partition("=")
-        if not sep or not key.strip():
-            raise ConfigError(f"--set {item!r}: expected KEY=VALUE, e.g. mapper.fusion.m_u_min=0.4")
-        out.append((key.strip(), value))
-    return out
-
-
-#: The command line's short options for a mapping run, each an override of config fields
-#: (``--set KEY=VALUE`` sets any field). ``KEY=VALUE`` entries are implied, applied first.
-MAP_OPTIONS: dict[str, tuple[str, ...]] = {
-    "checkpoint": ("mapper.checkpoint",),
-    "m-u-min": ("mapper.fusion.m_u_min",),
-    "dynamic": ("mapper.dynamic.enabled",),
-    "dynamic-gate": ("mapper.dynamic.gate_maps",),
-    "update-rate": ("mapper.update_rate_hz",),
-    "maps": ("mapper.maps",),
-    "lidar-min-range": ("mapper.lidar.min_range_m",),
-    "max-speed": ("mapper.poses.max_speed_mps",),
-    "self-returns": ("mapper.self_returns.mode",),
-    "body-box": (
-        "mapper.self_returns.mode=box",
-        "mapper.self_returns.body",
-        "mapper.self_returns.prior",
-    ),
-    "radar-filter": ("mapper.radar_filter.mode",),
-    "threads": ("mapper.threads",),
-    "save-maps": ("outputs.save_maps",),
-    "figures": ("outputs.figures",),
-    "export": ("outputs.exports",),
-    "mcap-window": ("outputs.mcap.window_m",),
-    "mcap-rate": ("outputs.mcap.rate_hz",),
-    "mcap-maps": ("outputs.mcap.maps",),
-    "mcap-layers": ("outputs.mcap.layers",),
-    "map-frame": ("mapper.frame",),
-    "viewer": ("outputs.viewer",),
-}
-
-
-def _field_type(cls: type, key: str) -> Any:
+def field_type(cls: type, key: str) -> Any:
+    """The type of the field at dotted ``key`` of the config class ``cls`` (Any inside a
+    free-form section)."""
     tp: Any = cls
     for part in key.split("."):
         dc = _optional_dataclass(tp)
@@ -516,142 +473,3 @@ def _field_type(cls: type, key: str) -> Any:
             return Any
         tp = typing.get_type_hints(dc).get(part, Any)
     return tp
-
-
-def options_to_overrides(
-    args: Sequence[str],
-    aliases: Mapping[str, tuple[str, ...]],
-    cls: type,
-    plain: type | None = None,
-) -> tuple[list[tuple[str, str]], dict[str, Any]]:
-    """Parse ``--name VALUE``, ``--name=VALUE``, ``--flag [on|off]`` and ``--no-flag`` options.
-
-    An option of ``aliases`` becomes overrides of ``cls``'s fields; an option named after a
-    field of the dataclass ``plain`` (``--sim-dir`` for ``sim_dir``) is returned by field name,
-    parsed by its type (a tuple field repeats). Returns ``(overrides, plain values)``.
-    """
-    plain_types = typing.get_type_hints(plain) if plain else {}
-    implied: list[tuple[str, str]] = []
-    given: list[tuple[str, str]] = []
-    values: dict[str, Any] = {}
-    i = 0
-    while i < len(args):
-        arg = args[i]
-        if not arg.startswith("--"):
-            raise ConfigError(f"unexpected argument {arg!r}")
-        name, eq, text = arg[2:].partition("=")
-        negated = name.startswith("no-") and name[3:] in {**aliases, **_dashed(plain_types)}
-        name = name[3:] if negated else name
-        if name in aliases:
-            keys = [k for k in aliases[name] if "=" not in k]
-            tp = _field_type(cls, keys[0])
-        elif name in _dashed(plain_types):
-            tp = plain_types[_dashed(plain_types)[name]]
-        else:
-            known = sorted([*aliases, *_dashed(plain_types)])
-            raise ConfigError(f"no such option --{name}; options: --{', --'.join(known)}")
-        if tp is bool and not eq:
-            # --flag, --no-flag, or --flag on|off (a value with a space, as for other options)
-            value = args[i + 1].strip().lower() if i + 1 < len(args) and not negated else ""
-            if value in _TRUE + _FALSE:
-                i += 1
-                text = value
-            else:
-                text = "false" if negated else "true"
-        elif not eq:
-            i += 1
-            if i >= len(args):
-                raise ConfigError(f"--{name} needs a value")
-            text = args[i]
-        i += 1
-        if name in aliases:
-            for k in aliases[name]:
-                if "=" in k:
-                    implied.append(tuple(k.split("=", 1)))  # type: ignore[arg-type]
-                else:
-                    given.append((k, text))
-            continue
-        field_name = _dashed(plain_types)[name]
-        where = f"--{name}"
-        if typing.get_origin(tp) is tuple:  # repeatable
-            values[field_name] = (*values.get(field_name, ()), text)
-        else:
-            values[field_name] = _parse(tp, text, where)
-    return implied + given, values
-
-
-def _dashed(hints: Mapping[str, Any]) -> dict[str, str]:
-    return {n.replace("_", "-"): n for n in hints}
-
-
-def options_help(aliases: Mapping[str, tuple[str, ...]], plain: type | None = None) -> str:
-    """The options of :func:`options_to_overrides`, one a line, for a command's help."""
-    lines = [f"--{n}: {', '.join(keys)}" for n, keys in aliases.items()]
-    if plain is not None:
-        defaults = {f.name: f.default for f in dataclasses.fields(plain)}
-        for n, f in _dashed(typing.get_type_hints(plain)).items():
-            lines.append(f"--{n} (default {defaults[f]!r})")
-    return "\b\n" + "\n".join(lines)  # \b: click keeps the lines as they are
-
-
-#: The options of ``evgrid sweep-m-u-min``: the mapper's, and the values swept.
-SWEEP_OPTIONS: dict[str, tuple[str, ...]] = {
-    **{k: v for k, v in MAP_OPTIONS.items() if v[0].startswith("mapper.")},
-    "values": ("values",),
-}
-
-
-def config_from_args(
-    cls: type,
-    args: Sequence[str],
-    path: str | os.PathLike | None = None,
-    sets: Iterable[str] = (),
-    preset: Iterable[tuple[str, Any]] = (),
-    data_defaults: Mapping[str, Any] | None = None,
-    resume: str | os.PathLike | None = None,
-) -> Any:
-    """A run's config (:class:`RunConfig` or :class:`SweepConfig`) from command-line words: the
-    file at ``path`` (else, when resuming the results folder ``resume``, its config.json; else
-    the defaults), the command's ``preset``, the scene source of the data options
-    (:class:`evgrid.sources.DataOptions`, over ``data_defaults``; given or without a file, they
-    replace the file's scenes), the short options of :data:`MAP_OPTIONS` (or
-    :data:`SWEEP_OPTIONS`), then ``--set`` overrides, in that order."""
-    from evgrid.sources import DataOptions, source_to_dict
-
-    if path is None and resume and (Path(resume) / "config.json").is_file():
-        path = Path(resume) / "config.json"  # the run being continued
-
-    aliases = SWEEP_OPTIONS if cls is SweepConfig else MAP_OPTIONS
-    overrides, data = options_to_overrides(args, aliases, cls, DataOptions)
-    scene = data.pop("scene", None)
-    source: list[tuple[str, Any]] = []
-    if data or path is None:
-        src = DataOptions(**{**(data_defaults or {}), **data}).source()
-        source = [("source", source_to_dict(src)), ("scenes", None)]
-    if scene:
-        source.append(("scenes", list(scene)))
-    return resolve_config(cls, path, [*preset, *source, *overrides, *parse_overrides(sets)])
-
-
-#: Each command's config options, for its help: (short options table, plain options class).
-COMMAND_OPTIONS: dict[str, tuple[str | None, str]] = {
-    "map": ("evgrid.config:MAP_OPTIONS", "evgrid.sources:DataOptions"),
-    "train": ("evgrid.train_run:TRAIN_OPTIONS", "evgrid.train_run:TrainData"),
-    "simulate": (None, "evgrid_sim.writer:SimulateOptions"),
-    "sweep-m-u-min": ("evgrid.config:SWEEP_OPTIONS", "evgrid.sources:DataOptions"),
-}
-
-
-def command_options_help(command: str) -> str:
-    """The end of a command's help: the options it takes from the config (evaluate, demo and
-    ``config show`` take those of map)."""
-    import importlib
-
-    def load(spec: str | None) -> Any:
-        if spec is None:
-            return {}
-        module, _, name = spec.partition(":")
-        return getattr(importlib.import_module(module), name)
-
-    aliases, plain = map(load, COMMAND_OPTIONS.get(command, COMMAND_OPTIONS["map"]))
-    return f"Config options (--set KEY=VALUE sets any field):\n\n{options_help(aliases, plain)}"

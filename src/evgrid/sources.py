@@ -35,7 +35,6 @@ __all__ = [
     "source_from_dict",
     "scenes_of",
     "fixed_frame_of",
-    "DataOptions",
 ]
 
 #: The simulator's fixed frame: its towns' ``world`` coordinates, where its ego poses lie.
@@ -345,60 +344,3 @@ def source_from_dict(d: dict) -> SceneSource:
         )
     fields = {k: v for k, v in d.items() if k != "kind"}
     return from_dict(kinds[d["kind"]], fields, f"config source ({d['kind']})")
-
-
-@dataclass(frozen=True)
-class DataOptions:
-    """The command line's data options, one field each (``--sim-dir`` is ``sim_dir``): the
-    simulator by default, or a folder of simulated scenes, nuScenes, or recordings."""
-
-    nuscenes: str | None = None  # a nuScenes dataroot (needs evgrid[nuscenes])
-    version: str = "v1.0-trainval"
-    split: str = "val"  # train, val (nuScenes: any official split), or all
-    sim_dir: str | None = None  # a folder written by `evgrid simulate`
-    bag: tuple[str, ...] = ()  # recordings, one scene each (needs --rig)
-    rig: str | None = None
-    scenes: int = 3  # simulator: scenes of the split
-    seed: int = 0  # simulator: the first seed drawn from
-    duration: float = 20.0  # simulator: seconds a scene
-    scene: tuple[str, ...] = ()  # only these scenes
-
-    def __post_init__(self) -> None:
-        from evgrid.validation import check_int, check_number
-
-        check_int("", "--scenes", self.scenes, min=1)
-        check_int("", "--seed", self.seed, min=0)
-        check_number("", "--duration", self.duration, min=0.0, min_open=True)
-
-    def source(self) -> SceneSource:
-        """The scene source these options name (the simulator when none is given); paths are
-        made absolute, so that a run's config.json holds where its data is."""
-        given = [
-            n
-            for n, v in (
-                ("--nuscenes", self.nuscenes),
-                ("--sim-dir", self.sim_dir),
-                ("--bag", self.bag),
-            )
-            if v
-        ]
-        if len(given) > 1:
-            raise ValueError(f"give one data source, not {' and '.join(given)}")
-        split = None if self.split == "all" else self.split
-        if self.bag:
-            if self.rig is None:
-                raise ValueError("--bag needs --rig RIG.yaml (topics, frames, fields; docs/ros.md)")
-            return BagSource(tuple(_abs(b) for b in self.bag), _abs(self.rig))
-        if self.rig is not None:
-            raise ValueError("--rig goes with --bag")
-        if self.nuscenes is not None:
-            return NuScenesSource(_abs(self.nuscenes), self.version, split)
-        if self.sim_dir is not None:
-            return SimFilesSource(_abs(self.sim_dir), split)
-        if split is None:
-            return SimSource(tuple(range(self.seed, self.seed + self.scenes)), self.duration)
-        return SimSource.split(split, self.scenes, self.seed, self.duration)
-
-
-def _abs(path: str) -> str:
-    return os.path.abspath(os.path.expanduser(path))

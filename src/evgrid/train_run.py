@@ -20,17 +20,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from evgrid.config import FORMATS, document, resolve_config, to_dict
+from evgrid.config import FORMATS, document, resolve_config
 from evgrid.learn.train import TrainConfig
 
 __all__ = [
     "TrainRunConfig",
-    "TrainData",
-    "TRAIN_OPTIONS",
     "resolve_train_config",
-    "train_config_from_args",
     "run_training",
-    "run_transfer",
     "data_record",
 ]
 
@@ -54,102 +50,22 @@ class TrainRunConfig:
 
 FORMATS[TrainRunConfig] = "evgrid-train"
 
-#: ``evgrid train``'s short options, each an override of :class:`TrainRunConfig`'s fields.
-TRAIN_OPTIONS: dict[str, tuple[str, ...]] = {
-    "epochs": ("train.epochs",),
-    "batch-size": ("train.batch_size",),
-    "lr": ("train.lr",),
-    "workers": ("train.workers",),
-    "frame-stride": ("train.frame_stride",),
-    "width": ("train.model.width",),
-    "depth": ("train.model.depth",),
-    "self-returns": ("train.self_returns.mode",),
-    "body-box": (
-        "train.self_returns.mode=box",
-        "train.self_returns.body",
-        "train.self_returns.prior",
-    ),
-    "radar-filter": ("train.radar_filter.mode",),
-    "init": ("train.init",),
-    "precision": ("train.precision",),
-    "engine": ("train.engine",),
-    "cache-workers": ("train.cache_workers",),
-}
-
-
-@dataclass(frozen=True)
-class TrainData:
-    """``evgrid train``'s data options (``--val-bag`` is ``val_bag``): the simulator by default
-    (``scenes`` training and ``val_scenes`` validation scenes from ``seed`` on, each scene's radar
-    drawn from the training ranges unless ``random_radar`` is off), nuScenes splits, or
-    recordings (``bag`` and ``val_bag`` with their ``rig``)."""
-
-    nuscenes: str | None = None
-    version: str = "v1.0-trainval"
-    train_split: str = "train"
-    val_split: str = "val"
-    bag: tuple[str, ...] = ()
-    val_bag: tuple[str, ...] = ()
-    rig: str | None = None
-    scenes: int = 40
-    val_scenes: int = 10
-    seed: int = 0  # the training run's seed, and the first simulator seed
-    duration: float = 20.0
-    random_radar: bool = True
-
-    def overrides(self) -> list[tuple[str, Any]]:
-        """The config fields these options decide: both sources, the seed, the radar ranges."""
-        from evgrid.sources import BagSource, NuScenesSource, SimSource, source_to_dict
-        from evgrid_sim.radar_variants import TRAINING_RANGES
-
-        ranges = None
-        if self.bag or self.val_bag:
-            if not (self.bag and self.val_bag and self.rig) or self.nuscenes is not None:
-                raise ValueError(
-                    "training on recordings needs --bag, --val-bag and --rig (and no --nuscenes)"
-                )
-            rig = os.path.abspath(self.rig)
-            tr = BagSource(tuple(map(os.path.abspath, self.bag)), rig)
-            va = BagSource(tuple(map(os.path.abspath, self.val_bag)), rig)
-        elif self.nuscenes is not None:
-            root = os.path.abspath(self.nuscenes)
-            tr = NuScenesSource(root, self.version, self.train_split)
-            va = NuScenesSource(root, self.version, self.val_split)
-        else:
-            ranges = TRAINING_RANGES if self.random_radar else None
-            tr = SimSource.split(
-                "train", self.scenes, self.seed, self.duration, radar_ranges=ranges
-            )
-            va = SimSource.split(
-                "val", self.val_scenes, self.seed, self.duration, radar_ranges=ranges
-            )
-        return [
-            ("source", source_to_dict(tr)),
-            ("val_source", source_to_dict(va)),
-            ("train.seed", self.seed),
-            ("train.radar_ranges", to_dict(ranges) if ranges else None),
-        ]
-
 
 def resolve_train_config(
-    path: str | os.PathLike | None,
-    overrides: list[tuple[str, Any]],
-    data: TrainData | None,
+    path: str | os.PathLike | None, overrides: list[tuple[str, Any]]
 ) -> TrainRunConfig:
-    """The training run's config: the file (else the defaults), the data options (when given,
-    or when there is no file), then the overrides. With ``train.init`` (a checkpoint's path, or
+    """The training run's config: the file (else the defaults), then the overrides (the
+    command line's data options among them). With ``train.init`` (a checkpoint's path, or
     ``shipped``) the run fine-tunes that checkpoint: its architecture, grid and input image
     (:func:`evgrid.learn.train.fine_tune_config`)."""
     from evgrid.learn.train import checkpoint_path
 
-    if path is None and data is None:
-        data = TrainData()
     # a checkpoint's name becomes its path here: a config file holds paths (made absolute)
     overrides = [
         (k, checkpoint_path(v) if k == "train.init" and isinstance(v, str) else v)
         for k, v in overrides
     ]
-    run = resolve_config(TrainRunConfig, path, [*(data.overrides() if data else []), *overrides])
+    run = resolve_config(TrainRunConfig, path, overrides)
     return _fine_tuned(run) if run.train.init is not None else run
 
 
@@ -348,69 +264,3 @@ def _wait_for_cache(
         if timeout_s is not None and time.monotonic() - t0 > timeout_s:
             raise TimeoutError(f"rank 0 did not build the cache {cache} in {timeout_s:.0f} s")
         time.sleep(poll_s)
-
-
-def train_config_from_args(
-    args: list[str],
-    path: str | os.PathLike | None = None,
-    sets: list[str] = (),
-    resume: str | os.PathLike | None = None,
-) -> TrainRunConfig:
-    """``evgrid train``'s config from command-line words: the file (else, resuming the run
-    folder ``resume``, its config.json; else the defaults), the data options of
-    :class:`TrainData`, the short options of :data:`TRAIN_OPTIONS`, then ``--set``."""
-    from evgrid.config import options_to_overrides, parse_overrides
-
-    if path is None and resume and (Path(resume) / "config.json").is_file():
-        path = Path(resume) / "config.json"  # the run being continued
-
-    overrides, data = options_to_overrides(args, TRAIN_OPTIONS, TrainRunConfig, TrainData)
-    overrides += parse_overrides(sets)
-    return resolve_train_config(path, overrides, TrainData(**data) if data else None)
-
-
-def _transfer_one(args: tuple) -> dict:
-    from evgrid_sim.transfer import measure_transfer
-
-    ckpt, name, source, cache = args
-    return measure_transfer(ckpt, {name: source}, cache)[name]
-
-
-def run_transfer(
-    out: str | os.PathLike,
-    checkpoint: str | os.PathLike | None,
-    scenes: int,
-    seed: int,
-    duration_s: float,
-    progress: Callable[[str], None] | None = None,
-    engine: str = "local",
-    workers: int = 1,
-) -> str:
-    """``evgrid transfer``: score a checkpoint's single frames on radars inside and outside its
-    training ranges, one radar a job (:func:`evgrid.engine.fan_out`); writes ``transfer.json``
-    and ``transfer.md``, returns the Markdown. A radar whose job fails is an error naming it."""
-    from evgrid.engine import fan_out
-    from evgrid.io import atomic_write_text, write_json
-    from evgrid.ism.deep import default_checkpoint
-    from evgrid_sim.transfer import transfer_markdown, transfer_sources
-
-    out = Path(out)
-    sources = transfer_sources(scenes, seed, duration_s)
-    ckpt = str(checkpoint or default_checkpoint())
-    out.mkdir(parents=True, exist_ok=True)
-    jobs = [(name, (ckpt, name, src, str(out / "cache"))) for name, src in sources.items()]
-    found, failed = {}, {}
-    for o in fan_out(_transfer_one, jobs, engine=engine, workers=workers):
-        found[o.key] = o.result
-        if not o.ok:
-            failed[o.key] = o.error
-        if progress:
-            progress(o.key)
-    if failed:
-        raise RuntimeError(f"transfer: radar(s) failed: {failed}")
-    res = {name: found[name] for name in sources}  # the order of the radars, not of finishing
-    meta = {"checkpoint": str(ckpt), "scenes": scenes, "seed": seed, "duration_s": duration_s}
-    write_json(out / "transfer.json", {**meta, "radars": res})
-    text = transfer_markdown(res)
-    atomic_write_text(out / "transfer.md", text)
-    return text

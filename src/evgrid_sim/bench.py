@@ -30,70 +30,10 @@ import platform
 import tempfile
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
-from pathlib import Path
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
-
-from evgrid.validation import check_int, check_number
-
-#: The ``format`` tag of a bench's config file.
-CONFIG_FORMAT = "evgrid-bench"
-
-
-@dataclass(frozen=True)
-class BenchOptions:
-    """What ``evgrid bench`` runs (its options; ``--end-to-end`` is ``end_to_end``), kept
-    beside its ``--out FILE`` as ``FILE``'s stem + ``.config.json`` so that ``evgrid bench
-    --config`` runs the same bench again."""
-
-    duration: float = 6.0
-    checkpoint: str | None = None
-    end_to_end: float | None = None
-    repeats: int = 3
-
-    def __post_init__(self) -> None:
-        check_number("", "--duration", self.duration, min=0.0, min_open=True)
-        if self.end_to_end is not None:
-            check_number("", "--end-to-end", self.end_to_end, min=0.0)
-        check_int("", "--repeats", self.repeats, min=1)
-
-
-def _register() -> None:
-    from evgrid.config import FORMATS
-
-    FORMATS[BenchOptions] = CONFIG_FORMAT  # the config file tags and checks its kind
-
-
-_register()  # at import, so that config.load_config knows the kind
-
-
-def bench_options(values: dict, config: str | os.PathLike | None = None) -> BenchOptions:
-    """The bench's options: the config file at ``config`` (errors name it), else the defaults,
-    with ``values`` (field -> value, the options given on the command line) over them."""
-    if config is None:
-        return BenchOptions(**values)
-    from evgrid.config import resolve_config
-
-    _register()
-    return resolve_config(BenchOptions, config, list(values.items()))
-
-
-def bench_config_path(out: str | os.PathLike) -> Path:
-    """Where the config of a bench written to ``out`` goes: ``bench.json`` ->
-    ``bench.config.json``, so that benches written into one folder keep theirs apart."""
-    out = Path(out)
-    return out.with_name(out.stem + ".config.json")
-
-
-def write_bench_config(opts: BenchOptions, out: str | os.PathLike) -> Path:
-    """Write ``opts`` beside the bench result ``out`` (:func:`bench_config_path`)."""
-    from evgrid.config import document
-    from evgrid.io import write_json
-
-    _register()
-    return write_json(bench_config_path(out), document(opts))
 
 
 def timings_ms(fn, prep=None, repeat: int = 20) -> np.ndarray:

@@ -14,151 +14,45 @@ from __future__ import annotations
 import json
 import shutil
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from evgrid.io import write_json
-from evgrid.validation import check_int, check_number
 
-__all__ = [
-    "SimulateOptions",
-    "SimulateConfig",
-    "FORMATS",
-    "CONFIG_FORMAT",
-    "check_out",
-    "simulate_options",
-    "write_simulated",
-]
+__all__ = ["FORMATS", "check_out", "write_simulated"]
 
-#: The ``format`` tag of the ``config.json`` that ``evgrid simulate`` writes.
-CONFIG_FORMAT = "evgrid-simulate"
-
-#: ``--format`` -> (rosbags storage, file suffix) of the recording formats.
+#: The recording formats -> (rosbags storage, file suffix).
 _BAGS = {"ros2": ("mcap", ""), "ros1": ("ros1", ".bag"), "mcap": ("plain-mcap", ".mcap")}
 FORMATS: tuple[str, ...] = ("npz", "nuscenes", *_BAGS)
 
 
-@dataclass(frozen=True)
-class SimulateOptions:
-    """What ``evgrid simulate`` writes; each field is an option (``--lidar-rate`` is
-    ``lidar_rate``). ``radar_channels``: ``NAME`` or ``NAME=MOUNT`` (a nuScenes radar position),
-    comma-separated (default: nuScenes' five); ``radar_rate``: one rate in Hz or one per channel;
-    ``sweep_faults``: the fraction of radar sweeps dropped, of those repeated, and of those
-    delivered late (each); ``ego_returns``: lidar returns from the vehicle's own body."""
-
-    scenes: int = 1
-    seed: int = 0
-    format: str = "npz"
-    duration: float = 20.0
-    environment: str = "mixed"
-    version: str = "v1.0-sim"
-    lidar_rate: float = 20.0
-    radar_channels: str | None = None
-    radar_rate: str | None = None
-    ego_returns: bool = True
-    sweep_faults: float = 0.0
-
-    def __post_init__(self) -> None:
-        from evgrid_sim.config import ENVIRONMENTS
-
-        if self.format not in FORMATS:
-            raise ValueError(f"--format must be one of {', '.join(FORMATS)}, got {self.format!r}")
-        if self.environment not in ENVIRONMENTS:
-            raise ValueError(
-                f"--environment must be one of {ENVIRONMENTS}, got {self.environment!r}"
-            )
-        check_int("", "--scenes", self.scenes, min=1)
-        check_int("", "--seed", self.seed, min=0)
-        check_number("", "--duration", self.duration, min=0.0, min_open=True)
-        check_number("", "--sweep-faults", self.sweep_faults, min=0.0, max=1.0)
-
-    def sim_config(self):
-        """The simulator's configuration these options describe."""
-        from evgrid_sim import SimConfig, WorldConfig
-        from evgrid_sim.config import LidarConfig, SimRadarRig, SweepFaults
-
-        rig = SimRadarRig()
-        if self.radar_channels:
-            pairs = [c.strip().split("=", 1) for c in self.radar_channels.split(",") if c.strip()]
-            rig = replace(
-                rig,
-                radar_channels=tuple(p[0] for p in pairs),
-                radar_mounts=tuple(p[-1] for p in pairs) if any(len(p) == 2 for p in pairs) else (),
-            )
-        if self.radar_rate:
-            try:
-                rates = tuple(float(r) for r in self.radar_rate.split(","))
-            except ValueError:
-                raise ValueError(
-                    f"--radar-rate must be numbers separated by commas, got {self.radar_rate!r}"
-                ) from None
-            rig = replace(rig, radar_rates_hz=rates)
-        if self.sweep_faults:
-            f = self.sweep_faults
-            rig = replace(rig, faults=SweepFaults(drop=f, duplicate=f, reorder=f))
-        return SimConfig(
-            duration_s=self.duration,
-            world=WorldConfig(environment=self.environment),
-            rig=rig,
-            lidar=LidarConfig(rate_hz=self.lidar_rate, self_returns=self.ego_returns),
-        )
-
-
-@dataclass(frozen=True)
-class SimulateConfig:
-    """A simulate run's ``config.json``: the options under ``simulate`` (at the top their
-    ``format`` and ``version`` would clash with the file's own tags)."""
-
-    simulate: SimulateOptions = field(default_factory=SimulateOptions)
-
-
-def _register() -> None:
-    from evgrid.config import FORMATS as CONFIG_FORMATS
-
-    CONFIG_FORMATS[SimulateConfig] = CONFIG_FORMAT  # config.json tags and checks its kind
-
-
-_register()  # at import, so that config.load_config knows the kind
-
-
-def simulate_options(values: dict, config: str | Path | None = None) -> SimulateOptions:
-    """The options of a simulate run: the ``config.json`` at ``config`` (of an earlier run;
-    errors name the file and field), else the defaults, with ``values`` (field -> value, from
-    the command line) over them."""
-    if config is None:
-        return SimulateOptions(**values)
-    from evgrid.config import resolve_config
-
-    _register()
-    overrides = [(f"simulate.{k}", v) for k, v in values.items()]
-    return resolve_config(SimulateConfig, config, overrides).simulate
-
-
 def write_simulated(
-    opts: SimulateOptions,
+    config,
+    seeds: list[int],
     out: str | Path,
+    fmt: str = "npz",
+    version: str = "v1.0-sim",
     overwrite: bool = False,
     on_frame: Callable[[str], None] | None = None,
+    config_document: dict | None = None,
 ) -> list[str]:
-    """Simulate ``opts.scenes`` scenes from ``opts.seed`` on and write them under ``out`` in
-    ``opts.format``; ``on_frame(scene name)`` after each frame. Returns the scene names.
-    An existing scene is refused unless ``overwrite`` (FileExistsError naming it).
-    ``out/config.json`` holds ``opts`` (``evgrid simulate --config`` runs them again); the
-    last run into a folder writes it."""
-    from evgrid.config import document
-
+    """Simulate the scenes of ``seeds`` with the simulator's ``config`` (a
+    :class:`~evgrid_sim.SimConfig`) and write them under ``out`` in ``fmt`` (one of
+    :data:`FORMATS`; ``version``: the nuScenes layout's); ``on_frame(scene name)`` after each
+    frame. Returns the scene names. An existing scene is refused unless ``overwrite``
+    (FileExistsError naming it). ``config_document`` (what ``evgrid simulate --config`` reads
+    back) is written first as ``out/config.json``; the last run into a folder writes it."""
+    if fmt not in FORMATS:
+        raise ValueError(f"format must be one of {', '.join(FORMATS)}, got {fmt!r}")
     out = check_out(out)
-    config = opts.sim_config()
-    seeds = [opts.seed + k for k in range(opts.scenes)]
     out.mkdir(parents=True, exist_ok=True)
-    _register()
-    write_json(out / "config.json", document(SimulateConfig(opts)))
+    if config_document is not None:
+        write_json(out / "config.json", config_document)
     tick = on_frame or (lambda name: None)
-    if opts.format in _BAGS:
-        return _write_recordings(seeds, config, out, opts.format, overwrite, tick)
-    if opts.format == "npz":
+    if fmt in _BAGS:
+        return _write_recordings(seeds, config, out, fmt, overwrite, tick)
+    if fmt == "npz":
         return _write_npz(seeds, config, out, overwrite, tick)
-    return _write_nuscenes(seeds, config, out, opts.version, overwrite, tick)
+    return _write_nuscenes(seeds, config, out, version, overwrite, tick)
 
 
 def check_out(out: str | Path) -> Path:

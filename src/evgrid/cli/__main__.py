@@ -1,0 +1,5 @@
+"""``python -m evgrid.cli`` (and ``torchrun -m evgrid.cli``): the ``evgrid`` command."""
+
+from evgrid.cli import app
+
+app()
