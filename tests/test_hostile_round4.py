@@ -139,6 +139,20 @@ def test_a_lock_of_another_host_says_it_may_be_stale_and_how_to_clear_it(tmp_pat
     assert break_lock(out) is None  # released, nothing to clear
 
 
+def test_evgrid_unlock_clears_a_foreign_lock(tmp_path):
+    from typer.testing import CliRunner
+
+    from evgrid.cli import app
+
+    out = tmp_path / "run"
+    out.mkdir()
+    lock = {"pid": 1, "host": "a-container-gone", "started": 0}
+    (out / LOCK_NAME).write_text(json.dumps(lock))
+    res = CliRunner().invoke(app, ["unlock", str(out)])
+    assert res.exit_code == 0 and "was pid 1 on a-container-gone" in res.output
+    assert not (out / LOCK_NAME).exists()
+
+
 def test_break_lock_refuses_the_lock_of_a_live_run_on_this_host(tmp_path):
     out = tmp_path / "run"
     out.mkdir()
@@ -225,17 +239,44 @@ def test_an_mcap_window_beyond_the_budget_is_refused_naming_the_option(window_m,
     # before: a 2 s scene mapped, then 4.8 GB reached (1200 m), `Unable to allocate 16.5 GiB`
     # (3000 m) or `array is too big` (1e9 m), naming no option
     from evgrid.budget import BudgetError, check_budget
+    from evgrid.cli.options import MAP_OPTIONS
     from evgrid.config import MapperConfig
     from evgrid.export.mcap import McapParams
 
     outputs = _outputs(exports=("mcap",), mcap=McapParams(window_m=window_m))
     with pytest.raises(BudgetError) as e:
-        check_budget(MapperConfig(), outputs, budget=4 * 2**30)
+        check_budget(MapperConfig(), outputs, budget=4 * 2**30, options=MAP_OPTIONS)
     msg = str(e.value)
     assert msg.startswith("outputs.mcap.window_m (--mcap-window): an MCAP window of")
     assert says in msg and "more than the memory budget of 4 GiB" in msg
     assert "EVGRID_MEMORY_BUDGET_GB" in msg
     check_budget(MapperConfig(), _outputs(exports=("mcap",)), budget=4 * 2**30)  # 40 m
+
+
+def test_the_command_line_refuses_a_window_beyond_the_budget_before_any_scene(tmp_path):
+    from typer.testing import CliRunner
+
+    from evgrid.cli import app
+
+    out = tmp_path / "run"
+    args = ["map", "--scenes", "1", "--duration", "1", "--out", str(out), "--mcap-window", "1e9"]
+    res = CliRunner().invoke(app, [*args, "--export", "mcap"])
+    assert res.exit_code == 1
+    assert "outputs.mcap.window_m (--mcap-window): an MCAP window of" in res.output
+    assert not out.exists()  # refused before the results folder or any scene
+
+
+def test_a_library_run_is_refused_too_naming_the_config_key(tmp_path):
+    from evgrid.budget import BudgetError
+    from evgrid.config import MapperConfig
+    from evgrid.export.mcap import McapParams
+    from evgrid.runs import map_scenes
+    from evgrid.sources import SimSource
+
+    outputs = _outputs(exports=("mcap",), mcap=McapParams(window_m=1e9))
+    with pytest.raises(BudgetError, match=r"^outputs\.mcap\.window_m: an MCAP window"):
+        map_scenes(SimSource((4,), 1.0), tmp_path / "run", MapperConfig(), outputs)
+    assert not (tmp_path / "run").exists()
 
 
 def test_a_gif_window_of_1e7_m_is_refused_before_mapping():

@@ -109,14 +109,10 @@ def memory_budget(environ: Mapping[str, str] = os.environ) -> int:
 
 
 def _options(options: Mapping[str, tuple[str, ...]] | None) -> dict[str, str]:
-    """Config key -> ``--option`` from the command line's option table (``MAP_OPTIONS``)."""
-    if options is None:
-        try:
-            from evgrid.config import MAP_OPTIONS as options  # noqa: N811
-        except ImportError:  # the option tables live elsewhere: keys alone
-            options = {}
+    """Config key -> ``--option`` from the command line's option table (``evgrid.cli.options.
+    MAP_OPTIONS``, passed by the command line; a library call names the config keys alone)."""
     out: dict[str, str] = {}
-    for name, keys in options.items():
+    for name, keys in (options or {}).items():
         for k in keys:
             if "=" not in k:
                 out.setdefault(k, f"--{name}")

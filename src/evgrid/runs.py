@@ -562,9 +562,11 @@ def map_scenes(
     raised, with their errors) and ``OUT/table.md``. With ``resume``, scenes complete for the
     same config are kept and the rest redone. Ctrl-C raises :class:`RunInterrupted`.
     """
+    from evgrid.budget import check_budget
     from evgrid.engine import fan_out
     from evgrid.sources import scenes_of, source_to_dict
 
+    check_budget(config, outputs, workers=workers)  # before any scene or file
     events = events or RunEvents()
     dropped = getattr(source, "dropped", None)
     dropped = dropped() if callable(dropped) else {}

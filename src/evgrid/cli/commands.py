@@ -20,7 +20,8 @@ __all__ = ["app"]
 def _map(ctx, name, out, config, sets, n, engine, resume, overwrite, preset=(), data0={}):
     """A mapping run (map, evaluate, demo) or a sweep of ``m_u_min``: the config from the
     command's words, the run with its progress, the report; failed scenes make it fail."""
-    from evgrid.cli.options import config_from_args
+    from evgrid.budget import check_budget
+    from evgrid.cli.options import MAP_OPTIONS, config_from_args
     from evgrid.config import RunConfig, SweepConfig
     from evgrid.console import ConsoleEvents, failures, map_report, print_text, sweep_report
     from evgrid.outdir import default_out
@@ -31,6 +32,7 @@ def _map(ctx, name, out, config, sets, n, engine, resume, overwrite, preset=(), 
     out = out or (default_out(name, resume) if resume else None)
     cls = SweepConfig if sweep else RunConfig
     run = config_from_args(cls, ctx.args, config, sets or (), preset, data0, resume and out)
+    check_budget(run.mapper, getattr(run, "outputs", None), workers=n, options=MAP_OPTIONS)
     out = out or default_out(name)
     if not sweep and run.outputs.viewer and n > 1:
         raise typer.BadParameter("--viewer shows one scene at a time: use --workers 1")
@@ -231,6 +233,19 @@ def upgrade_checkpoint_cmd(
     from evgrid.ism.evnet import upgrade_checkpoint
 
     typer.echo(f"wrote {upgrade_checkpoint(src, dst or src)}")
+
+
+@command()
+def unlock(out: Path = typer.Argument(..., help="A results folder whose lock is stale.")) -> None:
+    """Clear the lock of a results folder left by a run that no longer lives (another host's,
+    or a crashed one); a live run's lock on this host is refused.
+
+    Example: evgrid unlock out/map/latest"""
+    from evgrid.outdir import break_lock
+
+    holder = break_lock(out)
+    was = f" (was pid {holder['pid']} on {holder['host']})" if holder else ""
+    typer.echo(f"{out}: unlocked{was}")
 
 
 @command()
