@@ -364,5 +364,96 @@ def bench(
         write_bench_config(opts, out)
 
 
+@_command(extra=True)
+def live(
+    ctx: typer.Context,
+    rig: Path = typer.Option(..., "--rig", help="The rig file of --bag: topics, frames, fields."),
+    out: Path = typer.Option(None, "--out", help="Where the maps are saved (nav2/, maps/)."),
+    config: Path = _CONFIG, sets: list[str] = _SET,
+    map_rate: float = typer.Option(1.0, "--map-rate", help="/map publications per second."),
+    map_max_cells: int = typer.Option(16777216, "--map-max-cells", help="/map: whole map, N cells"),
+    map_window: float = typer.Option(200.0, "--map-window", help="beyond: this square (m) around"),
+    publish: str = typer.Option("", "--publish", help="NAMES: also /evgrid/NAME/occupancy."),
+    grid_map: bool = typer.Option(False, "--grid-map", help="Also /evgrid/NAME/grid_map (masses)."),
+    save_every: float = typer.Option(0.0, "--save-every", help="Save the maps every SECONDS too."),
+    duration: float = typer.Option(None, "--duration", help="Stop after SECONDS."),
+) -> None:  # fmt: skip
+    """Map what a running robot publishes (ROS 2, no ROS installation): the rig's topics on
+    ROS_DOMAIN_ID, /map out for nav2, Foxglove and RViz (docs/live.md). Ctrl-C or SIGTERM
+    saves the maps into --out (nav2/map.pgm + map.yaml; maps/ with --save-maps) and exits 0.
+
+    \b
+    Example:
+      evgrid live --rig rig.yaml --out out/live --publish fused --save-every 60
+    """
+    from evgrid.ros import require
+
+    require("cyclonedds", "live")
+    from evgrid.config import RunConfig, config_from_args
+    from evgrid.data.bag import load_rig
+    from evgrid.live.node import LiveNode, LiveOptions, run_live
+
+    run = config_from_args(RunConfig, ctx.args, config, sets or (), [("mapper.maps", ["nav"])])
+    opts = LiveOptions(
+        map_rate_hz=map_rate, map_max_cells=map_max_cells, map_window_m=map_window,
+        publish=tuple(n for n in publish.split(",") if n), grid_map=grid_map,
+        save_every_s=save_every, save_maps=run.outputs.save_maps,
+    )  # fmt: skip
+    node = LiveNode(load_rig(rig), run.mapper, run.outputs, out, opts, say=_say)
+    report = run_live(node, duration)
+    _say(_live_report(report))
+
+
+def _say(line: str) -> None:
+    typer.echo(line)
+
+
+def _live_report(r: dict) -> str:
+    lat = r["latency_ms"]
+    files = "".join(f"\nwrote {f}" for f in r["files"])
+    return (
+        f"evgrid live: stopped after {r['updates']} updates of {r['lidar_sweeps']} lidar sweeps; "
+        f"dropped {sum(r['dropped'].values())} {r['dropped'] or ''}; {r['published']} /map "
+        f"publications, latency median {lat['median']:.0f} ms, p95 {lat['p95']:.0f} ms"
+        f"{files}"
+    )
+
+
+@_command()
+def replay(
+    recording: Path = typer.Argument(..., help="A ROS 2 bag (folder) or an MCAP file."),
+    rig: Path = typer.Option(..., "--rig", help="The rig file: which topics to play."),
+    rate: float = typer.Option(1.0, "--rate", help="Speed: 2 plays twice as fast."),
+    loop: bool = typer.Option(False, "--loop", help="Play on and on, time going on."),
+    recorded_stamps: bool = typer.Option(False, "--recorded-stamps", help="Keep stamps."),
+    wait: float = typer.Option(5.0, "--wait", help="Seconds to wait for subscribers first."),
+) -> None:  # fmt: skip
+    """Publish a recording's topics onto DDS at their recorded timing, as ros2 bag play does
+    (for evgrid live, demos, users without ROS; docs/live.md).
+
+    Example: evgrid replay drive.mcap --rig rig.yaml --loop
+    """
+    import signal
+    import threading
+
+    from evgrid.ros import require
+
+    require("cyclonedds", "live")
+    from evgrid.data.bag import load_rig
+    from evgrid.live.replay import replay as play
+
+    stop = threading.Event()
+    for s in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(s, lambda *_: stop.set())
+    r = play(
+        recording, load_rig(rig), rate, loop, "recorded" if recorded_stamps else "now", wait,
+        stop=stop.is_set, say=_say,
+    )  # fmt: skip
+    _say(
+        f"evgrid replay: {r.messages} messages in {r.passes} pass(es), {r.seconds:.1f} s; "
+        f"latest {r.late_ms_max:.0f} ms behind its time"
+    )
+
+
 if __name__ == "__main__":
     app()
