@@ -199,6 +199,8 @@ class LiveNode:
         self._last_save = time.monotonic()
         self.mapper: Any = None
         self.nav: Any = None
+        self._unpublished: Frame | None = None  # mapped since the last /map, and its arrival
+        self._unpublished_arrival = 0.0
 
     # -- setup ---------------------------------------------------------------------------------
 
@@ -316,11 +318,15 @@ class LiveNode:
             if self.mapper.process(frame):
                 mapped = True
                 self._record_update(frame)
-                now = time.monotonic()
-                if now - self._last_pub >= 1.0 / self.options.map_rate_hz:
-                    self.publish(frame)
-                    self._last_pub = now
-                    self._record_publication(frame, arrival)
+                self._unpublished, self._unpublished_arrival = frame, arrival
+        # due: at the map rate, the newest update (also when no frame came since: the last map
+        # of a stream that stopped is published too)
+        now = time.monotonic()
+        if self._unpublished is not None and now - self._last_pub >= 1 / self.options.map_rate_hz:
+            self.publish(self._unpublished)
+            self._last_pub = now
+            self._record_publication(self._unpublished, self._unpublished_arrival)
+            self._unpublished = None
         self._housekeeping()
         return mapped
 
