@@ -10,10 +10,12 @@ this session, each bounded in time.
 from __future__ import annotations
 
 import logging
+import os
 import random
 import threading
 import time
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -496,3 +498,71 @@ def test_evgrid_live_maps_a_pointcloud2_that_rti_publishes(drive, loopback, tmp_
         report = node.close()
     assert report["lidar_sweeps"] >= 2
     assert node.mapper.maps.maps["ray_ilm"].covered_bounds()[2] > 0
+
+
+def test_silence_and_malformed_messages_are_named_and_the_node_goes_on(loopback, caplog):
+    from evgrid.config import RunConfig
+    from evgrid.data.bag import RecordingRig
+    from evgrid.live.dds import SENSOR_QOS, Graph
+    from evgrid.live.node import LiveNode, LiveOptions
+    from evgrid.ros import columns_to_cloud, typestore
+
+    rig = RecordingRig.from_dict({"lidar": {"topic": "/points"}})
+    run = RunConfig()
+    opts = LiveOptions(silence_s=1.0)
+    node = LiveNode(rig, replace(run.mapper, maps=("ray_ilm",)), run.outputs, None, opts, loopback)
+    node.say = lambda line: None
+    other = Graph(loopback)
+    try:
+        with caplog.at_level(logging.INFO):
+            node.start()
+            w = other.writer("/points", "sensor_msgs/msg/PointCloud2", SENSOR_QOS)
+            _until(lambda: w.subscribers() > 0, 10)
+            cloud = columns_to_cloud(np.ones((10, 3), np.float32), "xyz", 1, 0, "lidar")
+            cloud.width = 1000  # ten points' data for a thousand
+            w.write(typestore(2).serialize_cdr(cloud, "sensor_msgs/msg/PointCloud2"))
+            counts = node.frames.counts
+            assert _until(lambda: counts["lidar_messages_malformed"], 10, node.step)
+            _until(lambda: "/tf: no message yet" in caplog.text, 5, node.step)
+    finally:
+        other.close()
+        node.close()
+    assert "/points message 0" in caplog.text and "fewer than the" in caplog.text
+    assert "/tf: no message yet for 1." in caplog.text
+
+
+def test_sigterm_saves_the_nav2_map_and_exits_0(drive, loopback, tmp_path):
+    """evgrid live (the command) maps a replay, and SIGTERM saves nav2/map.pgm + map.yaml."""
+    import signal
+    import subprocess
+    import sys
+
+    from evgrid.data.bag import RecordingRig
+    from evgrid.data.bag_writer import write_rig
+    from evgrid.live.replay import replay
+
+    bag, _ = drive
+    rig = RecordingRig.from_dict(
+        {"lidar": {"topic": "/lidar_top/points"}, "world_frame": "odom", "scene": "drive"}
+    )
+    rig_path = write_rig(rig, tmp_path / "rig.yaml")
+    out = tmp_path / "out"
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1] / "src")}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "evgrid.cli", "live", "--rig", str(rig_path), "--out", str(out),
+         "--maps", "ray_ilm", "--save-maps"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env,
+    )  # fmt: skip
+    try:
+        line = proc.stdout.readline()
+        assert "ready" in line, line + proc.stdout.read()
+        replay(bag, rig, rate=0.5, wait_s=10, domain=loopback, say=lambda s: None)
+        time.sleep(1.0)
+        proc.send_signal(signal.SIGTERM)
+        rest, _ = proc.communicate(timeout=30)
+    finally:
+        proc.kill() if proc.poll() is None else None
+    assert proc.returncode == 0, rest
+    assert (out / "nav2" / "map.pgm").is_file() and (out / "nav2" / "map.yaml").is_file(), rest
+    assert (out / "maps" / "ray_ilm.npz").is_file()
+    assert "latency" in rest
