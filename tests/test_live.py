@@ -566,3 +566,32 @@ def test_sigterm_saves_the_nav2_map_and_exits_0(drive, loopback, tmp_path):
     assert (out / "nav2" / "map.pgm").is_file() and (out / "nav2" / "map.yaml").is_file(), rest
     assert (out / "maps" / "ray_ilm.npz").is_file()
     assert "latency" in rest
+
+
+def test_a_looped_pass_moves_stamps_on_and_starts_where_the_last_pass_ended(drive):
+    """--loop: the second pass's first ego pose is the first pass's last, its stamps later."""
+    from evgrid.data.bag import load_rig
+    from evgrid.live.replay import _ego_track, _moved, raw_messages
+    from evgrid.ros import stamp_to_us, transform_to_se3, typestore
+
+    bag, rig_path = drive
+    rig = load_rig(rig_path)
+    first, last, t0, t1 = _ego_track(bag, rig)
+    store = typestore(2)
+    topic, typ, _, raw = next(raw_messages(bag, {rig.tf_topic}))
+    msg = store.deserialize_cdr(raw, typ)
+    before = stamp_to_us(msg.transforms[0].header.stamp)
+    moved = _moved(msg, topic, 5_000_000_000, last @ first.inverse(), rig)
+    tr = moved.transforms[0].transform
+    pose = transform_to_se3(
+        (tr.translation.x, tr.translation.y, tr.translation.z),
+        (tr.rotation.x, tr.rotation.y, tr.rotation.z, tr.rotation.w),
+    )
+    assert stamp_to_us(moved.transforms[0].header.stamp) == before + 5_000_000
+    assert np.allclose(pose.translation, last.translation, atol=1e-9)
+    assert np.allclose(pose.rotation, last.rotation, atol=1e-12)
+    # and replaying a ROS 1 bag says what it needs
+    ros1 = Path(bag).parent / "x.bag"
+    ros1.write_bytes(b"#ROSBAG V2.0\n")
+    with pytest.raises(Exception, match="rosbags-convert"):
+        next(raw_messages(ros1, {"/tf"}))
