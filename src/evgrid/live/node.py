@@ -128,6 +128,49 @@ def warm_up(config: Any, deep: Any, rig: RecordingRig) -> None:
         mapper.process(Frame("warm-up", k, t, ego, True, LidarSweep(pts, ego, ego, t), radar))
 
 
+class ClassRaster:
+    """The nav2 classes of one map, kept up to date cell by cell: each update reclassifies only
+    the cells it could change (:attr:`MapUpdate.box`), so publishing the whole map costs a copy,
+    not a classification of every cell. Equal to :func:`~evgrid.export.nav2.classify` of the
+    whole map (cells it never saw are unknown)."""
+
+    def __init__(self, name: str, thresholds: Any, margin: int = 512):
+        from evgrid.export.nav2 import UNKNOWN
+
+        self.name, self.thresholds, self.margin = name, thresholds, margin
+        self.r0 = self.c0 = 0
+        self.classes = np.full((0, 0), UNKNOWN, dtype=np.int8)
+
+    def _grow(self, r0: int, c0: int, h: int, w: int) -> None:
+        from evgrid.export.nav2 import UNKNOWN
+
+        a, (R0, C0), (H, W) = self.classes, (self.r0, self.c0), self.classes.shape
+        if H and R0 <= r0 and C0 <= c0 and r0 + h <= R0 + H and c0 + w <= C0 + W:
+            return
+        g = self.margin  # grown with room, so a drive reallocates rarely
+        nr0 = min(r0, R0) - g if H else r0 - g
+        nc0 = min(c0, C0) - g if H else c0 - g
+        nr1 = max(r0 + h, R0 + H) + g if H else r0 + h + g
+        nc1 = max(c0 + w, C0 + W) + g if H else c0 + w + g
+        out = np.full((nr1 - nr0, nc1 - nc0), UNKNOWN, dtype=np.int8)
+        out[R0 - nr0 : R0 - nr0 + H, C0 - nc0 : C0 - nc0 + W] = a
+        self.classes, self.r0, self.c0 = out, nr0, nc0
+
+    def on_update(self, update: Any) -> None:
+        from evgrid.export.nav2 import classify
+
+        r0, c0, h, w = update.box
+        self._grow(r0, c0, h, w)
+        masses, cov = update.maps.maps[self.name].read(r0, c0, h, w)
+        rr, cc = r0 - self.r0, c0 - self.c0
+        self.classes[rr : rr + h, cc : cc + w] = classify(masses, cov, self.thresholds)
+
+    def read(self, r0: int, c0: int, h: int, w: int) -> np.ndarray:
+        """The classes of the cells ``[r0:r0+h, c0:c0+w]`` (a box inside what was updated)."""
+        rr, cc = r0 - self.r0, c0 - self.c0
+        return self.classes[rr : rr + h, cc : cc + w]
+
+
 class _Stats:
     """Counts and latencies between two status lines, and over the whole run."""
 
@@ -200,6 +243,8 @@ class LiveNode:
         self._last_save = time.monotonic()
         self.mapper: Any = None
         self.nav: Any = None
+        self._started: float | None = None  # when start() finished
+        self._receiver: threading.Thread | None = None
         self._unpublished: Frame | None = None  # mapped since the last /map, and its arrival
         self._unpublished_arrival = 0.0
 
@@ -227,6 +272,9 @@ class LiveNode:
         self._map_name = next(
             (n for n in self.outputs.nav2.navigation if n in names), next(iter(names))
         )
+        th = self.outputs.nav2.thresholds
+        self.rasters = {n: ClassRaster(n, th) for n in (self._map_name, *self.options.publish)}
+        self.mapper.observers += list(self.rasters.values())
         self._graph = Graph(self._domain, on_problem=self.problems.append)
         qos: Mapping[str, QosProfile] = {
             self.rig.tf_topic: TF_QOS,
@@ -343,33 +391,36 @@ class LiveNode:
         self.stats.arrival_latency_ms.append((time.monotonic() - arrival) * 1e3)
         self.stats.published += 1
 
-    def map_message(self, name: str, t_us: int, x: float, y: float) -> Any:
-        """The OccupancyGrid of map ``name`` (None when nothing is observed yet)."""
-        from evgrid.export.mcap import MapCells, occupancy_grid_msg
+    def map_message(self, name: str, t_us: int, x: float, y: float) -> tuple[Any, Any]:
+        """The box published of map ``name`` and its OccupancyGrid (None, None when nothing is
+        observed yet)."""
+        from evgrid.export.mcap import occupancy_grid_of
         from evgrid.ros import typestore
 
         m = self.mapper.maps.maps[name]
         box = map_cells_for(m, x, y, self.options.map_max_cells, self.options.map_window_m)
         if box is None:
             return None, None
-        cells = MapCells.read(m, box, self.options.grid_map)
-        th = self.outputs.nav2.thresholds
-        return cells, occupancy_grid_msg(cells, t_us, self.rig.world_frame, typestore(2), th)
+        cls = self.rasters[name].read(*box)
+        frame = self.rig.world_frame
+        return box, occupancy_grid_of(cls, box[0], box[1], m.grid.resolution, t_us, frame,
+                                      typestore(2))  # fmt: skip
 
     def publish(self, frame: Frame) -> None:
         """``/map``, the maps of ``--publish`` (and their GridMaps) and the ego pose, now."""
-        from evgrid.export.mcap import _pose_msg, grid_map_msg
+        from evgrid.export.mcap import MapCells, _pose_msg, grid_map_msg
         from evgrid.ros import header, typestore, us_to_stamp
 
         store = typestore(2)
         t_us = int(frame.timestamp)
         pose = frame.ego_pose.to_se2()
         for name, writer in ((self._map_name, self._map_writer), *self._map_writers.items()):
-            cells, msg = self.map_message(name, t_us, pose.x, pose.y)
+            box, msg = self.map_message(name, t_us, pose.x, pose.y)
             if msg is None:
                 continue
             writer.write(store.serialize_cdr(msg, "nav_msgs/msg/OccupancyGrid"))
             if name in self._grid_writers:
+                cells = MapCells.read(self.mapper.maps.maps[name], box, dynamic=True)
                 gm = grid_map_msg(cells, t_us, self.rig.world_frame, store)
                 self._grid_writers[name].write(store.serialize_cdr(gm, "grid_map_msgs/msg/GridMap"))
         sec, ns = us_to_stamp(t_us)
@@ -462,14 +513,16 @@ class LiveNode:
     def close(self) -> dict[str, Any]:
         """Stop receiving, map what is complete, save, leave the graph; the run's report."""
         self._stop.set()
-        if getattr(self, "_receiver", None) is not None:
+        written: list[Path] = []
+        if self._receiver is not None:
             self._receiver.join(timeout=2.0)
-        with self._lock:  # the frames complete when the node stopped
-            for f in self.frames.poll(time.monotonic()):
-                self._ready.append((f, time.monotonic()))
-        self._wake.set()
-        self.step(0.0)
-        written = self.save()
+        if self._started is not None:  # a node that never started has nothing to map or save
+            with self._lock:  # the frames complete when the node stopped
+                for f in self.frames.poll(time.monotonic()):
+                    self._ready.append((f, time.monotonic()))
+            self._wake.set()
+            self.step(0.0)
+            written = self.save()
         if self._graph is not None:
             self._graph.close()
             self._graph = None
@@ -499,7 +552,11 @@ def run_live(node: LiveNode, duration_s: float | None = None) -> dict[str, Any]:
     for s in old:
         signal.signal(s, node.stop)
     try:
-        node.start()
+        try:
+            node.start()
+        except BaseException:
+            node.close()  # leaves the graph
+            raise
         return node.run(duration_s)
     finally:
         for s, h in old.items():
