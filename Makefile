@@ -12,7 +12,7 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install -q --upgrade pip
 	# The CPU build of torch; any other spec pulls gigabytes of CUDA packages.
 	$(PY) -m pip install -q "torch==2.13.0"
-	$(PY) -m pip install -q -e ".[dev,nuscenes,bench,ros,rerun,fast,ray]"
+	$(PY) -m pip install -q -e ".[dev,nuscenes,bench,ros,rerun,fast,ray,live,live-test]"
 	touch $(STAMP)
 
 install: $(STAMP)

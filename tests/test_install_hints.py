@@ -72,6 +72,12 @@ def _ray():
     return lambda: _import_ray(False)
 
 
+def _live():
+    from evgrid.live.dds import Graph
+
+    return lambda: Graph(0)
+
+
 # (what fails, the modules made unimportable, the extra it names)
 CASES = {
     "rosbags": (lambda tp, mp: _ros_require("rosbags", "ros"), ["rosbags"], "ros"),
@@ -82,6 +88,7 @@ CASES = {
     "nuscenes devkit": (lambda tp, mp: _devkit(), ["nuscenes.nuscenes"], "nuscenes"),
     "nuscenes splits": (lambda tp, mp: _splits(tp), ["nuscenes.utils.splits"], "nuscenes"),
     "ray": (lambda tp, mp: _ray(), ["ray"], "ray"),
+    "cyclonedds": (lambda tp, mp: _live(), ["cyclonedds"], "live"),
 }
 
 

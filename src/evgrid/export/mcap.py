@@ -123,15 +123,23 @@ def occupancy_grid_msg(
 ) -> Any:
     """``nav_msgs/OccupancyGrid`` of ``cells``; ``values`` as
     :func:`~evgrid.export.nav2.occupancy_values`."""
+    val = occupancy_values(cells.masses, cells.covered, th, values)
+    return occupancy_grid_of(val, cells.r0, cells.c0, cells.resolution, t_us, frame_id, store)
+
+
+def occupancy_grid_of(
+    values: np.ndarray, r0: int, c0: int, resolution: float, t_us: int, frame_id: str, store: Any
+) -> Any:
+    """``nav_msgs/OccupancyGrid`` of OccupancyGrid values (int8) of the map cells
+    ``[r0:, c0:]``, in ROS order (:func:`~evgrid.export.nav2.map_to_occupancy`)."""
     from evgrid.ros import header, us_to_stamp
 
-    val = occupancy_values(cells.masses, cells.covered, th, values)
-    data, (ox, oy) = map_to_occupancy(val, cells.r0, cells.c0, cells.resolution)
+    data, (ox, oy) = map_to_occupancy(values, r0, c0, resolution)
     sec, ns = us_to_stamp(t_us)
     t = store.types
     info = t["nav_msgs/msg/MapMetaData"](
         map_load_time=t["builtin_interfaces/msg/Time"](sec=sec, nanosec=ns),
-        resolution=float(cells.resolution),
+        resolution=float(resolution),
         width=int(data.shape[1]),
         height=int(data.shape[0]),
         origin=_pose_msg(store, ox, oy),

@@ -22,6 +22,12 @@ __all__ = ["RecordingRig", "LidarTopic", "RadarTopic", "load_rig", "RADIAL"]
 RADIAL = "radial_velocity"
 
 
+#: A radar entry's ``type``: what a live graph publishes on its topic (recordings say it).
+_RADAR_TYPES = {
+    "PointCloud2": "sensor_msgs/msg/PointCloud2",
+    "RadarScan": "radar_msgs/msg/RadarScan",
+}
+
 #: The keys of a rig file's top level.
 _TOP_KEYS = (
     "scene",
@@ -97,6 +103,8 @@ class RadarTopic:
     compensated: bool = (
         True  # False: raw Doppler, compensated here with the ego motion of the poses
     )
+    #: the message type, for a live graph (a recording says it itself)
+    msgtype: str = "sensor_msgs/msg/PointCloud2"
 
     def field_name(self, column: str) -> str:
         return self.fields.get(column, column)
@@ -190,11 +198,17 @@ class RecordingRig:
                     f"{where} {w}: topic {r['topic']!r} is the lidar's topic too; a topic is the "
                     "lidar or a radar, not both"
                 )
-            _keys(r, ("topic", "channel", "frame", "fields", "compensated"), where, w)
+            _keys(r, ("topic", "channel", "frame", "fields", "compensated", "type"), where, w)
             ch = r.get("channel") or r["topic"].strip("/").replace("/", "_").upper()
             comp = r.get("compensated", True)
             if not isinstance(comp, bool):
                 raise RigError(f"{where} {w}: compensated must be true or false, got {comp!r}")
+            typ = _RADAR_TYPES.get(r.get("type", "PointCloud2"))
+            if typ is None:
+                raise RigError(
+                    f"{where} {w}: type must be one of {sorted(_RADAR_TYPES)}, got "
+                    f"{r.get('type')!r}"
+                )
             radars.append(
                 RadarTopic(
                     r["topic"],
@@ -202,6 +216,7 @@ class RecordingRig:
                     _name(r.get("frame"), where, f"{w}.frame"),
                     _fields(r.get("fields"), RADAR_COLUMNS + (RADIAL,), f"{where} {w}"),
                     comp,
+                    typ,
                 )
             )
         poses = d.get("poses") or {}
@@ -277,6 +292,11 @@ class RecordingRig:
                     **({"frame": r.frame} if r.frame else {}),
                     **({"fields": dict(r.fields)} if r.fields else {}),
                     **({} if r.compensated else {"compensated": False}),
+                    **(
+                        {"type": r.msgtype.split("/")[-1]}
+                        if r.msgtype != "sensor_msgs/msg/PointCloud2"
+                        else {}
+                    ),
                 }
                 for r in self.radars
             ],

@@ -395,13 +395,8 @@ class BagScene:
                 lidar_skipped=skipped,
             )
 
-    def __iter__(self) -> Iterator[Frame]:
-        from evgrid.ros import stamp_to_us
-
-        rig = self.rig
-        radar_by_topic = {r.topic: r for r in rig.radars}
-        lidar_q: list[tuple[int, np.ndarray, str, int]] = []
-        radar_q: list[RadarSweep] = []
+    def _reading(self) -> dict:
+        """The state of one pass over the sweeps (:meth:`_message`, :meth:`_emit`)."""
         counts = dict.fromkeys(
             (
                 "frames_no_pose",
@@ -417,58 +412,77 @@ class BagScene:
             0,
         )
         counts.update(self._pose_counts)
-        leads: deque[int] = deque(maxlen=9)  # lidar stamp minus bag time (us), last accepted
-        index: dict[str, int] = {}
-        # skipped: lidar messages skipped since the last one queued, whose gap that one carries
-        state: dict = {"index": 0, "last_t": None, "kf": {}, "skipped": 0, "carry": 0}
+        return {
+            "lidar_q": [],  # (stamp us, points, frame id, sweeps skipped before it)
+            "radar_q": [],  # RadarSweep
+            "counts": counts,
+            "leads": deque(maxlen=9),  # lidar stamp minus bag time (us), last accepted
+            "index": {},  # messages read per topic
+            # skipped: lidar messages skipped since the last one queued, whose gap that one
+            # carries
+            "state": {"index": 0, "last_t": None, "kf": {}, "skipped": 0, "carry": 0},
+            "radar_by_topic": {r.topic: r for r in self.rig.radars},
+        }
 
-        topics = {rig.lidar.topic, *radar_by_topic}
-        for topic, bag_t, msg in self._rec.messages(topics):
-            k = index[topic] = index.get(topic, -1) + 1
-            t = stamp_to_us(msg.header.stamp)
-            where = f"{self.path} {topic} message {k} (stamp {t} us)"
-            if topic == rig.lidar.topic:
-                reason = self._lidar_stamp(t, bag_t, state["last_t"], lidar_q, leads)
-                if reason is not None:
-                    state["skipped"] += 1
-                    self._skip(
-                        f"lidar_sweeps_{reason}",
-                        counts,
-                        "%s: %s; sweep skipped",
-                        where,
-                        _STAMP_REASONS[reason].format(
-                            last=state["last_t"], lead=bag_t // 1000, future=_FUTURE_S
-                        ),
-                    )
-                    continue
-                try:
-                    pts = lidar_points(msg, rig.lidar, where)
-                except CloudError as e:
-                    state["skipped"] += 1
-                    self._skip("lidar_messages_malformed", counts, "%s: %s; skipped", where, e)
-                    continue
-                leads.append(t - bag_t // 1000)
-                # recorded out of order within the tolerance: put it in its place
-                bisect.insort(
-                    lidar_q,
-                    (t, pts, rig.lidar.frame or msg.header.frame_id, state["skipped"]),
-                    key=lambda q: q[0],
+    def _message(self, topic: str, bag_t: int, msg: Any, rd: dict) -> None:
+        """Take one sweep message of the pass ``rd``: a lidar sweep is queued for its frame, a
+        radar sweep (with its pose) for the frames; what cannot be used is counted."""
+        from evgrid.ros import stamp_to_us
+
+        rig, state, counts = self.rig, rd["state"], rd["counts"]
+        k = rd["index"][topic] = rd["index"].get(topic, -1) + 1
+        t = stamp_to_us(msg.header.stamp)
+        where = f"{self.path} {topic} message {k} (stamp {t} us)"
+        if topic == rig.lidar.topic:
+            reason = self._lidar_stamp(t, bag_t, state["last_t"], rd["lidar_q"], rd["leads"])
+            if reason is not None:
+                state["skipped"] += 1
+                self._skip(
+                    f"lidar_sweeps_{reason}",
+                    counts,
+                    "%s: %s; sweep skipped",
+                    where,
+                    _STAMP_REASONS[reason].format(
+                        last=state["last_t"], lead=bag_t // 1000, future=_FUTURE_S
+                    ),
                 )
-                state["skipped"] = 0
-            elif state["last_t"] is not None and t <= state["last_t"]:
-                counts["radar_sweeps_late"] += 1
-            else:
-                sweep = self._radar_sweep(msg, radar_by_topic[topic], t, where, counts)
-                if sweep is not None:
-                    radar_q.append(sweep)
-            yield from self._emit(bag_t, lidar_q, radar_q, counts, state)
-        yield from self._emit(None, lidar_q, radar_q, counts, state)
-        counts["radar_sweeps_after_end"] = len(radar_q)
+                return
+            try:
+                pts = lidar_points(msg, rig.lidar, where)
+            except CloudError as e:
+                state["skipped"] += 1
+                self._skip("lidar_messages_malformed", counts, "%s: %s; skipped", where, e)
+                return
+            rd["leads"].append(t - bag_t // 1000)
+            # recorded out of order within the tolerance: put it in its place
+            bisect.insort(
+                rd["lidar_q"],
+                (t, pts, rig.lidar.frame or msg.header.frame_id, state["skipped"]),
+                key=lambda q: q[0],
+            )
+            state["skipped"] = 0
+        elif state["last_t"] is not None and t <= state["last_t"]:
+            counts["radar_sweeps_late"] += 1
+        else:
+            sweep = self._radar_sweep(msg, rd["radar_by_topic"][topic], t, where, counts)
+            if sweep is not None:
+                rd["radar_q"].append(sweep)
+
+    def __iter__(self) -> Iterator[Frame]:
+        rig = self.rig
+        rd = self._reading()
+        args = (rd["lidar_q"], rd["radar_q"], rd["counts"], rd["state"])
+        for topic, bag_t, msg in self._rec.messages({rig.lidar.topic, *rd["radar_by_topic"]}):
+            self._message(topic, bag_t, msg, rd)
+            yield from self._emit(bag_t, *args)
+        yield from self._emit(None, *args)
+        counts = rd["counts"]
+        counts["radar_sweeps_after_end"] = len(rd["radar_q"])
         self.counts = counts
         self._logged = {}
         if self._rec.stopped:
             self.stopped = self._rec.stopped
-            logger.warning("%s; the scene ends at frame %d", self.stopped, state["index"])
+            logger.warning("%s; the scene ends at frame %d", self.stopped, rd["state"]["index"])
 
 
 #: Why a lidar message is skipped for its stamp (``{last}``: the last frame's stamp, us).

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import bisect
 import logging
 import math
 
@@ -76,6 +77,16 @@ class TransformBuffer:
         vals.append((*translation, *q_xyzw))
         self._arrays.pop((child, parent), None)
         return True
+
+    def forget_before(self, t_us: int) -> None:
+        """Drop the dynamic samples older than ``t_us`` except the last one before it (a live
+        tree stays bounded; lookups at ``t_us`` or later give what they gave before)."""
+        for child, edges in self._dyn.items():
+            for parent, (ts, vals) in edges.items():
+                k = bisect.bisect_left(ts, t_us) - 1 if ts == sorted(ts) else 0
+                if k > 0:
+                    del ts[:k], vals[:k]
+                    self._arrays.pop((child, parent), None)
 
     def frames(self) -> set[str]:
         """Every frame named as a child or a parent."""

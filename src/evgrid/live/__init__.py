@@ -1,0 +1,1 @@
+"""evgrid on a running robot (docs/live.md)."""
