@@ -85,15 +85,22 @@ def fusion_digests(update) -> dict[str, str]:
 def mapper_maps(dynamic: bool = True) -> dict[str, np.ndarray]:
     """The geometric maps of a 2 s simulated scene (ray ILM and ray IRM, no Ev-Net), in the
     first pose's frame (the frame the reference maps were built in; runs default to the
-    recording's fixed frame, MapperConfig.frame), as ``{"NAME/TR_TC/masses" | covered: tile}``;
+    recording's fixed frame, MapperConfig.frame) and with the paper's evidence per look
+    (``evidence.mode = "per_look"``; the default is evidence per metre), as
+    ``{"NAME/TR_TC/masses" | covered: tile}``;
     ``dynamic``: with the dynamic score on (the default) or off."""
     from evgrid.config import MapperConfig
     from evgrid.fusion import DynamicParams
+    from evgrid.ism.evidence import EvidenceParams
     from evgrid.mapper import OccupancyMapper
     from evgrid_sim import SimConfig, simulate_scene
 
+    # the paper's evidence per look: the reference maps predate evidence per metre
     config = MapperConfig(
-        maps=("ray_ilm", "ray_irm"), frame="first_pose", dynamic=DynamicParams(enabled=dynamic)
+        maps=("ray_ilm", "ray_irm"),
+        frame="first_pose",
+        dynamic=DynamicParams(enabled=dynamic),
+        evidence=EvidenceParams(mode="per_look"),
     )
     mapper = OccupancyMapper(config)
     for frame in simulate_scene(3, SimConfig(duration_s=2.0)):

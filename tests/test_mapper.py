@@ -14,6 +14,7 @@ from evgrid.fusion import MAP_NAMES
 from evgrid.geometry import GridSpec
 from evgrid.ism import RayIlmParams, RayIrmParams, ray_ilm, ray_irm
 from evgrid.ism.deep import CHANNELS, DeepIrm
+from evgrid.ism.evidence import EvidenceParams
 from evgrid.ism.evnet import EvNet, EvNetConfig, save_checkpoint
 from evgrid.mapper import OccupancyMapper
 from evgrid.runs import choose_m_u_min, map_scene
@@ -53,8 +54,10 @@ def test_map_scene_writes_results(scene, deep, tmp_path):
     for key in ("maps", "isms", "convergence", "gif", "config", "metrics", "map_fused"):
         assert key in res.files
     assert json.loads((tmp_path / "config.json").read_text())["mapper"]["update_rate_hz"] == 10.0
-    # the geometric maps know the street: the ray ILM agrees with the truth on free space
-    assert m["vs_truth"]["ray_ilm"]["free"] > 0.3
+    # the geometric maps know the street: the ray ILM agrees with the truth on free space (less
+    # with evidence per metre than with the paper's per look: this short scene drives 8.3 m/s,
+    # under the 10 m/s the two agree at)
+    assert m["vs_truth"]["ray_ilm"]["free"] > 0.2
     assert m["vs_truth"]["ray_irm"]["free"] > 0.3
     # the confusion counts are the ones the IoU came from
     from evgrid.evaluate import iou_from_confusion
@@ -120,7 +123,10 @@ def test_the_ism_parameters_of_the_config_are_the_ones_used(scene):
         RayIlmParams(max_range_m=6.0, min_range_m=2.0),
         RayIrmParams(n_sweeps=3, m_free=0.2),
     )
-    mapper = OccupancyMapper(MapperConfig(maps=("ray_ilm", "ray_irm"), lidar=lidar, radar=radar))
+    # the ISMs' own masses per look (evidence per metre scales m_free: tests/test_evidence.py)
+    per_look = EvidenceParams(mode="per_look")
+    config = MapperConfig(maps=("ray_ilm", "ray_irm"), lidar=lidar, radar=radar, evidence=per_look)
+    mapper = OccupancyMapper(config)
     frames = list(scene)[:5]
     for f in frames:
         mapper.process(f)

@@ -29,6 +29,7 @@ from evgrid.export.rerun import RerunParams
 from evgrid.fusion import MAP_NAMES, RULES, DynamicParams, FusionParams
 from evgrid.geometry import GridSpec
 from evgrid.ism.deep import RadarImageParams
+from evgrid.ism.evidence import EvidenceParams
 from evgrid.ism.lidar import RayIlmParams
 from evgrid.ism.radar import RayIrmParams
 from evgrid.ism.runtime import RUNTIMES
@@ -103,12 +104,17 @@ class MapperConfig:
     # Radar detections kept by their validity fields, before any radar ISM; the same as in training.
     radar_filter: RadarFilter = field(default_factory=RadarFilter)
     radar: RayIrmParams = field(default_factory=RayIrmParams)  # ray IRM (n_sweeps: the paper's N)
+    # The free mass of one ray ILM / ray IRM update: per metre of travel, or the paper's constant
+    # per look (mode "per_look"); docs/equations.md#evidence-per-distance-seen.
+    evidence: EvidenceParams = field(default_factory=EvidenceParams)
     image: RadarImageParams = field(default_factory=RadarImageParams)  # the deep IRM's input
     # Ev-Net weights; None = the shipped checkpoint. In a file, relative to the file's folder.
     checkpoint: str | None = None
     # Map updates per second. The paper's 133,708 training samples over ~700 nuScenes scenes of
-    # 20 s are ~10 Hz, not the 2 Hz keyframes; at 2 Hz, m_f = 0.05 per ray ILM update would
-    # leave hardly any cell free. Keyframes are always updated (they are where maps are scored).
+    # 20 s are ~10 Hz, not the 2 Hz keyframes. With evidence.mode "per_look" (the paper's
+    # constants), m_f = 0.05 per ray ILM update at 2 Hz would leave hardly any cell free; the
+    # default evidence per metre does not depend on the rate. Keyframes are always updated (they
+    # are where maps are scored).
     update_rate_hz: float = 10.0
     poses: PoseLimits = field(default_factory=PoseLimits)
     threads: int = 1

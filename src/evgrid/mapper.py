@@ -12,7 +12,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Protocol
 
 import numpy as np
@@ -117,6 +117,10 @@ class OccupancyMapper:
         self._doppler_seen: dict[str, int] = {}  # per radar, the sweep the Doppler cue last used
         self.n_frames = 0
         self.n_updates = 0
+        # the last update's time (us) and planar position (m): the distance seen since it
+        # decides the geometric ISMs' free mass (MapperConfig.evidence)
+        self._last_seen: tuple[int, float, float] | None = None
+        self.last_step_m: float | None = None  # the metres of new viewpoint of the last update
 
     def process(self, frame: Frame) -> bool:
         """Take one frame; at the update rate and at keyframes update the maps. Returns whether it
@@ -136,7 +140,7 @@ class OccupancyMapper:
         if not self.schedule.due(frame.timestamp, frame.is_keyframe):
             return False
         pose = self.pose_in_map(frame.ego_pose)
-        isms = self.local_isms(frame)  # each ISM once, in the current ego frame
+        isms = self.local_isms(frame, *self._travel(frame))  # each ISM once, in the ego frame
         # into the map frame and through every map's update rule (paper Table I), in one pass;
         # the extra map sets are rows of the same pass
         self.maps.update(pose, isms, self.moving_detections())
@@ -154,25 +158,37 @@ class OccupancyMapper:
             self.timings.setdefault("nav", []).append(nav_ms)
         return True
 
-    def local_isms(self, frame: Frame) -> dict[str, np.ndarray]:
+    def local_isms(
+        self, frame: Frame, travelled_m: float | None = None, dt_s: float | None = None
+    ) -> dict[str, np.ndarray]:
         """Each ISM the maps need, once, on the local grid of ``frame`` (radar buffer already
-        updated)."""
+        updated). ``travelled_m`` and ``dt_s`` since the last update set the geometric ISMs'
+        free mass (``config.evidence``); None: the ISMs' own per-look masses."""
         from evgrid.ism import ray_ilm, ray_irm
 
         cfg = self.config
         need = self.maps.required_isms
+        lidar_params, radar_params = cfg.lidar, cfg.radar
+        if cfg.evidence.mode != "per_look" and travelled_m is not None and dt_s is not None:
+            ev = cfg.evidence
+            lidar_params = replace(
+                lidar_params, m_free=ev.free_mass(lidar_params.m_free, travelled_m, dt_s)
+            )
+            radar_params = replace(
+                radar_params, m_free=ev.free_mass(radar_params.m_free, travelled_m, dt_s)
+            )
         out: dict[str, np.ndarray] = {}
         t = time.perf_counter()
         if "ray_ilm" in need:
             lidar = self.preprocess.lidar(frame.lidar)  # the vehicle's own returns stop no ray
-            out["ray_ilm"] = ray_ilm(lidar, grid=cfg.grid, params=cfg.lidar, threads=cfg.threads)
+            out["ray_ilm"] = ray_ilm(lidar, grid=cfg.grid, params=lidar_params, threads=cfg.threads)
             t = self._time("ray_ilm", t)
         if "ray_irm" in need:
             out["ray_irm"] = ray_irm(
                 self.buffer.sweeps(cfg.radar.n_sweeps),
                 frame.ego_pose,
                 grid=cfg.grid,
-                params=cfg.radar,
+                params=radar_params,
                 threads=cfg.threads,
             )
             t = self._time("ray_irm", t)
@@ -183,6 +199,20 @@ class OccupancyMapper:
             )
             t = self._time("deep_irm", t)
         return out
+
+    def _travel(self, frame: Frame) -> tuple[float, float]:
+        """Metres travelled (planar) and seconds since the last update; the first update counts
+        one update period standing. Keeps the update's step (``last_step_m``)."""
+        t = frame.ego_pose.translation
+        x, y = float(t[0]), float(t[1])
+        if self._last_seen is None:
+            travelled, dt = 0.0, 1.0 / self.config.update_rate_hz
+        else:
+            t0, x0, y0 = self._last_seen
+            travelled, dt = float(np.hypot(x - x0, y - y0)), max(frame.timestamp - t0, 0) * 1e-6
+        self._last_seen = (frame.timestamp, x, y)
+        self.last_step_m = self.config.evidence.step_m(travelled, dt)
+        return travelled, dt
 
     def moving_detections(self) -> np.ndarray | None:
         """The Doppler cue of the dynamic score: ``(k, 5)`` map-frame positions, speeds and radar

@@ -25,7 +25,7 @@ __all__ = [
 ENVIRONMENTS: tuple[str, ...] = ("urban", "suburban", "mixed")
 #: Town layouts: ``"irregular"`` (curved streets, diagonal avenues, squares, parking lots, parks,
 #: roundabouts) or ``"grid"`` (straight perpendicular streets lined with blocks).
-LAYOUTS: tuple[str, ...] = ("irregular", "grid")
+LAYOUTS: tuple[str, ...] = ("irregular", "grid", "highway")
 
 
 def _positive(owner: str, name: str, value: float, allow_zero: bool = False) -> None:
@@ -271,8 +271,11 @@ class WorldConfig:
     traffic_density: float = 1.0
     #: Random rotation of the whole city in the global frame (streets are not axis aligned).
     random_orientation: bool = True
-    #: "irregular" towns (curved and diagonal streets, open squares, ...) or the plain "grid".
+    #: "irregular" towns (curved and diagonal streets, open squares, ...), the plain "grid", or
+    #: a "highway" (a dual carriageway with barriers; ``environment`` does not apply).
     layout: str = "irregular"
+    #: The ego's cruise speed on a highway is drawn per scene in this range, m/s.
+    highway_speed_mps: tuple[float, float] = (25.0, 35.0)
 
     def __post_init__(self) -> None:
         if self.environment not in ENVIRONMENTS:
@@ -281,6 +284,12 @@ class WorldConfig:
             )
         _positive("WorldConfig", "traffic_density", self.traffic_density, allow_zero=True)
         check_choice("WorldConfig", "layout", self.layout, choices=LAYOUTS)
+        lo, hi = self.highway_speed_mps
+        if not (math.isfinite(lo) and math.isfinite(hi) and 0 < lo <= hi <= 45):
+            raise ValueError(
+                "WorldConfig.highway_speed_mps must be (lo, hi) with 0 < lo <= hi <= 45, got "
+                f"{self.highway_speed_mps!r}"
+            )
 
 
 @dataclass(frozen=True)
