@@ -124,7 +124,7 @@ def test_config_show_reads_every_kind_of_config_file(tmp_path):
     import subprocess
     import sys
 
-    from evgrid.cli.groups import BenchOptions, SimulateConfig, SimulateOptions
+    from evgrid_sim.options import BenchOptions, SimulateConfig, SimulateOptions
     from evgrid.config import document
 
     files = {

@@ -28,6 +28,8 @@ def _map(ctx, name, out, config, sets, n, engine, resume, overwrite, preset=(), 
     from evgrid.runs import map_scenes, sweep_m_u_min
     from evgrid.sources import source_from_dict
 
+    if resume and overwrite:  # else a folder of finished scenes under several configs
+        raise ValueError("--resume keeps the finished scenes, --overwrite replaces them: not both")
     sweep = name == "sweep-m-u-min"
     out = out or (default_out(name, resume) if resume else None)
     cls = SweepConfig if sweep else RunConfig
@@ -88,8 +90,9 @@ def demo(
     ctx: typer.Context, out: Path = typer.Option(Path("out/demo"), "--out"),
     workers: int = workers(2), overwrite: bool = OVERWRITE,
 ) -> None:  # fmt: skip
-    """Map three simulated validation scenes with the shipped Ev-Net: OUT/metrics.json ({"maps":
-    {name: {"free", "occupied", "unknown"}}, ...}), table.md, per scene figures and a GIF."""
+    """Map three simulated validation scenes (or the data options' scenes) with the shipped
+    Ev-Net: OUT/metrics.json ({"maps": {name: {"free", "occupied", "unknown"}}, ...}), table.md,
+    per scene figures and a GIF. Example: evgrid demo --scenes 1 --duration 5 --out out/demo"""
     from evgrid.io import write_json
 
     summary = _map(ctx, "demo", out, None, None, workers, "local", False, overwrite)
@@ -111,10 +114,10 @@ def simulate(
       evgrid simulate --format nuscenes --out data/rig --lidar-rate 10 --radar-rate 4
         --radar-channels RADAR_FRONT,RADAR_BACK_LEFT,RADAR_BACK_RIGHT
     """
-    from evgrid.cli.groups import SimulateConfig, SimulateOptions, simulate_options
     from evgrid.cli.options import options_to_overrides
     from evgrid.config import document
     from evgrid.console import bar
+    from evgrid_sim.options import SimulateConfig, SimulateOptions, simulate_options
     from evgrid_sim.writer import check_out, write_simulated
 
     _, values = options_to_overrides(ctx.args, {}, SimulateOptions, SimulateOptions)
@@ -229,7 +232,8 @@ def upgrade_checkpoint_cmd(
     src: Path = typer.Argument(..., help="An Ev-Net checkpoint of an older format."),
     dst: Path = typer.Argument(None, help="Where to write it (default: replace SRC, atomically)."),
 ) -> None:
-    """Rewrite an Ev-Net checkpoint in the current format (with its checksum); same weights."""
+    """Rewrite an Ev-Net checkpoint in the current format (with its checksum); same weights.
+    Example: evgrid upgrade-checkpoint old.safetensors new.safetensors"""
     from evgrid.ism.evnet import upgrade_checkpoint
 
     typer.echo(f"wrote {upgrade_checkpoint(src, dst or src)}")
@@ -248,13 +252,9 @@ def unlock(out: Path = typer.Argument(..., help="A results folder whose lock is 
     typer.echo(f"{out}: unlocked{was}")
 
 
-@command()
+@command(extra=True)
 def bench(
     ctx: typer.Context,
-    duration: float = typer.Option(6.0, "--duration", help="Length of the scene used (s)."),
-    checkpoint: Path = CHECKPOINT,
-    end_to_end: float = typer.Option(None, "--end-to-end", help="Seconds mapped end to end."),
-    repeats: int = typer.Option(3, "--repeats", min=1, help="Passes; medians over them."),
     out: Path = typer.Option(None, "--out", help="Also write the JSON here (and .config.json)."),
     config: Path = typer.Option(None, "--config", help="A bench's .config.json (options win)."),
 ) -> None:
@@ -265,19 +265,12 @@ def bench(
     """
     import json
 
-    from click.core import ParameterSource
-
-    from evgrid.cli.groups import bench_options, write_bench_config
+    from evgrid.cli.options import options_to_overrides
     from evgrid.io import write_json
     from evgrid_sim.bench import run_bench
+    from evgrid_sim.options import BenchOptions, bench_options, write_bench_config
 
-    # a config's values stand unless the option is given on the command line
-    values = {
-        k: str(v) if k == "checkpoint" and v else v for k, v in ctx.params.items()
-        if k in ("duration", "checkpoint", "end_to_end", "repeats")
-        and (config is None or ctx.get_parameter_source(k) == ParameterSource.COMMANDLINE)
-    }  # fmt: skip
-    opts = bench_options(values, config)
+    opts = bench_options(options_to_overrides(ctx.args, {}, BenchOptions, BenchOptions)[1], config)
     res = run_bench(opts.duration, opts.checkpoint, opts.repeats, end_to_end_s=opts.end_to_end)
     typer.echo(json.dumps(res, indent=2))
     if out is not None:
