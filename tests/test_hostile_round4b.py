@@ -164,3 +164,17 @@ def test_the_live_viewer_listens_on_loopback_only(monkeypatch):
     args = spawned[0].get("extra_args", [])
     assert args[args.index("--bind") + 1] == "127.0.0.1", spawned
     assert connected and connected[0].startswith("rerun+http://127.0.0.1:"), connected
+
+
+def test_the_cluster_recipe_stops_only_its_own_ray_and_says_what_listens():
+    # before: the recipe ended with `ray stop` (every Ray process of the user) and its port
+    # table said the driver opens nothing in a cluster
+    from pathlib import Path
+
+    text = (Path(__file__).parents[1] / "docs" / "cluster.md").read_text()
+    recipe = text[text.index("```bash") : text.index("```", text.index("```bash") + 7)]
+    commands = [line.split("#")[0].strip() for line in recipe.splitlines()]
+    assert "ray stop" not in commands and 'kill -TERM -- -"$(cat "$RAY_TMP/node.pid")"' in recipe
+    assert recipe.count('--temp-dir "$RAY_TMP"') == 2
+    flat = " ".join(text.split())
+    assert "**evgrid's own driver**" in flat and "opens its core worker's gRPC port" in flat
