@@ -84,8 +84,11 @@ def scenes(family: str, n: int, duration: float, speed: float) -> list[tuple[str
     return [(name, lambda name=name: source.load(name)) for name in source.names()]
 
 
-def map_one(make, name: str, mode: str) -> dict[str, Any]:
-    config = MapperConfig(evidence=EvidenceParams(mode=mode))
+def map_one(make, name: str, mode: str, reference_m: float | None = None) -> dict[str, Any]:
+    evidence = EvidenceParams(mode=mode)
+    if reference_m is not None:
+        evidence = replace(evidence, reference_m=reference_m)
+    config = MapperConfig(evidence=evidence)
     outputs = replace(OutputConfig(), figures=False, save_maps=False, exports=())
     keep = _Keep(config)
     scene = make()
@@ -169,6 +172,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--duration", type=float, default=10.0)
     ap.add_argument("--speed", type=float, default=30.0, help="highway ego speed, m/s")
     ap.add_argument("--out", type=Path, default=Path("out/evidence_per_metre"))
+    ap.add_argument(
+        "--reference-m", type=float, default=None, help="per_metre's reference distance (m)"
+    )
     a = ap.parse_args(argv)
     per: dict[str, list[dict]] = {mode: [] for mode in MODES}
     t0 = time.perf_counter()
@@ -178,7 +184,7 @@ def main(argv: list[str] | None = None) -> int:
             if path.exists():
                 m = json.loads(path.read_text())
             else:
-                m = map_one(make, name, mode)
+                m = map_one(make, name, mode, a.reference_m)
                 path.parent.mkdir(parents=True, exist_ok=True)
                 path.write_text(json.dumps(m))
             per[mode].append(m)

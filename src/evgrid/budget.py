@@ -108,7 +108,7 @@ def memory_budget(environ: Mapping[str, str] = os.environ) -> int:
     return int(gb * 1e9)
 
 
-def _options(options: Mapping[str, tuple[str, ...]] | None) -> dict[str, str]:
+def option_names(options: Mapping[str, tuple[str, ...]] | None) -> dict[str, str]:
     """Config key -> ``--option`` from the command line's option table (``evgrid.cli.options.
     MAP_OPTIONS``, passed by the command line; a library call names the config keys alone)."""
     out: dict[str, str] = {}
@@ -129,7 +129,7 @@ def costs(
     ``OutputConfig`` (None: no outputs)."""
     if outputs is None and hasattr(mapper, "outputs"):
         mapper, outputs = mapper.mapper, mapper.outputs
-    opt = _options(options)
+    opt = option_names(options)
     grid = mapper.grid
     res = grid.resolution
     n_maps = len(mapper.maps)

@@ -16,6 +16,7 @@ import dataclasses
 import importlib
 import json
 import os
+import re
 import types
 import typing
 from collections.abc import Iterable, Mapping, Sequence
@@ -23,6 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from evgrid.budget import option_names
 from evgrid.export.mcap import McapParams
 from evgrid.export.nav2 import Nav2Params
 from evgrid.export.rerun import RerunParams
@@ -97,6 +99,8 @@ class MapperConfig:
     dynamic: DynamicParams = field(default_factory=DynamicParams)  # moving objects' score
     # the navigation map's clearance around the lidar's returns (docs/equations.md)
     nav: NavParams = field(default_factory=NavParams)
+    #: the maps built, comma-separated: any of ray_ilm, deep_acc, deep_replace, deep_disc,
+    #: ray_irm, fused (Table I's six) and nav (the navigation map)
     maps: tuple[str, ...] = MAP_NAMES
     lidar: RayIlmParams = field(default_factory=RayIlmParams)  # ray ILM
     # The ego vehicle's own lidar returns, removed before the ray ILM (docs/rigs.md#self-returns).
@@ -104,25 +108,27 @@ class MapperConfig:
     # Radar detections kept by their validity fields, before any radar ISM; the same as in training.
     radar_filter: RadarFilter = field(default_factory=RadarFilter)
     radar: RayIrmParams = field(default_factory=RayIrmParams)  # ray IRM (n_sweeps: the paper's N)
-    # The free mass of one ray ILM / ray IRM update: per metre of travel, or the paper's constant
-    # per look (mode "per_look"); docs/equations.md#evidence-per-distance-seen.
+    #: the free mass of one ray ILM / ray IRM update: per metre of travel, or the paper's
+    #: constant per look (mode per_look); docs/equations.md#evidence-per-distance-seen
     evidence: EvidenceParams = field(default_factory=EvidenceParams)
     image: RadarImageParams = field(default_factory=RadarImageParams)  # the deep IRM's input
-    # Ev-Net weights; None = the shipped checkpoint. In a file, relative to the file's folder.
+    #: Ev-Net weights, a .safetensors file (none: the shipped one); in a config file relative
+    #: to the file's folder
     checkpoint: str | None = None
-    # Map updates per second. The paper's 133,708 training samples over ~700 nuScenes scenes of
-    # 20 s are ~10 Hz, not the 2 Hz keyframes. With evidence.mode "per_look" (the paper's
-    # constants), m_f = 0.05 per ray ILM update at 2 Hz would leave hardly any cell free; the
-    # default evidence per metre does not depend on the rate. Keyframes are always updated (they
-    # are where maps are scored).
+    #: map updates per second; keyframes are always updated (they are where maps are scored)
+    # The paper's 133,708 training samples over ~700 nuScenes scenes of 20 s are ~10 Hz, not the
+    # 2 Hz keyframes. With evidence.mode "per_look" (the paper's constants), m_f = 0.05 per ray
+    # ILM update at 2 Hz would leave hardly any cell free; evidence per metre does not depend on
+    # the rate.
     update_rate_hz: float = 10.0
     poses: PoseLimits = field(default_factory=PoseLimits)
-    threads: int = 1
+    threads: int = 1  #: threads of one scene's map updates (at most the machine's cores)
     tile_cells: int = 256
     runtime: str = (
         "auto"  # Ev-Net's inference: auto (ONNX Runtime when installed), onnxruntime, torch
     )
-    # The map frame: "world", the recording's fixed frame (nuScenes global, a rig's
+    #: the map frame: world|first_pose (the recording's fixed frame, or the first ego pose's)
+    # "world", the recording's fixed frame (nuScenes global, a rig's
     # world_frame, the simulator's world), axis-aligned with it, so map files and exports need
     # no transform; or "first_pose", the first ego pose's frame, as in the paper's figures.
     frame: str = "world"
@@ -162,15 +168,16 @@ class OutputConfig:
     second keyframe, then every fourth, ...), so its cost does not grow with the drive.
     """
 
-    figures: bool = True
+    figures: bool = True  #: the maps' figures and the GIF of each scene
     convergence: bool = True  # IoU at every keyframe (the paper's convergence claim)
-    save_maps: bool = False
+    save_maps: bool = False  #: the final maps as SCENE/maps/NAME.npz (evgrid export reads them)
     gif_window_m: float = 80.0
     gif_step: int = 8
     gif_max_frames: int = 240
-    # nav2 (PGM + YAML of the final maps), mcap (maps and poses per keyframe), rerun (.rrd)
+    #: exports, comma-separated: nav2 (PGM + YAML of the final maps), mcap (maps and poses per
+    #: keyframe), rerun (.rrd); docs/ros.md
     exports: tuple[str, ...] = ()
-    viewer: bool = False  # a live rerun viewer
+    viewer: bool = False  #: show the maps live in a rerun viewer (needs evgrid[rerun])
     # Each export's parameters (docs/ros.md). Their map_frame and fixed_frame are the run's:
     # the recording's fixed frame, and the map frame of MapperConfig.frame.
     nav2: Nav2Params = field(default_factory=Nav2Params)
@@ -189,6 +196,14 @@ class OutputConfig:
             if not isinstance(getattr(self, key), cls):
                 raise ValueError(
                     f"OutputConfig.{key} must be {cls.__name__}, got {getattr(self, key)!r}"
+                )
+        named = ("mcap.maps", "mcap.final_maps", "mcap.navigation", "nav2.maps", "nav2.navigation")
+        for key in named:  # the maps named by the exports
+            section, name = key.split(".")
+            unknown = [m for m in getattr(getattr(self, section), name) or () if m not in RULES]
+            if unknown:  # else each scene fails at its first update, after the run started
+                raise ValueError(
+                    f"OutputConfig.{key}: unknown map name(s) {unknown}; choose from {tuple(RULES)}"
                 )
         check_number(self, "gif_window_m", min=0.0, min_open=True)
         check_int(self, "gif_step", min=1)
@@ -240,6 +255,7 @@ class SweepConfig:
     mapper: MapperConfig = field(default_factory=MapperConfig)
     source: dict[str, Any] | None = None
     scenes: tuple[str, ...] | None = None
+    #: the m_u_min values swept, comma-separated masses in [0, 1]
     values: tuple[float, ...] = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7)
 
     def __post_init__(self) -> None:
@@ -362,10 +378,12 @@ def resolve_config(
     path: str | os.PathLike | None = None,
     overrides: Iterable[tuple[str, Any]] = (),
     base: Any = None,
+    options: Mapping[str, tuple[str, ...]] | None = None,
 ) -> Any:
     """The one way a config is made: the file at ``path`` (else ``base``, else the defaults),
     then each override ``(dotted key, value)`` in order; a string value is parsed by the field's
-    type (``"0.4"``, ``"true"``, ``"a,b"``, ``"none"``, JSON). Errors name the file and field."""
+    type (``"0.4"``, ``"true"``, ``"a,b"``, ``"none"``, JSON). Errors name the file and field,
+    and the command-line option that sets it from ``options`` (its option table)."""
     if path is not None:
         path = Path(path)
         where = str(path)
@@ -380,7 +398,15 @@ def resolve_config(
         required = []
     for key, value in overrides:
         _override(cls, d, key, value, where)
-    return _from_document(cls, d, where, required)
+    try:
+        return _from_document(cls, d, where, required)
+    except ConfigError as e:
+        # "config.outputs: OutputConfig.mcap.maps: ..." is the field outputs.mcap.maps
+        m = re.match(rf"{re.escape(where)}\.?([\w.]*): [A-Z]\w*\.([\w.]+)", str(e))
+        key = m and ".".join(filter(None, m.groups()))
+        if key and (opt := option_names(options).get(key)):
+            raise ConfigError(f"{opt}: {e}") from None
+        raise
 
 
 def _override(cls: type, d: dict, key: str, value: Any, where: str) -> None:
@@ -440,7 +466,7 @@ def parse_value(tp: Any, text: str, where: str) -> Any:
             return parse_value(inner[0], text, where) if len(inner) == 1 else json.loads(s)
         if tp is bool:
             if s.lower() not in TRUE_WORDS + FALSE_WORDS:
-                raise ValueError(f"expected true or false, got {text!r}")
+                raise ValueError(f"expected on|off (or true|false, yes|no, 1|0), got {text!r}")
             return s.lower() in TRUE_WORDS
         if tp in (int, float):
             return tp(s)

@@ -311,16 +311,30 @@ def iou_intervals(
     }
 
 
+#: What a table's intervals are; with one scene there is none, and the title says so.
+INTERVAL_WORDS = "95% bootstrap interval over scenes"
+#: The caption under the paper's columns: they are not this run's data.
+PAPER_CAPTION = (
+    "paper: the paper's Table I (Ev-Net on nuScenes val, its own data and network), not figures "
+    "of this run's data: compare the maps' ordering, not the digits (docs/results.md)."
+)
+
+
 def markdown_table(
     results: Mapping[str, Mapping[str, float]],
     title: str = "ours",
     paper: bool = True,
     intervals: Mapping[str, Mapping[str, Mapping[str, float]]] | None = None,
 ) -> str:
-    """A Markdown table of per-class mIoU in %, with the paper's Table I beside it.
+    """A Markdown table of per-class mIoU in %, with the paper's Table I beside it, captioned.
 
-    With ``intervals`` (from :func:`iou_intervals`) each value carries its 95% interval over scenes.
+    With ``intervals`` (from :func:`iou_intervals`) each value carries its 95% interval over
+    scenes, and the title says so (:data:`INTERVAL_WORDS`); with fewer than two scenes there is
+    none, and the title says "one scene: no interval".
     """
+    if intervals is not None:
+        one = all(ci.get("n", 0) < 2 for d in intervals.values() for ci in d.values())
+        title += "; one scene: no interval" if one else f"; {INTERVAL_WORDS}"
     head = "| map | free | occupied | unknown |"
     if paper:
         head += " paper free | paper occupied | paper unknown |"
@@ -337,6 +351,8 @@ def markdown_table(
             p = PAPER_TABLE_I.get(name)
             row += " " + " | ".join(f"{p[c]:.2f}" if p else "-" for c in CLASSES) + " |"
         lines.append(row)
+    if paper:
+        lines += ["", PAPER_CAPTION]
     return "\n".join(lines) + "\n"
 
 

@@ -99,7 +99,7 @@ class RadarFilter:
     are ignored); "custom" uses the sets given, where ``None`` accepts any value.
     """
 
-    mode: str = "none"
+    mode: str = "none"  #: which radar detections are kept: none (all)|nuscenes|custom
     invalid_state: tuple[int, ...] | None = None
     dyn_prop: tuple[int, ...] | None = None
     ambig_state: tuple[int, ...] | None = None
@@ -267,8 +267,10 @@ class SelfReturnParams:
     """How the ego vehicle's own lidar returns are found (see the module docstring). Lengths in
     metres."""
 
+    #: the ego vehicle's own lidar returns: auto (learnt while driving), box (inside --body-box),
+    #: off (keep every return); docs/rigs.md#self-returns
     mode: str = "auto"
-    #: "box": the body; None = NUSCENES_BODY.
+    #: the vehicle's body box in the lidar's frame (m); none: nuScenes' car
     body: BodyBox | None = None
     #: "auto": the body box used until one is learnt (None: none, keep everything until then).
     prior: BodyBox | None = NUSCENES_BODY
@@ -640,7 +642,7 @@ class PoseLimits:
     origin are errors (no map frame is that large).
     """
 
-    max_speed_mps: float = 100.0
+    max_speed_mps: float = 100.0  #: a pose faster than this since the last one is a glitch
     max_yaw_rate_dps: float = 360.0
     slack_m: float = 1.0
     slack_deg: float = 10.0

@@ -621,7 +621,7 @@ def _write_summary(
     n = len(summary["scenes"])
     table = markdown_table(
         {k: v for k, v in summary["maps"].items() if k != "ray_ilm"},
-        title=f"{n} scene(s), against ray_ilm; 95% bootstrap interval over scenes",
+        title=f"{n} scene(s), against ray_ilm",
         intervals=summary.get("maps_interval"),
     )
     if "no_reference" in summary:

@@ -1,6 +1,5 @@
-"""The ``evgrid`` command line: the application and shared options (``base``), the commands,
-the one override parser with the option tables (``options``), the option groups (``groups``),
-the live node's commands (``live``).
+"""The ``evgrid`` command line: the application (``base``), the commands (``commands``,
+``live``), the one override parser and option tables (``options``), option groups (``groups``).
 The library below it declares no command-line option."""
 
 from evgrid.cli import live  # noqa: F401  (registers live and replay)

@@ -55,8 +55,9 @@ class _Command(typer.core.TyperCommand):
     def format_epilog(self, ctx: Any, formatter: Any) -> None:
         from evgrid.cli.options import command_options_help
 
-        self.epilog = command_options_help(self.name)
-        super().format_epilog(ctx, formatter)
+        for title, rows in command_options_help(self.name):
+            with formatter.section(title):
+                formatter.write_dl(rows)
 
 
 def command(*args: Any, typer_app: typer.Typer = app, **kwargs: Any) -> Callable:
@@ -89,15 +90,11 @@ def command(*args: Any, typer_app: typer.Typer = app, **kwargs: Any) -> Callable
 
 
 # The options several commands share.
-OUT = typer.Option(
-    None, "--out", help="Results folder; default: a new out/COMMAND/TIME, linked as latest."
-)
+OUT = typer.Option(None, "--out", help="Results folder; default: new out/COMMAND/TIME (latest).")
 CONFIG = typer.Option(None, "--config", help="A run's config.json: the same run (options win).")
 SET = typer.Option(None, "--set", help="KEY=VALUE: any config field, e.g. mapper.threads=2.")
 OVERWRITE = typer.Option(False, "--overwrite", help="Write into --out even if it holds results.")
-RESUME = typer.Option(
-    False, "--resume", help="Continue the run in --out (default: the latest): keep complete scenes."
-)
+RESUME = typer.Option(False, "--resume", help="Continue the run in --out (or the latest).")
 ENGINE = typer.Option("local", "--engine", help="local (a process pool) or ray (the ray extra).")
 CHECKPOINT = typer.Option(None, "--checkpoint", help="Default: the shipped one.")
 

@@ -1,9 +1,5 @@
-"""The ``evgrid`` commands: each parses, builds its config, and calls the library.
-
-Options beyond the few common ones are overrides of the config's fields: ``--set KEY=VALUE``
-sets any field (``--set mapper.fusion.m_u_min=0.4``), and the short options listed in each
-command's help (``--m-u-min 0.4``) are named overrides (:mod:`evgrid.cli.options`).
-"""
+"""The ``evgrid`` commands: each parses, builds its config, and calls the library; options
+beyond the few common ones override config fields (:mod:`evgrid.cli.options`)."""
 
 from __future__ import annotations
 
@@ -28,6 +24,8 @@ def _map(ctx, name, out, config, sets, n, engine, resume, overwrite, preset=(), 
     from evgrid.runs import map_scenes, sweep_m_u_min
     from evgrid.sources import source_from_dict
 
+    if resume and overwrite:  # else a folder of finished scenes under several configs
+        raise ValueError("--resume keeps the finished scenes, --overwrite replaces them: not both")
     sweep = name == "sweep-m-u-min"
     out = out or (default_out(name, resume) if resume else None)
     cls = SweepConfig if sweep else RunConfig
@@ -88,8 +86,9 @@ def demo(
     ctx: typer.Context, out: Path = typer.Option(Path("out/demo"), "--out"),
     workers: int = workers(2), overwrite: bool = OVERWRITE,
 ) -> None:  # fmt: skip
-    """Map three simulated validation scenes with the shipped Ev-Net: OUT/metrics.json ({"maps":
-    {name: {"free", "occupied", "unknown"}}, ...}), table.md, per scene figures and a GIF."""
+    """Map three simulated validation scenes (or the data options' scenes) with the shipped
+    Ev-Net: OUT/metrics.json ({"maps": {name: {"free", "occupied", "unknown"}}, ...}), table.md,
+    per scene figures and a GIF. Example: evgrid demo --scenes 1 --duration 5 --out out/demo"""
     from evgrid.io import write_json
 
     summary = _map(ctx, "demo", out, None, None, workers, "local", False, overwrite)
@@ -111,10 +110,10 @@ def simulate(
       evgrid simulate --format nuscenes --out data/rig --lidar-rate 10 --radar-rate 4
         --radar-channels RADAR_FRONT,RADAR_BACK_LEFT,RADAR_BACK_RIGHT
     """
-    from evgrid.cli.groups import SimulateConfig, SimulateOptions, simulate_options
     from evgrid.cli.options import options_to_overrides
     from evgrid.config import document
     from evgrid.console import bar
+    from evgrid_sim.options import SimulateConfig, SimulateOptions, simulate_options
     from evgrid_sim.writer import check_out, write_simulated
 
     _, values = options_to_overrides(ctx.args, {}, SimulateOptions, SimulateOptions)
@@ -194,11 +193,9 @@ def export_cmd(
 
     Example: evgrid export out/map/sim-000004/maps/fused.npz --format nav2
     """
-    from evgrid.export import FORMATS, export_map
+    from evgrid.export import export_map
     from evgrid.grid import load_map
 
-    if fmt not in FORMATS:
-        raise typer.BadParameter(f"--format must be one of {', '.join(FORMATS)}, got {fmt!r}")
     target = out or map_file.with_suffix("")
     written = export_map(load_map(map_file), target, fmt, map_file.stem, overwrite=overwrite)
     typer.echo("\n".join(f"wrote {path}" for path in written))
@@ -229,7 +226,8 @@ def upgrade_checkpoint_cmd(
     src: Path = typer.Argument(..., help="An Ev-Net checkpoint of an older format."),
     dst: Path = typer.Argument(None, help="Where to write it (default: replace SRC, atomically)."),
 ) -> None:
-    """Rewrite an Ev-Net checkpoint in the current format (with its checksum); same weights."""
+    """Rewrite an Ev-Net checkpoint in the current format (with its checksum); same weights.
+    Example: evgrid upgrade-checkpoint old.safetensors new.safetensors"""
     from evgrid.ism.evnet import upgrade_checkpoint
 
     typer.echo(f"wrote {upgrade_checkpoint(src, dst or src)}")
@@ -237,10 +235,8 @@ def upgrade_checkpoint_cmd(
 
 @command()
 def unlock(out: Path = typer.Argument(..., help="A results folder whose lock is stale.")) -> None:
-    """Clear the lock of a results folder left by a run that no longer lives (another host's,
-    or a crashed one); a live run's lock on this host is refused.
-
-    Example: evgrid unlock out/map/latest"""
+    """Clear the lock a run that no longer lives left on a results folder (another host's, a
+    crashed one's); a live run's lock on this host is refused. Example: evgrid unlock out/run"""
     from evgrid.outdir import break_lock
 
     holder = break_lock(out)
@@ -248,13 +244,9 @@ def unlock(out: Path = typer.Argument(..., help="A results folder whose lock is 
     typer.echo(f"{out}: unlocked{was}")
 
 
-@command()
+@command(extra=True)
 def bench(
     ctx: typer.Context,
-    duration: float = typer.Option(6.0, "--duration", help="Length of the scene used (s)."),
-    checkpoint: Path = CHECKPOINT,
-    end_to_end: float = typer.Option(None, "--end-to-end", help="Seconds mapped end to end."),
-    repeats: int = typer.Option(3, "--repeats", min=1, help="Passes; medians over them."),
     out: Path = typer.Option(None, "--out", help="Also write the JSON here (and .config.json)."),
     config: Path = typer.Option(None, "--config", help="A bench's .config.json (options win)."),
 ) -> None:
@@ -265,19 +257,12 @@ def bench(
     """
     import json
 
-    from click.core import ParameterSource
-
-    from evgrid.cli.groups import bench_options, write_bench_config
+    from evgrid.cli.options import options_to_overrides
     from evgrid.io import write_json
     from evgrid_sim.bench import run_bench
+    from evgrid_sim.options import BenchOptions, bench_options, write_bench_config
 
-    # a config's values stand unless the option is given on the command line
-    values = {
-        k: str(v) if k == "checkpoint" and v else v for k, v in ctx.params.items()
-        if k in ("duration", "checkpoint", "end_to_end", "repeats")
-        and (config is None or ctx.get_parameter_source(k) == ParameterSource.COMMANDLINE)
-    }  # fmt: skip
-    opts = bench_options(values, config)
+    opts = bench_options(options_to_overrides(ctx.args, {}, BenchOptions, BenchOptions)[1], config)
     res = run_bench(opts.duration, opts.checkpoint, opts.repeats, end_to_end_s=opts.end_to_end)
     typer.echo(json.dumps(res, indent=2))
     if out is not None:

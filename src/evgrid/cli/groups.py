@@ -1,25 +1,18 @@
 """Option groups: dataclasses whose fields are a command's options (``--sim-dir`` is
-``sim_dir``); those of simulate and bench are also config files (their kinds registered here)."""
+``sim_dir``; its comment is the option's help); simulate's and bench's are the simulator's."""
 
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, field, replace
-from pathlib import Path
+from dataclasses import dataclass
 from typing import Any
 
-from evgrid.config import FORMATS, KIND_MODULES, document, resolve_config, to_dict
+from evgrid.config import KIND_MODULES, to_dict
 from evgrid.validation import check_int, check_number
 
 
 def _abs(path: str) -> str:
     return os.path.abspath(os.path.expanduser(path))
-
-
-def _check(scenes: int, seed: int, duration: float) -> None:
-    check_int("", "--scenes", scenes, min=1)
-    check_int("", "--seed", seed, min=0)
-    check_number("", "--duration", duration, min=0.0, min_open=True)
 
 
 @dataclass(frozen=True)
@@ -28,18 +21,20 @@ class DataOptions:
     default, or a folder of simulated scenes, nuScenes, or recordings."""
 
     nuscenes: str | None = None  # a nuScenes dataroot (needs evgrid[nuscenes])
-    version: str = "v1.0-trainval"
+    version: str = "v1.0-trainval"  # the nuScenes version (a folder of the dataroot)
     split: str = "val"  # train, val (nuScenes: any official split), or all
     sim_dir: str | None = None  # a folder written by `evgrid simulate`
     bag: tuple[str, ...] = ()  # recordings, one scene each (needs --rig)
-    rig: str | None = None
+    rig: str | None = None  # the recordings' rig.yaml: topics, frames, fields (docs/ros.md)
     scenes: int = 3  # simulator: scenes of the split
     seed: int = 0  # simulator: the first seed drawn from
     duration: float = 20.0  # simulator: seconds a scene
     scene: tuple[str, ...] = ()  # only these scenes
 
     def __post_init__(self) -> None:
-        _check(self.scenes, self.seed, self.duration)
+        check_int("", "--scenes", self.scenes, min=1)
+        check_int("", "--seed", self.seed, min=0)
+        check_number("", "--duration", self.duration, min=0.0, min_open=True)
 
     def source(self) -> Any:
         """The scene source these options name (the simulator when none is given); paths are
@@ -72,18 +67,18 @@ class TrainData:
     drawn from the training ranges unless ``random_radar`` is off), nuScenes splits, or
     recordings (``bag`` and ``val_bag`` with their ``rig``)."""
 
-    nuscenes: str | None = None
-    version: str = "v1.0-trainval"
-    train_split: str = "train"
-    val_split: str = "val"
-    bag: tuple[str, ...] = ()
-    val_bag: tuple[str, ...] = ()
-    rig: str | None = None
-    scenes: int = 40
-    val_scenes: int = 10
+    nuscenes: str | None = None  # a nuScenes dataroot (needs evgrid[nuscenes])
+    version: str = "v1.0-trainval"  # the nuScenes version (a folder of the dataroot)
+    train_split: str = "train"  # nuScenes: the training split
+    val_split: str = "val"  # nuScenes: the validation split
+    bag: tuple[str, ...] = ()  # training recordings (needs --val-bag, --rig)
+    val_bag: tuple[str, ...] = ()  # validation recordings
+    rig: str | None = None  # the recordings' rig.yaml (docs/ros.md)
+    scenes: int = 40  # simulator: training scenes
+    val_scenes: int = 10  # simulator: validation scenes
     seed: int = 0  # the training run's seed, and the first simulator seed
-    duration: float = 20.0
-    random_radar: bool = True
+    duration: float = 20.0  # simulator: seconds a scene
+    random_radar: bool = True  # simulator: each scene's radar drawn from the training ranges
 
     def overrides(self) -> list[tuple[str, Any]]:
         """The config fields these options decide: both sources, the seed, the radar ranges."""
@@ -116,112 +111,7 @@ class TrainData:
         ]  # fmt: skip
 
 
-@dataclass(frozen=True)
-class SimulateOptions:
-    """What ``evgrid simulate`` writes; each field is an option (``--lidar-rate`` is
-    ``lidar_rate``). ``radar_channels``: ``NAME`` or ``NAME=MOUNT`` (a nuScenes radar position),
-    comma-separated (default: nuScenes' five); ``radar_rate``: one rate in Hz or one per channel;
-    ``sweep_faults``: the fraction of radar sweeps dropped, of those repeated, and of those
-    delivered late (each); ``ego_returns``: lidar returns from the vehicle's own body."""
-
-    scenes: int = 1
-    seed: int = 0
-    format: str = "npz"
-    duration: float = 20.0
-    environment: str = "mixed"
-    version: str = "v1.0-sim"
-    lidar_rate: float = 20.0
-    radar_channels: str | None = None
-    radar_rate: str | None = None
-    ego_returns: bool = True
-    sweep_faults: float = 0.0
-
-    def __post_init__(self) -> None:
-        from evgrid_sim.config import ENVIRONMENTS
-        from evgrid_sim.writer import FORMATS as WRITTEN
-
-        if self.format not in WRITTEN:
-            raise ValueError(f"--format must be one of {', '.join(WRITTEN)}, got {self.format!r}")
-        if self.environment not in ENVIRONMENTS:
-            raise ValueError(
-                f"--environment must be one of {ENVIRONMENTS}, got {self.environment!r}"
-            )
-        _check(self.scenes, self.seed, self.duration)
-        check_number("", "--sweep-faults", self.sweep_faults, min=0.0, max=1.0)
-
-    def sim_config(self):
-        """The simulator's configuration these options describe."""
-        from evgrid_sim import SimConfig, WorldConfig
-        from evgrid_sim.config import LidarConfig, SimRadarRig, SweepFaults
-
-        rig = SimRadarRig()
-        if self.radar_channels:
-            pairs = [c.strip().split("=", 1) for c in self.radar_channels.split(",") if c.strip()]
-            mounts = tuple(p[-1] for p in pairs) if any(len(p) == 2 for p in pairs) else ()
-            rig = replace(rig, radar_channels=tuple(p[0] for p in pairs), radar_mounts=mounts)
-        if self.radar_rate:
-            try:
-                rig = replace(rig, radar_rates_hz=tuple(map(float, self.radar_rate.split(","))))
-            except ValueError:
-                raise ValueError(
-                    f"--radar-rate must be numbers separated by commas, got {self.radar_rate!r}"
-                ) from None
-        if f := self.sweep_faults:
-            rig = replace(rig, faults=SweepFaults(drop=f, duplicate=f, reorder=f))
-        lidar = LidarConfig(rate_hz=self.lidar_rate, self_returns=self.ego_returns)
-        world = WorldConfig(environment=self.environment)
-        return SimConfig(duration_s=self.duration, world=world, rig=rig, lidar=lidar)
-
-
-@dataclass(frozen=True)
-class SimulateConfig:
-    """A simulate run's ``config.json``: the options under ``simulate`` (at the top their
-    ``format`` and ``version`` would clash with the file's own tags)."""
-
-    simulate: SimulateOptions = field(default_factory=SimulateOptions)
-
-
-@dataclass(frozen=True)
-class BenchOptions:
-    """What ``evgrid bench`` runs (its options; ``--end-to-end`` is ``end_to_end``), kept
-    beside its ``--out FILE`` as ``FILE``'s stem + ``.config.json`` so that ``evgrid bench
-    --config`` runs the same bench again."""
-
-    duration: float = 6.0
-    checkpoint: str | None = None
-    end_to_end: float | None = None
-    repeats: int = 3
-
-    def __post_init__(self) -> None:
-        check_number("", "--duration", self.duration, min=0.0, min_open=True)
-        if self.end_to_end is not None:
-            check_number("", "--end-to-end", self.end_to_end, min=0.0)
-        check_int("", "--repeats", self.repeats, min=1)
-
-
-FORMATS.update({SimulateConfig: "evgrid-simulate", BenchOptions: "evgrid-bench"})
+# `evgrid simulate` and `evgrid bench` take the simulator's option groups (evgrid_sim.options);
+# their config files are read by importing it
+KIND_MODULES.update({"evgrid-simulate": "evgrid_sim.options", "evgrid-bench": "evgrid_sim.options"})
 KIND_MODULES["evgrid-train"] = "evgrid.train_run"  # imports torch: only for such a file
-
-
-def simulate_options(values: dict, config: str | Path | None = None) -> SimulateOptions:
-    """A simulate run's options: the ``config.json`` of an earlier run (errors name the file and
-    field), else the defaults, with ``values`` (field -> value, from the command line) over them."""
-    if config is None:
-        return SimulateOptions(**values)
-    overrides = [(f"simulate.{k}", v) for k, v in values.items()]
-    return resolve_config(SimulateConfig, config, overrides).simulate
-
-
-def bench_options(values: dict, config: str | os.PathLike | None = None) -> BenchOptions:
-    """The bench's options: as :func:`simulate_options`, from a bench's ``.config.json``."""
-    if config is None:
-        return BenchOptions(**values)
-    return resolve_config(BenchOptions, config, list(values.items()))
-
-
-def write_bench_config(opts: BenchOptions, out: str | os.PathLike) -> Path:
-    """Write ``opts`` beside the bench result ``out``: ``bench.json`` -> ``bench.config.json``,
-    so that benches written into one folder keep theirs apart."""
-    from evgrid.io import write_json
-
-    return write_json(Path(out).with_name(Path(out).stem + ".config.json"), document(opts))

@@ -40,7 +40,7 @@ def live(
     from evgrid.cli.options import MAP_OPTIONS, options_to_overrides, parse_overrides
     from evgrid.config import RunConfig, resolve_config
     from evgrid.data.bag import load_rig
-    from evgrid.live.node import LiveNode, LiveOptions, run_live
+    from evgrid.live.node import LiveNode, LiveOptions, report_line, run_live
 
     overrides, data = options_to_overrides(ctx.args, MAP_OPTIONS, RunConfig, DataOptions)
     if data:
@@ -52,16 +52,8 @@ def live(
         publish=tuple(n for n in publish.split(",") if n), grid_map=grid_map,
         save_every_s=save_every, save_maps=run.outputs.save_maps,
     )  # fmt: skip
-    r = run_live(
-        LiveNode(load_rig(rig), run.mapper, run.outputs, out, opts, say=typer.echo), duration
-    )
-    lat = r["latency_ms"]
-    typer.echo(
-        f"evgrid live: stopped after {r['updates']} updates of {r['lidar_sweeps']} lidar sweeps; "
-        f"dropped {sum(r['dropped'].values())} {r['dropped'] or ''}; {r['published']} /map "
-        f"publications, latency median {lat['median']:.0f} ms, p95 {lat['p95']:.0f} ms"
-        + "".join(f"\nwrote {f}" for f in r["files"])
-    )
+    node = LiveNode(load_rig(rig), run.mapper, run.outputs, out, opts, say=typer.echo)
+    typer.echo(report_line(run_live(node, duration)))
 
 
 @command()
@@ -78,21 +70,12 @@ def replay(
 
     Example: evgrid replay drive.mcap --rig rig.yaml --loop
     """
-    import signal
-    import threading
-
     from evgrid.ros import require
 
     require("cyclonedds", "live")
     from evgrid.data.bag import load_rig
-    from evgrid.live.replay import replay as play
+    from evgrid.live.replay import replay_until_signal
 
-    stop = threading.Event()
-    for s in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(s, lambda *_: stop.set())
     stamps = "recorded" if recorded_stamps else "now"
-    r = play(recording, load_rig(rig), rate, loop, stamps, wait, stop=stop.is_set, say=typer.echo)
-    typer.echo(
-        f"evgrid replay: {r.messages} messages in {r.passes} pass(es), {r.seconds:.1f} s; "
-        f"latest {r.late_ms_max:.0f} ms behind its time"
-    )
+    r = replay_until_signal(recording, load_rig(rig), rate, loop, stamps, wait, say=typer.echo)
+    typer.echo(r.line())

@@ -1,18 +1,15 @@
-"""The one override parser: a command's words as overrides of config fields, whose values
-:func:`evgrid.config.resolve_config` parses by the field's type. A command takes short options,
-each an override of config fields (its table), an option group (one option per field of a
-dataclass, :mod:`evgrid.cli.groups`), and ``--set KEY=VALUE`` for any field."""
+"""The one override parser: a command's short options (its table: overrides of config fields),
+option group (a dataclass's fields, :mod:`evgrid.cli.groups`) and ``--set KEY=VALUE``."""
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import typing
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from evgrid.cli.groups import DataOptions, SimulateOptions, TrainData
+from evgrid.cli.groups import DataOptions, TrainData
 
 from evgrid.config import ConfigError, SweepConfig, resolve_config  # isort: skip
 from evgrid.config import FALSE_WORDS, TRUE_WORDS, field_type, parse_value  # isort: skip
@@ -59,7 +56,8 @@ TRAIN_OPTIONS: dict[str, tuple[str, ...]] = {
 COMMAND_OPTIONS: dict[str, tuple[Mapping[str, tuple[str, ...]], type]] = {
     "map": (MAP_OPTIONS, DataOptions),
     "train": (TRAIN_OPTIONS, TrainData),
-    "simulate": ({}, SimulateOptions),
+    "simulate": ({}, None),
+    "bench": ({}, None),
     "sweep-m-u-min": (SWEEP_OPTIONS, DataOptions),
 }
 
@@ -137,14 +135,33 @@ def options_to_overrides(
     return implied + given, values
 
 
-def command_options_help(command: str) -> str:
-    """The end of a command's help: the options it takes from the config, one a line."""
+def command_options_help(command: str) -> list[tuple[str, list[tuple[str, str]]]]:
+    """The help's sections of the options a command takes from its config: (title, rows of
+    ``--name METAVAR`` and what the field it sets means), written from the fields' own docs."""
+    from evgrid.config import RunConfig
+    from evgrid.fielddoc import field_help, metavar, shown
+
     aliases, plain = COMMAND_OPTIONS.get(command, COMMAND_OPTIONS["map"])
-    lines = [f"--{n}: {', '.join(keys)}" for n, keys in aliases.items()]
-    defaults = {f.name: f.default for f in dataclasses.fields(plain)}
-    lines += [f"--{n} (default {defaults[f]!r})" for n, (f, _) in _dashed(plain).items()]
-    # \b: click keeps the lines as they are
-    return "Config options (--set KEY=VALUE sets any field):\n\n\b\n" + "\n".join(lines)
+    if plain is None:  # the simulator's (evgrid_sim imports slowly: only for their help)
+        from evgrid_sim import options
+
+        plain = options.SimulateOptions if command == "simulate" else options.BenchOptions
+    cls = SweepConfig if command == "sweep-m-u-min" else RunConfig
+    if command == "train":
+        from evgrid.train_run import TrainRunConfig as cls
+    rows, data = [], []
+    for name, keys in aliases.items():
+        key = next(k for k in keys if "=" not in k)
+        tp, doc, default = field_help(cls, key)
+        also = "".join(f"; sets {k}" for k in keys if "=" in k)
+        rows.append((f"--{name} {metavar(tp)}", f"{doc} [{key}{also}; default {shown(default)}]"))
+    for name, (f, _) in _dashed(plain).items():
+        tp, doc, default = field_help(plain, f)
+        data.append((f"--{name} {metavar(tp)}", f"{doc} [default {shown(default)}]"))
+    what = {"simulate": "Simulation options", "bench": "Bench options"}.get(command)
+    title = what or f"Data options (the scenes it {'trains on' if command == 'train' else 'maps'})"
+    config = [("Config options (--set KEY=VALUE sets any field)", rows)] if rows else []
+    return [*config, (title, data)]
 
 
 def _file(path: Any, resume: Any) -> Any:
@@ -178,7 +195,8 @@ def config_from_args(
         source = [("source", source_to_dict(src)), ("scenes", None)]
     if scene:
         source.append(("scenes", list(scene)))
-    return resolve_config(cls, path, [*preset, *source, *overrides, *parse_overrides(sets)])
+    items = [*preset, *source, *overrides, *parse_overrides(sets)]
+    return resolve_config(cls, path, items, options=aliases)
 
 
 def train_config_from_args(

@@ -201,8 +201,9 @@ class RerunRecorder:
         self.rec = rr.RecordingStream("evgrid")
         self.path = target_path(path, "maps", ".rrd") if path is not None else None
         self._out = _RrdFile(self.rec, self.path, overwrite) if self.path is not None else None
-        if self._out is None:
-            self.rec.spawn()
+        if self._out is None:  # the viewer listens on loopback only (rerun's default: 0.0.0.0)
+            rr.bindings.spawn(port=9876, memory_limit="75%", extra_args=["--bind", "127.0.0.1"])
+            self.rec.connect_grpc("rerun+http://127.0.0.1:9876/proxy")
         self.rec.log("/", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         self.trajectory: list[tuple[float, float]] = []
         self._maps: dict[str, EvidentialMap] = {}

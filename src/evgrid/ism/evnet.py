@@ -50,9 +50,9 @@ class EvNetConfig:
     """Architecture of an Ev-Net: input channels, first stage width, input max-pool factor."""
 
     in_channels: int = 6
-    width: int = 12
+    width: int = 12  #: channels of the first stage (each deeper stage doubles them)
     pool: int = 4
-    depth: int = 4
+    depth: int = 4  #: stages of the encoder
 
     def __post_init__(self) -> None:
         for name in ("in_channels", "width", "pool", "depth"):

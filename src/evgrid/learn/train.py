@@ -90,14 +90,14 @@ PRECISIONS: tuple[str, ...] = ("auto", "fp32", "bf16", "fp16")
 class TrainConfig:
     """Everything that decides a training run; saved beside its results as ``config.json``."""
 
-    epochs: int = 20
-    batch_size: int = 4
-    lr: float = 2e-3
+    epochs: int = 20  #: passes over the training samples
+    batch_size: int = 4  #: samples a step
+    lr: float = 2e-3  #: AdamW's learning rate
     weight_decay: float = 1e-4
     seed: int = 0
     #: DataLoader worker processes
     workers: int = 2
-    frame_stride: int = 4
+    frame_stride: int = 4  #: every this many lidar frames of a scene is a sample
     flip: bool = True
     threads: int = 0  # torch intra-op threads; 0 = torch's default
     grid: GridSpec = field(default_factory=GridSpec)
@@ -110,13 +110,12 @@ class TrainConfig:
     #: JSON (``evgrid_sim.radar_variants.RadarRanges``; None: the calibrated radar). Recorded
     #: here for the cache key and the checkpoint; the source does the drawing.
     radar_ranges: dict[str, Any] | None = None
-    #: Checkpoint to fine-tune from (None: train from scratch); see :func:`fine_tune_config`.
+    #: an Ev-Net checkpoint to fine-tune from (none: train from scratch); docs/training.md
     init: str | None = None
-    #: What builds the sample cache: ``local`` (a process pool) or ``ray``
-    #: (:mod:`evgrid.engine`), with ``cache_workers`` jobs at once.
+    #: what builds the sample cache: local (a process pool) or ray (evgrid[ray])
     engine: str = "local"
-    cache_workers: int = 1
-    #: Mixed precision on CUDA (:data:`PRECISIONS`).
+    cache_workers: int = 1  #: cache jobs at once
+    #: mixed precision on CUDA: auto|fp32|bf16|fp16 (auto: bf16 where the GPU has it, else fp16)
     precision: str = "auto"
 
     def __post_init__(self) -> None:

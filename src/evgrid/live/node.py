@@ -561,3 +561,14 @@ def run_live(node: LiveNode, duration_s: float | None = None) -> dict[str, Any]:
     finally:
         for s, h in old.items():
             signal.signal(s, h)
+
+
+def report_line(r: Mapping[str, Any]) -> str:
+    """What ``evgrid live`` prints when it stops: updates, drops, publications, latency, files."""
+    lat = r["latency_ms"]
+    return (
+        f"evgrid live: stopped after {r['updates']} updates of {r['lidar_sweeps']} lidar sweeps; "
+        f"dropped {sum(r['dropped'].values())} {r['dropped'] or ''}; {r['published']} /map "
+        f"publications, latency median {lat['median']:.0f} ms, p95 {lat['p95']:.0f} ms"
+        + "".join(f"\nwrote {f}" for f in r["files"])
+    )

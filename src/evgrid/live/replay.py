@@ -86,6 +86,13 @@ class ReplayReport:
     late_ms_max: float  # the latest a message went out after its time
     unmatched: list[str]  # topics no subscriber had matched when playing began
 
+    def line(self) -> str:
+        """What ``evgrid replay`` prints at the end."""
+        return (
+            f"evgrid replay: {self.messages} messages in {self.passes} pass(es), "
+            f"{self.seconds:.1f} s; latest {self.late_ms_max:.0f} ms behind its time"
+        )
+
 
 def _shift_stamp(stamp: Any, offset_ns: int) -> None:
     ns = int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec) + offset_ns
@@ -239,3 +246,19 @@ def _play(
         length_ns = last_ns - first_ns + LOOP_GAP_NS
         shift = (last @ first.inverse()) @ shift
         say(f"evgrid replay: pass {k + 1}")
+
+
+def replay_until_signal(*args: Any, **kwargs: Any) -> ReplayReport:
+    """:func:`replay` that Ctrl-C or SIGTERM stop at the next message (the command's way)."""
+    import signal
+    import threading
+
+    stop = threading.Event()
+    old = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    for s in old:
+        signal.signal(s, lambda *_: stop.set())
+    try:
+        return replay(*args, stop=stop.is_set, **kwargs)
+    finally:
+        for s, handler in old.items():
+            signal.signal(s, handler)
