@@ -142,30 +142,12 @@ def _set_bits(bits, row, g0, g1):
         bits[row, w] |= _word_mask(w, g0, g1)
 
 
-@numba.njit(cache=True)
-def _mark_cap(barrier, brow, bcol, au, av, du, dv, cos_h, sin_h, buf):
-    """Step 1: mark the cells the cap arc passes through, exactly.
-
-    The arc: apex + w, |w| = r = |(du, dv)|, at most h from the direction e = (du, dv) / r;
-    with p = e turned by +90 degrees, w = r (cos b e + sin b p) for |b| <= h. Its crossings
-    with the grid lines u = k and v = k (circle-line intersections, kept where
-    w . e >= r cos h) split it into pieces that each lie in one cell; the crossings are
-    ordered by s = e x w = r sin b, and the cell of each piece's middle is marked.
-    """
-    n_r, n_c = barrier.shape
-    r2 = du * du + dv * dv
-    r = math.sqrt(r2)
-    if r < 1e-9 or not r < 1e12:
-        return (
-            buf  # no cap at the apex; a cap 1e12 cells away cannot touch the grid (or is inf/NaN)
-        )
-    eu = du / r
-    ev = dv / r
+@numba.njit(cache=True, inline="always")
+def _cap_box(au, av, eu, ev, r, rc, rs, cos_h):
+    """Bounding box (u_lo, u_hi, v_lo, v_hi) of the cap arc of :func:`_mark_cap` (rc = r cos h,
+    rs = r sin h): both end points, plus the circle's extremes where the arc holds them."""
     pu = -ev
     pv = eu
-    rc = r * cos_h
-    rs = r * sin_h
-    # bounding box: both end points, plus the circle's extremes where the arc holds them
     u1 = au + rc * eu - rs * pu
     u2 = au + rc * eu + rs * pu
     v1 = av + rc * ev - rs * pv
@@ -182,20 +164,14 @@ def _mark_cap(barrier, brow, bcol, au, av, du, dv, cos_h, sin_h, buf):
         v_hi = av + r
     if ev <= -cos_h:
         v_lo = av - r
-    if u_hi < 0.0 or u_lo >= n_r or v_hi < 0.0 or v_lo >= n_c:
-        return buf
-    ku0 = int(math.ceil(u_lo))
-    ku1 = int(math.floor(u_hi))
-    kv0 = int(math.ceil(v_lo))
-    kv1 = int(math.floor(v_hi))
-    need = 2 * (max(ku1 - ku0 + 1, 0) + max(kv1 - kv0 + 1, 0)) + 2
-    if buf.shape[0] < need:
-        buf = np.empty(2 * need, dtype=np.float64)
-    m = 0
-    buf[m] = -rs
-    m += 1
-    buf[m] = rs
-    m += 1
+    return u_lo, u_hi, v_lo, v_hi
+
+
+@numba.njit(cache=True, inline="always")
+def _cap_crossings(buf, m, au, av, eu, ev, r2, rc, ku0, ku1, kv0, kv1):
+    """Append to ``buf`` (m held) s = e x w of each crossing of the cap arc with the grid lines
+    u = ku0 .. ku1 and v = kv0 .. kv1 (circle-line intersections, kept where w . e > r cos h);
+    returns the new m."""
     for k in range(ku0, ku1 + 1):
         x = k - au
         q = r2 - x * x
@@ -216,7 +192,12 @@ def _mark_cap(barrier, brow, bcol, au, av, du, dv, cos_h, sin_h, buf):
             if wu * eu + y * ev > rc:
                 buf[m] = eu * y - ev * wu
                 m += 1
-    # insertion sort: a cap crosses a handful of grid lines
+    return m
+
+
+@numba.njit(cache=True, inline="always")
+def _sort_head(buf, m):
+    """Sort buf[:m] in place by insertion: a cap crosses a handful of grid lines."""
     for i in range(1, m):
         x = buf[i]
         j = i - 1
@@ -224,6 +205,44 @@ def _mark_cap(barrier, brow, bcol, au, av, du, dv, cos_h, sin_h, buf):
             buf[j + 1] = buf[j]
             j -= 1
         buf[j + 1] = x
+
+
+@numba.njit(cache=True)
+def _mark_cap(barrier, brow, bcol, au, av, du, dv, cos_h, sin_h, buf):
+    """Step 1: mark the cells the cap arc passes through, exactly.
+
+    The arc: apex + w, |w| = r = |(du, dv)|, at most h from the direction e = (du, dv) / r;
+    with p = e turned by +90 degrees, w = r (cos b e + sin b p) for |b| <= h. Its crossings
+    with the grid lines u = k and v = k (circle-line intersections, kept where
+    w . e >= r cos h) split it into pieces that each lie in one cell; the crossings are
+    ordered by s = e x w = r sin b, and the cell of each piece's middle is marked.
+    """
+    n_r, n_c = barrier.shape
+    r2 = du * du + dv * dv
+    r = math.sqrt(r2)
+    if r < 1e-9 or not r < 1e12:
+        # no cap at the apex; a cap 1e12 cells away cannot touch the grid (or is inf/NaN)
+        return buf
+    eu = du / r
+    ev = dv / r
+    rc = r * cos_h
+    rs = r * sin_h
+    pu = -ev  # p = e turned by +90 degrees
+    pv = eu
+    u_lo, u_hi, v_lo, v_hi = _cap_box(au, av, eu, ev, r, rc, rs, cos_h)
+    if u_hi < 0.0 or u_lo >= n_r or v_hi < 0.0 or v_lo >= n_c:
+        return buf
+    ku0 = int(math.ceil(u_lo))
+    ku1 = int(math.floor(u_hi))
+    kv0 = int(math.ceil(v_lo))
+    kv1 = int(math.floor(v_hi))
+    need = 2 * (max(ku1 - ku0 + 1, 0) + max(kv1 - kv0 + 1, 0)) + 2
+    if buf.shape[0] < need:
+        buf = np.empty(2 * need, dtype=np.float64)
+    buf[0] = -rs
+    buf[1] = rs
+    m = _cap_crossings(buf, 2, au, av, eu, ev, r2, rc, ku0, ku1, kv0, kv1)
+    _sort_head(buf, m)
     for i in range(m - 1):
         if buf[i + 1] <= buf[i]:
             continue
@@ -439,11 +458,143 @@ def _k_tasks(det_uv, ok, det_apex, apex_uv, h):
     return t_apex[:n_t], t_oct[:n_t], t_start[: n_t + 1], iv_lo[:n_iv], iv_hi[:n_iv], iv_r[:n_iv]
 
 
-# Over 100 lines on purpose (issue 23 allows three such functions, each with its why): this is
-# the ray IRM's innermost loop, run for every column of every cone task. Its state (the open
-# slope intervals in two swapped buffers, the column's cell range, the bitmap words) lives in
-# locals that LLVM keeps in registers; split into functions, that state would cross a call for
-# every cell run of every column.
+@numba.njit(cache=True, inline="always")
+def _octant_grid(barrier, brow, bcol, frow, fcol, au, av, o):
+    """Octant o's local frame at apex (au, av): (swap, sa, sb) (:func:`_octant_frame`), the
+    apex (a0, b0), the local index ranges [i_lo, i_hi] x [j_lo, j_hi] covering the grid (a grid
+    index g is i = g where sa > 0, else i = -g - 1; likewise j) and the barrier and free bitmaps
+    whose rows run along b."""
+    n_r, n_c = barrier.shape
+    swap, sa, sb = _octant_frame(o)
+    if swap:
+        a0, b0, n_a, n_b, bbits, fbits = sa * av, sb * au, n_c, n_r, bcol, fcol
+    else:
+        a0, b0, n_a, n_b, bbits, fbits = sa * au, sb * av, n_r, n_c, brow, frow
+    i_lo = 0 if sa > 0 else -n_a
+    j_lo = 0 if sb > 0 else -n_b
+    return swap, sa, sb, a0, b0, i_lo, i_lo + n_a - 1, j_lo, j_lo + n_b - 1, bbits, fbits
+
+
+@numba.njit(cache=True, inline="always")
+def _open_set(lo0, hi0, r0):
+    """The sweep's open slope intervals iv[buffer, field, k] (fields lo, hi, range; buffers
+    cur / nxt swap every column), buffer 0 holding the task's; -> (iv, their number, the
+    largest range)."""
+    n = lo0.shape[0]
+    iv = np.empty((2, 3, n + 64), dtype=np.float64)
+    r_max = 0.0
+    for k in range(n):
+        iv[0, 0, k] = lo0[k]
+        iv[0, 1, k] = hi0[k]
+        iv[0, 2, k] = r0[k]
+        r_max = max(r_max, r0[k])
+    return iv, n, r_max
+
+
+@numba.njit(cache=True, inline="always")
+def _with_room(iv, need):
+    """``iv``, grown (contents kept) to hold ``need`` intervals a buffer."""
+    if need > iv.shape[2]:
+        grown = np.empty((2, 3, max(2 * iv.shape[2], need)), dtype=np.float64)
+        grown[:, :, : iv.shape[2]] = iv
+        return grown
+    return iv
+
+
+@numba.njit(cache=True, inline="always")
+def _push_open(iv, buf, n, lo, hi, rr):
+    """Append the open interval [lo, hi) of range rr to buffer ``buf`` (n held); -> n + 1."""
+    iv[buf, 0, n] = lo
+    iv[buf, 1, n] = hi
+    iv[buf, 2, n] = rr
+    return n + 1
+
+
+@numba.njit(cache=True, inline="always")
+def _cast_run(
+    barrier, bbits, fbits, swap, sb, b0, i, gi, apex, jj0, jj1, inv, lo, hi, rr, iv, nxt, n
+):
+    """Cells jj0 .. jj1 of column i (grid line gi) under the open interval [lo, hi) of range
+    rr: marked free where open; a barrier cell (the apex's own cell excepted) closes its slopes
+    and sends the open part below it to buffer ``nxt`` of ``iv`` (n held). ``apex``: the apex's
+    local cell, ``inv``: 1 / the column's near and far edges. -> (the lowest slope still open,
+    n)."""
+    g0, g1 = (jj0, jj1) if sb > 0 else (-jj1 - 1, -jj0 - 1)
+    if not _any_bits(bbits, gi, g0, g1):
+        # fast path: no barrier in this run of cells, all of it is free
+        _set_bits(fbits, gi, g0, g1)
+        return lo, n
+    cl = lo
+    for j in range(jj0, jj1 + 1):
+        c_hi = (j + 1.0 - b0) * inv[0]
+        if c_hi <= cl:
+            continue
+        gj = j if sb > 0 else -j - 1
+        is_bar = (barrier[gj, gi] if swap else barrier[gi, gj]) != 0
+        if is_bar and not (i == apex[0] and j == apex[1]):
+            c_lo = min((j - b0) * inv[1], hi)
+            if c_lo - cl > _EPS_SLOPE:
+                n = _push_open(iv, nxt, n, cl, c_lo, rr)
+            if c_hi > cl:
+                cl = c_hi
+            if cl >= hi:
+                break
+        else:
+            fbits[gi, gj >> 6] |= np.uint64(1) << np.uint64(gj & 63)
+    return cl, n
+
+
+@numba.njit(cache=True, inline="always")
+def _cast_column(barrier, bbits, fbits, swap, sb, a0, b0, i, gi, apex, j_lo, j_hi, iv, cur, n_cur):
+    """Column i (a = i .. i + 1; grid line gi) of the sweep: each open interval of buffer
+    ``cur`` marks its open cells within its range free (:func:`_cast_run`) and passes on what
+    stays open to the other buffer; -> (iv, the intervals open after the column)."""
+    near = i - a0
+    far = i + 1.0 - a0
+    inv = (1.0 / near if near > 0.0 else np.inf, 1.0 / far)
+    near_c = near if near > 0.0 else 0.0
+    nxt = 1 - cur
+    n_nxt = 0
+    for k in range(n_cur):
+        lo, hi, rr = iv[cur, 0, k], iv[cur, 1, k], iv[cur, 2, k]
+        if near >= rr:
+            continue
+        j0 = int(math.floor(b0 + lo * near_c))
+        if j0 > j_hi:
+            continue  # these rays have left the grid for good (b only grows)
+        j1 = int(math.ceil(b0 + hi * far)) - 1
+        # cells whose nearest point is within range: j - b0 < sqrt(r^2 - near^2)
+        jr = int(math.ceil(b0 + math.sqrt(rr * rr - near_c * near_c))) - 1
+        jj0 = max(j0, j_lo)
+        jj1 = min(j1, j_hi, jr)
+        iv = _with_room(iv, n_nxt + max(jj1 - jj0, 0) + 3)  # up to jj1 - jj0 + 2 more
+        cl = lo
+        if jj0 <= jj1:
+            cl, n_nxt = _cast_run(
+                barrier,
+                bbits,
+                fbits,
+                swap,
+                sb,
+                b0,
+                i,
+                gi,
+                apex,
+                jj0,
+                jj1,
+                inv,
+                lo,
+                hi,
+                rr,
+                iv,
+                nxt,
+                n_nxt,
+            )
+        if hi - cl > _EPS_SLOPE:
+            n_nxt = _push_open(iv, nxt, n_nxt, cl, hi, rr)
+    return iv, n_nxt
+
+
 @numba.njit(cache=True)
 def _k_cast_task(barrier, brow, bcol, frow, fcol, au, av, o, lo0, hi0, r0):
     """Step 2 for one sensor position and one octant: exact shadow casting of slope intervals.
@@ -459,116 +610,22 @@ def _k_cast_task(barrier, brow, bcol, frow, fcol, au, av, o, lo0, hi0, r0):
     cone's own cap stops it. Most column runs hold no barrier: the bitmaps ``brow`` /
     ``bcol`` tell that in a few word operations, and the run is then marked free in one go
     in the free bitmap of the same orientation (``frow`` / ``fcol``). No array views are
-    made inside the loops: each costs reference counting.
+    made inside the loops: each costs reference counting. The steps are inlined (numba's
+    inline="always"), so the sweep's state stays in registers as in one function.
     """
-    n_r, n_c = barrier.shape
-    swap, sa, sb = _octant_frame(o)
-    if swap:
-        a0 = sa * av
-        b0 = sb * au
-        n_a = n_c
-        n_b = n_r
-        bbits = bcol
-        fbits = fcol
-    else:
-        a0 = sa * au
-        b0 = sb * av
-        n_a = n_r
-        n_b = n_c
-        bbits = brow
-        fbits = frow
-    # local index ranges covering the grid: a grid index g is i = g (sa > 0) or i = -g - 1
-    i_lo_g = 0 if sa > 0 else -n_a
-    i_hi_g = i_lo_g + n_a - 1
-    j_lo_g = 0 if sb > 0 else -n_b
-    j_hi_g = j_lo_g + n_b - 1
-    i_apex = int(math.floor(a0))
-    j_apex = int(math.floor(b0))
-    n_cur = lo0.shape[0]
-    # iv[buffer, field, k]: fields lo, hi, range; buffers cur / nxt swap every column
-    iv = np.empty((2, 3, n_cur + 64), dtype=np.float64)
-    r_max = 0.0
-    for k in range(n_cur):
-        iv[0, 0, k] = lo0[k]
-        iv[0, 1, k] = hi0[k]
-        iv[0, 2, k] = r0[k]
-        r_max = max(r_max, r0[k])
+    frame = _octant_grid(barrier, brow, bcol, frow, fcol, au, av, o)
+    swap, sa, sb, a0, b0, i_lo_g, i_hi_g, j_lo_g, j_hi_g, bbits, fbits = frame
+    apex = (int(math.floor(a0)), int(math.floor(b0)))
+    iv, n_cur, r_max = _open_set(lo0, hi0, r0)
     cur = 0
-    i_first = max(i_apex, i_lo_g)
-    for i in range(i_first, i_hi_g + 1):
-        near = i - a0
-        if near >= r_max or n_cur == 0:
+    for i in range(max(apex[0], i_lo_g), i_hi_g + 1):
+        if i - a0 >= r_max or n_cur == 0:
             break
-        far = i + 1.0 - a0
-        inv_far = 1.0 / far
-        inv_near = 1.0 / near if near > 0.0 else np.inf
-        near_c = near if near > 0.0 else 0.0
         gi = i if sa > 0 else -i - 1
-        nxt = 1 - cur
-        n_nxt = 0
-        for k in range(n_cur):
-            lo = iv[cur, 0, k]
-            hi = iv[cur, 1, k]
-            rr = iv[cur, 2, k]
-            if near >= rr:
-                continue
-            j0 = int(math.floor(b0 + lo * near_c))
-            if j0 > j_hi_g:
-                continue  # these rays have left the grid for good (b only grows)
-            j1 = int(math.ceil(b0 + hi * far)) - 1
-            # cells whose nearest point is within range: j - b0 < sqrt(r^2 - near^2)
-            jr = int(math.ceil(b0 + math.sqrt(rr * rr - near_c * near_c))) - 1
-            jj0 = max(j0, j_lo_g)
-            jj1 = min(j1, j_hi_g, jr)
-            # room for up to (jj1 - jj0 + 2) more intervals
-            need = n_nxt + max(jj1 - jj0, 0) + 3
-            if need > iv.shape[2]:
-                grown = np.empty((2, 3, max(2 * iv.shape[2], need)), dtype=np.float64)
-                grown[:, :, : iv.shape[2]] = iv
-                iv = grown
-            cl = lo
-            if jj0 <= jj1:
-                if sb > 0:
-                    g0 = jj0
-                    g1 = jj1
-                else:
-                    g0 = -jj1 - 1
-                    g1 = -jj0 - 1
-                if not _any_bits(bbits, gi, g0, g1):
-                    # fast path: no barrier in this run of cells, all of it is free
-                    _set_bits(fbits, gi, g0, g1)
-                else:
-                    for j in range(jj0, jj1 + 1):
-                        c_hi = (j + 1.0 - b0) * inv_near
-                        if c_hi <= cl:
-                            continue
-                        gj = j if sb > 0 else -j - 1
-                        if swap:
-                            is_bar = barrier[gj, gi] != 0
-                        else:
-                            is_bar = barrier[gi, gj] != 0
-                        if is_bar and not (i == i_apex and j == j_apex):
-                            c_lo = (j - b0) * inv_far
-                            if c_lo > hi:
-                                c_lo = hi
-                            if c_lo - cl > _EPS_SLOPE:
-                                iv[nxt, 0, n_nxt] = cl
-                                iv[nxt, 1, n_nxt] = c_lo
-                                iv[nxt, 2, n_nxt] = rr
-                                n_nxt += 1
-                            if c_hi > cl:
-                                cl = c_hi
-                            if cl >= hi:
-                                break
-                        else:
-                            fbits[gi, gj >> 6] |= np.uint64(1) << np.uint64(gj & 63)
-            if hi - cl > _EPS_SLOPE:
-                iv[nxt, 0, n_nxt] = cl
-                iv[nxt, 1, n_nxt] = hi
-                iv[nxt, 2, n_nxt] = rr
-                n_nxt += 1
-        cur = nxt
-        n_cur = n_nxt
+        iv, n_cur = _cast_column(
+            barrier, bbits, fbits, swap, sb, a0, b0, i, gi, apex, j_lo_g, j_hi_g, iv, cur, n_cur
+        )
+        cur = 1 - cur
 
 
 @numba.njit(cache=True, inline="always")
