@@ -337,6 +337,63 @@ def _add_piece(pieces, m, a, o, s1, s2, r):
     return m + 1
 
 
+@numba.njit(cache=True, inline="always")
+def _narrow_pieces(pieces, m, a, eu, ev, cos_h, sin_h, r):
+    """Record the octant pieces of a cone narrower than an octant (apex ``a``, unit direction
+    (eu, ev), range ``r``): it spans one octant or two adjacent ones, split with vector algebra,
+    its edges being e turned by -h and +h. -> the new m, or -1 where its edges are not in one
+    octant or two adjacent ones (the cone is then walked as a wide one, :func:`_wide_pieces`)."""
+    x1 = cos_h * eu + sin_h * ev
+    y1 = cos_h * ev - sin_h * eu
+    x2 = cos_h * eu - sin_h * ev
+    y2 = cos_h * ev + sin_h * eu
+    o1 = _octant_of(x1, y1)
+    o2 = _octant_of(x2, y2)
+    if not (o1 == o2 or o2 == (o1 + 1) % 8):
+        return -1
+    # the boundary between o1 and o1 + 1 has slope 1 in o1 when o1 is even, else 0, and the same
+    # slope seen from o1 + 1
+    bnd = 1.0 if o1 % 2 == 0 else 0.0
+    for q in range(2 if o1 != o2 else 1):
+        if o1 == o2:
+            o = o1
+            s1 = _slope_vec(o, x1, y1)
+            s2 = _slope_vec(o, x2, y2)
+        elif q == 0:
+            o = o1
+            s1 = _slope_vec(o, x1, y1)
+            s2 = bnd
+        else:
+            o = o2
+            s1 = bnd
+            s2 = _slope_vec(o, x2, y2)
+        m = _add_piece(pieces, m, a, o, s1, s2, r)
+    return m
+
+
+@numba.njit(cache=True, inline="always")
+def _wide_pieces(pieces, m, a, phi, h, r):
+    """Record the octant pieces of a cone of apex ``a``, direction ``phi`` (rad), half-angle
+    ``h`` and range ``r``, walking its angles across the octant boundaries; -> the new m."""
+    start = phi - h
+    if start < 0.0:
+        start += 2.0 * math.pi
+    end = start + 2.0 * h
+    k = int(math.floor(start / _QUARTER))
+    x = start
+    while x < end:
+        bnd = (k + 1) * _QUARTER
+        y = min(end, bnd)
+        if y > x:
+            o = k % 8
+            s1 = _slope_vec(o, math.cos(x), math.sin(x))
+            s2 = _slope_vec(o, math.cos(y), math.sin(y))
+            m = _add_piece(pieces, m, a, o, s1, s2, r)
+        x = y
+        k += 1
+    return m
+
+
 @numba.njit(cache=True)
 def _k_pieces(det_uv, ok, det_apex, apex_uv, h):
     """Split every cone into octant pieces of slope intervals -> (number of pieces, pieces =
@@ -368,52 +425,11 @@ def _k_pieces(det_uv, ok, det_apex, apex_uv, h):
         # stays finite in the cast.
         r = min(r, 1e12)
         if narrow:
-            # A cone narrower than an octant spans one octant or two adjacent ones: split it
-            # with vector algebra. Its edges: e turned by -h and +h.
-            eu = du / r
-            ev = dv / r
-            x1 = cos_h * eu + sin_h * ev
-            y1 = cos_h * ev - sin_h * eu
-            x2 = cos_h * eu - sin_h * ev
-            y2 = cos_h * ev + sin_h * eu
-            o1 = _octant_of(x1, y1)
-            o2 = _octant_of(x2, y2)
-            if o1 == o2 or o2 == (o1 + 1) % 8:
-                # the boundary between o1 and o1 + 1 has slope 1 in o1 when o1 is even, else 0,
-                # and the same slope seen from o1 + 1
-                bnd = 1.0 if o1 % 2 == 0 else 0.0
-                for q in range(2 if o1 != o2 else 1):
-                    if o1 == o2:
-                        o = o1
-                        s1 = _slope_vec(o, x1, y1)
-                        s2 = _slope_vec(o, x2, y2)
-                    elif q == 0:
-                        o = o1
-                        s1 = _slope_vec(o, x1, y1)
-                        s2 = bnd
-                    else:
-                        o = o2
-                        s1 = bnd
-                        s2 = _slope_vec(o, x2, y2)
-                    m = _add_piece(pieces, m, a, o, s1, s2, r)
+            m1 = _narrow_pieces(pieces, m, a, du / r, dv / r, cos_h, sin_h, r)
+            if m1 >= 0:
+                m = m1
                 continue
-        phi = math.atan2(dv, du)
-        start = phi - h
-        if start < 0.0:
-            start += 2.0 * math.pi
-        end = start + 2.0 * h
-        k = int(math.floor(start / _QUARTER))
-        x = start
-        while x < end:
-            bnd = (k + 1) * _QUARTER
-            y = min(end, bnd)
-            if y > x:
-                o = k % 8
-                s1 = _slope_vec(o, math.cos(x), math.sin(x))
-                s2 = _slope_vec(o, math.cos(y), math.sin(y))
-                m = _add_piece(pieces, m, a, o, s1, s2, r)
-            x = y
-            k += 1
+        m = _wide_pieces(pieces, m, a, math.atan2(dv, du), h, r)
     return m, pieces
 
 
@@ -491,14 +507,13 @@ def _open_set(lo0, hi0, r0):
     return iv, n, r_max
 
 
-@numba.njit(cache=True, inline="always")
-def _with_room(iv, need):
-    """``iv``, grown (contents kept) to hold ``need`` intervals a buffer."""
-    if need > iv.shape[2]:
-        grown = np.empty((2, 3, max(2 * iv.shape[2], need)), dtype=np.float64)
-        grown[:, :, : iv.shape[2]] = iv
-        return grown
-    return iv
+@numba.njit(cache=True)
+def _grown(iv, need):
+    """``iv`` copied into a buffer pair that holds at least ``need`` intervals each (rare: not
+    inlined, so that the sweep's loop stays small)."""
+    grown = np.empty((2, 3, max(2 * iv.shape[2], need)), dtype=np.float64)
+    grown[:, :, : iv.shape[2]] = iv
+    return grown
 
 
 @numba.njit(cache=True, inline="always")
@@ -510,91 +525,9 @@ def _push_open(iv, buf, n, lo, hi, rr):
     return n + 1
 
 
-@numba.njit(cache=True, inline="always")
-def _cast_run(
-    barrier, bbits, fbits, swap, sb, b0, i, gi, apex, jj0, jj1, inv, lo, hi, rr, iv, nxt, n
-):
-    """Cells jj0 .. jj1 of column i (grid line gi) under the open interval [lo, hi) of range
-    rr: marked free where open; a barrier cell (the apex's own cell excepted) closes its slopes
-    and sends the open part below it to buffer ``nxt`` of ``iv`` (n held). ``apex``: the apex's
-    local cell, ``inv``: 1 / the column's near and far edges. -> (the lowest slope still open,
-    n)."""
-    g0, g1 = (jj0, jj1) if sb > 0 else (-jj1 - 1, -jj0 - 1)
-    if not _any_bits(bbits, gi, g0, g1):
-        # fast path: no barrier in this run of cells, all of it is free
-        _set_bits(fbits, gi, g0, g1)
-        return lo, n
-    cl = lo
-    for j in range(jj0, jj1 + 1):
-        c_hi = (j + 1.0 - b0) * inv[0]
-        if c_hi <= cl:
-            continue
-        gj = j if sb > 0 else -j - 1
-        is_bar = (barrier[gj, gi] if swap else barrier[gi, gj]) != 0
-        if is_bar and not (i == apex[0] and j == apex[1]):
-            c_lo = min((j - b0) * inv[1], hi)
-            if c_lo - cl > _EPS_SLOPE:
-                n = _push_open(iv, nxt, n, cl, c_lo, rr)
-            if c_hi > cl:
-                cl = c_hi
-            if cl >= hi:
-                break
-        else:
-            fbits[gi, gj >> 6] |= np.uint64(1) << np.uint64(gj & 63)
-    return cl, n
-
-
-@numba.njit(cache=True, inline="always")
-def _cast_column(barrier, bbits, fbits, swap, sb, a0, b0, i, gi, apex, j_lo, j_hi, iv, cur, n_cur):
-    """Column i (a = i .. i + 1; grid line gi) of the sweep: each open interval of buffer
-    ``cur`` marks its open cells within its range free (:func:`_cast_run`) and passes on what
-    stays open to the other buffer; -> (iv, the intervals open after the column)."""
-    near = i - a0
-    far = i + 1.0 - a0
-    inv = (1.0 / near if near > 0.0 else np.inf, 1.0 / far)
-    near_c = near if near > 0.0 else 0.0
-    nxt = 1 - cur
-    n_nxt = 0
-    for k in range(n_cur):
-        lo, hi, rr = iv[cur, 0, k], iv[cur, 1, k], iv[cur, 2, k]
-        if near >= rr:
-            continue
-        j0 = int(math.floor(b0 + lo * near_c))
-        if j0 > j_hi:
-            continue  # these rays have left the grid for good (b only grows)
-        j1 = int(math.ceil(b0 + hi * far)) - 1
-        # cells whose nearest point is within range: j - b0 < sqrt(r^2 - near^2)
-        jr = int(math.ceil(b0 + math.sqrt(rr * rr - near_c * near_c))) - 1
-        jj0 = max(j0, j_lo)
-        jj1 = min(j1, j_hi, jr)
-        iv = _with_room(iv, n_nxt + max(jj1 - jj0, 0) + 3)  # up to jj1 - jj0 + 2 more
-        cl = lo
-        if jj0 <= jj1:
-            cl, n_nxt = _cast_run(
-                barrier,
-                bbits,
-                fbits,
-                swap,
-                sb,
-                b0,
-                i,
-                gi,
-                apex,
-                jj0,
-                jj1,
-                inv,
-                lo,
-                hi,
-                rr,
-                iv,
-                nxt,
-                n_nxt,
-            )
-        if hi - cl > _EPS_SLOPE:
-            n_nxt = _push_open(iv, nxt, n_nxt, cl, hi, rr)
-    return iv, n_nxt
-
-
+# The sweep's loops stay in one function: their state (the open slope intervals in two swapped
+# buffers, the column's cell range, the bitmap words) lives in locals that LLVM keeps in
+# registers; split into functions (even inlined ones, numba 0.68), the cast ran twice as slow.
 @numba.njit(cache=True)
 def _k_cast_task(barrier, brow, bcol, frow, fcol, au, av, o, lo0, hi0, r0):
     """Step 2 for one sensor position and one octant: exact shadow casting of slope intervals.
@@ -610,22 +543,69 @@ def _k_cast_task(barrier, brow, bcol, frow, fcol, au, av, o, lo0, hi0, r0):
     cone's own cap stops it. Most column runs hold no barrier: the bitmaps ``brow`` /
     ``bcol`` tell that in a few word operations, and the run is then marked free in one go
     in the free bitmap of the same orientation (``frow`` / ``fcol``). No array views are
-    made inside the loops: each costs reference counting. The steps are inlined (numba's
-    inline="always"), so the sweep's state stays in registers as in one function.
+    made inside the loops: each costs reference counting.
     """
     frame = _octant_grid(barrier, brow, bcol, frow, fcol, au, av, o)
     swap, sa, sb, a0, b0, i_lo_g, i_hi_g, j_lo_g, j_hi_g, bbits, fbits = frame
-    apex = (int(math.floor(a0)), int(math.floor(b0)))
+    i_apex = int(math.floor(a0))
+    j_apex = int(math.floor(b0))
     iv, n_cur, r_max = _open_set(lo0, hi0, r0)
     cur = 0
-    for i in range(max(apex[0], i_lo_g), i_hi_g + 1):
-        if i - a0 >= r_max or n_cur == 0:
+    for i in range(max(i_apex, i_lo_g), i_hi_g + 1):
+        near = i - a0
+        if near >= r_max or n_cur == 0:
             break
+        far = i + 1.0 - a0
+        inv_far = 1.0 / far
+        inv_near = 1.0 / near if near > 0.0 else np.inf
+        near_c = near if near > 0.0 else 0.0
         gi = i if sa > 0 else -i - 1
-        iv, n_cur = _cast_column(
-            barrier, bbits, fbits, swap, sb, a0, b0, i, gi, apex, j_lo_g, j_hi_g, iv, cur, n_cur
-        )
-        cur = 1 - cur
+        nxt = 1 - cur
+        n_nxt = 0
+        for k in range(n_cur):
+            lo = iv[cur, 0, k]
+            hi = iv[cur, 1, k]
+            rr = iv[cur, 2, k]
+            if near >= rr:
+                continue
+            j0 = int(math.floor(b0 + lo * near_c))
+            if j0 > j_hi_g:
+                continue  # these rays have left the grid for good (b only grows)
+            j1 = int(math.ceil(b0 + hi * far)) - 1
+            # cells whose nearest point is within range: j - b0 < sqrt(r^2 - near^2)
+            jr = int(math.ceil(b0 + math.sqrt(rr * rr - near_c * near_c))) - 1
+            jj0 = max(j0, j_lo_g)
+            jj1 = min(j1, j_hi_g, jr)
+            need = n_nxt + max(jj1 - jj0, 0) + 3  # room for up to jj1 - jj0 + 2 more intervals
+            if need > iv.shape[2]:
+                iv = _grown(iv, need)
+            cl = lo
+            if jj0 <= jj1:
+                g0, g1 = (jj0, jj1) if sb > 0 else (-jj1 - 1, -jj0 - 1)
+                if not _any_bits(bbits, gi, g0, g1):
+                    # fast path: no barrier in this run of cells, all of it is free
+                    _set_bits(fbits, gi, g0, g1)
+                else:
+                    for j in range(jj0, jj1 + 1):
+                        c_hi = (j + 1.0 - b0) * inv_near
+                        if c_hi <= cl:
+                            continue
+                        gj = j if sb > 0 else -j - 1
+                        is_bar = (barrier[gj, gi] if swap else barrier[gi, gj]) != 0
+                        if is_bar and not (i == i_apex and j == j_apex):
+                            c_lo = min((j - b0) * inv_far, hi)
+                            if c_lo - cl > _EPS_SLOPE:
+                                n_nxt = _push_open(iv, nxt, n_nxt, cl, c_lo, rr)
+                            if c_hi > cl:
+                                cl = c_hi
+                            if cl >= hi:
+                                break
+                        else:
+                            fbits[gi, gj >> 6] |= np.uint64(1) << np.uint64(gj & 63)
+            if hi - cl > _EPS_SLOPE:
+                n_nxt = _push_open(iv, nxt, n_nxt, cl, hi, rr)
+        cur = nxt
+        n_cur = n_nxt
 
 
 @numba.njit(cache=True, inline="always")
