@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from harness import machine_line, map_timed
 
 from evgrid.config import MapperConfig
 from evgrid.data.bag import load_bag
@@ -34,11 +35,8 @@ def read_fps(scene) -> tuple[float, int]:
 
 
 def map_fps(scene, config: MapperConfig) -> tuple[float, OccupancyMapper]:
-    mapper = OccupancyMapper(config)
-    t0 = time.perf_counter()
-    for f in scene:
-        mapper.process(f)
-    return mapper.n_frames / (time.perf_counter() - t0), mapper
+    mapper, ms = map_timed(scene, config)
+    return 1e3 * len(ms) / sum(ms), mapper
 
 
 def main() -> None:
@@ -82,6 +80,7 @@ def main() -> None:
             r, n = read_fps(sc)
             m, mapper = map_fps(load(), config)
             rows.append((label, open_s, r, m, mapper))
+        print(machine_line())
         print(
             f"{'source':24s} {'open s':>7s} {'read fps':>9s} {'map fps':>8s}   maps: "
             f"{', '.join(config.maps)}"

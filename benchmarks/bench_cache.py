@@ -12,7 +12,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
 import tempfile
 import time
 from pathlib import Path
@@ -20,6 +19,7 @@ from pathlib import Path
 os.environ.setdefault("NUMBA_NUM_THREADS", "1")  # one core a worker, as the engine's jobs
 
 import numpy as np  # noqa: E402
+from harness import machine  # noqa: E402
 
 from evgrid.learn.train import TrainConfig, build_cache, cached_scenes  # noqa: E402
 from evgrid.sources import SimSource  # noqa: E402
@@ -55,14 +55,10 @@ def main() -> None:
         s_time, n = _timed(source, config, serial, workers=1, engine="local")
         p_time, n_par = _timed(source, config, par, workers=args.workers, engine=args.engine)
         same = n == n_par and _same(serial, par, source.names())
-    commit = subprocess.run(
-        ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True
-    ).stdout.strip()
     print(
         json.dumps(
             {
-                "commit": commit,
-                "cpus": os.cpu_count(),
+                "machine": machine(),
                 "scenes": args.scenes,
                 "duration_s": args.duration,
                 "samples": n,

@@ -21,6 +21,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from harness import machine_line
 
 _MAPS = {"fused map": "fused_only", "six maps": "six_maps"}
 
@@ -76,7 +77,8 @@ def main() -> None:
                 + ", ".join(f"{label} {totals[sha][label][-1]:.1f} ms" for label in _MAPS),
                 flush=True,
             )
-    print("\n| commit | " + " | ".join(f"{m}, ms (passes)" for m in _MAPS) + " |")
+    print(f"\n{machine_line()}")
+    print("| commit | " + " | ".join(f"{m}, ms (passes)" for m in _MAPS) + " |")
     print("|---|" + "---|" * len(_MAPS))
     for sha, _ in trees:
         cells = [

@@ -12,18 +12,17 @@ import functools
 import json
 import math
 import os
-import platform
 
 os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
+from harness import machine, machine_line, timings_ms  # noqa: E402
 
 from evgrid import fusion, mass  # noqa: E402
-from evgrid_sim.bench import timings_ms  # noqa: E402
-
-timeit = functools.partial(timings_ms, repeat=30)
 from evgrid.geometry import SE2, GridSpec  # noqa: E402
 from evgrid.grid import Warper  # noqa: E402
+
+timeit = functools.partial(timings_ms, repeat=30)
 
 
 def main() -> None:
@@ -98,10 +97,7 @@ def main() -> None:
 
     width = max(len(k) for k in res)
     # the median is the figure; the minimum shows what the code does when the machine is quiet
-    print(
-        f"evgrid core benchmark - {platform.processor() or platform.machine()}, 1 thread, ms per "
-        "call"
-    )
+    print(f"evgrid core benchmark - {machine_line()}, 1 thread, ms per call")
     print(f"  {'':<{width}}  {'median':>8}  {'min':>8}")
     for name, ts in res.items():
         print(f"  {name:<{width}}  {np.median(ts):8.3f}  {ts.min():8.3f}")
@@ -109,8 +105,11 @@ def main() -> None:
         with open(args.json, "w") as f:
             json.dump(
                 {
-                    k: {"median_ms": float(np.median(v)), "min_ms": float(v.min())}
-                    for k, v in res.items()
+                    "machine": machine(),
+                    **{
+                        k: {"median_ms": float(np.median(v)), "min_ms": float(v.min())}
+                        for k, v in res.items()
+                    },
                 },
                 f,
                 indent=2,

@@ -27,6 +27,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from harness import machine_line
+
 ROOT = Path(__file__).resolve().parents[1]
 MODES = ("local-1", "local-2", "ray-1", "ray-2", "cluster-2")
 NUSCENES_SCENES = 850  # trainval, 20 s each (the paper's 133,708 training samples come from 700)
@@ -63,7 +65,7 @@ def child_throughput(mode: str, scenes: int, duration_s: float) -> dict:
     if engine == "cluster":  # both nodes up before the clock starts
         import ray
 
-        from evgrid.engine_ray import wait_for_nodes
+        from tests.ray_cluster import wait_for_nodes
 
         ray.init(address=os.environ["RAY_ADDRESS"], log_to_driver=False)
         wait_for_nodes(ray, 2)
@@ -199,7 +201,7 @@ def main() -> None:
             res = child_ports(plain=a.child[1] == "plain")
         print("RESULT " + json.dumps(res))
         return
-    print(f"load average before: {os.getloadavg()}, {os.cpu_count()} CPUs")
+    print(f"machine before: {machine_line()}")
     if a.only in (None, "ports"):
         run_ports()
     fixed = None
@@ -219,7 +221,7 @@ def main() -> None:
     for mode in MODES:
         t_start = 0.0
         if mode.startswith("cluster"):
-            from evgrid.engine_ray import local_cluster
+            from tests.ray_cluster import local_cluster
 
             t = time.perf_counter()
             with local_cluster(nodes=2, cpus_per_node=1) as cluster:

@@ -23,27 +23,15 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import argparse  # noqa: E402
 import math  # noqa: E402
-import statistics  # noqa: E402
-import time  # noqa: E402
 from collections.abc import Callable  # noqa: E402
 
 import numpy as np  # noqa: E402
+from harness import machine_line, median_min_ms  # noqa: E402
 
 from evgrid.data.frame import RadarSweep  # noqa: E402
 from evgrid.geometry import GridSpec  # noqa: E402
 from evgrid.ism import ray_ilm, ray_irm  # noqa: E402
 from evgrid_sim.synthetic import street_lidar_sweep, street_radar_sweeps  # noqa: E402
-
-
-def timed(fn: Callable[[], object], repeats: int) -> tuple[float, float]:
-    """(median, min) wall time of ``fn()`` in milliseconds, after one warm-up call."""
-    fn()
-    ts = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        ts.append((time.perf_counter() - t0) * 1e3)
-    return statistics.median(ts), min(ts)
 
 
 def open_road(sweeps: list[RadarSweep], seed: int = 1) -> list[RadarSweep]:
@@ -83,7 +71,7 @@ def main() -> None:
     rows: list[tuple[str, float, float, str]] = []
 
     def row(name: str, fn: Callable[[], object], note: str, repeats: int = args.repeats) -> float:
-        med, mn = timed(fn, repeats)
+        med, mn = median_min_ms(fn, repeats)
         rows.append((name, med, mn, note))
         return med
 
@@ -135,7 +123,7 @@ def main() -> None:
     w = max(len(r[0]) for r in rows)
     print(
         f"\nISM benchmark: {grid.n_cells}x{grid.n_cells} cells over {grid.length_m:g} m; ms per "
-        f"call over {args.repeats} calls\n"
+        f"call over {args.repeats} calls\n{machine_line()}\n"
     )
     print(f"{'':{w}}  {'median':>8}  {'min':>8}  notes")
     for name, med, mn, note in rows:

@@ -23,6 +23,7 @@ import tempfile
 import time
 
 import numpy as np
+from harness import machine_line, sim_scene
 
 
 def _glitched(frames, index: int, jump_m: float):
@@ -45,9 +46,8 @@ def _glitched(frames, index: int, jump_m: float):
 def child(seed: int, duration: float, glitch_m: float) -> dict:
     """One drive, in this process: metrics that matter here and the peak RSS."""
     from evgrid.runs import map_scene
-    from evgrid.sources import SimSource
 
-    scene = SimSource((seed,), duration_s=duration).load(SimSource((seed,)).names()[0])
+    scene = sim_scene(seed, duration)
     frames = _glitched(scene, len(scene) // 2, glitch_m) if glitch_m else scene
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
@@ -93,6 +93,7 @@ def main() -> None:
         print(json.dumps(child(int(args.child[0]), float(args.child[1]), float(args.child[2]))))
         return
     print(f"long drives (seed {args.seed}; six maps, truth at keyframes, figures and GIF)")
+    print(machine_line())
     print(
         f"{'drive s':>8} {'frames':>7} {'wall s':>7} {'ms/frame first 10%':>19} {'last 10%':>9} "
         f"{'last/first':>10} "

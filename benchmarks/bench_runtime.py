@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from harness import in_turns, machine_line
 
 from evgrid.ism.deep import DeepIrm, evidence_to_masses, radar_image
 from evgrid.ism.runtime import OrtRuntime, evnet_trunk, make_runtime, ort_available, trunk_onnx
@@ -133,20 +134,15 @@ def main() -> None:
             raise SystemExit("--reduced needs onnx and onnxruntime: pip install 'evgrid[fast]'")
         options.update(_reduced(deep.model, pooled))
 
-    for fn in options.values():
-        fn(pooled)
-    ts: dict[str, list[float]] = {k: [] for k in options}
-    for _ in range(args.repeats):
-        for k, fn in options.items():
-            t = time.perf_counter()
-            fn(pooled)
-            ts[k].append((time.perf_counter() - t) * 1e3)
+    ts = in_turns({k: (lambda fn=fn: fn(pooled)) for k, fn in options.items()}, args.repeats)
+    print(machine_line())
     print(f"{'option':<20} {'median ms':>10} {'min ms':>8} {'max |dm|':>10} {'class changes':>14}")
     for k, fn in options.items():
         masses = evidence_to_masses(fn(pooled), deep.grid)
         dm = float(np.abs(masses - plain).max())
         changes = int((masses.argmax(-1) != plain.argmax(-1)).sum())
-        print(f"{k:<20} {np.median(ts[k]):>10.2f} {np.min(ts[k]):>8.2f} {dm:>10.2e} {changes:>14d}")
+        med, mn = ts[k]["median_ms"], ts[k]["min_ms"]
+        print(f"{k:<20} {med:>10.2f} {mn:>8.2f} {dm:>10.2e} {changes:>14d}")
 
 
 if __name__ == "__main__":

@@ -17,10 +17,10 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 
 import numba
 import numpy as np
+from harness import machine
 
 from evgrid import fusion
 from evgrid.geometry import SE2, GridSpec
@@ -53,7 +53,7 @@ def main() -> None:
     out = {"off": round(ms["off"], 2)}
     out |= {k: round(ms[k] - ms["off"], 2) for k in ("conflict", "gate", "all")}
     out["doppler"] = round(ms["all"] - ms["gate"], 2)
-    out["load"] = [round(x, 2) for x in os.getloadavg()]
+    out["machine"] = machine()
     print(json.dumps(out))
 
 

@@ -25,16 +25,18 @@ import tempfile
 import time
 
 import numpy as np
+from harness import machine_line
 
 from evgrid.classes import OCCUPIED
 from evgrid.config import MapperConfig
 from evgrid.data.mounts import NUSCENES_CAR, OTHER_VEHICLES, Vehicle
-from evgrid.evaluate import classify, free_fraction_near_path
+from evgrid.evaluate import classify
 from evgrid.mapper import OccupancyMapper
 from evgrid.preprocess import SelfReturnFilter, SelfReturnParams
 from evgrid_sim import SimConfig, simulate_scene
 from evgrid_sim.config import LidarConfig, SimRadarRig
 from evgrid_sim.lidar import EGO_HIT, LidarModel
+from tests.helpers import free_fraction_near_path
 
 RIGS = {
     "nuscenes (20 Hz lidar, 5 x 13 Hz radar)": (20.0, SimRadarRig()),
@@ -100,6 +102,7 @@ def phantom_trail(seed: int, duration: float, vehicle: Vehicle) -> dict[str, flo
 
 
 def bodies(seeds: list[int], duration: float) -> None:
+    print(machine_line())
     print(f"occupied ray_ilm cells within 1 m of the path ({duration:g} s drives, seeds {seeds})")
     print("| vehicle | seed | path (m) | no body returns | before | after | body box after |")
     print("|---|---|---|---|---|---|---|")

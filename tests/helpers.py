@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 
 import numpy as np
 
+from evgrid.classes import FREE
 from evgrid.data.frame import LidarSweep
 from evgrid.data.mounts import LIDAR_MOUNT
+from evgrid.evaluate import classify
 from evgrid.geometry import SE3
+from evgrid.grid import EvidentialMap
 
 
 def driving_sweeps(
@@ -40,3 +43,22 @@ def driving_sweeps(
         pts = np.column_stack([s2e.inverse().apply(ego), np.zeros((len(ego), 2))])
         pose = SE3(np.eye(3), np.array([x, 0.0, 0.0]))
         yield LidarSweep(pts.astype(np.float32), s2e, pose, k * dt_us)
+
+
+def free_fraction_near_path(
+    m: EvidentialMap, trajectory: Iterable[tuple[float, float, float]], radius_m: float = 10.0
+) -> float:
+    """Fraction of the map's cells within ``radius_m`` of the driven path (map-frame ``(x, y, yaw)``
+    poses) classified free: how much free space a reference map holds around the vehicle."""
+    import cv2
+
+    masses, _, r0, c0 = m.to_dense()
+    res = m.grid.resolution
+    path = np.full(masses.shape[:2], 255, np.uint8)
+    for x, y, _ in trajectory:
+        rc, cc = m.grid.map_xy_to_cell(x, y)
+        i, j = int(rc) - r0, int(cc) - c0
+        if 0 <= i < path.shape[0] and 0 <= j < path.shape[1]:
+            path[i, j] = 0
+    near = cv2.distanceTransform(path, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) * res <= radius_m
+    return float((classify(masses)[near] == FREE).mean())

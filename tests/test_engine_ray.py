@@ -23,6 +23,7 @@ from pathlib import Path
 import pytest
 
 from evgrid.engine import fan_out
+from tests.ray_cluster import free_port, processes_naming
 
 ROOT = Path(__file__).resolve().parents[1]
 HAS_RAY = find_spec("ray") is not None
@@ -107,12 +108,6 @@ def square_or_fail(args: tuple) -> dict:
 # --- helpers ------------------------------------------------------------------------------------
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def _run_python(code: str, env: dict, timeout: float) -> subprocess.CompletedProcess:
     return subprocess.run(
         [sys.executable, "-c", textwrap.dedent(code)],
@@ -156,7 +151,7 @@ def test_ray_not_installed_gives_one_line_naming_the_extra():
 def test_unreachable_address_gives_one_line_within_30s(monkeypatch, via_env):
     from evgrid.engine_ray import RayEngineError
 
-    address = f"127.0.0.1:{_free_port()}"  # nothing listens there
+    address = f"127.0.0.1:{free_port()}"  # nothing listens there
     if via_env:
         monkeypatch.setenv("RAY_ADDRESS", address)
     t = time.perf_counter()
@@ -286,10 +281,10 @@ def test_local_instance_refuses_auth_disabled():
 @pytest.fixture(scope="module")
 def two_node_cluster():
     """``ray start --head`` and a second ``ray start --address`` on this machine, token
-    authentication on; stopped again however the tests end (evgrid.engine_ray.local_cluster)."""
+    authentication on; stopped again however the tests end (tests.ray_cluster.local_cluster)."""
     if not HAS_RAY:
         pytest.skip("ray is not installed (pip install -e '.[ray]')")
-    from evgrid.engine_ray import local_cluster
+    from tests.ray_cluster import local_cluster
 
     with local_cluster(nodes=2, cpus_per_node=1, python_path=(str(ROOT / "src"),)) as cluster:
         yield cluster
@@ -297,9 +292,7 @@ def two_node_cluster():
 
 
 def _ours(marker: str) -> list[int]:
-    from evgrid.engine_ray import _processes_naming
-
-    return _processes_naming(marker)
+    return processes_naming(marker)
 
 
 @needs_ray
@@ -310,7 +303,7 @@ def test_two_node_cluster_maps_like_the_local_engine(two_node_cluster):
     code = f"""
         import json, time
         import ray
-        from evgrid.engine_ray import wait_for_nodes
+        from tests.ray_cluster import wait_for_nodes
         ray.init(address={two_node_cluster["address"]!r}, log_to_driver=False)
         nodes = wait_for_nodes(ray, 2)
         ray.shutdown()

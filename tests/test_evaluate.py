@@ -87,8 +87,8 @@ def test_mean_iou_skips_undefined_and_table_lists_paper():
 
 
 def test_free_fraction_near_path_hand_computed():
-    from evgrid.evaluate import free_fraction_near_path
     from evgrid.grid import EvidentialMap, MapWindow
+    from tests.helpers import free_fraction_near_path
 
     grid = GridSpec(16, 1.6)  # 0.1 m cells
     m = EvidentialMap(grid, 8)

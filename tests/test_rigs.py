@@ -15,7 +15,6 @@ from evgrid.data import RadarSweep, radar_column
 from evgrid.data.frame import LidarSweep
 from evgrid.data.mounts import LIDAR_MOUNT, RADAR_MOUNTS
 from evgrid.data.sweeps import GapCounter, RadarBuffer
-from evgrid.evaluate import free_fraction_near_path
 from evgrid.geometry import SE3
 from evgrid.ism import ray_ilm
 from evgrid.mapper import OccupancyMapper
@@ -31,7 +30,7 @@ from evgrid.preprocess import (
 from evgrid_sim import SimConfig, simulate_scene
 from evgrid_sim.config import LidarConfig, SimRadarRig, SweepFaults
 from evgrid_sim.lidar import EGO_HIT
-from tests.helpers import driving_sweeps
+from tests.helpers import driving_sweeps, free_fraction_near_path
 
 RIG = SimRadarRig(
     radar_channels=("RADAR_FRONT", "RADAR_BACK_LEFT", "RADAR_BACK_RIGHT"), radar_rates_hz=(4.0,)

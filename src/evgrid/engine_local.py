@@ -52,6 +52,46 @@ def run_local(
     yield from _pool(fn, jobs, workers, retries)
 
 
+def _one_pool(
+    pool: ProcessPoolExecutor,
+    fn: Callable[[Any], Any],
+    batch: deque[tuple[str, Any]],
+    size: int,
+    died: Callable[[str, Any], Outcome | None],
+) -> Iterator[Outcome]:
+    """Run the jobs of ``batch`` in ``pool``, at most ``size`` at a time, until they are done or
+    a worker dies (the pool is then broken): every job in flight then goes to ``died``, which
+    queues it as a suspect or gives its outcome; the jobs not yet submitted stay in ``batch``."""
+    running: dict[Any, tuple[str, Any]] = {}
+    broken = False
+    while batch or running:
+        while batch and not broken and len(running) < size:
+            key, args = batch.popleft()
+            running[pool.submit(fn, args)] = (key, args)
+        if not running:
+            break
+        done, _ = wait(running, return_when=FIRST_COMPLETED)
+        for fut in done:
+            key, args = running.pop(fut)
+            try:
+                yield Outcome(key, fut.result())
+            except BrokenProcessPool:
+                broken = True  # a worker died: the jobs in flight are lost
+                outcome = died(key, args)
+                if outcome is not None:
+                    yield outcome
+            except Exception as e:
+                yield Outcome(key, error=_one_line(e))
+        if broken:
+            for fut, (key, args) in running.items():
+                fut.cancel()
+                outcome = died(key, args)
+                if outcome is not None:
+                    yield outcome
+            running.clear()
+            break
+
+
 def _pool(
     fn: Callable[[Any], Any], jobs: list[tuple[str, Any]], workers: int, retries: int
 ) -> Iterator[Outcome]:
@@ -76,31 +116,4 @@ def _pool(
         size = 1 if alone else min(workers, len(batch))
         pool = ProcessPoolExecutor(max_workers=size, mp_context=mp.get_context("spawn"))
         with pool:
-            running: dict[Any, tuple[str, Any]] = {}
-            broken = False
-            while batch or running:
-                while batch and not broken and len(running) < size:
-                    key, args = batch.popleft()
-                    running[pool.submit(fn, args)] = (key, args)
-                if not running:
-                    break
-                done, _ = wait(running, return_when=FIRST_COMPLETED)
-                for fut in done:
-                    key, args = running.pop(fut)
-                    try:
-                        yield Outcome(key, fut.result())
-                    except BrokenProcessPool:
-                        broken = True  # a worker died: the jobs in flight are lost
-                        outcome = died(key, args)
-                        if outcome is not None:
-                            yield outcome
-                    except Exception as e:
-                        yield Outcome(key, error=_one_line(e))
-                if broken:
-                    for fut, (key, args) in running.items():
-                        fut.cancel()
-                        outcome = died(key, args)
-                        if outcome is not None:
-                            yield outcome
-                    running.clear()
-                    break
+            yield from _one_pool(pool, fn, batch, size, died)

@@ -24,7 +24,6 @@ __all__ = [
     "PAPER_TABLE_I",
     "classify",
     "bootstrap_interval",
-    "free_fraction_near_path",
     "iou_intervals",
     "iou_per_class",
     "compare_maps",
@@ -257,25 +256,6 @@ def mean_iou(per_scene: Iterable[Mapping[str, Mapping[str, float]]]) -> dict[str
         name: {cls: (float(np.mean(v)) if v else math.nan) for cls, v in d.items()}
         for name, d in acc.items()
     }
-
-
-def free_fraction_near_path(
-    m: EvidentialMap, trajectory: Iterable[tuple[float, float, float]], radius_m: float = 10.0
-) -> float:
-    """Fraction of the map's cells within ``radius_m`` of the driven path (map-frame ``(x, y, yaw)``
-    poses) classified free: how much free space a reference map holds around the vehicle."""
-    import cv2
-
-    masses, _, r0, c0 = m.to_dense()
-    res = m.grid.resolution
-    path = np.full(masses.shape[:2], 255, np.uint8)
-    for x, y, _ in trajectory:
-        rc, cc = m.grid.map_xy_to_cell(x, y)
-        i, j = int(rc) - r0, int(cc) - c0
-        if 0 <= i < path.shape[0] and 0 <= j < path.shape[1]:
-            path[i, j] = 0
-    near = cv2.distanceTransform(path, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) * res <= radius_m
-    return float((classify(masses)[near] == FREE).mean())
 
 
 def bootstrap_interval(

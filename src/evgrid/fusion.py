@@ -45,6 +45,12 @@ from evgrid.kernels import (
     RULE_DEMPSTER,
     RULE_FUSED,
     RULE_NAV,
+    DopplerDiscs,
+    MapTiles,
+    PassSources,
+    RuleTable,
+    TilePiece,
+    WindowAffine,
     band_columns,
     informative_blocks,
     rows,
@@ -436,6 +442,58 @@ def _check_pose(pose: SE2) -> None:
         )
 
 
+def _check_map_set_args(grid, params, names, dynamic, nav) -> None:
+    """MapSet's arguments, each of its type, and the map names known and distinct."""
+    if grid is not None and not isinstance(grid, GridSpec):
+        raise TypeError(f"MapSet: grid must be a GridSpec, got {type(grid).__name__}")
+    if params is not None and not isinstance(params, FusionParams):
+        raise TypeError(
+            f"MapSet: params must be a FusionParams (e.g. FusionParams(m_u_min=0.3)), "
+            f"got {type(params).__name__} {params!r}"
+        )
+    if isinstance(names, str) or not all(isinstance(n, str) for n in names):
+        raise TypeError(f"MapSet: names must be a tuple of map names, got {names!r}")
+    unknown = [n for n in names if n not in RULES]
+    if unknown or not names:
+        raise ValueError(f"unknown map name(s) {unknown}; choose from {tuple(RULES)}")
+    if len(set(names)) != len(names):
+        raise ValueError(f"map names repeat: {tuple(names)}")
+    if dynamic is not None and not isinstance(dynamic, DynamicParams):
+        raise TypeError(
+            f"MapSet: dynamic must be a DynamicParams, got {type(dynamic).__name__} {dynamic!r}"
+        )
+    if nav is not None and not isinstance(nav, NavParams):
+        raise TypeError(f"MapSet: nav must be a NavParams, got {type(nav).__name__} {nav!r}")
+
+
+def _pass_layout(
+    names: tuple[str, ...], dynamic: DynamicParams
+) -> tuple[list[tuple[str, bool, bool]], bool]:
+    """The rows of a set's pass in order, each (map name, shown, plain), and whether nav reads
+    gated copies of its inputs.
+
+    Maps read by a rule from maps come first in the pass, and are kept when not shown; with
+    the gate on for nav but not for the shown maps, nav reads gated copies of its inputs
+    (hidden rows of the same pass: docs/equations.md#the-gate), and beside them the lidar map
+    ungated (plain): the gate may take a cell the lidar map calls occupied to unknown in nav,
+    never to free.
+    """
+    gated_copies = dynamic.enabled and dynamic.gate_nav and not dynamic.gate_maps
+    needed = [m for n in names if RULES[n].from_maps for m in RULES[n].inputs]
+    order = [n for n in names if not RULES[n].from_maps]
+    hidden = [m for m in dict.fromkeys(needed) if m not in order or gated_copies]
+    derived = [n for n in names if RULES[n].from_maps]
+    lidar = RULES["nav"].inputs[0]  # nav = L (+)_D F'
+    plain = [lidar] if gated_copies and derived and lidar not in order else []
+    layout = [
+        *((n, True, False) for n in order),
+        *((n, False, False) for n in hidden),
+        *((n, False, True) for n in plain),
+        *((n, True, False) for n in derived),
+    ]
+    return layout, gated_copies
+
+
 class MapSet:
     """Several maps over one scene, in the map frame, updated in one pass per time step.
 
@@ -474,80 +532,17 @@ class MapSet:
         dynamic: DynamicParams | None = None,
         nav: NavParams | None = None,
     ):
-        if grid is not None and not isinstance(grid, GridSpec):
-            raise TypeError(f"MapSet: grid must be a GridSpec, got {type(grid).__name__}")
-        if params is not None and not isinstance(params, FusionParams):
-            raise TypeError(
-                f"MapSet: params must be a FusionParams (e.g. FusionParams(m_u_min=0.3)), "
-                f"got {type(params).__name__} {params!r}"
-            )
-        if isinstance(names, str) or not all(isinstance(n, str) for n in names):
-            raise TypeError(f"MapSet: names must be a tuple of map names, got {names!r}")
-        unknown = [n for n in names if n not in RULES]
-        if unknown or not names:
-            raise ValueError(f"unknown map name(s) {unknown}; choose from {tuple(RULES)}")
-        if len(set(names)) != len(names):
-            raise ValueError(f"map names repeat: {tuple(names)}")
-        if dynamic is not None and not isinstance(dynamic, DynamicParams):
-            raise TypeError(
-                f"MapSet: dynamic must be a DynamicParams, got {type(dynamic).__name__} {dynamic!r}"
-            )
+        _check_map_set_args(grid, params, names, dynamic, nav)
         self.grid = grid or GridSpec()
         self.params = params or FusionParams()
-        if nav is not None and not isinstance(nav, NavParams):
-            raise TypeError(f"MapSet: nav must be a NavParams, got {type(nav).__name__} {nav!r}")
         self.dynamic = dynamic or DynamicParams(enabled=False)
         self.nav = nav or NavParams()
         self.names = tuple(names)
-        # maps read by a rule from maps come first in the pass, and are kept when not shown; with
-        # the gate on for nav but not for the shown maps, nav reads gated copies of its inputs
-        # (hidden rows of the same pass: docs/equations.md#the-gate)
-        d = self.dynamic
-        gated_copies = d.enabled and d.gate_nav and not d.gate_maps
-        needed = [m for n in self.names if RULES[n].from_maps for m in RULES[n].inputs]
-        order = [n for n in self.names if not RULES[n].from_maps]
-        hidden = [m for m in dict.fromkeys(needed) if m not in order or gated_copies]
-        derived = [n for n in self.names if RULES[n].from_maps]
-        # beside gated copies nav also reads the lidar map ungated: the gate may take a cell
-        # the lidar map calls occupied to unknown in nav, never to free
-        lidar = RULES["nav"].inputs[0]  # nav = L (+)_D F'
-        plain = [lidar] if gated_copies and derived and lidar not in order else []
-        self._rows = [
-            _Row(
-                n,
-                RULES[n],
-                EvidentialMap(
-                    self.grid,
-                    tile_cells,
-                    {"rule": n, "m_u_min": self.params.m_u_min, "alpha": self.params.alpha},
-                    dynamic=self._scores(n) and not is_plain,
-                ),
-                self.params,
-                shown,
-                is_plain,
-            )
-            for n, shown, is_plain in [
-                *((n, True, False) for n in order),
-                *((n, False, False) for n in hidden),
-                *((n, False, True) for n in plain),
-                *((n, True, False) for n in derived),
-            ]
-        ]
+        layout, gated_copies = _pass_layout(self.names, self.dynamic)
+        self._rows = [self._row(n, shown, plain, tile_cells) for n, shown, plain in layout]
         self.tile_cells = self._rows[0].map.tile_cells
         every = {r.name: r.map for r in self._rows if r.shown}
-        inputs = {**every, **{r.name: r.map for r in self._rows if not (r.shown or r.plain)}}
-        ungated = (
-            ({**every, **{r.name: r.map for r in self._rows if r.plain}}[lidar],)
-            if gated_copies and derived
-            else (None,)
-        )
-        # the maps computed from others when read (nav), each with its input maps and, beside
-        # gated copies, the ungated lidar map
-        self._derived = [
-            (every[r.name], *(inputs[m] for m in r.rule.inputs), *ungated)
-            for r in self._rows
-            if r.rule.from_maps
-        ]
+        self._derived = self._derived_inputs(every, gated_copies)
         self._stale: tuple[int, int, int, int] | None = None  # cells changed since the last read
         self.maps: Mapping[str, EvidentialMap] = _Maps(self, {n: every[n] for n in self.names})
         self.required_isms: tuple[str, ...] = tuple(
@@ -566,6 +561,34 @@ class MapSet:
         #: Milliseconds of the last update: ``warp`` checking and padding the ISMs, ``fuse``
         #: the pass that samples them and applies the rules.
         self.last_ms: dict[str, float] = {}
+
+    def _row(self, name: str, shown: bool, plain: bool, tile_cells: int) -> _Row:
+        """The pass's row of map ``name``: its rule, a new map of this set's grid and its
+        parameters (a plain row keeps no dynamic score)."""
+        p = self.params
+        meta = {"rule": name, "m_u_min": p.m_u_min, "alpha": p.alpha}
+        dynamic = self._scores(name) and not plain
+        m = EvidentialMap(self.grid, tile_cells, meta, dynamic=dynamic)
+        return _Row(name, RULES[name], m, p, shown, plain)
+
+    def _derived_inputs(
+        self, every: dict[str, EvidentialMap], gated_copies: bool
+    ) -> list[tuple[EvidentialMap, ...]]:
+        """The maps computed from others when read (nav), each with its input maps (the hidden
+        gated copies where nav reads them) and, beside gated copies, the ungated lidar map."""
+        inputs = {**every, **{r.name: r.map for r in self._rows if not (r.shown or r.plain)}}
+        derived = any(r.rule.from_maps for r in self._rows)
+        lidar = RULES["nav"].inputs[0]
+        ungated = (
+            ({**every, **{r.name: r.map for r in self._rows if r.plain}}[lidar],)
+            if gated_copies and derived
+            else (None,)
+        )
+        return [
+            (every[r.name], *(inputs[m] for m in r.rule.inputs), *ungated)
+            for r in self._rows
+            if r.rule.from_maps
+        ]
 
     def _scores(self, name: str) -> bool:
         """Whether map ``name`` keeps a dynamic score: its rule has a Dempster step on an ISM."""
@@ -726,7 +749,7 @@ class MapSet:
         row's rule, and the Doppler cue on the window rows' runs ``discs`` (:meth:`_disc_runs`)."""
         grid, n = self.grid, self.grid.n_cells
         r0, c0, h, w = box
-        affine = window_affine(grid, pose, r0, c0)
+        affine = WindowAffine(*window_affine(grid, pose, r0, c0))
         spans = self._spans[:h]
         window_spans(*affine, n, h, w, spans)
         nb = (h + BLOCK - 1) // BLOCK
@@ -738,41 +761,28 @@ class MapSet:
             informative_blocks(warper.coarse, n, *affine, h, jl, jh, informative[s])
         maps = [r.map for r in self._pass_rows]
         rejected = np.zeros(len(maps), dtype=np.int64)
-        src = tuple(warper.source for warper in warpers)
+        sources = PassSources(tuple(wp.source for wp in warpers), 3 * (n + 3), n, informative, jl)
+        table, discs = RuleTable(self._codes, self._params), DopplerDiscs(*discs)
         no_layer = np.zeros(0, dtype=np.float32)  # the dynamic layer of a map that keeps none
         for key, tr, tc, wr, wc in maps[0].pieces(r0, c0, h, w):
-            piece = spans[wr]
+            cut = spans[wr]
             rows_on = np.flatnonzero(
-                np.minimum(piece[:, 1], wc.stop) > np.maximum(piece[:, 0], wc.start)
+                np.minimum(cut[:, 1], wc.stop) > np.maximum(cut[:, 0], wc.start)
             )
             if len(rows_on) == 0:
                 continue
             a, b = int(rows_on[0]), int(rows_on[-1]) + 1  # the piece's rows with covered cells
             tiles = [m.tile(key) for m in maps]
-            warp_update(
-                src,
-                3 * (n + 3),
-                n,
-                informative,
-                jl,
-                *affine,
-                spans,
-                wr.start + a,
-                wr.start + b,
-                wc.start,
-                wc.stop,
+            piece = TilePiece(
+                spans, wr.start + a, wr.start + b, wc.start, wc.stop, tr.start + a, tc.start
+            )
+            layers = MapTiles(
                 tuple(t.reshape(-1) for t, _ in tiles),
                 tuple(c.reshape(-1) for _, c in tiles),
                 tuple(m.dynamic_tiles[key].reshape(-1) if m.dynamic else no_layer for m in maps),
                 self.tile_cells,
-                tr.start + a,
-                tc.start,
-                self._codes,
-                self._params,
-                self._bufs,
-                rejected,
-                *discs,
             )
+            warp_update(sources, affine, piece, layers, table, discs, self._bufs, rejected)
         return rejected
 
     def _disc_runs(

@@ -23,6 +23,7 @@ The names that :mod:`evgrid.mass`, :mod:`evgrid.grid` and :mod:`evgrid.fusion` u
 from __future__ import annotations
 
 import math
+from collections import namedtuple
 
 import numba
 import numpy as np
@@ -53,6 +54,12 @@ __all__ = [
     "informative_blocks",
     "warp_rows",
     "warp_update",
+    "PassSources",
+    "WindowAffine",
+    "TilePiece",
+    "MapTiles",
+    "RuleTable",
+    "DopplerDiscs",
     "nav_cells",
 ]
 
@@ -777,8 +784,10 @@ def _gather(src, srs, m, ro, o0, idx, frac):
 
 
 @numba.njit(inline="always", **_JIT)
-def _sample_span(src, srs, n, u00, v00, du_di, du_dj, dv_di, dv_dj, i, j0, j2, ro, o0, idx, frac):
+def _sample_span(src, srs, n, affine, i, j0, j2, ro, o0, idx, frac):
     # ro[o0 + 3 k + c], k < j2 - j0: the bilinear samples of window cells (i, j0) ... (i, j2 - 1)
+    # of the window of ``affine`` (WindowAffine's fields)
+    u00, v00, du_di, du_dj, dv_di, dv_dj = affine
     _positions(srs, n, u00, v00, du_di, du_dj, dv_di, dv_dj, i, j0, j2, idx, frac)
     _gather(src, srs, j2 - j0, ro, o0, idx, frac)
 
@@ -807,6 +816,7 @@ def warp_rows(
     src, srs, coarse, n, u00, v00, du_di, du_dj, dv_di, dv_dj, out, ors, covered, crs, h, w, spans
 ):
     # The window (h, w) written whole: sampled masses on covered cells, vacuous elsewhere.
+    affine = (u00, v00, du_di, du_dj, dv_di, dv_dj)
     window_spans(u00, v00, du_di, du_dj, dv_di, dv_dj, n, h, w, spans)
     idx = np.empty(BLOCK, dtype=np.int64)
     frac = np.empty(2 * BLOCK, dtype=np.float32)
@@ -836,24 +846,7 @@ def warp_rows(
                 if j2 <= j0:
                     continue
                 if informative:
-                    _sample_span(
-                        src,
-                        srs,
-                        n,
-                        u00,
-                        v00,
-                        du_di,
-                        du_dj,
-                        dv_di,
-                        dv_dj,
-                        i,
-                        j0,
-                        j2,
-                        ro,
-                        3 * j0,
-                        idx,
-                        frac,
-                    )
+                    _sample_span(src, srs, n, affine, i, j0, j2, ro, 3 * j0, idx, frac)
                 else:
                     _fill_vacuous(ro, 3 * j0, j2 - j0)
 
@@ -872,134 +865,133 @@ def informative_blocks(coarse, n, u00, v00, du_di, du_dj, dv_di, dv_dj, h, jl, j
             )
 
 
+#: The padded ISM grids one pass samples (:func:`warp_update`): ``src`` a tuple of the flat
+#: padded local grids (one per ISM slot, :func:`load_padded`), their row stride ``srs`` and side
+#: ``n``, ``informative`` ``(isms, bands, blocks)`` (:func:`informative_blocks`) and each band's
+#: first block column ``jl`` (:func:`band_columns`).
+PassSources = namedtuple("PassSources", "src srs n informative jl")
+#: A window's affine map: window cell (i, j) samples source position (u00 + i du_di + j du_dj,
+#: v00 + i dv_di + j dv_dj) (:func:`evgrid.grid.window_affine`).
+WindowAffine = namedtuple("WindowAffine", "u00 v00 du_di du_dj dv_di dv_dj")
+#: One tile piece of a window: window rows [wa, wb) and columns [wc0, wc1) (within the window's
+#: ``spans``, :func:`window_spans`) are tile cells (tr0 + i - wa, tc0 + j - wc0).
+TilePiece = namedtuple("TilePiece", "spans wa wb wc0 wc1 tr0 tc0")
+#: The piece's tile of every row of the pass, flat: ``masses`` (3 floats a cell), ``covered``,
+#: ``scores`` (the dynamic layer, empty for a map that keeps none), tiles of ``side`` cells a side.
+MapTiles = namedtuple("MapTiles", "masses covered scores side")
+#: The pass's rule table (:meth:`evgrid.fusion.MapSet._plan`): per row ``codes`` (kernel code,
+#: first input, last input, Doppler disc set) and ``params`` (m_u_min, alpha, decay, gate,
+#: Doppler mass).
+RuleTable = namedtuple("RuleTable", "codes params")
+#: The Doppler cue's discs in the window (:func:`evgrid.doppler.disc_runs`): window row i of
+#: disc set q covers ``runs[ptr[q, i]:ptr[q, i + 1]]``.
+DopplerDiscs = namedtuple("DopplerDiscs", "ptr runs")
+
+
+@numba.njit(inline="always", **_CHECKED)
+def _sample_isms(sources, affine, i, lo, hi, a, b, bufs, idx, frac):
+    # Window row i's covered cells [lo, hi) from every ISM into its row buffer bufs[s], exactly
+    # as warp_rows writes them: block by block, an uninformative block vacuous, the positions
+    # computed once for every ISM; then the source lines of the row _AHEAD rows on are
+    # prefetched (_prefetch_span). (a, b): the row's padded source position.
+    src, srs, n, informative, jl = sources
+    u00, v00, du_di, du_dj, dv_di, dv_dj = affine
+    band = i // BLOCK
+    j = lo
+    while j < hi:
+        k = (j - jl[band]) // BLOCK
+        j1 = min(hi, jl[band] + (k + 1) * BLOCK)
+        located = False
+        for s in range(len(src)):
+            if informative[s, band, k]:
+                if not located:
+                    _positions(srs, n, u00, v00, du_di, du_dj, dv_di, dv_dj, i, j, j1, idx, frac)
+                    located = True
+                _gather(src[s], srs, j1 - j, bufs[s], 3 * (j - lo), idx, frac)
+            else:
+                _fill_vacuous(bufs[s], 3 * (j - lo), j1 - j)
+        if located:
+            a1, b1 = a + _AHEAD * du_di, b + _AHEAD * dv_di
+            _prefetch_span(src, informative[:, band, k], srs, n, a1, b1, du_dj, dv_dj, j, j1)
+        j = j1
+
+
+@numba.njit(inline="always", **_CHECKED)
+def _cue_scratch(isms, ts):
+    # The Doppler cue's scratch for rows of up to ts cells (_doppler_cue): a row's disc cells,
+    # their source cells, their weights per ISM and the disc set each ISM's weights are of.
+    dw = np.empty((isms, ts), np.float64)
+    return np.empty(ts, np.int64), np.empty(ts, np.int64), dw, np.empty(isms, np.int64)
+
+
+@numba.njit(inline="always", **_CHECKED)
+def _doppler_cue(s_, q, y, i, lo, hi, a, b, mu, sources, affine, discs, seen, cue):
+    # The Doppler cue of disc set q, mass mu, on window row i's score cells s_ (after the gate:
+    # it counts from the next update on), weighted by ISM slot y. The row's disc cells and their
+    # source cells (_disc_cells) are found once for every map (seen: the disc set found last and
+    # its number of cells), their weights (_disc_weights) once per ISM (wrow[y]: the disc set
+    # whose weights dw[y] hold, -1: none yet). Returns the new ``seen``.
+    dj, dp, dw, wrow = cue
+    dq, nd = seen
+    if q != dq:
+        k0, k1 = discs.ptr[q, i], discs.ptr[q, i + 1]
+        du_dj, dv_dj, srs = affine.du_dj, affine.dv_dj, sources.srs
+        nd = _disc_cells(discs.runs, k0, k1, lo, hi, a, b, du_dj, dv_dj, srs, dj, dp)
+        dq = q
+        wrow[:] = -1
+    if wrow[y] != q:
+        _disc_weights(sources.src[y], dp, nd, dw[y])
+        wrow[y] = q
+    _doppler_row(s_, dj, dw[y], nd, mu)
+    return dq, nd
+
+
 @numba.njit(**_CHECKED)
-def warp_update(
-    src,
-    srs,
-    n,
-    informative,
-    jl,
-    u00,
-    v00,
-    du_di,
-    du_dj,
-    dv_di,
-    dv_dj,
-    spans,
-    wa,
-    wb,
-    wc0,
-    wc1,
-    tiles,
-    covs,
-    dyns,
-    ts,
-    tr0,
-    tc0,
-    rules,
-    params,
-    bufs,
-    rejected,
-    dptr,
-    druns,
-):
-    # One tile piece of a window, every map at once: window rows [wa, wb) and columns
-    # [wc0, wc1) are tile cells (tr0 + i - wa, tc0 + j - wc0). Each row's covered cells are
-    # sampled from each ISM (src[s], a tuple of the padded local grids, flat) exactly as warp_rows
-    # writes them, into a row buffer per ISM, and each map's rule runs on the buffers: the same
-    # masses as warping whole windows and updating from them, without writing or re-reading the
-    # windows. Row k of ``rules`` is map k's (kernel code, first input, last input), its
-    # ``params`` row (m_u_min, alpha, decay, gate): inputs are ISM slots (bufs). A row with
-    # decay > 0 (a rule of DYNAMIC_RULES) first adds its Dempster step's conflict to its dynamic
-    # layer ``dyns[k]`` (flat, a float per cell), from the map cells before the update; masses
-    # are the same unless the row's gate (> 0: the gate's threshold,
-    # docs/equations.md#the-gate) is on. After the rule, a scored row with a Doppler cue
-    # (``rules[k, 3]`` = q >= 0, mass ``params[k, 4]``) adds it on window row i's cells of
-    # ``druns[dptr[q, i]:dptr[q, i + 1]]`` (evgrid.doppler.disc_runs).
-    idx = np.empty(BLOCK, dtype=np.int64)
-    frac = np.empty(2 * BLOCK, dtype=np.float32)
+def warp_update(sources, affine, piece, tiles, table, discs, bufs, rejected):
+    # One tile piece of a window, every map at once (PassSources, WindowAffine, TilePiece,
+    # MapTiles, RuleTable, DopplerDiscs): each window row's covered cells are sampled from each
+    # ISM exactly as warp_rows writes them, into a row buffer per ISM (bufs), and each row k of
+    # the rule table runs its map's rule on those buffers, the same masses as warping whole
+    # windows and updating from them, without writing or re-reading the windows; rejected[k]
+    # counts the cells it rejected. A row with decay > 0 (a rule of DYNAMIC_RULES) also scores
+    # the cells (from the map cells before the update) and gates them (gate > 0); a scored row
+    # with a Doppler cue (codes[k, 3] = q >= 0) then adds it. The rule dispatch stays in this
+    # loop, on the tables unpacked here: moved into an inlined function, or read through the
+    # named tuples, the rules' row loops compiled slower (numba 0.68; docs/speed.md).
+    masses, covered, scores, ts = tiles
+    codes, params = table
+    spans, wa, wb, wc0, wc1, tr0, tc0 = piece
+    idx, frac = np.empty(BLOCK, dtype=np.int64), np.empty(2 * BLOCK, dtype=np.float32)
     bad = np.zeros(ts, np.uint8)
-    # the Doppler cue's cells of the row (_disc_cells) of disc set dq, and per ISM the disc set
-    # whose weights dw holds (_disc_weights), -1: none yet
-    dj = np.empty(ts, np.int64)
-    dp = np.empty(ts, np.int64)
-    dw = np.empty((len(src), ts), np.float64)
-    wrow = np.empty(len(src), np.int64)
-    nd = 0
+    cue = _cue_scratch(len(sources.src), ts)
     for i in range(wa, wb):
-        lo = max(spans[i, 0], wc0)
-        hi = min(spans[i, 1], wc1)
+        lo, hi = max(spans[i, 0], wc0), min(spans[i, 1], wc1)
         if hi <= lo:
             continue
-        dq = -1
-        band = i // BLOCK
-        a = u00 + i * du_di + 1.0  # the row's padded source position (prefetch, Doppler cue)
-        b = v00 + i * dv_di + 1.0
-        j = lo
-        while j < hi:
-            k = (j - jl[band]) // BLOCK
-            j1 = min(hi, jl[band] + (k + 1) * BLOCK)
-            located = False  # the positions are the same for every ISM: computed once
-            for s in range(len(src)):
-                if informative[s, band, k]:
-                    if not located:
-                        _positions(
-                            srs, n, u00, v00, du_di, du_dj, dv_di, dv_dj, i, j, j1, idx, frac
-                        )
-                        located = True
-                    _gather(src[s], srs, j1 - j, bufs[s], 3 * (j - lo), idx, frac)
-                else:
-                    _fill_vacuous(bufs[s], 3 * (j - lo), j1 - j)
-            if located:
-                _prefetch_span(
-                    src,
-                    informative[:, band, k],
-                    srs,
-                    n,
-                    a + _AHEAD * du_di,
-                    b + _AHEAD * dv_di,
-                    du_dj,
-                    dv_dj,
-                    j,
-                    j1,
-                )
-            j = j1
+        a = affine.u00 + i * affine.du_di + 1.0  # the row's padded source position
+        b = affine.v00 + i * affine.dv_di + 1.0
+        _sample_isms(sources, affine, i, lo, hi, a, b, bufs, idx, frac)
         m = hi - lo
         t = (tr0 + i - wa) * ts + tc0 + lo - wc0  # the row's first cell in the tiles
-        for k in range(len(tiles)):
-            mp_ = tiles[k][3 * t : 3 * (t + m)]
-            code, x, y, q = rules[k, 0], rules[k, 1], rules[k, 2], rules[k, 3]
+        seen = (-1, 0)
+        for k in range(len(masses)):
+            mp_ = masses[k][3 * t : 3 * (t + m)]
+            code, x, y, q = codes[k, 0], codes[k, 1], codes[k, 2], codes[k, 3]
             decay, gate = params[k, 2], params[k, 3]
             if decay > 0.0 and code == RULE_DEMPSTER:  # the score in the rule's own loop
-                rejected[k] += _dempster_row(
-                    mp_, bufs[x], bad, m, dyns[k][t : t + m], decay, True, gate
-                )
+                s_ = scores[k][t : t + m]
+                rejected[k] += _dempster_row(mp_, bufs[x], bad, m, s_, decay, True, gate)
             elif decay > 0.0:  # fused: the last input is the ISM of the Dempster step
+                m_u_min, alpha, s_ = params[k, 0], params[k, 1], scores[k][t : t + m]
                 rejected[k] += _fused_row(
-                    mp_,
-                    bufs[x],
-                    bufs[y],
-                    bad,
-                    m,
-                    params[k, 0],
-                    params[k, 1],
-                    dyns[k][t : t + m],
-                    decay,
-                    True,
-                    gate,
+                    mp_, bufs[x], bufs[y], bad, m, m_u_min, alpha, s_, decay, True, gate
                 )
             else:
-                rejected[k] += _rule_row(
-                    code, mp_, bufs[x], bufs[y], bad, m, params[k, 0], params[k, 1]
+                m_u_min, alpha = params[k, 0], params[k, 1]
+                rejected[k] += _rule_row(code, mp_, bufs[x], bufs[y], bad, m, m_u_min, alpha)
+            covered[k][t : t + m] = True
+            if q >= 0 and discs.ptr[q, i + 1] > discs.ptr[q, i]:
+                s_, mu = scores[k][t : t + m], params[k, 4]
+                seen = _doppler_cue(
+                    s_, q, y, i, lo, hi, a, b, mu, sources, affine, discs, seen, cue
                 )
-            covs[k][t : t + m] = True
-            k0, k1 = (dptr[q, i], dptr[q, i + 1]) if q >= 0 else (0, 0)
-            if k1 > k0:  # after the gate: it counts from the next update on
-                if q != dq:  # the row's disc cells and their source cells, once for all maps
-                    nd = _disc_cells(druns, k0, k1, lo, hi, a, b, du_dj, dv_dj, srs, dj, dp)
-                    dq = q
-                    wrow[:] = -1
-                if wrow[y] != q:  # their weights, once per ISM
-                    _disc_weights(src[y], dp, nd, dw[y])
-                    wrow[y] = q
-                _doppler_row(dyns[k][t : t + m], dj, dw[y], nd, params[k, 4])

@@ -722,29 +722,7 @@ class PoseGate:
         self.n_jumps += 1
         if self._glitch_since is None:
             self._glitch_since = self._last[0]
-            if len(self.jumps) < 20:
-                self.jumps.append(
-                    {
-                        "index": frame.index,
-                        "timestamp": frame.timestamp,
-                        "jump_m": dist,
-                        "turn_deg": turn,
-                        "dt_s": dt,
-                    }
-                )
-            # say what was implausible: a 180 degree turn within a frame is not a "0.9 m jump"
-            what = (
-                f"turned {turn:.0f} deg" + (f" and jumped {dist:.1f} m" if far else "")
-                if turned
-                else f"jumped {dist:.1f} m"
-            )
-            logger.warning(
-                "%s: ego pose %s in %.3f s, more than a vehicle can %s; frame skipped",
-                _where(frame),
-                what,
-                dt,
-                "turn" if turned and not far else "move",
-            )
+            self._record_jump(frame, dt, dist, turn, far, turned)
         if (frame.timestamp - self._glitch_since) * 1e-6 > self.limits.max_glitch_s:
             raise PoseError(
                 f"{_where(frame)}: the ego pose jumped at t = {self._glitch_since} us and has not "
@@ -752,6 +730,34 @@ class PoseGate:
                 "the odometry"
             )
         return False
+
+    def _record_jump(
+        self, frame: Frame, dt: float, dist: float, turn: float, far: bool, turned: bool
+    ) -> None:
+        """Keep the first jump of a glitch (up to 20 in all) and say in the log what was
+        implausible: a 180 degree turn within a frame is not a "0.9 m jump"."""
+        if len(self.jumps) < 20:
+            self.jumps.append(
+                {
+                    "index": frame.index,
+                    "timestamp": frame.timestamp,
+                    "jump_m": dist,
+                    "turn_deg": turn,
+                    "dt_s": dt,
+                }
+            )
+        what = (
+            f"turned {turn:.0f} deg" + (f" and jumped {dist:.1f} m" if far else "")
+            if turned
+            else f"jumped {dist:.1f} m"
+        )
+        logger.warning(
+            "%s: ego pose %s in %.3f s, more than a vehicle can %s; frame skipped",
+            _where(frame),
+            what,
+            dt,
+            "turn" if turned and not far else "move",
+        )
 
     def sweep_ok(self, sweep: RadarSweep, frame: Frame) -> bool:
         """Whether a radar sweep's own ego pose is plausible next to its frame's; implausible

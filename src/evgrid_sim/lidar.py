@@ -111,6 +111,20 @@ class LidarModel:
         """One sweep at the ego pose ``(x, y, yaw)`` (m, rad) -> (points ``(n, 5)`` float32 in the
         sensor frame [x, y, z, intensity, ring], what each point hit: static box index, -3 (EGO_HIT)
         the ego body, ``n_static + k`` for moving object k, -1 ground)."""
+        az_s, out_t, out_id, out_cos = self._cast(world, dyn_boxes, dyn_classes, ego_xy_yaw, rng)
+        return self._returns(world, dyn_reflectivity, az_s, out_t, out_id, out_cos, rng)
+
+    def _cast(
+        self,
+        world: World,
+        dyn_boxes: np.ndarray,
+        dyn_classes: np.ndarray,
+        ego_xy_yaw: tuple[float, float, float],
+        rng: np.random.Generator,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The sweep's beams cast (azimuths at a random phase): (azimuth per column in the
+        sensor frame, and per column and beam the horizontal distance to the hit, what it hit
+        and the cosine of incidence)."""
         cfg = self.cfg
         ex, ey, eyaw = ego_xy_yaw
         c, s = math.cos(eyaw), math.sin(eyaw)
@@ -140,6 +154,22 @@ class LidarModel:
         )
         if cfg.self_returns:
             self._add_body(az_s, out_t, out_id, out_cos)
+        return az_s, out_t, out_id, out_cos
+
+    def _returns(
+        self,
+        world: World,
+        dyn_reflectivity: np.ndarray,
+        az_s: np.ndarray,
+        out_t: np.ndarray,
+        out_id: np.ndarray,
+        out_cos: np.ndarray,
+        rng: np.random.Generator,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The cast beams that return (range, detection probability from reflectivity and
+        incidence, dropout), as :meth:`sweep`'s points and what each hit."""
+        cfg = self.cfg
+        n_az, nb = out_t.shape
         rng_u = rng.random((n_az, nb))
         noise = rng.standard_normal((n_az, nb))
         hit = out_id != HIT_NONE

@@ -324,18 +324,12 @@ class RadarModel:
             + self._fluctuation(rng, len(g))
             - cfg.multipath_loss_db
         )
-        p = (
-            M.RADAR_MIRROR[fk[g]]
-            * cfg.multipath_probability
-            * M.RADAR_SCATTER[kk]
-            * cfg.scatter_probability
-        )
+        p = M.RADAR_MIRROR[fk[g]] * cfg.multipath_probability
+        p = p * M.RADAR_SCATTER[kk] * cfg.scatter_probability
         det = (gid[:, 0] >= 0) & (total <= near_reach) & (rng.random(len(g)) < p)
         if det.any():
             # The mirror image of the target moves with the mirrored velocity.
-            vt = targets.velocity[li[det]]
-            vn = vt[:, 0] * nx[det] + vt[:, 1] * ny[det]
-            vg = np.stack([vt[:, 0] - 2 * vn * nx[det], vt[:, 1] - 2 * vn * ny[det]], 1)
+            vg = _mirrored(targets.velocity[li[det]], nx[det], ny[det])
             moving = np.hypot(vg[:, 0], vg[:, 1]) > 0.2
             az, far = beams.az[g][det], beams.far[g][det]
             sc.add(total[det], az, rcs[det], far, vg, RADAR_GHOST, moving)
@@ -433,21 +427,10 @@ class RadarModel:
         self.last_truth = truth[order]
         return pts[order], lab[order]
 
-    def _merge(
-        self, sc: dict[str, np.ndarray], syaw: float, vs: np.ndarray, rng: np.random.Generator
-    ) -> tuple[np.ndarray, ...]:
-        """Merge the scatterers of one resolution cell (range bin x azimuth bin x Doppler bin, per
-        scan) into one cluster and detect it: position = power-weighted mean, RCS = summed power,
-        label, velocity and truth of its strongest scatterer; detected with probability
-        ``logistic(SNR / detection_softness_db)`` of the summed power (false alarms always)."""
+    def _cells(self, r: np.ndarray, a: np.ndarray, far: np.ndarray, vrad: np.ndarray) -> np.ndarray:
+        """The resolution cell (range bin x azimuth bin x Doppler bin, per scan) of each
+        scatterer at range ``r``, azimuth ``a`` and radial speed ``vrad``, numbered 0, 1, ..."""
         cfg = self.cfg
-        r, a, rcs, far = sc["r"], sc["a"], sc["rcs"], sc["far"]
-        snr = self._snr(rcs, r, a, far)
-        p = 10.0 ** (snr / 10.0)
-        # Radial velocity relative to the sensor: the Doppler the cell is binned by.
-        vrad = (sc["vel"][:, 0] - vs[0]) * np.cos(a + syaw) + (sc["vel"][:, 1] - vs[1]) * np.sin(
-            a + syaw
-        )
         res_r = np.where(far, cfg.far_range_resolution_m, cfg.range_resolution_m)
         # Beams of a digital beamformer are evenly spaced in sin(azimuth): cells widen off
         # boresight.
@@ -463,6 +446,24 @@ class RadarModel:
         key = ((far.astype(np.int64) * 8192 + rb) * 4096 + ub) * 65536 + db
         _, inv = np.unique(key, return_inverse=True)
         inv = inv.ravel()
+        return inv
+
+    def _merge(
+        self, sc: dict[str, np.ndarray], syaw: float, vs: np.ndarray, rng: np.random.Generator
+    ) -> tuple[np.ndarray, ...]:
+        """Merge the scatterers of one resolution cell (range bin x azimuth bin x Doppler bin, per
+        scan) into one cluster and detect it: position = power-weighted mean, RCS = summed power,
+        label, velocity and truth of its strongest scatterer; detected with probability
+        ``logistic(SNR / detection_softness_db)`` of the summed power (false alarms always)."""
+        cfg = self.cfg
+        r, a, rcs, far = sc["r"], sc["a"], sc["rcs"], sc["far"]
+        snr = self._snr(rcs, r, a, far)
+        p = 10.0 ** (snr / 10.0)
+        # Radial velocity relative to the sensor: the Doppler the cell is binned by.
+        vrad = (sc["vel"][:, 0] - vs[0]) * np.cos(a + syaw) + (sc["vel"][:, 1] - vs[1]) * np.sin(
+            a + syaw
+        )
+        inv = self._cells(r, a, far, vrad)
         n_cells = int(inv.max()) + 1
         psum = np.bincount(inv, p, n_cells)
         rc = np.bincount(inv, p * r, n_cells) / psum
@@ -642,3 +643,9 @@ class _Targets:
         ly = -b[:, 3] * qx + b[:, 2] * qy
         d = np.hypot(b[:, 4] - np.abs(lx), b[:, 5] - np.abs(ly))
         return np.where(M.RADAR_SPECULAR[kk] > 0, gain_db * np.exp(-((d / 0.6) ** 2)), 0.0)
+
+
+def _mirrored(v: np.ndarray, nx: np.ndarray, ny: np.ndarray) -> np.ndarray:
+    """Velocities ``v`` ``(k, 2)`` mirrored on surfaces of unit normals (nx, ny)."""
+    vn = v[:, 0] * nx + v[:, 1] * ny
+    return np.stack([v[:, 0] - 2 * vn * nx, v[:, 1] - 2 * vn * ny], 1)

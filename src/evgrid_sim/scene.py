@@ -15,7 +15,7 @@ import numpy as np
 from evgrid.data.frame import LIDAR_CHANNEL, RADAR_CHANNELS, Frame, LidarSweep, RadarSweep
 from evgrid.data.mounts import LIDAR_MOUNT, RADAR_MOUNTS
 from evgrid.geometry import SE2, SE3
-from evgrid_sim.config import SimConfig
+from evgrid_sim.config import SimConfig, SweepFaults
 from evgrid_sim.lidar import LidarModel
 from evgrid_sim.radar import RadarModel
 from evgrid_sim.raycast import pack_boxes, rasterize_boxes
@@ -87,28 +87,13 @@ class SimScene:
         #: Radar channels of the rig, in the rig's order.
         self.radar_channels: tuple[str, ...] = tuple(rig.radar_channels)
         #: Timestamps (us) of each radar's sweeps; the first lies within one period before t0.
-        self.radar_timestamps: dict[str, np.ndarray] = {}
-        for ch, rate in zip(self.radar_channels, rig.rates(config.radar.rate_hz)):
-            radar_period = 1e6 / rate
-            phase = float(rng.uniform(0.0, radar_period))
-            first = self.t0_us - radar_period + phase
-            m = int(math.floor((t_last - first) / radar_period)) + 1
-            ts = np.rint(first + np.arange(m) * radar_period).astype(np.int64)
-            self.radar_timestamps[ch] = ts[ts <= t_last]
-        # Radar sweep j of a channel goes to the first frame whose lidar timestamp is >= its own;
-        # faults drop, repeat or delay some (delivered in this order, frames never going back).
-        self._delivery: dict[str, list[tuple[int, int]]] = {}
-        for ch, ts in self.radar_timestamps.items():
-            frames = np.searchsorted(self.lidar_timestamps, ts, side="left")
-            order = list(range(len(ts)))
-            if frng is not None:
-                order = _faulty_order(order, faults, frng)
-            out: list[tuple[int, int]] = []
-            for j in order:
-                f = int(frames[j]) if not out else max(int(frames[j]), out[-1][0])
-                if f < len(self.lidar_timestamps):
-                    out.append((f, j))
-            self._delivery[ch] = out
+        self.radar_timestamps: dict[str, np.ndarray] = {
+            ch: self._radar_clock(rng, rate, t_last)
+            for ch, rate in zip(self.radar_channels, rig.rates(config.radar.rate_hz))
+        }
+        self._delivery: dict[str, list[tuple[int, int]]] = {
+            ch: self._delivered(ts, faults, frng) for ch, ts in self.radar_timestamps.items()
+        }
         self._odo = self._make_odometry(rng)
         self._lidar = LidarModel(config.lidar, LIDAR_MOUNT)
         self._mounts = {ch: RADAR_MOUNTS[m] for ch, m in zip(self.radar_channels, rig.mounts())}
@@ -116,6 +101,33 @@ class SimScene:
             ch: RadarModel(config.radar, self._mounts[ch]) for ch in self.radar_channels
         }
         self._labels: dict[tuple[str, int], np.ndarray] = {}
+
+    def _radar_clock(self, rng: np.random.Generator, rate: float, t_last: int) -> np.ndarray:
+        """Timestamps (us) of a radar's sweeps at ``rate`` Hz up to ``t_last``, at a phase drawn
+        from ``rng``: the first lies within one period before t0."""
+        radar_period = 1e6 / rate
+        phase = float(rng.uniform(0.0, radar_period))
+        first = self.t0_us - radar_period + phase
+        m = int(math.floor((t_last - first) / radar_period)) + 1
+        ts = np.rint(first + np.arange(m) * radar_period).astype(np.int64)
+        return ts[ts <= t_last]
+
+    def _delivered(
+        self, ts: np.ndarray, faults: SweepFaults, frng: np.random.Generator | None
+    ) -> list[tuple[int, int]]:
+        """(frame, sweep) in delivery order of a radar's sweeps at ``ts``: sweep j goes to the
+        first frame whose lidar timestamp is >= its own; faults (drawn from ``frng``) drop,
+        repeat or delay some (delivered in this order, frames never going back)."""
+        frames = np.searchsorted(self.lidar_timestamps, ts, side="left")
+        order = list(range(len(ts)))
+        if frng is not None:
+            order = _faulty_order(order, faults, frng)
+        out: list[tuple[int, int]] = []
+        for j in order:
+            f = int(frames[j]) if not out else max(int(frames[j]), out[-1][0])
+            if f < len(self.lidar_timestamps):
+                out.append((f, j))
+        return out
 
     # --- Scene protocol ---------------------------------------------------------------------
     def __len__(self) -> int:

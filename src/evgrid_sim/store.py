@@ -52,22 +52,58 @@ SIM_NPZ_FORMAT = "evgrid-sim-npz"
 _VERSION = 1
 
 
-def save_sim_scene(
-    scene: SimScene, path: str | os.PathLike, on_frame: Callable[[int], None] | None = None
-) -> Path:
-    """Simulate every frame of ``scene`` and write it to ``path`` (``.npz``, atomically); returns
-    the path."""
-    if not isinstance(scene, SimScene):
-        raise TypeError(f"save_sim_scene needs a SimScene, got {type(scene).__name__}")
-    path = Path(path)
-    if path.suffix != ".npz":
-        raise ValueError(f"the simulator's scene files end in .npz, got {str(path)!r}")
+def _offsets(chunks: list[np.ndarray]) -> np.ndarray:
+    """Where each chunk begins in their concatenation, and the total (len(chunks) + 1)."""
+    return np.concatenate([[0], np.cumsum([len(c) for c in chunks])]).astype(np.int64)
+
+
+def _scene_meta(scene: SimScene, channels: tuple[str, ...]) -> dict:
+    """The scene file's ``meta`` record: format, version, the scene's name, seed and config,
+    channels, columns and class names."""
+    return {
+        "format": SIM_NPZ_FORMAT,
+        "version": _VERSION,
+        "name": scene.name,
+        "seed": scene.seed,
+        "environment": scene.world.environment,
+        "config": scene.config.to_dict(),
+        "lidar_channel": LIDAR_CHANNEL,
+        "radar_channels": list(channels),
+        "lidar_columns": list(contract.LIDAR_COLUMNS),
+        "radar_columns": list(contract.RADAR_COLUMNS),
+        "class_names": list(CLASS_NAMES),
+    }
+
+
+def _radar_arrays(ch: str, r: dict[str, list], sensor_to_ego: np.ndarray) -> dict[str, np.ndarray]:
+    """The arrays of radar channel ``ch`` from its sweeps' lists ``r`` (timestamps, ego poses,
+    points, labels, frame index)."""
+    return {
+        f"radar_{ch}_timestamps": np.asarray(r["ts"], dtype=np.int64),
+        f"radar_{ch}_ego_poses": np.asarray(r["poses"], dtype=np.float64).reshape(-1, 4, 4),
+        f"radar_{ch}_points": (
+            np.concatenate(r["pts"]) if r["pts"] else np.zeros((0, 12), np.float32)
+        ),
+        f"radar_{ch}_offsets": _offsets(r["pts"]),
+        f"radar_{ch}_labels": (
+            np.concatenate(r["labels"]) if r["labels"] else np.zeros(0, np.uint8)
+        ),
+        f"radar_{ch}_frame": np.asarray(r["frame"], dtype=np.int64),
+        f"radar_{ch}_sensor_to_ego": sensor_to_ego,
+    }
+
+
+def _simulate_frames(
+    scene: SimScene, channels: tuple[str, ...], on_frame: Callable[[int], None] | None
+) -> tuple:
+    """Every frame of ``scene`` simulated and gathered: the lidar points per frame, ego poses,
+    keyframe flags, the keyframes' occupancy, the lidar's mounting, per radar channel the
+    lists of its sweeps (timestamps, ego poses, points, labels, frame) and its mounting."""
     n = len(scene)
     lidar: list[np.ndarray] = []
     poses = np.empty((n, 4, 4))
     kf = np.zeros(n, dtype=bool)
     occ: list[np.ndarray] = []
-    channels = tuple(scene.radar_channels)
     radar: dict[str, dict[str, list]] = {
         c: {"ts": [], "poses": [], "pts": [], "labels": [], "frame": []} for c in channels
     }
@@ -92,22 +128,22 @@ def save_sim_scene(
         if on_frame is not None:
             on_frame(i)
 
-    def offsets(chunks: list[np.ndarray]) -> np.ndarray:
-        return np.concatenate([[0], np.cumsum([len(c) for c in chunks])]).astype(np.int64)
+    return lidar, poses, kf, occ, lidar_s2e, radar, radar_s2e
 
-    meta = {
-        "format": SIM_NPZ_FORMAT,
-        "version": _VERSION,
-        "name": scene.name,
-        "seed": scene.seed,
-        "environment": scene.world.environment,
-        "config": scene.config.to_dict(),
-        "lidar_channel": LIDAR_CHANNEL,
-        "radar_channels": list(channels),
-        "lidar_columns": list(contract.LIDAR_COLUMNS),
-        "radar_columns": list(contract.RADAR_COLUMNS),
-        "class_names": list(CLASS_NAMES),
-    }
+
+def save_sim_scene(
+    scene: SimScene, path: str | os.PathLike, on_frame: Callable[[int], None] | None = None
+) -> Path:
+    """Simulate every frame of ``scene`` and write it to ``path`` (``.npz``, atomically); returns
+    the path."""
+    if not isinstance(scene, SimScene):
+        raise TypeError(f"save_sim_scene needs a SimScene, got {type(scene).__name__}")
+    path = Path(path)
+    if path.suffix != ".npz":
+        raise ValueError(f"the simulator's scene files end in .npz, got {str(path)!r}")
+    channels = tuple(scene.radar_channels)
+    lidar, poses, kf, occ, lidar_s2e, radar, radar_s2e = _simulate_frames(scene, channels, on_frame)
+    meta = _scene_meta(scene, channels)
     g = scene.config.grid
     arrays: dict[str, np.ndarray] = {
         "meta": np.array(json.dumps(meta)),
@@ -116,24 +152,14 @@ def save_sim_scene(
         "true_poses": scene.true_poses(),
         "is_keyframe": kf,
         "lidar_points": np.concatenate(lidar) if lidar else np.zeros((0, 5), np.float32),
-        "lidar_offsets": offsets(lidar),
+        "lidar_offsets": _offsets(lidar),
         "lidar_sensor_to_ego": lidar_s2e if lidar_s2e is not None else np.eye(4),
         "occupancy": np.stack(occ) if occ else np.zeros((0, g.n_cells, g.n_cells), np.uint8),
         "world_boxes": scene.world.boxes,
         "world_classes": scene.world.classes,
     }
     for ch, r in radar.items():
-        arrays[f"radar_{ch}_timestamps"] = np.asarray(r["ts"], dtype=np.int64)
-        arrays[f"radar_{ch}_ego_poses"] = np.asarray(r["poses"], dtype=np.float64).reshape(-1, 4, 4)
-        arrays[f"radar_{ch}_points"] = (
-            np.concatenate(r["pts"]) if r["pts"] else np.zeros((0, 12), np.float32)
-        )
-        arrays[f"radar_{ch}_offsets"] = offsets(r["pts"])
-        arrays[f"radar_{ch}_labels"] = (
-            np.concatenate(r["labels"]) if r["labels"] else np.zeros(0, np.uint8)
-        )
-        arrays[f"radar_{ch}_frame"] = np.asarray(r["frame"], dtype=np.int64)
-        arrays[f"radar_{ch}_sensor_to_ego"] = radar_s2e.get(ch, np.eye(4))
+        arrays.update(_radar_arrays(ch, r, radar_s2e.get(ch, np.eye(4))))
     with atomic_open(path, "wb") as fobj:
         _write_npz(fobj, arrays, stored={"lidar_points"})
     return path

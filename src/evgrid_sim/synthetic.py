@@ -130,6 +130,19 @@ def street_lidar_sweep(
     return LidarSweep(pts, LIDAR_TOP_EXTRINSICS, ego_pose, timestamp)
 
 
+def _radar_points(r: np.ndarray, az: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Radar detections at range ``r`` and azimuth ``az`` (sensor frame) as nuScenes radar
+    records: a random RCS, stationary, unambiguous, few false alarms."""
+    pts = np.zeros((len(r), len(RADAR_COLUMNS)), dtype=np.float32)
+    pts[:, 0] = r * np.cos(az)
+    pts[:, 1] = r * np.sin(az)
+    pts[:, 3] = rng.uniform(-5, 20, len(r))
+    pts[:, 8] = 1.0  # dyn_prop: stationary
+    pts[:, 9] = 3.0  # ambig_state: unambiguous
+    pts[:, 11] = 1.0  # pdh0: < 25 % false alarm
+    return pts
+
+
 def street_radar_sweeps(
     n_sweeps: int = 10,
     n_detections: int = 100,
@@ -177,12 +190,5 @@ def street_radar_sweeps(
                 ]
             )
             az_det = az_det + rng.normal(0, math.radians(0.3), len(az_det))
-            pts = np.zeros((len(r_det), len(RADAR_COLUMNS)), dtype=np.float32)
-            pts[:, 0] = r_det * np.cos(az_det)
-            pts[:, 1] = r_det * np.sin(az_det)
-            pts[:, 3] = rng.uniform(-5, 20, len(r_det))
-            pts[:, 8] = 1.0  # dyn_prop: stationary
-            pts[:, 9] = 3.0  # ambig_state: unambiguous
-            pts[:, 11] = 1.0  # pdh0: < 25 % false alarm
-            sweeps.append(RadarSweep(pts, s2e, ego, t, ch))
+            sweeps.append(RadarSweep(_radar_points(r_det, az_det, rng), s2e, ego, t, ch))
     return sweeps, SE3.identity()

@@ -147,16 +147,8 @@ def write_bag(
     """
     from evgrid.ros import RecordingWriter
 
-    if radar_format not in ("pointcloud2", "radarscan"):
-        raise ValueError(f"radar_format must be 'pointcloud2' or 'radarscan', got {radar_format!r}")
-    if radar_format == "radarscan" and storage == "ros1":
-        raise ValueError(
-            "radar_msgs/RadarScan is a ROS 2 message; write ROS 1 bags with "
-            "radar_format='pointcloud2'"
-        )
     path = Path(path)
-    if path.exists():
-        raise FileExistsError(f"{path} exists; evgrid does not overwrite recordings")
+    _check_recording(path, storage, radar_format)
     rig_path = Path(rig_path) if rig_path else path.with_name(path.name + ".rig.yaml")
     keyframes: list[int] = []
     lidar_channel = None
@@ -181,6 +173,20 @@ def write_bag(
     )
     write_rig(rig, rig_path)
     return path, rig_path
+
+
+def _check_recording(path: Path, storage: str, radar_format: str) -> None:
+    """A recording :func:`write_bag` can write: a known radar format that the storage carries,
+    and no file at ``path``."""
+    if radar_format not in ("pointcloud2", "radarscan"):
+        raise ValueError(f"radar_format must be 'pointcloud2' or 'radarscan', got {radar_format!r}")
+    if radar_format == "radarscan" and storage == "ros1":
+        raise ValueError(
+            "radar_msgs/RadarScan is a ROS 2 message; write ROS 1 bags with "
+            "radar_format='pointcloud2'"
+        )
+    if path.exists():
+        raise FileExistsError(f"{path} exists; evgrid does not overwrite recordings")
 
 
 def _keyframe_every(indices: list[int]) -> int:

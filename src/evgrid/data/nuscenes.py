@@ -229,24 +229,31 @@ class NuScenesScene:
             lidar_gaps.add(int(t))
         self.stats["lidar_sweeps_missing"] = lidar_gaps.n_missing
         for ch in self.radar_channels:
-            gaps, newest, seen = GapCounter(), None, set()
-            for tok in self._chain(heads[ch]):
-                ts = int(nusc.get("sample_data", tok)["timestamp"])
-                self.stats["radar_sweeps"] += 1
-                if ts in seen:
-                    self.stats["radar_sweeps_duplicate"] += 1
-                elif newest is not None and ts < newest:
-                    self.stats["radar_sweeps_out_of_order"] += 1
-                else:
-                    gaps.add(ts)
-                seen.add(ts)
-                newest = ts if newest is None else max(newest, ts)
-                i = int(np.searchsorted(self.lidar_timestamps, ts, side="left"))
-                if i < n:
-                    self._radar[i][ch].append(tok)
-                else:
-                    self.stats["radar_sweeps_after_end"] += 1
-            self.stats["radar_sweeps_missing"] += gaps.n_missing
+            self._assign_radar(ch, heads[ch])
+
+    def _assign_radar(self, ch: str, head: str) -> None:
+        """Give each sweep of radar channel ``ch`` (its chain from token ``head``) to the first
+        lidar frame at or after it, counting duplicates, sweeps out of order, gaps and sweeps
+        after the last frame in :attr:`stats`."""
+        n = len(self.lidar_tokens)
+        gaps, newest, seen = GapCounter(), None, set()
+        for tok in self._chain(head):
+            ts = int(self.nusc.get("sample_data", tok)["timestamp"])
+            self.stats["radar_sweeps"] += 1
+            if ts in seen:
+                self.stats["radar_sweeps_duplicate"] += 1
+            elif newest is not None and ts < newest:
+                self.stats["radar_sweeps_out_of_order"] += 1
+            else:
+                gaps.add(ts)
+            seen.add(ts)
+            newest = ts if newest is None else max(newest, ts)
+            i = int(np.searchsorted(self.lidar_timestamps, ts, side="left"))
+            if i < n:
+                self._radar[i][ch].append(tok)
+            else:
+                self.stats["radar_sweeps_after_end"] += 1
+        self.stats["radar_sweeps_missing"] += gaps.n_missing
 
     def _radar_heads(self, first: dict) -> dict[str, str]:
         """A sample_data token of each radar channel that any sample of the scene carries."""
@@ -448,6 +455,23 @@ def _open(NuScenes: Any, root: Path, version: str, verbose: bool) -> Any:
     return nusc
 
 
+def _wanted_scenes(
+    root: Path, version: str, split: str | None, scene_names: Sequence[str] | None
+) -> set[str] | None:
+    """The names of the scenes of ``split`` among ``scene_names`` (either may be None: no
+    restriction); None: every scene."""
+    wanted: set[str] | None = None
+    if split is not None:
+        splits = nuscenes_splits(root, version)
+        if split not in splits:
+            raise ValueError(f"unknown split {split!r}; known splits: {sorted(splits)}")
+        wanted = set(splits[split])
+    if scene_names is not None:
+        names = set(scene_names)
+        wanted = names if wanted is None else wanted & names
+    return wanted
+
+
 def load_nuscenes(
     dataroot: str | os.PathLike,
     version: str = "v1.0-trainval",
@@ -466,15 +490,7 @@ def load_nuscenes(
     root = Path(dataroot)
     _check_layout(root, version)
     NuScenes = _devkit()
-    wanted: set[str] | None = None
-    if split is not None:
-        splits = nuscenes_splits(root, version)
-        if split not in splits:
-            raise ValueError(f"unknown split {split!r}; known splits: {sorted(splits)}")
-        wanted = set(splits[split])
-    if scene_names is not None:
-        names = set(scene_names)
-        wanted = names if wanted is None else wanted & names
+    wanted = _wanted_scenes(root, version, split, scene_names)
     nusc = _open(NuScenes, root, version, verbose)
     if scene_names is not None:
         missing = sorted(set(scene_names) - {s["name"] for s in nusc.scene})

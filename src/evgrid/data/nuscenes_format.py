@@ -218,10 +218,9 @@ def read_radar_pcd(path: str | os.PathLike) -> np.ndarray:
     return read_radar_pcd_with_stats(path)[0]
 
 
-def _read_pcd_records(path: str | os.PathLike) -> np.ndarray:
-    """Every record of a binary ``.pcd``, its size checked exactly against the header."""
-    with open(path, "rb") as f:
-        blob = f.read()
+def _pcd_header(blob: bytes, path: str | os.PathLike) -> tuple[dict[str, list[str]], int]:
+    """A ``.pcd``'s header lines (keys upper case) up to its DATA line, and where the data
+    begins."""
     header: dict[str, list[str]] = {}
     pos = 0
     while True:
@@ -235,7 +234,14 @@ def _read_pcd_records(path: str | os.PathLike) -> np.ndarray:
         key, *vals = line.split()
         header[key.upper()] = vals
         if key.upper() == "DATA":
-            break
+            return header, pos
+
+
+def _read_pcd_records(path: str | os.PathLike) -> np.ndarray:
+    """Every record of a binary ``.pcd``, its size checked exactly against the header."""
+    with open(path, "rb") as f:
+        blob = f.read()
+    header, pos = _pcd_header(blob, path)
     for key in ("FIELDS", "SIZE", "TYPE", "WIDTH", "HEIGHT", "DATA"):
         if key not in header:
             raise ValueError(f"{str(path)!r}: PCD header lacks {key}")
@@ -517,6 +523,33 @@ def _write_splits(
         os.unlink(table_root / "splits.json")
 
 
+def _write_scene(
+    scene: Scene,
+    root: Path,
+    tables: dict[str, list],
+    names_seen: set[str],
+    on_frame: Callable[[str, int], None] | None,
+    descriptions: Mapping[str, str] | None,
+) -> set[str]:
+    """One scene's frames and records (its name must not be in ``names_seen``, where it is
+    added); returns its radar channels."""
+    name = str(scene.name)
+    if name in names_seen:
+        raise ValueError(f"scene name {name!r} appears twice")
+    names_seen.add(name)
+    writer = _SceneWriter(name, root, tables)
+    for i, frame in enumerate(scene):
+        writer.add_frame(i, frame)
+        if on_frame is not None:
+            on_frame(name, i)
+    writer.finish(
+        (descriptions or {}).get(name)
+        or str(getattr(scene, "description", ""))
+        or f"evgrid scene {name}"
+    )
+    return set(writer.radar_sd)
+
+
 def write_nuscenes(
     scenes: Iterable[Scene],
     dataroot: str | os.PathLike,
@@ -548,21 +581,7 @@ def write_nuscenes(
     atomic_write_bytes(root / map_file, _placeholder_map_png())
     names_seen: set[str] = set()
     for scene in scenes:
-        name = str(scene.name)
-        if name in names_seen:
-            raise ValueError(f"scene name {name!r} appears twice")
-        names_seen.add(name)
-        writer = _SceneWriter(name, root, tables)
-        for i, frame in enumerate(scene):
-            writer.add_frame(i, frame)
-            if on_frame is not None:
-                on_frame(name, i)
-        radar_channels.update(writer.radar_sd)
-        writer.finish(
-            (descriptions or {}).get(name)
-            or str(getattr(scene, "description", ""))
-            or f"evgrid scene {name}"
-        )
+        radar_channels.update(_write_scene(scene, root, tables, names_seen, on_frame, descriptions))
     for ch, mod in [(LIDAR_CHANNEL, "lidar")] + [
         (c, "radar") for c in sorted(radar_channels, key=channel_order)
     ]:

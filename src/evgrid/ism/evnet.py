@@ -363,20 +363,9 @@ def _check_weights(tensors: dict[str, torch.Tensor], path: Path) -> None:
             )
 
 
-def load_checkpoint(path: str | os.PathLike, config: EvNetConfig | None = None) -> LoadedCheckpoint:
-    """Load an Ev-Net from a safetensors file (no code is run); raise CheckpointError naming file
-    and problem.
-
-    Format 2 files must match their SHA-256; format 1 files (no digest) load with a warning
-    recommending :func:`upgrade_checkpoint`.
-    """
-    from safetensors import SafetensorError
-    from safetensors.torch import load
-
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"no Ev-Net checkpoint at {path}")
-    header, start, size = _read_header(path)
+def _checkpoint_metadata(header: dict, path: Path) -> tuple[dict, str, EvNetConfig, dict]:
+    """A checkpoint's metadata checked: (the metadata, its format version, the Ev-Net
+    configuration it saved, its ``extra`` object, whose ``grid`` must be a grid)."""
     meta = header.get("__metadata__") or {}
     if not isinstance(meta, dict):
         raise CheckpointError(f"{path}: checkpoint metadata is not a JSON object")
@@ -410,19 +399,12 @@ def load_checkpoint(path: str | os.PathLike, config: EvNetConfig | None = None) 
             raise CheckpointError(
                 f"{path}: checkpoint metadata field 'extra.grid' is not a grid ({e})"
             ) from e
-    if config is not None and config != saved:
-        raise CheckpointError(f"{path}: checkpoint is for {saved}, but {config} was asked for")
+    return meta, version, saved, extra
 
-    # the header against the architecture, before a byte of tensor data is allocated
-    entries = _entries(header, path)
-    n_data = _check_entries(entries, _expected(saved, path), size - start, saved, path)
-    try:
-        buf = path.read_bytes()  # now known to be the size of the architecture's weights
-    except OSError as e:
-        raise CheckpointError(f"{path}: cannot read the checkpoint ({e})") from e
-    data = memoryview(buf)[start:]
-    if len(data) != n_data:
-        raise CheckpointError(f"{path}: the file changed while it was read")
+
+def _check_digest(meta: dict, version: str, entries, data: memoryview, path: Path) -> None:
+    """Format 2: the weights ``data`` against the SHA-256 in the metadata; format 1 has none,
+    and loads with a warning."""
     if version == "1":
         logger.warning(
             "%s: checkpoint format 1 has no checksum of its weights; upgrade it with "
@@ -436,6 +418,37 @@ def load_checkpoint(path: str | os.PathLike, config: EvNetConfig | None = None) 
                 f"{path}: the weights do not match the checksum in the metadata (field "
                 f"{_DIGEST_KEY!r}); the file is corrupt"
             )
+
+
+def load_checkpoint(path: str | os.PathLike, config: EvNetConfig | None = None) -> LoadedCheckpoint:
+    """Load an Ev-Net from a safetensors file (no code is run); raise CheckpointError naming file
+    and problem.
+
+    Format 2 files must match their SHA-256; format 1 files (no digest) load with a warning
+    recommending :func:`upgrade_checkpoint`.
+    """
+    from safetensors import SafetensorError
+    from safetensors.torch import load
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no Ev-Net checkpoint at {path}")
+    header, start, size = _read_header(path)
+    meta, version, saved, extra = _checkpoint_metadata(header, path)
+    if config is not None and config != saved:
+        raise CheckpointError(f"{path}: checkpoint is for {saved}, but {config} was asked for")
+
+    # the header against the architecture, before a byte of tensor data is allocated
+    entries = _entries(header, path)
+    n_data = _check_entries(entries, _expected(saved, path), size - start, saved, path)
+    try:
+        buf = path.read_bytes()  # now known to be the size of the architecture's weights
+    except OSError as e:
+        raise CheckpointError(f"{path}: cannot read the checkpoint ({e})") from e
+    data = memoryview(buf)[start:]
+    if len(data) != n_data:
+        raise CheckpointError(f"{path}: the file changed while it was read")
+    _check_digest(meta, version, entries, data, path)
     try:
         tensors = load(buf)
     except (SafetensorError, ValueError, RuntimeError) as e:

@@ -142,30 +142,12 @@ def _set_bits(bits, row, g0, g1):
         bits[row, w] |= _word_mask(w, g0, g1)
 
 
-@numba.njit(cache=True)
-def _mark_cap(barrier, brow, bcol, au, av, du, dv, cos_h, sin_h, buf):
-    """Step 1: mark the cells the cap arc passes through, exactly.
-
-    The arc: apex + w, |w| = r = |(du, dv)|, at most h from the direction e = (du, dv) / r;
-    with p = e turned by +90 degrees, w = r (cos b e + sin b p) for |b| <= h. Its crossings
-    with the grid lines u = k and v = k (circle-line intersections, kept where
-    w . e >= r cos h) split it into pieces that each lie in one cell; the crossings are
-    ordered by s = e x w = r sin b, and the cell of each piece's middle is marked.
-    """
-    n_r, n_c = barrier.shape
-    r2 = du * du + dv * dv
-    r = math.sqrt(r2)
-    if r < 1e-9 or not r < 1e12:
-        return (
-            buf  # no cap at the apex; a cap 1e12 cells away cannot touch the grid (or is inf/NaN)
-        )
-    eu = du / r
-    ev = dv / r
+@numba.njit(cache=True, inline="always")
+def _cap_box(au, av, eu, ev, r, rc, rs, cos_h):
+    """Bounding box (u_lo, u_hi, v_lo, v_hi) of the cap arc of :func:`_mark_cap` (rc = r cos h,
+    rs = r sin h): both end points, plus the circle's extremes where the arc holds them."""
     pu = -ev
     pv = eu
-    rc = r * cos_h
-    rs = r * sin_h
-    # bounding box: both end points, plus the circle's extremes where the arc holds them
     u1 = au + rc * eu - rs * pu
     u2 = au + rc * eu + rs * pu
     v1 = av + rc * ev - rs * pv
@@ -182,20 +164,14 @@ def _mark_cap(barrier, brow, bcol, au, av, du, dv, cos_h, sin_h, buf):
         v_hi = av + r
     if ev <= -cos_h:
         v_lo = av - r
-    if u_hi < 0.0 or u_lo >= n_r or v_hi < 0.0 or v_lo >= n_c:
-        return buf
-    ku0 = int(math.ceil(u_lo))
-    ku1 = int(math.floor(u_hi))
-    kv0 = int(math.ceil(v_lo))
-    kv1 = int(math.floor(v_hi))
-    need = 2 * (max(ku1 - ku0 + 1, 0) + max(kv1 - kv0 + 1, 0)) + 2
-    if buf.shape[0] < need:
-        buf = np.empty(2 * need, dtype=np.float64)
-    m = 0
-    buf[m] = -rs
-    m += 1
-    buf[m] = rs
-    m += 1
+    return u_lo, u_hi, v_lo, v_hi
+
+
+@numba.njit(cache=True, inline="always")
+def _cap_crossings(buf, m, au, av, eu, ev, r2, rc, ku0, ku1, kv0, kv1):
+    """Append to ``buf`` (m held) s = e x w of each crossing of the cap arc with the grid lines
+    u = ku0 .. ku1 and v = kv0 .. kv1 (circle-line intersections, kept where w . e > r cos h);
+    returns the new m."""
     for k in range(ku0, ku1 + 1):
         x = k - au
         q = r2 - x * x
@@ -216,7 +192,12 @@ def _mark_cap(barrier, brow, bcol, au, av, du, dv, cos_h, sin_h, buf):
             if wu * eu + y * ev > rc:
                 buf[m] = eu * y - ev * wu
                 m += 1
-    # insertion sort: a cap crosses a handful of grid lines
+    return m
+
+
+@numba.njit(cache=True, inline="always")
+def _sort_head(buf, m):
+    """Sort buf[:m] in place by insertion: a cap crosses a handful of grid lines."""
     for i in range(1, m):
         x = buf[i]
         j = i - 1
@@ -224,6 +205,44 @@ def _mark_cap(barrier, brow, bcol, au, av, du, dv, cos_h, sin_h, buf):
             buf[j + 1] = buf[j]
             j -= 1
         buf[j + 1] = x
+
+
+@numba.njit(cache=True)
+def _mark_cap(barrier, brow, bcol, au, av, du, dv, cos_h, sin_h, buf):
+    """Step 1: mark the cells the cap arc passes through, exactly.
+
+    The arc: apex + w, |w| = r = |(du, dv)|, at most h from the direction e = (du, dv) / r;
+    with p = e turned by +90 degrees, w = r (cos b e + sin b p) for |b| <= h. Its crossings
+    with the grid lines u = k and v = k (circle-line intersections, kept where
+    w . e >= r cos h) split it into pieces that each lie in one cell; the crossings are
+    ordered by s = e x w = r sin b, and the cell of each piece's middle is marked.
+    """
+    n_r, n_c = barrier.shape
+    r2 = du * du + dv * dv
+    r = math.sqrt(r2)
+    if r < 1e-9 or not r < 1e12:
+        # no cap at the apex; a cap 1e12 cells away cannot touch the grid (or is inf/NaN)
+        return buf
+    eu = du / r
+    ev = dv / r
+    rc = r * cos_h
+    rs = r * sin_h
+    pu = -ev  # p = e turned by +90 degrees
+    pv = eu
+    u_lo, u_hi, v_lo, v_hi = _cap_box(au, av, eu, ev, r, rc, rs, cos_h)
+    if u_hi < 0.0 or u_lo >= n_r or v_hi < 0.0 or v_lo >= n_c:
+        return buf
+    ku0 = int(math.ceil(u_lo))
+    ku1 = int(math.floor(u_hi))
+    kv0 = int(math.ceil(v_lo))
+    kv1 = int(math.floor(v_hi))
+    need = 2 * (max(ku1 - ku0 + 1, 0) + max(kv1 - kv0 + 1, 0)) + 2
+    if buf.shape[0] < need:
+        buf = np.empty(2 * need, dtype=np.float64)
+    buf[0] = -rs
+    buf[1] = rs
+    m = _cap_crossings(buf, 2, au, av, eu, ev, r2, rc, ku0, ku1, kv0, kv1)
+    _sort_head(buf, m)
     for i in range(m - 1):
         if buf[i + 1] <= buf[i]:
             continue
@@ -318,6 +337,63 @@ def _add_piece(pieces, m, a, o, s1, s2, r):
     return m + 1
 
 
+@numba.njit(cache=True, inline="always")
+def _narrow_pieces(pieces, m, a, eu, ev, cos_h, sin_h, r):
+    """Record the octant pieces of a cone narrower than an octant (apex ``a``, unit direction
+    (eu, ev), range ``r``): it spans one octant or two adjacent ones, split with vector algebra,
+    its edges being e turned by -h and +h. -> the new m, or -1 where its edges are not in one
+    octant or two adjacent ones (the cone is then walked as a wide one, :func:`_wide_pieces`)."""
+    x1 = cos_h * eu + sin_h * ev
+    y1 = cos_h * ev - sin_h * eu
+    x2 = cos_h * eu - sin_h * ev
+    y2 = cos_h * ev + sin_h * eu
+    o1 = _octant_of(x1, y1)
+    o2 = _octant_of(x2, y2)
+    if not (o1 == o2 or o2 == (o1 + 1) % 8):
+        return -1
+    # the boundary between o1 and o1 + 1 has slope 1 in o1 when o1 is even, else 0, and the same
+    # slope seen from o1 + 1
+    bnd = 1.0 if o1 % 2 == 0 else 0.0
+    for q in range(2 if o1 != o2 else 1):
+        if o1 == o2:
+            o = o1
+            s1 = _slope_vec(o, x1, y1)
+            s2 = _slope_vec(o, x2, y2)
+        elif q == 0:
+            o = o1
+            s1 = _slope_vec(o, x1, y1)
+            s2 = bnd
+        else:
+            o = o2
+            s1 = bnd
+            s2 = _slope_vec(o, x2, y2)
+        m = _add_piece(pieces, m, a, o, s1, s2, r)
+    return m
+
+
+@numba.njit(cache=True, inline="always")
+def _wide_pieces(pieces, m, a, phi, h, r):
+    """Record the octant pieces of a cone of apex ``a``, direction ``phi`` (rad), half-angle
+    ``h`` and range ``r``, walking its angles across the octant boundaries; -> the new m."""
+    start = phi - h
+    if start < 0.0:
+        start += 2.0 * math.pi
+    end = start + 2.0 * h
+    k = int(math.floor(start / _QUARTER))
+    x = start
+    while x < end:
+        bnd = (k + 1) * _QUARTER
+        y = min(end, bnd)
+        if y > x:
+            o = k % 8
+            s1 = _slope_vec(o, math.cos(x), math.sin(x))
+            s2 = _slope_vec(o, math.cos(y), math.sin(y))
+            m = _add_piece(pieces, m, a, o, s1, s2, r)
+        x = y
+        k += 1
+    return m
+
+
 @numba.njit(cache=True)
 def _k_pieces(det_uv, ok, det_apex, apex_uv, h):
     """Split every cone into octant pieces of slope intervals -> (number of pieces, pieces =
@@ -349,52 +425,11 @@ def _k_pieces(det_uv, ok, det_apex, apex_uv, h):
         # stays finite in the cast.
         r = min(r, 1e12)
         if narrow:
-            # A cone narrower than an octant spans one octant or two adjacent ones: split it
-            # with vector algebra. Its edges: e turned by -h and +h.
-            eu = du / r
-            ev = dv / r
-            x1 = cos_h * eu + sin_h * ev
-            y1 = cos_h * ev - sin_h * eu
-            x2 = cos_h * eu - sin_h * ev
-            y2 = cos_h * ev + sin_h * eu
-            o1 = _octant_of(x1, y1)
-            o2 = _octant_of(x2, y2)
-            if o1 == o2 or o2 == (o1 + 1) % 8:
-                # the boundary between o1 and o1 + 1 has slope 1 in o1 when o1 is even, else 0,
-                # and the same slope seen from o1 + 1
-                bnd = 1.0 if o1 % 2 == 0 else 0.0
-                for q in range(2 if o1 != o2 else 1):
-                    if o1 == o2:
-                        o = o1
-                        s1 = _slope_vec(o, x1, y1)
-                        s2 = _slope_vec(o, x2, y2)
-                    elif q == 0:
-                        o = o1
-                        s1 = _slope_vec(o, x1, y1)
-                        s2 = bnd
-                    else:
-                        o = o2
-                        s1 = bnd
-                        s2 = _slope_vec(o, x2, y2)
-                    m = _add_piece(pieces, m, a, o, s1, s2, r)
+            m1 = _narrow_pieces(pieces, m, a, du / r, dv / r, cos_h, sin_h, r)
+            if m1 >= 0:
+                m = m1
                 continue
-        phi = math.atan2(dv, du)
-        start = phi - h
-        if start < 0.0:
-            start += 2.0 * math.pi
-        end = start + 2.0 * h
-        k = int(math.floor(start / _QUARTER))
-        x = start
-        while x < end:
-            bnd = (k + 1) * _QUARTER
-            y = min(end, bnd)
-            if y > x:
-                o = k % 8
-                s1 = _slope_vec(o, math.cos(x), math.sin(x))
-                s2 = _slope_vec(o, math.cos(y), math.sin(y))
-                m = _add_piece(pieces, m, a, o, s1, s2, r)
-            x = y
-            k += 1
+        m = _wide_pieces(pieces, m, a, math.atan2(dv, du), h, r)
     return m, pieces
 
 
@@ -439,11 +474,60 @@ def _k_tasks(det_uv, ok, det_apex, apex_uv, h):
     return t_apex[:n_t], t_oct[:n_t], t_start[: n_t + 1], iv_lo[:n_iv], iv_hi[:n_iv], iv_r[:n_iv]
 
 
-# Over 100 lines on purpose (issue 23 allows three such functions, each with its why): this is
-# the ray IRM's innermost loop, run for every column of every cone task. Its state (the open
-# slope intervals in two swapped buffers, the column's cell range, the bitmap words) lives in
-# locals that LLVM keeps in registers; split into functions, that state would cross a call for
-# every cell run of every column.
+@numba.njit(cache=True, inline="always")
+def _octant_grid(barrier, brow, bcol, frow, fcol, au, av, o):
+    """Octant o's local frame at apex (au, av): (swap, sa, sb) (:func:`_octant_frame`), the
+    apex (a0, b0), the local index ranges [i_lo, i_hi] x [j_lo, j_hi] covering the grid (a grid
+    index g is i = g where sa > 0, else i = -g - 1; likewise j) and the barrier and free bitmaps
+    whose rows run along b."""
+    n_r, n_c = barrier.shape
+    swap, sa, sb = _octant_frame(o)
+    if swap:
+        a0, b0, n_a, n_b, bbits, fbits = sa * av, sb * au, n_c, n_r, bcol, fcol
+    else:
+        a0, b0, n_a, n_b, bbits, fbits = sa * au, sb * av, n_r, n_c, brow, frow
+    i_lo = 0 if sa > 0 else -n_a
+    j_lo = 0 if sb > 0 else -n_b
+    return swap, sa, sb, a0, b0, i_lo, i_lo + n_a - 1, j_lo, j_lo + n_b - 1, bbits, fbits
+
+
+@numba.njit(cache=True, inline="always")
+def _open_set(lo0, hi0, r0):
+    """The sweep's open slope intervals iv[buffer, field, k] (fields lo, hi, range; buffers
+    cur / nxt swap every column), buffer 0 holding the task's; -> (iv, their number, the
+    largest range)."""
+    n = lo0.shape[0]
+    iv = np.empty((2, 3, n + 64), dtype=np.float64)
+    r_max = 0.0
+    for k in range(n):
+        iv[0, 0, k] = lo0[k]
+        iv[0, 1, k] = hi0[k]
+        iv[0, 2, k] = r0[k]
+        r_max = max(r_max, r0[k])
+    return iv, n, r_max
+
+
+@numba.njit(cache=True)
+def _grown(iv, need):
+    """``iv`` copied into a buffer pair that holds at least ``need`` intervals each (rare: not
+    inlined, so that the sweep's loop stays small)."""
+    grown = np.empty((2, 3, max(2 * iv.shape[2], need)), dtype=np.float64)
+    grown[:, :, : iv.shape[2]] = iv
+    return grown
+
+
+@numba.njit(cache=True, inline="always")
+def _push_open(iv, buf, n, lo, hi, rr):
+    """Append the open interval [lo, hi) of range rr to buffer ``buf`` (n held); -> n + 1."""
+    iv[buf, 0, n] = lo
+    iv[buf, 1, n] = hi
+    iv[buf, 2, n] = rr
+    return n + 1
+
+
+# The sweep's loops stay in one function: their state (the open slope intervals in two swapped
+# buffers, the column's cell range, the bitmap words) lives in locals that LLVM keeps in
+# registers; split into functions (even inlined ones, numba 0.68), the cast ran twice as slow.
 @numba.njit(cache=True)
 def _k_cast_task(barrier, brow, bcol, frow, fcol, au, av, o, lo0, hi0, r0):
     """Step 2 for one sensor position and one octant: exact shadow casting of slope intervals.
@@ -461,41 +545,13 @@ def _k_cast_task(barrier, brow, bcol, frow, fcol, au, av, o, lo0, hi0, r0):
     in the free bitmap of the same orientation (``frow`` / ``fcol``). No array views are
     made inside the loops: each costs reference counting.
     """
-    n_r, n_c = barrier.shape
-    swap, sa, sb = _octant_frame(o)
-    if swap:
-        a0 = sa * av
-        b0 = sb * au
-        n_a = n_c
-        n_b = n_r
-        bbits = bcol
-        fbits = fcol
-    else:
-        a0 = sa * au
-        b0 = sb * av
-        n_a = n_r
-        n_b = n_c
-        bbits = brow
-        fbits = frow
-    # local index ranges covering the grid: a grid index g is i = g (sa > 0) or i = -g - 1
-    i_lo_g = 0 if sa > 0 else -n_a
-    i_hi_g = i_lo_g + n_a - 1
-    j_lo_g = 0 if sb > 0 else -n_b
-    j_hi_g = j_lo_g + n_b - 1
+    frame = _octant_grid(barrier, brow, bcol, frow, fcol, au, av, o)
+    swap, sa, sb, a0, b0, i_lo_g, i_hi_g, j_lo_g, j_hi_g, bbits, fbits = frame
     i_apex = int(math.floor(a0))
     j_apex = int(math.floor(b0))
-    n_cur = lo0.shape[0]
-    # iv[buffer, field, k]: fields lo, hi, range; buffers cur / nxt swap every column
-    iv = np.empty((2, 3, n_cur + 64), dtype=np.float64)
-    r_max = 0.0
-    for k in range(n_cur):
-        iv[0, 0, k] = lo0[k]
-        iv[0, 1, k] = hi0[k]
-        iv[0, 2, k] = r0[k]
-        r_max = max(r_max, r0[k])
+    iv, n_cur, r_max = _open_set(lo0, hi0, r0)
     cur = 0
-    i_first = max(i_apex, i_lo_g)
-    for i in range(i_first, i_hi_g + 1):
+    for i in range(max(i_apex, i_lo_g), i_hi_g + 1):
         near = i - a0
         if near >= r_max or n_cur == 0:
             break
@@ -520,20 +576,12 @@ def _k_cast_task(barrier, brow, bcol, frow, fcol, au, av, o, lo0, hi0, r0):
             jr = int(math.ceil(b0 + math.sqrt(rr * rr - near_c * near_c))) - 1
             jj0 = max(j0, j_lo_g)
             jj1 = min(j1, j_hi_g, jr)
-            # room for up to (jj1 - jj0 + 2) more intervals
-            need = n_nxt + max(jj1 - jj0, 0) + 3
+            need = n_nxt + max(jj1 - jj0, 0) + 3  # room for up to jj1 - jj0 + 2 more intervals
             if need > iv.shape[2]:
-                grown = np.empty((2, 3, max(2 * iv.shape[2], need)), dtype=np.float64)
-                grown[:, :, : iv.shape[2]] = iv
-                iv = grown
+                iv = _grown(iv, need)
             cl = lo
             if jj0 <= jj1:
-                if sb > 0:
-                    g0 = jj0
-                    g1 = jj1
-                else:
-                    g0 = -jj1 - 1
-                    g1 = -jj0 - 1
+                g0, g1 = (jj0, jj1) if sb > 0 else (-jj1 - 1, -jj0 - 1)
                 if not _any_bits(bbits, gi, g0, g1):
                     # fast path: no barrier in this run of cells, all of it is free
                     _set_bits(fbits, gi, g0, g1)
@@ -543,19 +591,11 @@ def _k_cast_task(barrier, brow, bcol, frow, fcol, au, av, o, lo0, hi0, r0):
                         if c_hi <= cl:
                             continue
                         gj = j if sb > 0 else -j - 1
-                        if swap:
-                            is_bar = barrier[gj, gi] != 0
-                        else:
-                            is_bar = barrier[gi, gj] != 0
+                        is_bar = (barrier[gj, gi] if swap else barrier[gi, gj]) != 0
                         if is_bar and not (i == i_apex and j == j_apex):
-                            c_lo = (j - b0) * inv_far
-                            if c_lo > hi:
-                                c_lo = hi
+                            c_lo = min((j - b0) * inv_far, hi)
                             if c_lo - cl > _EPS_SLOPE:
-                                iv[nxt, 0, n_nxt] = cl
-                                iv[nxt, 1, n_nxt] = c_lo
-                                iv[nxt, 2, n_nxt] = rr
-                                n_nxt += 1
+                                n_nxt = _push_open(iv, nxt, n_nxt, cl, c_lo, rr)
                             if c_hi > cl:
                                 cl = c_hi
                             if cl >= hi:
@@ -563,10 +603,7 @@ def _k_cast_task(barrier, brow, bcol, frow, fcol, au, av, o, lo0, hi0, r0):
                         else:
                             fbits[gi, gj >> 6] |= np.uint64(1) << np.uint64(gj & 63)
             if hi - cl > _EPS_SLOPE:
-                iv[nxt, 0, n_nxt] = cl
-                iv[nxt, 1, n_nxt] = hi
-                iv[nxt, 2, n_nxt] = rr
-                n_nxt += 1
+                n_nxt = _push_open(iv, nxt, n_nxt, cl, hi, rr)
         cur = nxt
         n_cur = n_nxt
 

@@ -351,6 +351,62 @@ def _is_source(scenes: object) -> bool:
     return callable(getattr(scenes, "names", None)) and callable(getattr(scenes, "load", None))
 
 
+def _remove_stale_shards(root: Path) -> None:
+    """Remove what a build killed while writing a shard left in ``root``."""
+    for pattern in (".*.tmp-*", ".*.old-*"):
+        for stale in root.glob(pattern):
+            shutil.rmtree(stale, ignore_errors=True)
+
+
+def _cache_by_engine(
+    source: Any,
+    config: TrainConfig,
+    with_irm: bool,
+    engine: str,
+    workers: int,
+    cached: Callable[[str], bool],
+    done: Callable[[str, dict[str, np.ndarray]], None],
+    progress: Callable[[str], None] | None,
+) -> tuple[list[str], dict[str, str]]:
+    """:func:`build_cache` of a scene source: the scenes not cached yet loaded and computed as
+    jobs of ``engine``; the scenes' names and, per scene that failed, its error."""
+    names = [str(n) for n in source.names()]
+    todo = [n for n in names if not cached(n)]
+    for name in names:
+        if name not in todo and progress:
+            progress(name)
+    jobs = [(n, (source, n, config, with_irm)) for n in todo]
+    errors: dict[str, str] = {}
+    for outcome in fan_out(_cache_job, jobs, engine=engine, workers=workers):
+        if outcome.ok:
+            done(outcome.key, outcome.result)
+        else:
+            errors[outcome.key] = outcome.error
+    return names, errors
+
+
+def _cache_here(
+    scenes: Iterable,
+    config: TrainConfig,
+    with_irm: bool,
+    cached: Callable[[str], bool],
+    done: Callable[[str, dict[str, np.ndarray]], None],
+    progress: Callable[[str], None] | None,
+) -> list[str]:
+    """:func:`build_cache` of an iterable of scenes, computed here one after another; the
+    scenes' names."""
+    names = []
+    for scene in scenes:
+        name = str(scene.name)
+        names.append(name)
+        if cached(name):
+            if progress:
+                progress(name)
+            continue
+        done(name, scene_shard(scene, config, with_irm, name))
+    return names
+
+
 def build_cache(
     scenes: Iterable | Any,
     root: str | os.PathLike,
@@ -375,9 +431,7 @@ def build_cache(
     root.mkdir(parents=True, exist_ok=True)
     key = config.data_key()
     shards = _read_index(root, key)
-    for pattern in (".*.tmp-*", ".*.old-*"):  # left by a build killed while writing a shard
-        for stale in root.glob(pattern):
-            shutil.rmtree(stale, ignore_errors=True)
+    _remove_stale_shards(root)
 
     def cached(name: str) -> bool:
         meta = _shard_meta(root, name)
@@ -392,31 +446,12 @@ def build_cache(
         if progress:
             progress(name)
 
-    errors: dict[str, str] = {}
     if _is_source(scenes):
-        names = [str(n) for n in scenes.names()]
-        todo = [n for n in names if not cached(n)]
-        for name in names:
-            if name not in todo and progress:
-                progress(name)
-        jobs = [(n, (scenes, n, config, with_irm)) for n in todo]
-        engine = engine or config.engine
         n_workers = workers if workers is not None else config.cache_workers
-        for outcome in fan_out(_cache_job, jobs, engine=engine, workers=n_workers):
-            if outcome.ok:
-                done(outcome.key, outcome.result)
-            else:
-                errors[outcome.key] = outcome.error
+        run = (config, with_irm, engine or config.engine, n_workers)
+        names, errors = _cache_by_engine(scenes, *run, cached, done, progress)
     else:
-        names = []
-        for scene in scenes:
-            name = str(scene.name)
-            names.append(name)
-            if cached(name):
-                if progress:
-                    progress(name)
-                continue
-            done(name, scene_shard(scene, config, with_irm, name))
+        names, errors = _cache_here(scenes, config, with_irm, cached, done, progress), {}
     _write_index(root, shards, key)
     if errors:
         listed = "; ".join(f"{n}: {e}" for n, e in errors.items())
@@ -931,6 +966,11 @@ def train(
             on_epoch(epoch, row)
     if writer:
         writer.close()
+    return _finish(run, out)
+
+
+def _finish(run: _Run, out: Path) -> TrainResult:
+    """Leave the process group (several processes) and sum up the run."""
     if run.world > 1:
         import torch.distributed as dist
 
