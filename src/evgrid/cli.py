@@ -288,7 +288,10 @@ def export_cmd(
     if fmt not in FORMATS:
         raise typer.BadParameter(f"--format must be one of {', '.join(FORMATS)}, got {fmt!r}")
     target = out or map_file.with_suffix("")
-    written = export_map(load_map(map_file), target, fmt, map_file.stem, overwrite=overwrite)
+    # lazily: the tiles stay on disk and are read one at a time (docs/store.md)
+    written = export_map(
+        load_map(map_file, lazy=True), target, fmt, map_file.stem, overwrite=overwrite
+    )
     typer.echo("\n".join(f"wrote {path}" for path in written))
 
 

@@ -27,6 +27,7 @@ import tempfile
 import zlib
 from collections import OrderedDict
 from collections.abc import Callable, Iterator, MutableMapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -42,6 +43,8 @@ __all__ = [
     "Pager",
     "TileLayer",
     "tile_distance_m",
+    "StoreParams",
+    "ALL_RESIDENT_M",
 ]
 
 _STORE_FORMAT = "evgrid-tile-store"
@@ -501,3 +504,37 @@ class TileLayer(MutableMapping):
 
     def __repr__(self) -> str:
         return f"TileLayer({self._name!r}, {len(self._res)} resident, {len(self)} in all)"
+
+
+#: A radius this large keeps every tile in memory (no store is made).
+ALL_RESIDENT_M = 1e9
+
+
+@dataclass(frozen=True)
+class StoreParams:
+    """Where a run's map tiles live (docs/store.md); never changes the maps.
+
+    Tiles of every map whose nearest point lies farther than ``resident_m`` metres from the
+    vehicle leave memory for the run's tile store on disk and come back when the vehicle
+    returns. ``1e9`` keeps every tile in memory. A radius below the reach of one update (half
+    the local grid's diagonal, plus the navigation map's margin) is allowed but pages tiles
+    out and in at every update.
+    """
+
+    resident_m: float = 50.0
+
+    def __post_init__(self) -> None:
+        from evgrid.validation import check_number
+
+        v = self.resident_m
+        if isinstance(v, (int, float)) and not isinstance(v, bool) and v > ALL_RESIDENT_M:
+            raise ValueError(
+                f"StoreParams.resident_m: {v!r} m is beyond any map; give at most "
+                f"{ALL_RESIDENT_M:g} (which keeps every tile in memory)"
+            )
+        check_number(self, "resident_m", min=0.0)
+
+    @property
+    def paging(self) -> bool:
+        """Whether tiles leave memory at all."""
+        return self.resident_m < ALL_RESIDENT_M
