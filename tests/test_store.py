@@ -9,6 +9,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from evgrid.fusion import MAP_NAMES, DynamicParams, MapSet
 from evgrid.geometry import SE2, GridSpec
@@ -206,3 +208,14 @@ def test_the_mapper_with_radius_0_maps_as_with_every_tile_resident():
     _same(ptruth.map, rtruth.map)
     assert pfinal == rfinal
     paged.close()
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.lists(st.floats(width=32, allow_nan=True, allow_infinity=True), min_size=3, max_size=60))
+def test_the_masses_encoding_gives_back_every_bit(values):
+    from evgrid.store import _decode_masses, _encode_masses
+
+    n = len(values) // 3
+    a = np.array(values[: 3 * n], np.float32).reshape(n, 3)
+    back = _decode_masses(_encode_masses(a))
+    assert np.array_equal(back.view(np.uint32), a.view(np.uint32))

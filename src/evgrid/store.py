@@ -154,6 +154,31 @@ def _write_atomic(path: Path, data: bytes) -> None:
         raise
 
 
+def _is_masses(a: np.ndarray) -> bool:
+    return a.dtype == np.float32 and a.ndim >= 1 and a.shape[-1] == 3
+
+
+def _encode_masses(a: np.ndarray) -> np.ndarray:
+    """Masses ``(..., 3)`` float32 as three planes: m_f, m_o, and m_u's bits XOR those of the
+    float32 ``1 - m_f - m_o`` (zero almost everywhere, so it compresses to little); lossless:
+    :func:`_decode_masses` computes the same float32 value and undoes the XOR."""
+    f, o, u = a[..., 0], a[..., 1], a[..., 2]
+    rest = (np.float32(1.0) - f) - o
+    out = np.empty((3, *a.shape[:-1]), np.float32)
+    out[0], out[1] = f, o
+    out[2] = (u.view(np.uint32) ^ rest.view(np.uint32)).view(np.float32)
+    return out
+
+
+def _decode_masses(planes: np.ndarray) -> np.ndarray:
+    f, o, x = planes
+    rest = (np.float32(1.0) - f) - o
+    out = np.empty((*f.shape, 3), np.float32)
+    out[..., 0], out[..., 1] = f, o
+    out[..., 2] = (x.view(np.uint32) ^ rest.view(np.uint32)).view(np.float32)
+    return out
+
+
 def check_store_header(head: Path) -> None:
     """Refuse a ``store.json`` that is not a store of this version (StoreError naming it)."""
     try:
@@ -219,8 +244,10 @@ class TileGroup:
         blobs, entries = [], []
         for name, a in layers.items():
             a = np.ascontiguousarray(a)
+            encoding = "masses" if _is_masses(a) else "raw"
+            data = _encode_masses(a) if encoding == "masses" else a
             blob = blosc2.compress2(
-                a,
+                data,
                 typesize=a.dtype.itemsize,
                 codec=blosc2.Codec.ZSTD,
                 clevel=1,
@@ -235,6 +262,7 @@ class TileGroup:
                     "shape": list(a.shape),
                     "nbytes": len(blob),
                     "crc32": zlib.crc32(blob),
+                    "encoding": encoding,
                 }
             )
         header = json.dumps({"key": list(key), "layers": entries}).encode()
@@ -320,8 +348,14 @@ def read_tile_file(path: Path, key: tuple[int, int] | None = None) -> dict[str, 
             if dtype.hasobject:
                 raise ValueError(f"layer {e['name']!r} has dtype {dtype}")
             raw = blosc2.decompress2(blob)
-            a = np.frombuffer(bytearray(raw), dtype=dtype)
-            out[e["name"]] = a.reshape(shape)
+            encoding = e.get("encoding", "raw")
+            if encoding == "masses":
+                planes = np.frombuffer(bytearray(raw), dtype=dtype).reshape((3, *shape[:-1]))
+                out[e["name"]] = _decode_masses(planes)
+            elif encoding == "raw":
+                out[e["name"]] = np.frombuffer(bytearray(raw), dtype=dtype).reshape(shape)
+            else:
+                raise ValueError(f"layer {e['name']!r} has an unknown encoding {encoding!r}")
     except StoreError:
         raise
     except Exception as e:  # noqa: BLE001 - whatever a damaged file makes json, numpy or blosc2 raise
