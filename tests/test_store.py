@@ -219,3 +219,27 @@ def test_the_masses_encoding_gives_back_every_bit(values):
     a = np.array(values[: 3 * n], np.float32).reshape(n, 3)
     back = _decode_masses(_encode_masses(a))
     assert np.array_equal(back.view(np.uint32), a.view(np.uint32))
+
+
+def test_a_run_keeps_its_store_in_its_folder_while_mapping_and_removes_it_when_complete(tmp_path):
+    from evgrid.config import MapperConfig, OutputConfig
+    from evgrid.data import SimConfig, simulate_scene
+    from evgrid.runs import STORE_FOLDER, map_scene
+
+    out = tmp_path / "scene"
+    (out / STORE_FOLDER / "ray_ilm").mkdir(parents=True)  # what a killed run left
+    (out / STORE_FOLDER / "ray_ilm" / "0_0.g0.tile").write_bytes(b"old")
+    seen = []
+
+    class Watch:
+        def on_update(self, update):
+            seen.append(sorted(p.name for p in (out / STORE_FOLDER).glob("*/*.tile")))
+
+    config = MapperConfig(maps=("ray_ilm",), store=StoreParams(resident_m=0.0), tile_cells=64)
+    frames = simulate_scene(3, SimConfig(duration_s=1.0))
+    outputs = OutputConfig(figures=False, save_maps=True)
+    map_scene(frames, out, config, outputs, observers=(Watch(),), overwrite=True)
+    assert "0_0.g0.tile" not in sum(seen, [])  # the old run's store was not taken for this one
+    assert any(seen)  # tiles went to the store in the scene's folder while mapping
+    assert not (out / STORE_FOLDER).exists()
+    assert [p.name for p in (out / "maps").iterdir()] == ["ray_ilm.npz"]
