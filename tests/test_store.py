@@ -243,3 +243,11 @@ def test_a_run_keeps_its_store_in_its_folder_while_mapping_and_removes_it_when_c
     assert any(seen)  # tiles went to the store in the scene's folder while mapping
     assert not (out / STORE_FOLDER).exists()
     assert [p.name for p in (out / "maps").iterdir()] == ["ray_ilm.npz"]
+
+
+def test_a_folder_that_is_not_a_store_is_refused_naming_the_file(tmp_path):
+    m, store = _small_store(tmp_path)
+    (store.root / "store.json").unlink()
+    with pytest.raises(StoreError, match="store.json is missing"):
+        open_store_map(store.root / "ray_ilm")
+    assert not (store.root / "store.json").exists()  # opening writes nothing

@@ -692,6 +692,11 @@ def open_store_map(folder: str | os.PathLike) -> EvidentialMap:
 
     folder = Path(folder)
     doc = read_group_meta(folder)
+    if not (folder.parent / "store.json").is_file():
+        raise StoreError(
+            f"{folder.parent / 'store.json'} is missing: {folder.parent} is not an evgrid "
+            "tile store"
+        )
     head = folder / "map.json"
     try:
         ts, spec, metadata, frame = _header_fields(head, doc.get("map"))
