@@ -75,7 +75,10 @@ class OccupancyMapper:
     ``deep`` is a :class:`~evgrid.ism.deep.DeepIrm` (loaded from ``config.checkpoint``, or the
     shipped checkpoint, when the maps need it and none is given). ``extra`` map sets are attached
     to the mapper's (:meth:`evgrid.fusion.MapSet.attach`): rows of the same one-pass update from
-    the same ISM grids (the ``m_u_min`` sweep uses them).
+    the same ISM grids (the ``m_u_min`` sweep uses them). ``store``: where tiles farther than
+    ``config.store.resident_m`` from the vehicle go (docs/store.md): a
+    :class:`~evgrid.store.TileStore` or a folder (a store already there continues), by default
+    a temporary folder that :meth:`close` removes.
     """
 
     def __init__(
@@ -181,16 +184,12 @@ class OccupancyMapper:
             self._page_out(pose)
         return True
 
-    def _page_out(self, pose: SE2, force: bool = False) -> None:
+    def _page_out(self, pose: SE2) -> None:
         """Tiles farther than ``config.store.resident_m`` from the vehicle to the store: the
         maps', and those of observers that keep tiled rasters (``page_out(store, x, y, r)``).
         Looked at each time the vehicle has moved :data:`PAGE_STEP_M` since the last look."""
         last = self._paged_at
-        if (
-            not force
-            and last is not None
-            and math.hypot(pose.x - last[0], pose.y - last[1]) < PAGE_STEP_M
-        ):
+        if last is not None and math.hypot(pose.x - last[0], pose.y - last[1]) < PAGE_STEP_M:
             return
         self._paged_at = (pose.x, pose.y)
         t = time.perf_counter()
