@@ -38,6 +38,7 @@ from evgrid.ism.runtime import RUNTIMES
 from evgrid.nav import NavParams
 from evgrid.preprocess import PoseLimits, RadarFilter, SelfReturnParams
 from evgrid.serial import ConfigError, from_dict, to_dict
+from evgrid.store import StoreParams
 from evgrid.validation import check_choice, check_int, check_number
 
 __all__ = [
@@ -132,6 +133,9 @@ class MapperConfig:
     # world_frame, the simulator's world), axis-aligned with it, so map files and exports need
     # no transform; or "first_pose", the first ego pose's frame, as in the paper's figures.
     frame: str = "world"
+    # Tiles farther than store.resident_m from the vehicle live on disk (docs/store.md); the
+    # maps are the same bit for bit whatever the radius.
+    store: StoreParams = field(default_factory=StoreParams)
 
     def __post_init__(self) -> None:
         check_choice(self, "runtime", choices=RUNTIMES)

@@ -59,6 +59,7 @@ from evgrid.kernels import (
     window_spans,
 )
 from evgrid.nav import NavParams, nav_dense, refresh
+from evgrid.store import TileStore, tile_distance_m
 from evgrid.validation import check_number
 
 __all__ = [
@@ -728,6 +729,38 @@ class MapSet:
                 if owner is self:
                     out[row.name] = int(r)
         return out
+
+    def attach_store(self, store: TileStore, prefix: str = "") -> None:
+        """Page every map of this set (hidden rows and sets attached included) to ``store``, each
+        in a group of its own: the map's name (hidden rows ``NAME.gated``, the ungated lidar map
+        beside them ``NAME.plain``, attached sets ``setI.NAME``)."""
+        for row in self._rows:
+            tag = "" if row.shown else ".plain" if row.plain else ".gated"
+            row.map.attach_store(store.group(f"{prefix}{row.name}{tag}"))
+        for i, s in enumerate(self._attached):
+            s.attach_store(store, f"{prefix}set{i}.")
+
+    def page_out(self, x: float, y: float, radius_m: float) -> int:
+        """Move the tiles of every map (and of the sets attached) farther than ``radius_m`` metres
+        from map point ``(x, y)`` to the store (:meth:`attach_store`); returns how many moved.
+
+        The maps computed from others (nav) are brought up to date first, so that what they
+        still have to read is near the vehicle; the maps are unchanged either way."""
+        ts, res = self.tile_cells, self.grid.resolution
+        sets = (self, *self._attached)
+        far = any(
+            tile_distance_m(k, ts, res, x, y) > radius_m
+            for s in sets
+            for r in s._rows
+            for k in r.map._tiles
+        )
+        if not far:
+            return 0
+        n = 0
+        for s in sets:
+            s._settle()
+            n += sum(r.map.page_out(x, y, radius_m) for r in s._rows)
+        return n
 
     def _settle(self) -> None:
         """Compute the maps derived from others (nav) over the cells changed since the last read."""

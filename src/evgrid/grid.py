@@ -29,6 +29,7 @@ from evgrid.geometry import MAX_POSE_M, SE2, SE3, GridSpec
 from evgrid.io import atomic_write
 from evgrid.kernels import COARSE, coarse_blocks, count_invalid, load_padded, warp_rows
 from evgrid.mass import vacuous
+from evgrid.store import Pager, TileGroup, TileLayer, tile_distance_m
 
 logger = logging.getLogger(__name__)
 
@@ -220,6 +221,16 @@ def warp_to_map(local: np.ndarray, pose: SE2, grid: GridSpec) -> MapWindow:
     return Warper(grid).warp(local, pose)
 
 
+def _covered_box(layers: dict[str, np.ndarray]) -> tuple[int, int, int, int] | tuple[()]:
+    """``(first row, last row, first col, last col)`` of a tile's covered cells; () if none."""
+    cov = layers["covered"]
+    r = np.flatnonzero(cov.any(axis=1))
+    if not len(r):
+        return ()
+    c = np.flatnonzero(cov.any(axis=0))
+    return int(r[0]), int(r[-1]), int(c[0]), int(c[-1])
+
+
 def tile_pieces(
     tile_cells: int, r0: int, c0: int, h: int, w: int
 ) -> Iterator[tuple[tuple[int, int], slice, slice, slice, slice]]:
@@ -260,41 +271,99 @@ class EvidentialMap:
         if not isinstance(tile_cells, (int, np.integer)) or tile_cells < 8:
             raise ValueError(f"tile_cells must be an integer >= 8, got {tile_cells!r}")
         self.tile_cells = int(tile_cells)
-        self.tiles: dict[tuple[int, int], np.ndarray] = {}
-        self.covered_tiles: dict[tuple[int, int], np.ndarray] = {}
+        # the tiles in memory, per layer; with a store attached (attach_store) the layers'
+        # mappings also reach the tiles paged out to it (evgrid.store, docs/store.md)
+        self._tiles: dict[tuple[int, int], np.ndarray] = {}
+        self._covered: dict[tuple[int, int], np.ndarray] = {}
+        self._dynamic: dict[tuple[int, int], np.ndarray] = {}
+        self.pager: Pager | None = None
+        self.tiles = TileLayer(self._tiles, "masses", self)
+        self.covered_tiles = TileLayer(self._covered, "covered", self)
+        self.dynamic_tiles = TileLayer(self._dynamic, "dynamic", self)
         self.metadata: dict[str, Any] = dict(metadata or {})
         if frame is not None and not isinstance(frame, MapFrame):
             raise TypeError(f"frame must be a MapFrame or None, got {type(frame).__name__}")
         self.frame = frame  # where the cells lie in the recording (None: not known)
         self.dynamic = bool(dynamic)
-        self.dynamic_tiles: dict[tuple[int, int], np.ndarray] = {}
 
     def __repr__(self) -> str:
         mib = self.nbytes / 2**20
-        return f"EvidentialMap({len(self.tiles)} tiles of {self.tile_cells} cells, {mib:.1f} MiB)"
+        return (
+            f"EvidentialMap({len(self.tiles)} tiles of {self.tile_cells} cells, "
+            f"{len(self._tiles)} in memory, {mib:.1f} MiB)"
+        )
+
+    def _layer_has(self, name: str) -> bool:
+        return name != "dynamic" or self.dynamic
 
     @property
     def nbytes(self) -> int:
-        """Bytes held by the tiles."""
-        return sum(
-            a.nbytes
-            for layer in (self.tiles, self.covered_tiles, self.dynamic_tiles)
-            for a in layer.values()
-        )
+        """Bytes held in memory by the tiles (those paged out to a store hold none)."""
+        layers = (self._tiles, self._covered, self._dynamic)
+        return sum(a.nbytes for layer in layers for a in layer.values())
 
     def tile(self, key: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
         """The masses ``(ts, ts, 3)`` and coverage ``(ts, ts)`` of tile ``key`` (tile row, tile
-        column), views to update in place; a tile not yet stored is created vacuous."""
-        t = self.tiles.get(key)
+        column), views to update in place; a tile paged out is brought back, one not yet stored
+        is created vacuous."""
+        t = self._tiles.get(key)
         if t is None:
-            t = vacuous((self.tile_cells, self.tile_cells))
-            self.tiles[key] = t
-            self.covered_tiles[key] = np.zeros((self.tile_cells, self.tile_cells), dtype=np.bool_)
+            if self.pager is not None and key in self.pager.stored:
+                self.pager.page_in(key)
+                return self._tiles[key], self._covered[key]
+            ts = self.tile_cells
+            t = vacuous((ts, ts))
+            self._tiles[key] = t
+            self._covered[key] = np.zeros((ts, ts), dtype=np.bool_)
             if self.dynamic:
-                self.dynamic_tiles[key] = np.zeros(
-                    (self.tile_cells, self.tile_cells), dtype=np.float32
-                )
-        return t, self.covered_tiles[key]
+                self._dynamic[key] = np.zeros((ts, ts), dtype=np.float32)
+        return t, self._covered[key]
+
+    # --- the tile store (evgrid.store, docs/store.md) -------------------------------------------
+
+    def attach_store(self, group: TileGroup, write_meta: bool = True) -> None:
+        """Page this map's tiles to ``group`` from now on (:meth:`page_out`); tiles the group
+        already holds (a map reopened) become this map's stored tiles."""
+        if self.pager is not None:
+            raise ValueError(f"this map already pages to {self.pager.group.folder}")
+        ts = self.tile_cells
+        layers = {"masses": self._tiles, "covered": self._covered}
+        expect = {
+            "masses": ((ts, ts, 3), np.dtype(np.float32)),
+            "covered": ((ts, ts), np.dtype(bool)),
+        }
+        if self.dynamic:
+            layers["dynamic"] = self._dynamic
+            expect["dynamic"] = ((ts, ts), np.dtype(np.float32))
+        self.pager = Pager(group, layers, _covered_box, expect)
+        if write_meta:
+            self.write_store_meta()
+
+    def write_store_meta(self) -> None:
+        """Write what the store's tiles belong to (grid, tiling, metadata, frame) into its group."""
+        if self.pager is None:
+            raise ValueError("this map has no store attached")
+        self.pager.group.write_meta(_header(self, self.frame))
+
+    def page_out(self, x: float, y: float, radius_m: float) -> int:
+        """Move the tiles in memory whose nearest point lies farther than ``radius_m`` metres from
+        map point ``(x, y)`` to the store; returns how many moved. Nothing changes in the map:
+        a stored tile reads as before and is brought back when written."""
+        if self.pager is None:
+            raise ValueError("page_out needs a store: attach_store first")
+        ts, res = self.tile_cells, self.grid.resolution
+        far = [k for k in self._tiles if tile_distance_m(k, ts, res, x, y) > radius_m]
+        if far:
+            self.pager.page_out(far)
+        return len(far)
+
+    def flush(self) -> int:
+        """Write every tile in memory to the store as well (they stay in memory): the store then
+        holds the whole map as it is now. Returns the bytes written."""
+        if self.pager is None:
+            raise ValueError("flush needs a store: attach_store first")
+        self.write_store_meta()
+        return self.pager.flush()
 
     def pieces(
         self, r0: int, c0: int, h: int, w: int
@@ -391,12 +460,16 @@ class EvidentialMap:
         """``(r0, c0, h, w)`` of the smallest box holding every covered cell; zeros when none is."""
         ts = self.tile_cells
         rows, cols = [], []
-        for (ti, tj), cov in self.covered_tiles.items():
-            r = np.flatnonzero(cov.any(axis=1))
-            c = np.flatnonzero(cov.any(axis=0))
-            if len(r):
-                rows += [ti * ts + r[0], ti * ts + r[-1]]
-                cols += [tj * ts + c[0], tj * ts + c[-1]]
+        boxes = [(k, _covered_box({"covered": c})) for k, c in self._covered.items()]
+        if self.pager is not None:
+            for k, box in self.pager.stored.items():
+                if box is None:  # a tile of a reopened store: read once
+                    box = self.pager.stored[k] = _covered_box(self.pager.peek(k))
+                boxes.append((k, box))
+        for (ti, tj), box in boxes:
+            if box:
+                rows += [ti * ts + box[0], ti * ts + box[1]]
+                cols += [tj * ts + box[2], tj * ts + box[3]]
         if not rows:
             return (0, 0, 0, 0)
         return (
@@ -511,9 +584,50 @@ def _check_extent(where: str, grid: GridSpec, ts: int, keys, covered_any) -> str
     return None
 
 
+def _header(m: EvidentialMap, frame: MapFrame | None) -> dict[str, Any]:
+    """The header of a map file (and of a store's ``map.json``)."""
+    return {
+        "format": _FORMAT,
+        "version": _FORMAT_VERSION,
+        "spec": m.grid.to_dict(),
+        "tile_cells": m.tile_cells,
+        "metadata": m.metadata,
+        "frame": None if frame is None else frame.to_dict(),
+        "dynamic": m.dynamic,
+    }
+
+
+def _covered_any(m: EvidentialMap, key: tuple[int, int]) -> bool:
+    """Whether tile ``key`` holds a covered cell (a stored tile from its summary)."""
+    c = m._covered.get(key)
+    if c is not None:
+        return bool(c.any())
+    box = m.pager.stored[key]
+    if box is None:
+        box = m.pager.stored[key] = _covered_box(m.pager.peek(key))
+    return bool(box)
+
+
+def _write_member(zf: zipfile.ZipFile, name: str, shape: tuple, dtype, blocks) -> None:
+    """Member ``name.npy`` of an .npz, written block by block (the array is never whole in
+    memory); readers see the .npy that ``np.savez_compressed`` writes."""
+    with zf.open(name + ".npy", "w", force_zip64=True) as f:
+        header = {
+            "descr": np.lib.format.dtype_to_descr(np.dtype(dtype)),
+            "fortran_order": False,
+            "shape": shape,
+        }
+        np.lib.format.write_array_header_1_0(f, header)
+        for b in blocks:
+            f.write(np.ascontiguousarray(b, dtype=dtype).tobytes())
+
+
 def save_map(m: EvidentialMap, path: str | os.PathLike, frame: MapFrame | None = None) -> Path:
     """Save a map losslessly (compressed ``.npz`` with its grid, metadata, map frame:
-    ``frame``, else ``m.frame``, and its dynamic score where it keeps one), atomically."""
+    ``frame``, else ``m.frame``, and its dynamic score where it keeps one), atomically.
+
+    The tiles are written one at a time (those paged out to a store read from it): saving
+    never holds the whole map in memory."""
     if not isinstance(m, EvidentialMap):
         raise TypeError(f"save_map needs an EvidentialMap, got {type(m).__name__}")
     if not isinstance(path, (str, os.PathLike)) or not str(path) or Path(path).name in ("", "."):
@@ -524,41 +638,28 @@ def save_map(m: EvidentialMap, path: str | os.PathLike, frame: MapFrame | None =
     if frame is not None and not isinstance(frame, MapFrame):
         raise TypeError(f"save_map: frame must be a MapFrame or None, got {type(frame).__name__}")
     keys = sorted(m.tiles)
-    header = {
-        "format": _FORMAT,
-        "version": _FORMAT_VERSION,
-        "spec": m.grid.to_dict(),
-        "tile_cells": m.tile_cells,
-        "metadata": m.metadata,
-        "frame": None if frame is None else frame.to_dict(),
-    }
+    header = _header(m, frame)
+    del header["dynamic"]  # the file says it by its 'dynamic' array
     ts = m.tile_cells
-    why = _check_extent(
-        "save_map: field",
-        m.grid,
-        ts,
-        np.array(keys, dtype=np.int64).reshape(-1, 2),
-        [m.covered_tiles[k].any() for k in keys],
-    )
+    karr = np.array(keys, dtype=np.int64).reshape(-1, 2)
+    why = _check_extent("save_map: field", m.grid, ts, karr, [_covered_any(m, k) for k in keys])
     if why:
         raise ValueError(f"{why}; the map could not be loaded back")
-    arrays = {
-        "header": np.frombuffer(json.dumps(header).encode(), dtype=np.uint8),
-        "keys": np.array(keys, dtype=np.int64).reshape(-1, 2),
-        "tiles": np.stack([m.tiles[k] for k in keys])
-        if keys
-        else np.zeros((0, ts, ts, 3), np.float32),
-        "covered": np.stack([m.covered_tiles[k] for k in keys])
-        if keys
-        else np.zeros((0, ts, ts), bool),
-    }
-    if m.dynamic:  # an optional array: readers that do not know it load the masses alone
-        arrays["dynamic"] = (
-            np.stack([m.dynamic_tiles[k] for k in keys])
-            if keys
-            else np.zeros((0, ts, ts), np.float32)
-        )
-    return atomic_write(path, lambda f: np.savez_compressed(f, **arrays))
+    n = len(keys)
+
+    def write(f) -> None:
+        with zipfile.ZipFile(f, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+            hb = np.frombuffer(json.dumps(header).encode(), dtype=np.uint8)
+            _write_member(zf, "header", hb.shape, np.uint8, [hb])
+            _write_member(zf, "keys", karr.shape, np.int64, [karr])
+            _write_member(zf, "tiles", (n, ts, ts, 3), np.float32, (m.tiles[k] for k in keys))
+            _write_member(zf, "covered", (n, ts, ts), np.bool_, (m.covered_tiles[k] for k in keys))
+            if m.dynamic:  # an optional array: readers that do not know it load the masses alone
+                _write_member(
+                    zf, "dynamic", (n, ts, ts), np.float32, (m.dynamic_tiles[k] for k in keys)
+                )
+
+    return atomic_write(path, write)
 
 
 def _declared(path: Path, zf: zipfile.ZipFile, name: str) -> tuple[tuple[int, ...], np.dtype]:
@@ -580,8 +681,38 @@ def _declared(path: Path, zf: zipfile.ZipFile, name: str) -> tuple[tuple[int, ..
     return tuple(shape), dtype
 
 
-def load_map(path: str | os.PathLike) -> EvidentialMap:
-    """Load a map written by :func:`save_map`.
+def open_store_map(folder: str | os.PathLike) -> EvidentialMap:
+    """The map a tile store's group holds (``STORE/NAME``, :mod:`evgrid.store`), every tile left
+    on disk and read when asked for: also the store of a run that was killed (its tiles as
+    last paged out or checkpointed). StoreError naming the file when the store is of another
+    version or damaged."""
+    from evgrid.store import StoreError, TileStore, read_group_meta
+
+    folder = Path(folder)
+    doc = read_group_meta(folder)
+    if not (folder.parent / "store.json").is_file():
+        raise StoreError(
+            f"{folder.parent / 'store.json'} is missing: {folder.parent} is not an evgrid "
+            "tile store"
+        )
+    head = folder / "map.json"
+    try:
+        ts, spec, metadata, frame = _header_fields(head, doc.get("map"))
+    except MapFileError as e:
+        raise StoreError(str(e)) from e
+    store = TileStore(folder.parent)
+    m = EvidentialMap(spec, ts, metadata, dynamic=bool(doc["map"].get("dynamic")), frame=frame)
+    m.attach_store(store.group(folder.name), write_meta=False)
+    m._store = store  # kept alive with the map
+    return m
+
+
+def load_map(path: str | os.PathLike, lazy: bool = False) -> EvidentialMap:
+    """Load a map written by :func:`save_map`, or open one in a tile store (a folder
+    ``STORE/NAME``: :func:`open_store_map`).
+
+    With ``lazy``, the file's tiles are checked and moved one at a time into a temporary tile
+    store, and the map reads them from there when asked: the whole map is never in memory.
 
     Anything else raises :class:`MapFileError`, one line naming the file (and the field where
     one is at fault). Each array's declared shape is checked against the header before its
@@ -589,8 +720,55 @@ def load_map(path: str | os.PathLike) -> EvidentialMap:
     NaN or negative cells, and never makes the loader allocate what the file does not hold.
     """
     path = Path(path)
+    if path.is_dir() and (path / "map.json").exists():
+        return open_store_map(path)
     if not path.is_file():
         raise FileNotFoundError(f"no map file at {path}")
+    if lazy:
+        return _load_lazy(path)
+    ts, spec, metadata, frame, shapes, keys = _checked_head(path)
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            tiles, covered = z["tiles"], z["covered"]
+            scores = z["dynamic"] if "dynamic" in shapes else None
+    except Exception as e:  # noqa: BLE001 - whatever a corrupt file makes zipfile or numpy raise
+        raise _corrupt(path, e) from e
+    tiles = np.ascontiguousarray(tiles)
+    _check_tile_values(path, tiles, scores)
+    m = EvidentialMap(spec, ts, metadata, frame=frame, dynamic=scores is not None)
+    for i, (k, t, c) in enumerate(zip(keys, tiles, covered)):
+        key = (int(k[0]), int(k[1]))
+        m.tiles[key] = np.ascontiguousarray(t)
+        m.covered_tiles[key] = np.ascontiguousarray(c)
+        if scores is not None:
+            m.dynamic_tiles[key] = np.ascontiguousarray(scores[i])
+    return m
+
+
+def _corrupt(path: Path, e: BaseException) -> MapFileError:
+    # zlib.error, BadZipFile, EOFError, tokenize.TokenError or SyntaxError from a garbled array
+    # header, UnicodeDecodeError, JSONDecodeError, MemoryError ...
+    why = " ".join(str(e).split())[:200]  # one line, whatever the library wrote
+    return MapFileError(f"{path} is truncated or not an evgrid map: {type(e).__name__}: {why}")
+
+
+def _check_tile_values(path: Path, tiles: np.ndarray, scores: np.ndarray | None) -> None:
+    n_bad = int(count_invalid(tiles.reshape(-1), 0, 1, tiles.size // 3)) if tiles.size else 0
+    if n_bad:
+        raise MapFileError(
+            f"{path}: {n_bad} cell(s) hold no valid mass (NaN, inf, negative, or not summing "
+            "to 1); the file is corrupt"
+        )
+    if scores is not None and not (np.isfinite(scores) & (scores >= 0)).all():
+        raise MapFileError(
+            f"{path}: field 'dynamic': a dynamic score is negative, NaN or inf; the file is corrupt"
+        )
+
+
+def _checked_head(path: Path):
+    """``(tile_cells, grid, metadata, frame, declared shapes, keys)`` of a map file, every
+    array's declared shape checked against the header and the keys checked; MapFileError if
+    anything is wrong. Reads the header and the keys only."""
     with open(path, "rb") as f:
         if f.read(6) == b"\x93NUMPY":
             raise MapFileError(
@@ -605,8 +783,8 @@ def load_map(path: str | os.PathLike) -> EvidentialMap:
             hshape, hdtype = shapes["header"]
             if len(hshape) != 1 or hdtype != np.uint8 or hshape[0] > _MAX_HEADER_BYTES:
                 raise MapFileError(f"{path}: array 'header' is {hshape} {hdtype}, not JSON bytes")
-        with np.load(path, allow_pickle=False) as z:
-            header = json.loads(z["header"].tobytes().decode())
+            with zf.open("header.npy") as f:
+                header = json.loads(np.lib.format.read_array(f, allow_pickle=False).tobytes())
             ts, spec, metadata, frame = _header_fields(path, header)
             n_keys = shapes["keys"][0][0] if len(shapes["keys"][0]) == 2 else -1
             want = {  # shape, dtype test, what it is
@@ -624,45 +802,83 @@ def load_map(path: str | os.PathLike) -> EvidentialMap:
                         f"{path} is inconsistent: array '{name}' is {got_shape} {got_dtype}; "
                         f"the header's tile_cells {ts} and {n_keys} keys make it {shape} {what}"
                     )
-            keys, tiles, covered = z["keys"], z["tiles"], z["covered"]
-            scores = z["dynamic"] if "dynamic" in shapes else None
+            with zf.open("keys.npy") as f:
+                keys = np.lib.format.read_array(f, allow_pickle=False)
+            # each tile's covered cells, read tile by tile (for the extent check)
+            used = np.zeros(n_keys, bool)
+            with zf.open("covered.npy") as f:
+                _skip_npy_header(f)
+                for i in range(n_keys):
+                    used[i] = _read_exact(f, ts * ts).any()
     except (MapFileError, FileNotFoundError):
         raise
     except Exception as e:  # noqa: BLE001 - whatever a corrupt file makes zipfile or numpy raise
-        # (zlib.error, BadZipFile, EOFError, tokenize.TokenError or SyntaxError from a garbled
-        # array header, UnicodeDecodeError, JSONDecodeError, MemoryError ...)
-        why = " ".join(str(e).split())[:200]  # one line, whatever the library wrote
-        raise MapFileError(
-            f"{path} is truncated or not an evgrid map: {type(e).__name__}: {why}"
-        ) from e
+        raise _corrupt(path, e) from e
     keys = np.asarray(keys, dtype=np.int64)
     dup = _first_duplicate(keys)
     if dup is not None:
         raise MapFileError(
             f"{path}: field 'keys': tile key {dup} appears more than once; the file is corrupt"
         )
-    used = covered.reshape(len(keys), -1).any(1) if len(keys) else np.zeros(0, bool)
     why = _check_extent(f"{path}: field", spec, ts, keys, used)
     if why:
         raise MapFileError(why)
-    tiles = np.ascontiguousarray(tiles)
-    n_bad = int(count_invalid(tiles.reshape(-1), 0, 1, tiles.size // 3)) if tiles.size else 0
-    if n_bad:
-        raise MapFileError(
-            f"{path}: {n_bad} cell(s) hold no valid mass (NaN, inf, negative, or not summing "
-            "to 1); the file is corrupt"
-        )
-    if scores is not None and not (np.isfinite(scores) & (scores >= 0)).all():
-        raise MapFileError(
-            f"{path}: field 'dynamic': a dynamic score is negative, NaN or inf; the file is corrupt"
-        )
-    m = EvidentialMap(spec, ts, metadata, frame=frame, dynamic=scores is not None)
-    for i, (k, t, c) in enumerate(zip(keys, tiles, covered)):
-        key = (int(k[0]), int(k[1]))
-        m.tiles[key] = np.ascontiguousarray(t)
-        m.covered_tiles[key] = np.ascontiguousarray(c)
-        if scores is not None:
-            m.dynamic_tiles[key] = np.ascontiguousarray(scores[i])
+    return ts, spec, metadata, frame, shapes, keys
+
+
+def _skip_npy_header(f) -> None:
+    version = np.lib.format.read_magic(f)
+    if version == (1, 0):
+        np.lib.format.read_array_header_1_0(f)
+    else:
+        np.lib.format.read_array_header_2_0(f)
+
+
+def _read_exact(f, n: int) -> np.ndarray:
+    b = f.read(n)
+    if len(b) != n:
+        raise EOFError(f"the array ends after {len(b)} of {n} bytes")
+    return np.frombuffer(b, np.uint8)
+
+
+def _load_lazy(path: Path) -> EvidentialMap:
+    """:func:`load_map` with ``lazy``: the tiles checked and moved one at a time into a temporary
+    tile store that the map reads from (kept while the map lives)."""
+    from evgrid.store import TileStore
+
+    ts, spec, metadata, frame, shapes, keys = _checked_head(path)
+    dynamic = "dynamic" in shapes
+    m = EvidentialMap(spec, ts, metadata, frame=frame, dynamic=dynamic)
+    store = TileStore()
+    m._store = store  # the temporary folder goes with the map
+    m.attach_store(store.group("map"))
+    layers = [("tiles", np.float32, (ts, ts, 3)), ("covered", np.bool_, (ts, ts))]
+    if dynamic:
+        layers.append(("dynamic", np.float32, (ts, ts)))
+    try:
+        with zipfile.ZipFile(path) as zf:
+            files = [zf.open(n + ".npy") for n, _, _ in layers]
+            try:
+                for f in files:
+                    _skip_npy_header(f)
+                for k in keys:
+                    got = []
+                    for f, (_, dtype, shape) in zip(files, layers):
+                        n = int(np.prod(shape)) * np.dtype(dtype).itemsize
+                        got.append(_read_exact(f, n).view(dtype).reshape(shape).copy())
+                    _check_tile_values(path, got[0], got[2] if dynamic else None)
+                    key = (int(k[0]), int(k[1]))
+                    m._tiles[key], m._covered[key] = got[0], got[1]
+                    if dynamic:
+                        m._dynamic[key] = got[2]
+                    m.pager.page_out([key])
+            finally:
+                for f in files:
+                    f.close()
+    except MapFileError:
+        raise
+    except Exception as e:  # noqa: BLE001 - whatever a corrupt file makes zipfile or numpy raise
+        raise _corrupt(path, e) from e
     return m
 
 

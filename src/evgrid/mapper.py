@@ -10,6 +10,8 @@ convergence, pictures, exports) watches the updates as an observer (:mod:`evgrid
 from __future__ import annotations
 
 import logging
+import math
+import os
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
@@ -24,6 +26,10 @@ from evgrid.fusion import MapSet
 from evgrid.geometry import SE2, SE3
 from evgrid.grid import MapWindow, warp_window
 from evgrid.preprocess import PoseError, PoseGate, Preprocessor
+from evgrid.store import TileStore
+
+#: How far (m) the vehicle moves between two looks for tiles to page out.
+PAGE_STEP_M = 2.0
 
 __all__ = ["OccupancyMapper", "MapUpdate", "Observer", "PoseGate", "PoseError", "UpdateSchedule"]
 
@@ -69,7 +75,10 @@ class OccupancyMapper:
     ``deep`` is a :class:`~evgrid.ism.deep.DeepIrm` (loaded from ``config.checkpoint``, or the
     shipped checkpoint, when the maps need it and none is given). ``extra`` map sets are attached
     to the mapper's (:meth:`evgrid.fusion.MapSet.attach`): rows of the same one-pass update from
-    the same ISM grids (the ``m_u_min`` sweep uses them).
+    the same ISM grids (the ``m_u_min`` sweep uses them). ``store``: where tiles farther than
+    ``config.store.resident_m`` from the vehicle go (docs/store.md): a
+    :class:`~evgrid.store.TileStore` or a folder (a store already there continues), by default
+    a temporary folder that :meth:`close` removes.
     """
 
     def __init__(
@@ -78,6 +87,7 @@ class OccupancyMapper:
         deep: Any = None,
         observers: tuple[Observer, ...] = (),
         extra: tuple[MapSet, ...] = (),
+        store: TileStore | str | os.PathLike | None = None,
     ):
         self.config = config
         self.maps = MapSet(
@@ -121,6 +131,24 @@ class OccupancyMapper:
         # decides the geometric ISMs' free mass (MapperConfig.evidence)
         self._last_seen: tuple[int, float, float] | None = None
         self.last_step_m: float | None = None  # the metres of new viewpoint of the last update
+        # the tile store (docs/store.md): tiles beyond config.store.resident_m go to disk, into
+        # ``store`` (a TileStore or its folder), else a temporary folder
+        self.store: TileStore | None = None
+        self._paged_at: tuple[float, float] | None = None
+        if config.store.paging:
+            self.store = store if isinstance(store, TileStore) else TileStore(store)
+            self.maps.attach_store(self.store)
+            reach = (
+                self.maps.grid.length_m / math.sqrt(2.0) + self.maps.reach * config.grid.resolution
+            )
+            if config.store.resident_m < reach:
+                logger.warning(
+                    "mapper.store.resident_m %g m is less than one update's reach (%.1f m): tiles "
+                    "will leave memory and come back at every update (the maps are the same, "
+                    "the run slower)",
+                    config.store.resident_m,
+                    reach,
+                )
 
     def process(self, frame: Frame) -> bool:
         """Take one frame; at the update rate and at keyframes update the maps. Returns whether it
@@ -156,7 +184,32 @@ class OccupancyMapper:
         nav_ms = self.maps.last_ms.get("nav")  # nav computed when an observer read it
         if nav_ms is not None:
             self.timings.setdefault("nav", []).append(nav_ms)
+        if self.store is not None:
+            self._page_out(pose)
         return True
+
+    def _page_out(self, pose: SE2) -> None:
+        """Tiles farther than ``config.store.resident_m`` from the vehicle to the store: the
+        maps', and those of observers that keep tiled rasters (``page_out(store, x, y, r)``).
+        Looked at each time the vehicle has moved :data:`PAGE_STEP_M` since the last look."""
+        last = self._paged_at
+        if last is not None and math.hypot(pose.x - last[0], pose.y - last[1]) < PAGE_STEP_M:
+            return
+        self._paged_at = (pose.x, pose.y)
+        t = time.perf_counter()
+        r = self.config.store.resident_m
+        n = self.maps.page_out(pose.x, pose.y, r)
+        for obs in self.observers:
+            page = getattr(obs, "page_out", None)
+            if page is not None:
+                n += page(self.store, pose.x, pose.y, r)
+        if n:
+            self.timings.setdefault("page_out", []).append((time.perf_counter() - t) * 1e3)
+
+    def close(self) -> None:
+        """Remove the tile store when it is a temporary folder (a run's own folder keeps it)."""
+        if self.store is not None:
+            self.store.close()
 
     def local_isms(
         self, frame: Frame, travelled_m: float | None = None, dt_s: float | None = None

@@ -25,6 +25,7 @@ from evgrid.evaluate import (
 from evgrid.geometry import GridSpec
 from evgrid.grid import EvidentialMap, MapWindow, Warper, tile_pieces
 from evgrid.mapper import MapUpdate
+from evgrid.store import Pager, TileLayer, TileStore, tile_distance_m
 
 __all__ = [
     "TruthTracker",
@@ -71,6 +72,12 @@ class TruthTracker:
         window = self._warper.warp(_TRUTH_MASSES[np.clip(occ, 0, 2)], update.pose)
         self.map.apply(window, _replace_where_informed)
         self.changed |= tile_keys(self.map, *_window_box(window, 1))
+
+    def page_out(self, store: TileStore, x: float, y: float, radius_m: float) -> int:
+        """The truth map's tiles beyond ``radius_m`` of map point ``(x, y)`` to ``store``."""
+        if self.map.pager is None:
+            self.map.attach_store(store.group("truth"))
+        return self.map.page_out(x, y, radius_m)
 
 
 class TileScores:
@@ -139,7 +146,12 @@ class MoverTrail:
     def __init__(self, grid: GridSpec, tile_cells: int = 256):
         self.grid = grid
         self.tile_cells = tile_cells
-        self.tiles: dict[tuple[int, int], np.ndarray] = {}
+        self._tiles: dict[tuple[int, int], np.ndarray] = {}
+        self.pager: Pager | None = None  # with a tile store (page_out)
+        self.tiles = TileLayer(self._tiles, "trail", self)
+
+    def _layer_has(self, name: str) -> bool:
+        return True
 
     def add(self, r0: int, c0: int, moving: np.ndarray) -> None:
         """Mark the ``moving`` cells (boolean ``(h, w)``, [0, 0] at map cell (r0, c0))."""
@@ -147,9 +159,26 @@ class MoverTrail:
         for key, tr, tc, wr, wc in tile_pieces(ts, r0, c0, *moving.shape):
             part = moving[wr, wc]
             if part.any():
-                if key not in self.tiles:
-                    self.tiles[key] = np.zeros((ts, ts), np.bool_)
-                self.tiles[key][tr, tc] |= part
+                t = self._tiles.get(key)
+                if t is None:
+                    if self.pager is not None and key in self.pager.stored:
+                        self.pager.page_in(key)
+                    else:
+                        self._tiles[key] = np.zeros((ts, ts), np.bool_)
+                    t = self._tiles[key]
+                t[tr, tc] |= part
+
+    def page_out(self, store: TileStore, x: float, y: float, radius_m: float) -> int:
+        """The trail's tiles beyond ``radius_m`` of map point ``(x, y)`` to ``store``."""
+        if self.pager is None:
+            ts = self.tile_cells
+            expect = {"trail": ((ts, ts), np.dtype(np.bool_))}
+            self.pager = Pager(store.group("trail"), {"trail": self._tiles}, expect=expect)
+        ts, res = self.tile_cells, self.grid.resolution
+        far = [k for k in self._tiles if tile_distance_m(k, ts, res, x, y) > radius_m]
+        if far:
+            self.pager.page_out(far)
+        return len(far)
 
     def read(self, r0: int, c0: int, h: int, w: int) -> np.ndarray:
         """Dense ``(h, w)`` boolean copy of cells ``[r0:r0+h, c0:c0+w]``."""
@@ -220,6 +249,10 @@ class SceneScores:
         # the area movers leave behind, per map: m^2 at each keyframe with a truth raster
         self._trail: MoverTrail | None = None
         self._left_behind: dict[str, list[float]] = {n: [] for n in names}
+
+    def page_out(self, store: TileStore, x: float, y: float, radius_m: float) -> int:
+        """The mover trail's tiles beyond ``radius_m`` of map point ``(x, y)`` to ``store``."""
+        return 0 if self._trail is None else self._trail.page_out(store, x, y, radius_m)
 
     def on_update(self, update: MapUpdate) -> None:
         keys = tile_keys(next(iter(self.maps.values())), *update.box)

@@ -563,7 +563,8 @@ def write_scene_figures(
         plot_panels(
             panels,
             out / "maps.png",
-            title=f"{name}: the maps (in the map frame, x up, y left)",
+            title=f"{name}: the maps (in the map frame, x up, y left)"
+            + (f", one pixel per {step} x {step} cells" if step > 1 else ""),
             extent_m=extent,
             tracks={n: track for n in panels},
             dynamic=dynamic,

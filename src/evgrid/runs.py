@@ -15,6 +15,7 @@ import contextlib
 import logging
 import math
 import os
+import shutil
 import sys
 import time
 from collections.abc import Callable, Iterable, Mapping
@@ -40,6 +41,9 @@ from evgrid.io import jsonable, write_json
 from evgrid.mapper import OccupancyMapper
 from evgrid.observers import GifRecorder, SceneScores, TruthTracker
 from evgrid.outdir import ResultsExistError, is_complete, mark_complete, results_folder
+
+#: The tile store's folder in a scene's results folder (docs/store.md).
+STORE_FOLDER = "store"
 
 __all__ = [
     "SceneResult",
@@ -187,7 +191,23 @@ def _map_scene(
     frames, out, config, outputs, deep, name, progress, observers, source, exporters, fixed_frame
 ) -> SceneResult:
     truth = TruthTracker(config.grid, config.tile_cells)
-    mapper = OccupancyMapper(config, deep)
+    # the tile store in the scene's folder (docs/store.md): what a killed run leaves is there
+    if out is not None:  # a store left by a killed run of this scene: this run starts afresh
+        shutil.rmtree(out / STORE_FOLDER, ignore_errors=True)
+    mapper = OccupancyMapper(config, deep, store=None if out is None else out / STORE_FOLDER)
+    try:
+        return _map_with(
+            mapper, truth, frames, out, config, outputs, name, progress, observers, source,
+            exporters, fixed_frame,
+        )  # fmt: skip
+    finally:
+        mapper.close()
+
+
+def _map_with(
+    mapper, truth, frames, out, config, outputs, name, progress, observers, source, exporters,
+    fixed_frame,
+) -> SceneResult:  # fmt: skip
     scores = SceneScores(mapper.maps.maps, truth, track=outputs.convergence)
     gif = (
         GifRecorder(config.grid, outputs.gif_window_m, outputs.gif_step, outputs.gif_max_frames)
@@ -239,6 +259,8 @@ def _map_scene(
             for m_name, m in mapper.maps.maps.items():
                 path = out / "maps" / f"{m_name}.npz"
                 files[f"map_{m_name}"] = str(save_map(m, path, frame))
+        # the scene is complete: its maps are in the files above, and the store goes
+        shutil.rmtree(out / STORE_FOLDER, ignore_errors=True)
     return SceneResult(name, jsonable(metrics), files, metrics["frames_per_second"])
 
 

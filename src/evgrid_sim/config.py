@@ -370,6 +370,10 @@ class SimRadarRig:
         return r * len(self.radar_channels) if len(r) == 1 else r
 
 
+#: The longest simulated scene (s).
+MAX_DURATION_S = 3600.0
+
+
 @dataclass(frozen=True)
 class SimConfig:
     """Everything :func:`~evgrid_sim.simulate_scene` needs besides the seed."""
@@ -394,8 +398,12 @@ class SimConfig:
 
     def __post_init__(self) -> None:
         o = "SimConfig"
-        if not (math.isfinite(self.duration_s) and 0.0 < self.duration_s <= 600.0):
-            raise ValueError(f"{o}.duration_s must be in (0, 600] seconds, got {self.duration_s!r}")
+        # up to an hour: long drives measure the tile store's flat memory (docs/store.md)
+        if not (math.isfinite(self.duration_s) and 0.0 < self.duration_s <= MAX_DURATION_S):
+            raise ValueError(
+                f"{o}.duration_s must be in (0, {MAX_DURATION_S:g}] seconds, "
+                f"got {self.duration_s!r}"
+            )
         if self.keyframe_every is not None and (
             not isinstance(self.keyframe_every, int) or self.keyframe_every < 1
         ):

@@ -197,7 +197,9 @@ def export_cmd(
     from evgrid.grid import load_map
 
     target = out or map_file.with_suffix("")
-    written = export_map(load_map(map_file), target, fmt, map_file.stem, overwrite=overwrite)
+    written = export_map(
+        load_map(map_file, lazy=True), target, fmt, map_file.stem, overwrite=overwrite
+    )
     typer.echo("\n".join(f"wrote {path}" for path in written))
 
 

@@ -112,9 +112,39 @@ class MapCells:
         score = m.read_dynamic(*box) if dynamic and m.dynamic else None
         return cls(masses, cov, box[0], box[1], m.grid.resolution, score)
 
+    def occupancy(self, th: Nav2Thresholds, values: str) -> np.ndarray:
+        """The OccupancyGrid values of the cells (:func:`~evgrid.export.nav2.occupancy_values`)."""
+        return occupancy_values(self.masses, self.covered, th, values)
+
+
+@dataclass(frozen=True)
+class TiledCells:
+    """Map cells ``box`` of ``map`` for an OccupancyGrid, read tile by tile when the values are
+    made (one byte a cell in memory, never the masses of the whole box)."""
+
+    map: EvidentialMap
+    r0: int
+    c0: int
+    h: int
+    w: int
+
+    @property
+    def resolution(self) -> float:
+        return self.map.grid.resolution
+
+    def occupancy(self, th: Nav2Thresholds, values: str) -> np.ndarray:
+        m = self.map
+        out = np.full((self.h, self.w), -1, dtype=np.int8)
+        for key, tr, tc, wr, wc in m.pieces(self.r0, self.c0, self.h, self.w):
+            t = m.tiles.get(key)
+            if t is not None:
+                cov = m.covered_tiles[key][tr, tc]
+                out[wr, wc] = occupancy_values(t[tr, tc], cov, th, values)
+        return out
+
 
 def occupancy_grid_msg(
-    cells: MapCells,
+    cells: MapCells | TiledCells,
     t_us: int,
     frame_id: str,
     store: Any,
@@ -123,7 +153,7 @@ def occupancy_grid_msg(
 ) -> Any:
     """``nav_msgs/OccupancyGrid`` of ``cells``; ``values`` as
     :func:`~evgrid.export.nav2.occupancy_values`."""
-    val = occupancy_values(cells.masses, cells.covered, th, values)
+    val = cells.occupancy(th, values)
     return occupancy_grid_of(val, cells.r0, cells.c0, cells.resolution, t_us, frame_id, store)
 
 
@@ -363,7 +393,11 @@ class McapExporter:
             b = box or m.covered_bounds()
             if b[2] == 0:
                 continue
-            cells = MapCells.read(m, b, DYNAMIC_LAYER in grid_layers)
+            # a whole map with no GridMap layer is read tile by tile
+            whole = box is None and not grid_layers
+            cells = (
+                TiledCells(m, *b) if whole else MapCells.read(m, b, DYNAMIC_LAYER in grid_layers)
+            )
             if "occupancy" in p.layers:
                 msg = occupancy_grid_msg(
                     cells, t_us, frame, self.store, p.thresholds, p.occupancy_values

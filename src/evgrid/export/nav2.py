@@ -101,6 +101,19 @@ def classify(
     return out
 
 
+def classify_map(
+    m: EvidentialMap, r0: int, c0: int, h: int, w: int, th: Nav2Thresholds = Nav2Thresholds()
+) -> np.ndarray:
+    """:func:`classify` of map cells ``[r0:r0+h, c0:c0+w]``, tile by tile: one byte a cell in
+    memory, never the masses of the whole box (tiles on disk are read one at a time)."""
+    out = np.full((h, w), UNKNOWN, dtype=np.int8)
+    for key, tr, tc, wr, wc in m.pieces(r0, c0, h, w):
+        t = m.tiles.get(key)
+        if t is not None:
+            out[wr, wc] = classify(t[tr, tc], m.covered_tiles[key][tr, tc], th)
+    return out
+
+
 def _class_value_bounds(th: Nav2Thresholds) -> tuple[int, int]:
     """The largest OccupancyGrid value read as free and the smallest read as occupied.
 
@@ -204,8 +217,7 @@ def nav2_files(
     r0, c0, h, w = m.covered_bounds()
     if h == 0:
         raise ValueError(f"{stem}: the map has no observed cell; nothing to export")
-    masses, cov = m.read(r0, c0, h, w)
-    cls, (ox, oy) = map_to_occupancy(classify(masses, cov, th), r0, c0, m.grid.resolution)
+    cls, (ox, oy) = map_to_occupancy(classify_map(m, r0, c0, h, w, th), r0, c0, m.grid.resolution)
     img = np.full(cls.shape, PIXEL[UNKNOWN], dtype=np.uint8)
     img[cls == FREE] = PIXEL[FREE]
     img[cls == OCCUPIED] = PIXEL[OCCUPIED]

@@ -1,0 +1,574 @@
+"""The tile store: a map's tiles far from the vehicle, on disk, compressed, read back on return.
+
+A :class:`TileStore` is a folder; each map (or other tiled raster) paged into it has a group,
+a sub-folder of its own, holding one file per tile (``TI_TJ.gN.tile``: tile row, tile column,
+generation) with every layer of that tile (masses, coverage, dynamic score), each compressed
+with blosc2 (zstd, byte shuffle; lossless) and checked by a CRC-32. A tile file is written under
+a temporary name and renamed into place, so a run killed at any moment leaves only whole
+files; a tile written again gets a new generation, and the older file goes once the newer one is
+in place. ``map.json`` in a group says what the tiles belong to (grid, tiling, metadata, map
+frame), so a group opens as a map by itself (:func:`evgrid.grid.load_map` on its folder).
+
+:class:`Pager` is what a tiled raster (:class:`evgrid.grid.EvidentialMap`, the mover trail)
+keeps beside its tiles in memory: which tiles are on disk, a small cache of tiles read
+without being brought back, and the moves between the two (docs/store.md).
+"""
+
+from __future__ import annotations
+
+import errno
+import json
+import logging
+import math
+import os
+import re
+import struct
+import tempfile
+import zlib
+from collections import OrderedDict
+from collections.abc import Callable, Iterator, MutableMapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+logger = logging.getLogger(__name__)
+
+__all__ = [
+    "STORE_VERSION",
+    "StoreError",
+    "TileStore",
+    "TileGroup",
+    "Pager",
+    "TileLayer",
+    "tile_distance_m",
+    "StoreParams",
+    "ALL_RESIDENT_M",
+]
+
+_STORE_FORMAT = "evgrid-tile-store"
+#: The version of the store's layout and tile files; a store of another version is refused.
+STORE_VERSION = 1
+_MAGIC = b"EVGTILE\x00"
+_HEAD = struct.Struct("<8sII")  # magic, version, header length
+_TILE_NAME = re.compile(r"^(-?\d+)_(-?\d+)\.g(\d+)\.tile$")
+_GROUP_NAME = re.compile(r"^[A-Za-z0-9_.+-]{1,100}$")
+#: Tiles read without being brought back into the map, kept per group (each a few MiB at most).
+READ_CACHE_TILES = 8
+
+
+class StoreError(ValueError):
+    """A tile store that cannot be used: another version, a damaged file, a full disk; the
+    message names the file or the store."""
+
+
+def _codec() -> Any:
+    try:
+        import blosc2
+    except ImportError as e:  # pragma: no cover - a core dependency
+        raise StoreError(
+            "the tile store needs blosc2 (pip install 'blosc2>=2.6'); it is a dependency of evgrid"
+        ) from e
+    return blosc2
+
+
+class TileStore:
+    """A folder of tile groups (one per map). ``root`` None: a temporary folder, removed by
+    :meth:`close` (or when the store is collected).
+
+    Opening a folder that holds a store of another version, or a ``store.json`` that is not
+    one, raises :class:`StoreError` naming the file.
+    """
+
+    def __init__(self, root: str | os.PathLike | None = None):
+        self._tmp: tempfile.TemporaryDirectory | None = None
+        if root is None:
+            self._tmp = tempfile.TemporaryDirectory(prefix="evgrid-store-")
+            root = self._tmp.name
+        self.root = Path(root)
+        self.root.mkdir(parents=True, exist_ok=True)
+        head = self.root / "store.json"
+        if head.exists():
+            check_store_header(head)
+        else:
+            self._write(
+                lambda: _write_atomic(
+                    head,
+                    json.dumps({"format": _STORE_FORMAT, "version": STORE_VERSION}).encode(),
+                ),
+                head,
+            )
+        self._groups: dict[str, TileGroup] = {}
+
+    def __repr__(self) -> str:
+        return f"TileStore({str(self.root)!r}, {len(self._groups)} groups)"
+
+    def group(self, name: str) -> TileGroup:
+        """The group ``name`` (letters, digits, ``_.+-``), made if new."""
+        g = self._groups.get(name)
+        if g is None:
+            if not _GROUP_NAME.match(name) or name in (".", ".."):
+                raise ValueError(f"a tile group's name is letters, digits and _.+-, got {name!r}")
+            g = self._groups[name] = TileGroup(self, self.root / name)
+        return g
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the tile files on disk."""
+        return sum(g.nbytes for g in self._groups.values())
+
+    def close(self) -> None:
+        """Remove the folder when it is a temporary one; a store in a run's folder stays."""
+        if self._tmp is not None:
+            self._tmp.cleanup()
+            self._tmp = None
+
+    def _write(self, fn: Callable[[], Any], what: Path) -> Any:
+        """Run a write; a full disk (or a quota) becomes one line naming the store."""
+        try:
+            return fn()
+        except OSError as e:
+            if e.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG):
+                raise StoreError(
+                    f"the tile store {self.root} is out of disk space writing {what.name} "
+                    f"({os.strerror(e.errno)}); the maps paged out so far stay loadable"
+                ) from e
+            raise
+
+
+def _write_atomic(path: Path, data: bytes) -> None:
+    """Write ``data`` under a temporary name beside ``path`` and rename it into place: a process
+    killed at any moment leaves the old file or the new one, never a part (the page-out path
+    does not fsync: a tile is rewritten often, and a run's checkpoint syncs what resuming needs)."""
+    fd, tmp = tempfile.mkstemp(prefix="." + path.name + ".", suffix=".part", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+
+
+def _is_masses(a: np.ndarray) -> bool:
+    return a.dtype == np.float32 and a.ndim >= 1 and a.shape[-1] == 3
+
+
+def _encode_masses(a: np.ndarray) -> np.ndarray:
+    """Masses ``(..., 3)`` float32 as three planes: m_f, m_o, and m_u's bits XOR those of the
+    float32 ``1 - m_f - m_o`` (zero almost everywhere, so it compresses to little); lossless:
+    :func:`_decode_masses` computes the same float32 value and undoes the XOR."""
+    f, o, u = a[..., 0], a[..., 1], a[..., 2]
+    rest = (np.float32(1.0) - f) - o
+    out = np.empty((3, *a.shape[:-1]), np.float32)
+    out[0], out[1] = f, o
+    out[2] = (u.view(np.uint32) ^ rest.view(np.uint32)).view(np.float32)
+    return out
+
+
+def _decode_masses(planes: np.ndarray) -> np.ndarray:
+    f, o, x = planes
+    rest = (np.float32(1.0) - f) - o
+    out = np.empty((*f.shape, 3), np.float32)
+    out[..., 0], out[..., 1] = f, o
+    out[..., 2] = (x.view(np.uint32) ^ rest.view(np.uint32)).view(np.float32)
+    return out
+
+
+def check_store_header(head: Path) -> None:
+    """Refuse a ``store.json`` that is not a store of this version (StoreError naming it)."""
+    try:
+        d = json.loads(head.read_bytes())
+    except (OSError, ValueError) as e:
+        raise StoreError(f"{head} is damaged or not an evgrid tile store ({e})") from e
+    if not isinstance(d, dict) or d.get("format") != _STORE_FORMAT:
+        raise StoreError(f"{head} is not an evgrid tile store")
+    if d.get("version") != STORE_VERSION:
+        raise StoreError(
+            f"{head} is a tile store of version {d.get('version')!r}; this evgrid reads version "
+            f"{STORE_VERSION} (map it again, or open it with the evgrid that wrote it)"
+        )
+
+
+class TileGroup:
+    """The tiles of one map in a store: ``write``/``read`` a tile's layers by tile key."""
+
+    def __init__(self, store: TileStore, folder: Path):
+        self.store = store
+        self.folder = folder
+        folder.mkdir(exist_ok=True)
+        # the newest generation of each key on disk, and every file name found per key
+        self._files: dict[tuple[int, int], tuple[int, str]] = {}
+        self._gen = 0
+        stale = []
+        for f in os.scandir(folder):
+            m = _TILE_NAME.match(f.name)
+            if m is None:
+                if f.name.startswith(".") and f.name.endswith(".part"):
+                    stale.append(f.path)  # a write cut by a kill
+                continue
+            key, gen = (int(m[1]), int(m[2])), int(m[3])
+            self._gen = max(self._gen, gen + 1)
+            old = self._files.get(key)
+            if old is None or gen > old[0]:
+                if old is not None:
+                    stale.append(str(folder / old[1]))
+                self._files[key] = (gen, f.name)
+            else:
+                stale.append(f.path)
+        for p in stale:  # older generations whose newer file made it, and cut writes
+            try:
+                os.unlink(p)
+            except OSError:
+                pass
+        self.nbytes = sum((folder / n).stat().st_size for _, n in self._files.values())
+
+    def __repr__(self) -> str:
+        return f"TileGroup({str(self.folder)!r}, {len(self._files)} tiles)"
+
+    def keys(self) -> list[tuple[int, int]]:
+        """The tile keys on disk."""
+        return list(self._files)
+
+    def __contains__(self, key: tuple[int, int]) -> bool:
+        return key in self._files
+
+    def write(self, key: tuple[int, int], layers: dict[str, np.ndarray]) -> int:
+        """Write tile ``key``'s ``layers`` atomically (replacing any older file of it); returns
+        the bytes written."""
+        blosc2 = _codec()
+        blobs, entries = [], []
+        for name, a in layers.items():
+            a = np.ascontiguousarray(a)
+            encoding = "masses" if _is_masses(a) else "raw"
+            data = _encode_masses(a) if encoding == "masses" else a
+            blob = blosc2.compress2(
+                data,
+                typesize=a.dtype.itemsize,
+                codec=blosc2.Codec.ZSTD,
+                clevel=1,
+                filters=[blosc2.Filter.SHUFFLE],
+                nthreads=1,
+            )
+            blobs.append(blob)
+            entries.append(
+                {
+                    "name": name,
+                    "dtype": a.dtype.str,
+                    "shape": list(a.shape),
+                    "nbytes": len(blob),
+                    "crc32": zlib.crc32(blob),
+                    "encoding": encoding,
+                }
+            )
+        header = json.dumps({"key": list(key), "layers": entries}).encode()
+        data = b"".join([_HEAD.pack(_MAGIC, STORE_VERSION, len(header)), header, *blobs])
+        gen = self._gen
+        self._gen += 1
+        name = f"{key[0]}_{key[1]}.g{gen}.tile"
+        path = self.folder / name
+        self.store._write(lambda: _write_atomic(path, data), path)
+        old = self._files.get(key)
+        self._files[key] = (gen, name)
+        self.nbytes += len(data)
+        if old is not None:
+            p = self.folder / old[1]
+            self.nbytes -= p.stat().st_size
+            p.unlink()
+        return len(data)
+
+    def read(self, key: tuple[int, int]) -> dict[str, np.ndarray]:
+        """The layers of tile ``key`` (fresh, writable arrays); StoreError naming the file if it
+        is damaged or of another version."""
+        path = self.folder / self._files[key][1]
+        return read_tile_file(path, key)
+
+    def write_meta(self, meta: dict[str, Any]) -> None:
+        """``map.json``: what the group's tiles belong to."""
+        path = self.folder / "map.json"
+        doc = {"format": _STORE_FORMAT, "version": STORE_VERSION, "map": meta}
+        self.store._write(lambda: _write_atomic(path, json.dumps(doc).encode()), path)
+
+    def read_meta(self) -> dict[str, Any]:
+        """What :meth:`write_meta` wrote; StoreError naming the file if missing or damaged."""
+        return read_group_meta(self.folder)
+
+
+def read_group_meta(folder: Path) -> dict[str, Any]:
+    """A group's ``map.json``, checked (StoreError naming the file)."""
+    path = Path(folder) / "map.json"
+    try:
+        d = json.loads(path.read_bytes())
+    except FileNotFoundError as e:
+        raise StoreError(f"{path} is missing: {folder} is not a map of an evgrid tile store") from e
+    except (OSError, ValueError) as e:
+        raise StoreError(f"{path} is damaged ({e})") from e
+    if not isinstance(d, dict) or d.get("format") != _STORE_FORMAT:
+        raise StoreError(f"{path} is not the header of an evgrid tile store's map")
+    if d.get("version") != STORE_VERSION:
+        raise StoreError(
+            f"{path} belongs to a tile store of version {d.get('version')!r}; this evgrid reads "
+            f"version {STORE_VERSION}"
+        )
+    return d
+
+
+def read_tile_file(path: Path, key: tuple[int, int] | None = None) -> dict[str, np.ndarray]:
+    """The layers of one tile file; StoreError naming it if it is damaged, of another version, or
+    (with ``key``) holds another tile."""
+    blosc2 = _codec()
+    try:
+        data = path.read_bytes()
+    except OSError as e:
+        raise StoreError(f"{path}: cannot read the tile ({e})") from e
+    if len(data) < _HEAD.size:
+        raise StoreError(f"{path} is truncated: not a whole tile of the store")
+    magic, version, n = _HEAD.unpack_from(data)
+    if magic != _MAGIC:
+        raise StoreError(f"{path} is not a tile of an evgrid tile store")
+    if version != STORE_VERSION:
+        raise StoreError(
+            f"{path} is a tile of store version {version}; this evgrid reads {STORE_VERSION}"
+        )
+    try:
+        header = json.loads(data[_HEAD.size : _HEAD.size + n])
+        got = tuple(header["key"])
+        out: dict[str, np.ndarray] = {}
+        at = _HEAD.size + n
+        for e in header["layers"]:
+            blob = data[at : at + e["nbytes"]]
+            at += e["nbytes"]
+            if len(blob) != e["nbytes"] or zlib.crc32(blob) != e["crc32"]:
+                raise ValueError(f"layer {e['name']!r} fails its CRC-32")
+            dtype, shape = np.dtype(e["dtype"]), tuple(e["shape"])
+            if dtype.hasobject:
+                raise ValueError(f"layer {e['name']!r} has dtype {dtype}")
+            raw = blosc2.decompress2(blob)
+            encoding = e.get("encoding", "raw")
+            if encoding == "masses":
+                planes = np.frombuffer(bytearray(raw), dtype=dtype).reshape((3, *shape[:-1]))
+                out[e["name"]] = _decode_masses(planes)
+            elif encoding == "raw":
+                out[e["name"]] = np.frombuffer(bytearray(raw), dtype=dtype).reshape(shape)
+            else:
+                raise ValueError(f"layer {e['name']!r} has an unknown encoding {encoding!r}")
+    except StoreError:
+        raise
+    except Exception as e:  # noqa: BLE001 - whatever a damaged file makes json, numpy or blosc2 raise
+        why = " ".join(str(e).split())[:200]
+        raise StoreError(f"{path} is damaged: {type(e).__name__}: {why}") from e
+    if key is not None and got != tuple(key):
+        raise StoreError(f"{path} holds tile {got}, not {tuple(key)}; the store is damaged")
+    return out
+
+
+def tile_distance_m(
+    key: tuple[int, int], tile_cells: int, resolution: float, x: float, y: float
+) -> float:
+    """Distance (m) from map point ``(x, y)`` to the nearest point of tile ``key`` (map cell
+    ``(R, C)`` holds ``-x / res`` in ``[R, R + 1)``, as ``GridSpec.map_xy_to_cell`` says)."""
+    r, c = -x / resolution, -y / resolution
+    lo_r, lo_c = key[0] * tile_cells, key[1] * tile_cells
+    dr = max(lo_r - r, 0.0, r - (lo_r + tile_cells))
+    dc = max(lo_c - c, 0.0, c - (lo_c + tile_cells))
+    return math.hypot(dr, dc) * resolution
+
+
+class Pager:
+    """The tiles of a raster moving between memory and a :class:`TileGroup`.
+
+    ``layers`` are the raster's resident tiles, one dict per layer (the same dicts the raster
+    reads and writes). A tile paged out leaves every layer's dict for one file; reading a stored
+    tile (:meth:`peek`) gives read-only arrays from a small cache and leaves it on disk; taking
+    it back to write (:meth:`page_in`) puts it back into the dicts. ``summary`` (optional) is
+    computed from a tile's layers as it leaves and kept in :attr:`stored`.
+    """
+
+    def __init__(
+        self,
+        group: TileGroup,
+        layers: dict[str, dict[tuple[int, int], np.ndarray]],
+        summary: Callable[[dict[str, np.ndarray]], Any] | None = None,
+        expect: dict[str, tuple[tuple[int, ...], np.dtype]] | None = None,
+    ):
+        self.group = group
+        self.layers = layers
+        self.expect = expect or {}
+        self.summary = summary
+        self.stored: dict[tuple[int, int], Any] = {k: None for k in group.keys()}
+        self._cache: OrderedDict[tuple[int, int], dict[str, np.ndarray]] = OrderedDict()
+        self.n_out = 0
+        self.n_in = 0
+
+    def peek(self, key: tuple[int, int]) -> dict[str, np.ndarray]:
+        """The layers of stored tile ``key``, read-only, left on disk."""
+        got = self._cache.get(key)
+        if got is not None:
+            self._cache.move_to_end(key)
+            return got
+        got = self._read(key)
+        for a in got.values():
+            a.flags.writeable = False
+        self._cache[key] = got
+        if len(self._cache) > READ_CACHE_TILES:
+            self._cache.popitem(last=False)
+        return got
+
+    def _read(self, key: tuple[int, int]) -> dict[str, np.ndarray]:
+        got = self.group.read(key)
+        for name, (shape, dtype) in self.expect.items():
+            a = got.get(name)
+            if a is None or a.shape != shape or a.dtype != dtype:
+                what = "missing" if a is None else f"{a.dtype} {a.shape}"
+                raise StoreError(
+                    f"{self.group.folder / self.group._files[key][1]}: layer {name!r} is {what}, "
+                    f"not {np.dtype(dtype)} {shape}; the store is damaged or of another map"
+                )
+        return got
+
+    def page_in(self, key: tuple[int, int]) -> None:
+        """Bring stored tile ``key`` back into the layers' dicts (to be written)."""
+        got = self._cache.pop(key, None)
+        got = self._read(key) if got is None else {n: a.copy() for n, a in got.items()}
+        for name, d in self.layers.items():
+            if name in got:
+                d[key] = got[name]
+        del self.stored[key]
+        self.n_in += 1
+
+    def page_out(self, keys: list[tuple[int, int]]) -> int:
+        """Write resident tiles ``keys`` to the group and drop them from memory; returns the bytes
+        written. A tile whose write fails stays in memory."""
+        n = 0
+        for key in keys:
+            layers = {name: d[key] for name, d in self.layers.items() if key in d}
+            n += self.group.write(key, layers)
+            for d in self.layers.values():
+                d.pop(key, None)
+            self.stored[key] = self.summary(layers) if self.summary else None
+            self.n_out += 1
+        return n
+
+    def flush(self) -> int:
+        """Write every resident tile to the group, keeping it in memory (the group then holds the
+        whole raster as it is now); returns the bytes written."""
+        first = next(iter(self.layers.values()))
+        n = 0
+        for key in list(first):
+            layers = {name: d[key] for name, d in self.layers.items() if key in d}
+            n += self.group.write(key, layers)
+        return n
+
+
+class TileLayer(MutableMapping):
+    """One layer of a paged raster by tile key: its resident tiles and, read-only, its stored ones.
+
+    Reads behave as the dict of resident tiles did before paging, over every tile (resident or
+    stored); a stored tile reads as a read-only array (writing goes through the raster's
+    ``tile(key)``, which brings the tile back). Setting a key brings a stored tile back first.
+    """
+
+    __slots__ = ("_res", "_name", "_owner")
+
+    def __init__(self, resident: dict, name: str, owner: Any):
+        self._res = resident
+        self._name = name
+        self._owner = owner  # has .pager (None: nothing paged)
+
+    def __getitem__(self, key):
+        a = self._res.get(key)
+        if a is not None:
+            return a
+        p = self._owner.pager
+        if p is not None and key in p.stored:
+            got = p.peek(key).get(self._name)
+            if got is not None:
+                return got
+        raise KeyError(key)
+
+    def get(self, key, default=None):
+        a = self._res.get(key)
+        if a is not None:
+            return a
+        try:
+            return self[key]
+        except KeyError:
+            return default
+
+    def __contains__(self, key) -> bool:
+        if key in self._res:
+            return True
+        p = self._owner.pager
+        return p is not None and key in p.stored and self._owner._layer_has(self._name)
+
+    def __iter__(self) -> Iterator[tuple[int, int]]:
+        yield from list(self._res)
+        p = self._owner.pager
+        if p is not None and self._owner._layer_has(self._name):
+            yield from list(p.stored)
+
+    def __len__(self) -> int:
+        p = self._owner.pager
+        extra = len(p.stored) if p is not None and self._owner._layer_has(self._name) else 0
+        return len(self._res) + extra
+
+    def __bool__(self) -> bool:
+        return len(self) > 0
+
+    def __setitem__(self, key, value) -> None:
+        p = self._owner.pager
+        if p is not None and key in p.stored:
+            p.page_in(key)
+        self._res[key] = value
+
+    def __delitem__(self, key) -> None:
+        p = self._owner.pager
+        if p is not None and key in p.stored:
+            p.page_in(key)
+        del self._res[key]
+
+    @property
+    def resident(self) -> dict:
+        """The tiles in memory."""
+        return self._res
+
+    def __repr__(self) -> str:
+        return f"TileLayer({self._name!r}, {len(self._res)} resident, {len(self)} in all)"
+
+
+#: A radius this large keeps every tile in memory (no store is made).
+ALL_RESIDENT_M = 1e9
+
+
+@dataclass(frozen=True)
+class StoreParams:
+    """Where a run's map tiles live (docs/store.md); never changes the maps.
+
+    Tiles of every map whose nearest point lies farther than ``resident_m`` metres from the
+    vehicle leave memory for the run's tile store on disk and come back when the vehicle
+    returns. ``1e9`` keeps every tile in memory. A radius below the reach of one update (half
+    the local grid's diagonal, plus the navigation map's margin) is allowed but pages tiles
+    out and in at every update.
+    """
+
+    resident_m: float = 50.0
+
+    def __post_init__(self) -> None:
+        from evgrid.validation import check_number
+
+        v = self.resident_m
+        if isinstance(v, (int, float)) and not isinstance(v, bool) and v > ALL_RESIDENT_M:
+            raise ValueError(
+                f"StoreParams.resident_m: {v!r} m is beyond any map; give at most "
+                f"{ALL_RESIDENT_M:g} (which keeps every tile in memory)"
+            )
+        check_number(self, "resident_m", min=0.0)
+
+    @property
+    def paging(self) -> bool:
+        """Whether tiles leave memory at all."""
+        return self.resident_m < ALL_RESIDENT_M
