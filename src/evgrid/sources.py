@@ -30,7 +30,6 @@ __all__ = [
     "NuScenesSource",
     "BagSource",
     "SceneIndexError",
-    "sim_split",
     "source_to_dict",
     "source_from_dict",
     "scenes_of",
@@ -41,12 +40,6 @@ __all__ = [
 SIM_FIXED_FRAME = "world"
 #: nuScenes' ego poses are in its ``global`` frame (the map's).
 NUSCENES_FIXED_FRAME = "global"
-
-
-def sim_split(seed: int) -> str:
-    """Split of a simulated seed: every fifth seed (seed % 5 == 4) is ``val``, the others
-    ``train``."""
-    return "val" if seed % 5 == 4 else "train"
 
 
 class SceneSource(Protocol):
@@ -90,6 +83,8 @@ class SimSource:
         ``val``)."""
         if split not in ("train", "val"):
             raise ValueError(f"split must be 'train' or 'val', got {split!r}")
+        from evgrid_sim.scene import sim_split
+
         seeds, s = [], first_seed
         while len(seeds) < n:
             if sim_split(s) == split:

@@ -68,7 +68,7 @@ def _codec() -> Any:
         import blosc2
     except ImportError as e:  # pragma: no cover - a core dependency
         raise StoreError(
-            "the tile store needs blosc2 (pip install 'blosc2>=2.6'); it is a dependency of evgrid"
+            "the tile store needs blosc2, a dependency of evgrid: reinstall evgrid to get it"
         ) from e
     return blosc2
 

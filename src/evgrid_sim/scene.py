@@ -16,6 +16,7 @@ from evgrid.data.frame import LIDAR_CHANNEL, RADAR_CHANNELS, Frame, LidarSweep, 
 from evgrid.data.mounts import LIDAR_MOUNT, RADAR_MOUNTS
 from evgrid.geometry import SE2, SE3
 from evgrid_sim.config import SimConfig, SweepFaults
+from evgrid_sim.highway import build_highway
 from evgrid_sim.lidar import LidarModel
 from evgrid_sim.radar import RadarModel
 from evgrid_sim.raycast import pack_boxes, rasterize_boxes
@@ -35,6 +36,21 @@ _US_PER_DAY = 86_400_000_000
 def scene_name(seed: int) -> str:
     """The name of the simulated scene of a seed (``sim-000042``)."""
     return f"sim-{int(seed):06d}"
+
+
+def sim_split(seed: int) -> str:
+    """Split of a simulated seed: every fifth seed (seed % 5 == 4) is ``val``, the others
+    ``train``."""
+    return "val" if seed % 5 == 4 else "train"
+
+
+def world_of(seed: int, config: SimConfig) -> tuple[World, Trajectory, Trajectory]:
+    """A scene's world and drive -> (world, true trajectory (global), same in the city frame): a
+    town (:func:`~evgrid_sim.world.generate_world`) or, with ``layout = "highway"``, a highway
+    (:func:`~evgrid_sim.highway.build_highway`)."""
+    if config.world.layout == "highway":
+        return build_highway(seed, config)[:3]
+    return generate_world(seed, config)
 
 
 @dataclass(frozen=True, eq=False)
@@ -61,7 +77,7 @@ class SimScene:
         self.seed = int(seed)
         self.config = config
         self.name = scene_name(self.seed)
-        world, traj, _ = generate_world(self.seed, config)
+        world, traj, _ = world_of(self.seed, config)
         self.world: World = world
         #: The true ego trajectory in the global frame (times in seconds since the first frame).
         self.trajectory: Trajectory = traj

@@ -1703,13 +1703,9 @@ def _global_world(town: _Town, rows: np.ndarray, mv, tf: SE2) -> World:
 
 
 def generate_world(seed: int, config: SimConfig) -> tuple[World, Trajectory, Trajectory]:
-    """Build the world around a random route -> (world, true trajectory (global), same in the
+    """Build the town around a random route -> (world, true trajectory (global), same in the
     city frame). The steps draw from one generator in this order, so a seed gives one world.
-    Highways (``layout = "highway"``) are built by :mod:`evgrid_sim.highway`."""
-    if config.world.layout == "highway":
-        from evgrid_sim.highway import build_highway
-
-        return build_highway(seed, config)[:3]
+    A scene's world, town or highway, is :func:`evgrid_sim.scene.world_of`'s."""
     rng, env, grid, route, warp, traj = _plan(seed, config)
     pts = _driven_path(traj, config, warp)
     near = _Near(pts)

@@ -64,8 +64,8 @@ def check_out(out: str | Path) -> Path:
 
 
 def _write_npz(seeds, config, out: Path, overwrite: bool, tick) -> list[str]:
-    from evgrid.sources import sim_split
     from evgrid_sim import simulate_scene
+    from evgrid_sim.scene import sim_split
     from evgrid_sim.store import save_sim_scene
 
     index_path = out / "index.json"
@@ -97,8 +97,8 @@ def _write_npz(seeds, config, out: Path, overwrite: bool, tick) -> list[str]:
 
 def _write_nuscenes(seeds, config, out: Path, version: str, overwrite: bool, tick) -> list[str]:
     from evgrid.data.nuscenes_format import write_nuscenes
-    from evgrid.sources import sim_split
     from evgrid_sim import simulate_scene
+    from evgrid_sim.scene import sim_split
 
     splits: dict[str, list[str]] = {"train": [], "val": []}
     sims = [simulate_scene(s, config) for s in seeds]

@@ -9,7 +9,8 @@ import pytest
 from evgrid_sim import OCC_FREE, OCC_STATIC, SimConfig, WorldConfig, simulate_scene
 from evgrid_sim import materials as M
 from evgrid_sim.highway import HIGHWAY_TRAFFIC_MPS, build_highway
-from evgrid_sim.world import _aabbs, _ego_boxes, _overlap, _touch, generate_world
+from evgrid_sim.scene import world_of
+from evgrid_sim.world import _aabbs, _ego_boxes, _overlap, _touch
 
 SEEDS = range(4)
 
@@ -28,9 +29,9 @@ def _any_overlap(a: np.ndarray, b: np.ndarray) -> bool:
     return bool(len(ia)) and bool(_overlap(a[ia], b[ib]).any())
 
 
-def test_highway_is_what_generate_world_builds_and_is_seeded(highways):
+def test_highway_is_what_a_scene_builds_and_is_seeded(highways):
     w, traj, _, _ = highways[1]
-    again, traj2, _ = generate_world(1, _cfg())
+    again, traj2, _ = world_of(1, _cfg())
     assert w.environment == again.environment == "highway"
     np.testing.assert_array_equal(w.boxes, again.boxes)
     np.testing.assert_array_equal(w.movers.p0, again.movers.p0)
