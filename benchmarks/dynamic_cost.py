@@ -1,9 +1,9 @@
 """The dynamic score's cost in `evgrid bench`'s worst case, split into its parts.
 
 Run: ``PYTHONPATH=src taskset -c 1 python benchmarks/dynamic_cost.py [--repeat 20]``. The
-scene of :func:`evgrid_sim.bench._dynamic_cost` (six maps, 512 x 512 ISMs informative in every cell,
+scene of :func:`evgrid_lab.bench._dynamic_cost` (six maps, 512 x 512 ISMs informative in every cell,
 45 deg yaw, ``BENCH_MOVING_DETECTIONS`` moving detections spread over the window), four map sets
-updated in turns (:func:`evgrid_sim.bench.interleaved_timings`): the score off; the conflict score
+updated in turns (:func:`evgrid_lab.bench.interleaved_timings`): the score off; the conflict score
 alone (no gate, no Doppler cue); with the gate on every scored map; with the gate and the Doppler
 cue. Prints one JSON line: the median ms per update with the score off, and what each variant
 adds to it (``conflict``, ``gate``, ``all``; ``doppler`` = all - gate). One numba thread; to
@@ -24,7 +24,7 @@ from harness import machine
 
 from evgrid import fusion
 from evgrid.geometry import SE2, GridSpec
-from evgrid_sim.bench import bench_moving_detections, interleaved_ms
+from evgrid_lab.bench import bench_moving_detections, interleaved_ms
 
 
 def main() -> None:
@@ -33,12 +33,12 @@ def main() -> None:
     args = ap.parse_args()
     numba.set_num_threads(1)
     grid = GridSpec()
-    rng = np.random.default_rng(0)  # the ISMs and pose of evgrid_sim.bench.run_bench
+    rng = np.random.default_rng(0)  # the ISMs and pose of evgrid_lab.bench.run_bench
     a = rng.dirichlet([1, 1, 1], grid.shape).astype(np.float32)
     b = rng.dirichlet([1, 1, 1], grid.shape).astype(np.float32)
     pose = SE2(3.3, -1.7, math.radians(45))
     isms = {"ray_ilm": a, "ray_irm": b, "deep_irm": a}
-    moving = bench_moving_detections(grid, pose)  # those of evgrid_sim.bench._dynamic_cost
+    moving = bench_moving_detections(grid, pose)  # those of evgrid_lab.bench._dynamic_cost
     d = fusion.DynamicParams
     sets = {
         "off": (fusion.MapSet(grid, dynamic=d(enabled=False)), None),

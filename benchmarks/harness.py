@@ -26,7 +26,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # the tests' helpers (tests/ray_cluster.py) import as ``tests.``
     sys.path.append(str(ROOT))
 
-from evgrid_sim.bench import interleaved_timings, timings_ms  # noqa: E402
+from evgrid_lab.bench import interleaved_timings, timings_ms  # noqa: E402
 
 __all__ = [
     "ROOT",

@@ -1,4 +1,4 @@
-"""`evgrid bench` (evgrid_sim.bench): per-frame components, the deep IRM's parts, the rig and the
+"""`evgrid bench` (evgrid_lab.bench): per-frame components, the deep IRM's parts, the rig and the
 end-to-end run."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import torch
 from evgrid.geometry import GridSpec
 from evgrid.ism.deep import CHANNELS, DeepIrm, radar_image
 from evgrid.ism.evnet import EvNet, EvNetConfig, save_checkpoint
-from evgrid_sim.bench import interleaved_ms, run_bench
+from evgrid_lab.bench import interleaved_ms, run_bench
 from evgrid_sim.synthetic import street_radar_sweeps
 
 

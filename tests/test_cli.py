@@ -103,7 +103,7 @@ def test_bench_prints_json(tmp_path, tiny_checkpoint):
     assert "ray_ilm" not in fused  # the fused map needs no lidar
     assert res["kernels_ms"]["dempster_512"] > 0
     # the options beside the result reload: the same bench again, an option given wins
-    from evgrid_sim.options import BenchOptions, bench_options
+    from evgrid_lab.options import BenchOptions, bench_options
 
     cfg = tmp_path / "bench.config.json"
     same = BenchOptions(duration=1.0, checkpoint=str(tiny_checkpoint))
@@ -116,7 +116,7 @@ def test_bench_prints_json(tmp_path, tiny_checkpoint):
 
 
 def test_simulate_writes_a_config_that_reloads(tmp_path):
-    from evgrid_sim.options import SimulateOptions, simulate_options
+    from evgrid_lab.options import SimulateOptions, simulate_options
 
     data = tmp_path / "data"
     r = evgrid("simulate", out=data, scenes=1, seed=3, duration=0.5, lidar_rate=10)

@@ -125,7 +125,7 @@ def test_config_show_reads_every_kind_of_config_file(tmp_path):
     import sys
 
     from evgrid.config import document
-    from evgrid_sim.options import BenchOptions, SimulateConfig, SimulateOptions
+    from evgrid_lab.options import BenchOptions, SimulateConfig, SimulateOptions
 
     files = {
         "sim.json": document(SimulateConfig(SimulateOptions(seed=7))),

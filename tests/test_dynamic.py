@@ -197,7 +197,7 @@ def test_scene_scores_score_the_dynamic_layer_against_moving_objects():
 
 
 def test_bench_times_the_score_on_and_off():
-    from evgrid_sim.bench import _dynamic_cost
+    from evgrid_lab.bench import _dynamic_cost
 
     rng = np.random.default_rng(0)
     grid = GridSpec(64, 8.0)

@@ -335,7 +335,7 @@ def test_config_round_trip_with_rig_fields():
 def test_cli_options_reach_the_mapper_config():
     # the command line's options are overrides of the config (evgrid.cli.options.config_from_args)
     from evgrid.cli.options import config_from_args
-    from evgrid_sim.options import SimulateOptions
+    from evgrid_lab.options import SimulateOptions
 
     def mapper(*args):
         return config_from_args(RunConfig, list(args)).mapper

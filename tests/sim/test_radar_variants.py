@@ -122,7 +122,7 @@ def test_same_seed_same_town_whatever_the_radar():
 
 def test_transfer_scores_each_radar_on_the_same_scenes(tmp_path):
     from evgrid.ism.deep import default_checkpoint
-    from evgrid_sim.transfer import (
+    from evgrid_lab.transfer import (
         CALIBRATED,
         measure_transfer,
         transfer_markdown,
@@ -171,7 +171,7 @@ def test_transfer_makes_samples_as_the_checkpoint_was_trained(tmp_path):
     from evgrid.ism.deep import default_checkpoint
     from evgrid.ism.evnet import load_checkpoint, save_checkpoint
     from evgrid.learn.train import TrainConfig
-    from evgrid_sim.transfer import CALIBRATED, measure_transfer, transfer_sources
+    from evgrid_lab.transfer import CALIBRATED, measure_transfer, transfer_sources
 
     ck = load_checkpoint(default_checkpoint())
     picked = {CALIBRATED: transfer_sources(1, 1000, 1.0)[CALIBRATED]}

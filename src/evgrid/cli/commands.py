@@ -113,7 +113,7 @@ def simulate(
     from evgrid.cli.options import options_to_overrides
     from evgrid.config import document
     from evgrid.console import bar
-    from evgrid_sim.options import SimulateConfig, SimulateOptions, simulate_options
+    from evgrid_lab.options import SimulateConfig, SimulateOptions, simulate_options
     from evgrid_sim.writer import check_out, write_simulated
 
     _, values = options_to_overrides(ctx.args, {}, SimulateOptions, SimulateOptions)
@@ -216,7 +216,7 @@ def transfer(
     """Score Ev-Net's single frames on radars inside and outside its training ranges (the deep
     and the ray IRM's IoU per class against the ray ILM). Example: evgrid transfer --scenes 4"""
     from evgrid.console import bar
-    from evgrid_sim.transfer import run_transfer
+    from evgrid_lab.transfer import run_transfer
 
     with bar("radars", None, unit="radars") as advance:
         text = run_transfer(out, checkpoint, scenes, seed, duration, advance, engine, workers)
@@ -261,8 +261,8 @@ def bench(
 
     from evgrid.cli.options import options_to_overrides
     from evgrid.io import write_json
-    from evgrid_sim.bench import run_bench
-    from evgrid_sim.options import BenchOptions, bench_options, write_bench_config
+    from evgrid_lab.bench import run_bench
+    from evgrid_lab.options import BenchOptions, bench_options, write_bench_config
 
     opts = bench_options(options_to_overrides(ctx.args, {}, BenchOptions, BenchOptions)[1], config)
     res = run_bench(opts.duration, opts.checkpoint, opts.repeats, end_to_end_s=opts.end_to_end)

@@ -111,7 +111,7 @@ class TrainData:
         ]  # fmt: skip
 
 
-# `evgrid simulate` and `evgrid bench` take the simulator's option groups (evgrid_sim.options);
+# `evgrid simulate` and `evgrid bench` take the simulator's option groups (evgrid_lab.options);
 # their config files are read by importing it
-KIND_MODULES.update({"evgrid-simulate": "evgrid_sim.options", "evgrid-bench": "evgrid_sim.options"})
+KIND_MODULES.update({"evgrid-simulate": "evgrid_lab.options", "evgrid-bench": "evgrid_lab.options"})
 KIND_MODULES["evgrid-train"] = "evgrid.train_run"  # imports torch: only for such a file

@@ -143,7 +143,7 @@ def command_options_help(command: str) -> list[tuple[str, list[tuple[str, str]]]
 
     aliases, plain = COMMAND_OPTIONS.get(command, COMMAND_OPTIONS["map"])
     if plain is None:  # the simulator's (evgrid_sim imports slowly: only for their help)
-        from evgrid_sim import options
+        from evgrid_lab import options
 
         plain = options.SimulateOptions if command == "simulate" else options.BenchOptions
     cls = SweepConfig if command == "sweep-m-u-min" else RunConfig
