@@ -18,7 +18,8 @@ from evgrid.ism.evidence import EvidenceParams, free_mass_per_distance
 from evgrid.mapper import OccupancyMapper
 from evgrid.serial import ConfigError
 
-PER_METRE = EvidenceParams()
+PER_METRE = EvidenceParams(reference_m=1.0)  # one metre a look: round figures by hand
+DEFAULT = EvidenceParams()
 PER_LOOK = EvidenceParams(mode="per_look")
 
 
@@ -42,6 +43,16 @@ def test_free_mass_per_update_by_hand(speed, rate, ilm, irm):
     # the paper's per-look constant, whatever the speed and rate
     assert PER_LOOK.free_mass(0.05, speed * dt, dt) == 0.05
     assert PER_LOOK.free_mass(0.3, speed * dt, dt) == 0.3
+
+
+def test_the_default_reference_is_a_look_at_city_speed():
+    # 0.65 m: one update at 10 Hz and 6.5 m/s (the simulated towns' mean speed) is one of the
+    # paper's looks; 30 m/s at 10 Hz is 3 / 0.65 looks: 1 - 0.95^4.615, 1 - 0.7^4.615
+    assert DEFAULT.reference_m == 0.65
+    assert DEFAULT.free_mass(0.05, 0.65, 0.1) == pytest.approx(0.05, abs=1e-9)
+    assert DEFAULT.free_mass(0.3, 0.65, 0.1) == pytest.approx(0.3, abs=1e-9)
+    assert DEFAULT.free_mass(0.05, 3.0, 0.1) == pytest.approx(0.2108022, abs=1e-6)
+    assert DEFAULT.free_mass(0.3, 3.0, 0.1) == pytest.approx(0.8072174, abs=1e-6)
 
 
 def test_standstill_floor_and_gap_cap():

@@ -11,7 +11,7 @@ from pathlib import Path
 
 from evgrid.config import FORMATS, document, resolve_config
 from evgrid.validation import check_int, check_number
-from evgrid_sim.config import ENVIRONMENTS
+from evgrid_sim.config import ENVIRONMENTS, LAYOUTS
 from evgrid_sim.writer import FORMATS as WRITTEN
 
 
@@ -31,6 +31,8 @@ class SimulateOptions:
     format: str = "npz"  #: npz|nuscenes|ros2|ros1|mcap (recordings need evgrid[ros])
     duration: float = 20.0  #: seconds a scene (s)
     environment: str = "mixed"  #: the world: urban|suburban|mixed
+    #: the streets: irregular|grid towns, or a highway (a dual carriageway at 25-35 m/s)
+    layout: str = "irregular"
     version: str = "v1.0-sim"  #: the nuScenes version folder written (--format nuscenes)
     lidar_rate: float = 20.0  #: lidar sweeps per second (Hz)
     #: radars: NAME or NAME=MOUNT (a nuScenes radar position), comma-separated (none: nuScenes'
@@ -48,6 +50,8 @@ class SimulateOptions:
             raise ValueError(
                 f"--environment must be one of {ENVIRONMENTS}, got {self.environment!r}"
             )
+        if self.layout not in LAYOUTS:
+            raise ValueError(f"--layout must be one of {LAYOUTS}, got {self.layout!r}")
         check_scenes(self.scenes, self.seed, self.duration)
         check_number("", "--sweep-faults", self.sweep_faults, min=0.0, max=1.0)
 
@@ -71,7 +75,7 @@ class SimulateOptions:
         if f := self.sweep_faults:
             rig = replace(rig, faults=SweepFaults(drop=f, duplicate=f, reorder=f))
         lidar = LidarConfig(rate_hz=self.lidar_rate, self_returns=self.ego_returns)
-        world = WorldConfig(environment=self.environment)
+        world = WorldConfig(environment=self.environment, layout=self.layout)
         return SimConfig(duration_s=self.duration, world=world, rig=rig, lidar=lidar)
 
 

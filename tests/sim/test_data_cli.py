@@ -89,3 +89,14 @@ def test_simulate_nuscenes(tmp_path):
 def test_simulate_rejects_bad_options(tmp_path, extra, word):
     res = runner.invoke(app, ["simulate", "--out", str(tmp_path), *extra])
     assert res.exit_code != 0 and word in res.output
+
+
+def test_simulate_writes_a_highway_and_names_a_bad_layout(tmp_path):
+    res = CliRunner().invoke(
+        app, ["simulate", "--out", str(tmp_path / "hw"), "--layout", "highway", "--duration", "1"]
+    )
+    assert res.exit_code == 0, res.output
+    index = json.loads((tmp_path / "hw" / "index.json").read_text())
+    assert [s["environment"] for s in index["scenes"]] == ["highway"]
+    res = CliRunner().invoke(app, ["simulate", "--out", str(tmp_path / "x"), "--layout", "ring"])
+    assert res.exit_code == 1 and "--layout must be one of" in res.output

@@ -50,8 +50,9 @@ class EvidenceParams:
 
     mode: str = "per_metre"
     #: The ISMs' ``m_free`` (0.05 ray ILM, 0.3 ray IRM) is the evidence of this much new
-    #: viewpoint: one update at 10 Hz and 10 m/s, the city speeds the paper's constants suit.
-    reference_m: float = 1.0
+    #: viewpoint (m): one update at 10 Hz and 6.5 m/s, the mean speed of the simulated towns, so
+    #: that city maps keep the paper's evidence (docs/results.md#evidence-per-metre).
+    reference_m: float = 0.65
     #: A standing vehicle's updates count as this speed's travel (the floor of ``step_m``).
     standstill_mps: float = 1.0
     #: One update stands for at most this much travel (the lidar's reach, 15 m).
