@@ -14,8 +14,7 @@ __all__ = ["app"]
 
 
 def _map(ctx, name, out, config, sets, n, engine, resume, overwrite, preset=(), data0={}):
-    """A mapping run (map, evaluate, demo) or a sweep of ``m_u_min``: the config from the
-    command's words, the run with its progress, the report; failed scenes make it fail."""
+    """A mapping run (map, evaluate, demo) or a sweep of ``m_u_min``; failed scenes fail it."""
     from evgrid.budget import check_budget
     from evgrid.cli.options import MAP_OPTIONS, config_from_args
     from evgrid.config import RunConfig, SweepConfig
@@ -155,9 +154,7 @@ def sweep_m_u_min_cmd(
 ) -> None:  # fmt: skip
     """Sweep the lower limit m_u_min: mIoU of deep_replace, deep_disc and fused against ray_ilm
     (JSON + plot); writes config.json (re-run with --config).
-
-    Example: evgrid sweep-m-u-min --scenes 4 --values 0.1,0.2,0.3,0.4,0.5 --out out/sweep
-    """
+    Example: evgrid sweep-m-u-min --scenes 4 --values 0.1,0.2,0.3,0.4,0.5 --out out/sweep"""
     sweep = (ctx, "sweep-m-u-min", out, config, sets, workers, engine, False, overwrite)
     _map(*sweep, data0={"scenes": 4})
 
@@ -253,10 +250,8 @@ def bench(
     config: Path = typer.Option(None, "--config", help="A bench's .config.json (options win)."),
 ) -> None:
     """Time every component and the per-frame updates on one core; print JSON. With --out
-    FILE, FILE's stem + .config.json holds the options (bench again with --config).
-
-    Example: evgrid bench --end-to-end 20   # and a whole 20 s run mapped end to end
-    """
+    FILE, FILE's stem + .config.json holds the options (bench again with --config). Example:
+    evgrid bench --end-to-end 20 (and a whole 20 s run mapped end to end)"""
     import json
 
     from evgrid.cli.options import options_to_overrides

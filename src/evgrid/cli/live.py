@@ -28,11 +28,7 @@ def live(
     """Map what a running robot publishes (ROS 2, no ROS installation): the rig's topics on
     ROS_DOMAIN_ID, /map out for nav2, Foxglove and RViz (docs/live.md). Ctrl-C or SIGTERM
     saves the maps into --out (nav2/map.pgm + map.yaml; maps/ with --save-maps) and exits 0.
-
-    \b
-    Example:
-      evgrid live --rig rig.yaml --out out/live --publish fused --save-every 60
-    """
+    Example: evgrid live --rig rig.yaml --out out/live --publish fused --save-every 60"""
     from evgrid.ros import require
 
     require("cyclonedds", "live")
@@ -67,9 +63,7 @@ def replay(
 ) -> None:  # fmt: skip
     """Publish a recording's topics onto DDS at their recorded timing, as ros2 bag play does
     (for evgrid live, demos, users without ROS; docs/live.md).
-
-    Example: evgrid replay drive.mcap --rig rig.yaml --loop
-    """
+    Example: evgrid replay drive.mcap --rig rig.yaml --loop"""
     from evgrid.ros import require
 
     require("cyclonedds", "live")

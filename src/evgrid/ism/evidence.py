@@ -50,8 +50,9 @@ class EvidenceParams:
 
     mode: str = "per_metre"
     #: The ISMs' ``m_free`` (0.05 ray ILM, 0.3 ray IRM) is the evidence of this much new
-    #: viewpoint (m): one update at 10 Hz and 6.5 m/s, the mean speed of the simulated towns, so
-    #: that city maps keep the paper's evidence (docs/results.md#evidence-per-metre).
+    #: viewpoint (m): one update at 10 Hz and 6.5 m/s, the simulated towns' mean speed, so that
+    #: city maps keep the paper's evidence
+    #: (docs/results.md#evidence-per-metre-highway-and-city).
     reference_m: float = 0.65
     #: A standing vehicle's updates count as this speed's travel (the floor of ``step_m``).
     standstill_mps: float = 1.0
