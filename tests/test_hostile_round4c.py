@@ -1,0 +1,127 @@
+"""Hostile input, round 4, phase 2b (issue 39): a run that mapped nothing, a silent radar, empty
+maps exported, a saved map's frame, an interrupted save, points at the sensor origin, a second tf
+parent counted (docs/hostile-input.md). Each case says what a user saw before."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+
+import pytest
+from typer.testing import CliRunner
+
+from evgrid.cli import app
+from evgrid.data import LIDAR_COLUMNS
+from evgrid.geometry import SE2, SE3
+
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def frames():
+    from evgrid_sim import SimConfig, simulate_scene
+
+    return list(simulate_scene(3, SimConfig(duration_s=0.4)))
+
+
+def _recording(path, frames, cloud=None, silent_radar=None, second_parent=False):
+    """A lidar recording of ``frames`` (/tf_static, /tf, /lidar); ``cloud(msg)`` tampers with
+    every cloud, ``silent_radar`` a topic registered without a message, ``second_parent`` adds
+    ``map -> base_link`` beside ``odom -> base_link``."""
+    pytest.importorskip("rosbags")
+    pytest.importorskip("mcap")
+    from evgrid.ros import RecordingWriter, columns_to_cloud, tf_message, transform_msg, us_to_stamp
+
+    w = RecordingWriter(path, "plain-mcap")
+    s, t0 = w.store, frames[0].timestamp
+    static = transform_msg("base_link", "LIDAR_TOP", t0, frames[0].lidar.sensor_to_ego, s)
+    w.write("/tf_static", "tf2_msgs/msg/TFMessage", t0 * 1000, tf_message([static], s))
+    if silent_radar:
+        w._topic(silent_radar, "sensor_msgs/msg/PointCloud2")  # a channel, no message
+    shift = SE3.from_se2(SE2(500.0, 0.0, 0.0))
+    for f in frames:
+        t = f.timestamp
+        trs = [transform_msg("odom", "base_link", t, f.ego_pose, s)]
+        if second_parent:
+            trs.append(transform_msg("map", "base_link", t, shift @ f.ego_pose, s))
+        w.write("/tf", "tf2_msgs/msg/TFMessage", t * 1000, tf_message(trs, s))
+        sec, ns = us_to_stamp(t)
+        msg = columns_to_cloud(f.lidar.points, LIDAR_COLUMNS, sec, ns, "LIDAR_TOP", s)
+        w.write("/lidar", "sensor_msgs/msg/PointCloud2", t * 1000, cloud(msg) if cloud else msg)
+    w.close()
+    return path
+
+
+def _rig(tmp_path, **extra):
+    import yaml
+
+    rig = tmp_path / "rig.yaml"
+    rig.write_text(yaml.safe_dump({"lidar": {"topic": "/lidar"}, **extra}))
+    return rig
+
+
+# --- 1. a run that mapped no frame fails, saying why ---------------------------------------------
+
+
+def test_a_run_that_mapped_no_frame_fails_naming_the_skips(frames, tmp_path):
+    # before: every cloud named and skipped, then `0 frames`, a table of n/a and exit 0
+    def short(msg):
+        return dataclasses.replace(msg, data=msg.data[: len(msg.data) // 2])
+
+    bag = _recording(tmp_path / "bad.mcap", frames, cloud=short)
+    out = tmp_path / "out"
+    args = ["map", "--bag", str(bag), "--rig", str(_rig(tmp_path)), "--out", str(out)]
+    r = runner.invoke(app, [*args, "--maps", "ray_ilm", "--figures", "off"])
+    assert r.exit_code == 1, r.output
+    said = [ln for ln in r.output.splitlines() if "no frame mapped" in ln]
+    assert said and f"lidar_messages_malformed {len(frames)}" in said[-1], r.output
+    assert "0 frame(s) made" in said[-1]
+    summary = json.loads((out / "summary.json").read_text())
+    assert list(summary["failed"]) == ["bad"] and not summary["scenes"]
+    assert not list(out.glob("bad/*.mcap")) and not (out / "table.md").exists()
+
+
+def test_no_frame_mapped_from_the_api_too(frames):
+    from evgrid.runs import NoFrameMapped, map_scene
+
+    with pytest.raises(NoFrameMapped, match=r"^empty: no frame mapped \(0 frame\(s\) made\)"):
+        map_scene([], None, name="empty")
+
+
+# --- 2. a radar topic with no message is named and counted ---------------------------------------
+
+
+def test_a_silent_radar_topic_is_named_and_counted(frames, tmp_path, caplog):
+    # before: the radar maps were made without it, silently (fused occupied IoU 5.2 % -> 1.0 %)
+    from evgrid.data.bag import load_bag
+
+    bag = _recording(tmp_path / "r.mcap", frames, silent_radar="/radar_front")
+    rig = {"lidar": {"topic": "/lidar"}, "radars": [{"topic": "/radar_front", "channel": "RF"}]}
+    with caplog.at_level(logging.WARNING, logger="evgrid.data.bag"):
+        scene = load_bag(bag, rig)
+        got = list(scene)
+    assert len(got) == len(frames)
+    said = [r.getMessage() for r in caplog.records if "/radar_front" in r.getMessage()]
+    assert len(said) == 1 and "radar topic /radar_front has no message" in said[0]
+    assert str(bag) in said[0]
+    assert scene.counts["radar_topics_silent"] == 1
+
+
+# --- 8. a second tf parent is counted per scene and the topic named ------------------------------
+
+
+def test_a_second_tf_parent_is_counted_in_the_scene_and_names_the_topic(frames, tmp_path, caplog):
+    # before: only TransformBuffer.second_parents knew, metrics.json said nothing
+    from evgrid.data.bag import load_bag
+
+    bag = _recording(tmp_path / "two.mcap", frames, second_parent=True)
+    with caplog.at_level(logging.WARNING, logger="evgrid.data.bag"):
+        scene = load_bag(bag, {"lidar": {"topic": "/lidar"}})
+        list(scene)
+    assert scene.counts["pose_samples_second_parent"] == len(frames)
+    said = [r.getMessage() for r in caplog.records if "second parent (map)" in r.getMessage()]
+    assert len(said) == 1 and f"{bag} /tf: {len(frames)} sample(s)" in said[0]
+    clean = load_bag(_recording(tmp_path / "one.mcap", frames), {"lidar": {"topic": "/lidar"}})
+    list(clean)
+    assert clean.counts["pose_samples_second_parent"] == 0
