@@ -125,3 +125,20 @@ def test_a_second_tf_parent_is_counted_in_the_scene_and_names_the_topic(frames, 
     clean = load_bag(_recording(tmp_path / "one.mcap", frames), {"lidar": {"topic": "/lidar"}})
     list(clean)
     assert clean.counts["pose_samples_second_parent"] == 0
+
+
+# --- 3. an empty map is refused by every exporter alike -----------------------------------------
+
+
+@pytest.mark.parametrize("fmt", ["nav2", "mcap", "rerun"])
+def test_an_empty_map_is_refused_by_every_exporter(tmp_path, fmt):
+    # before: a 0-message MCAP and a 7 kB RRD with exit 0 (nav2 refused it)
+    pytest.importorskip({"nav2": "numpy", "mcap": "mcap", "rerun": "rerun"}[fmt])
+    from evgrid.grid import EvidentialMap, GridSpec, save_map
+
+    path = save_map(EvidentialMap(GridSpec(8, 0.8), 8), tmp_path / "fused.npz")
+    r = runner.invoke(app, ["export", str(path), "--format", fmt])
+    assert r.exit_code != 0
+    line = r.output.strip().splitlines()[-1]
+    assert line.startswith("evgrid: error: ") and "'fused' has no observed cell" in line, line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["fused.npz"]  # nothing written

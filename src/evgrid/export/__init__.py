@@ -19,10 +19,17 @@ import os
 from pathlib import Path
 from typing import Any
 
-from evgrid.export._files import ExportFileError
+from evgrid.export._files import EmptyMapError, ExportFileError
 from evgrid.grid import EvidentialMap
 
-__all__ = ["FORMATS", "ExportFileError", "export_map", "make_observer", "params_class"]
+__all__ = [
+    "FORMATS",
+    "EmptyMapError",
+    "ExportFileError",
+    "export_map",
+    "make_observer",
+    "params_class",
+]
 
 #: Export formats: map_server's PGM + YAML, an MCAP file, a rerun recording.
 FORMATS = ("nav2", "mcap", "rerun")

@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from evgrid.export._files import AtomicFile, target_path, write_error
+from evgrid.export._files import AtomicFile, refuse_empty, target_path, write_error
 from evgrid.export._place import MapPlacement, fixed_in_map
 from evgrid.export.nav2 import (
     OCCUPANCY_VALUES,
@@ -528,6 +528,7 @@ def write_maps_mcap(
     overwrite: bool = False,
 ) -> Path:
     """Saved maps as one MCAP file: each whole, stamped 0 (``params.layers`` and values)."""
+    refuse_empty(maps, path)
     exp = McapExporter(path, params, overwrite)
     with exp:
         exp.write_maps(maps, 0, None)

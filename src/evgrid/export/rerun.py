@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from evgrid.export._files import AtomicFile, target_path, write_error
+from evgrid.export._files import AtomicFile, refuse_empty, target_path, write_error
 from evgrid.export._place import MapPlacement
 from evgrid.grid import EvidentialMap
 
@@ -318,6 +318,7 @@ def write_map_rrd(
     overwrite: bool = False,
 ) -> Path:
     """One saved map as a rerun recording (entity ``final/NAME``, a quad in metres)."""
+    refuse_empty({name or str(m.metadata.get("rule", "map")): m}, path)
     rr = _rr()
     rec = rr.RecordingStream("evgrid")
     out = _RrdFile(rec, target_path(path, "maps", ".rrd"), overwrite)
