@@ -611,7 +611,8 @@ def _covered_any(m: EvidentialMap, key: tuple[int, int]) -> bool:
 def _write_member(zf: zipfile.ZipFile, name: str, shape: tuple, dtype, blocks) -> None:
     """Member ``name.npy`` of an .npz, written block by block (the array is never whole in
     memory); readers see the .npy that ``np.savez_compressed`` writes."""
-    with zf.open(name + ".npy", "w", force_zip64=True) as f:
+    f = zf.open(name + ".npy", "w", force_zip64=True)
+    try:
         header = {
             "descr": np.lib.format.dtype_to_descr(np.dtype(dtype)),
             "fortran_order": False,
@@ -620,6 +621,31 @@ def _write_member(zf: zipfile.ZipFile, name: str, shape: tuple, dtype, blocks) -
         np.lib.format.write_array_header_1_0(f, header)
         for b in blocks:
             f.write(np.ascontiguousarray(b, dtype=dtype).tobytes())
+        f.close()
+    except BaseException:
+        _quietly(f.close)  # into the file about to be removed; the error is the caller's
+        raise
+
+
+def _quietly(close: Callable[[], None]) -> None:
+    """Close what a failed (or interrupted) save leaves open, ignoring its errors: the file is
+    removed anyway, and the first error is the one to report."""
+    try:
+        close()
+    except BaseException:
+        pass
+
+
+def _abandon_zip(zf: zipfile.ZipFile) -> None:
+    """Close a zip that a failed save throws away, before its file is closed and removed.
+
+    Left to ``ZipFile.__del__``, its close would run after the file is gone and Python would
+    print ``Exception ignored in: ZipFile.__del__ ... seek of closed file`` after the clean
+    Ctrl-C message. A Ctrl-C that lands inside ``zf.open`` leaves it marked as writing a member
+    with no handle to close, so that mark is cleared first."""
+    zf._writing = False  # no member is written any more
+    _quietly(zf.close)
+    zf.fp = None  # even when close failed: nothing writes to the file again
 
 
 def save_map(m: EvidentialMap, path: str | os.PathLike, frame: MapFrame | None = None) -> Path:
@@ -648,7 +674,8 @@ def save_map(m: EvidentialMap, path: str | os.PathLike, frame: MapFrame | None =
     n = len(keys)
 
     def write(f) -> None:
-        with zipfile.ZipFile(f, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+        zf = zipfile.ZipFile(f, "w", compression=zipfile.ZIP_DEFLATED)
+        try:
             hb = np.frombuffer(json.dumps(header).encode(), dtype=np.uint8)
             _write_member(zf, "header", hb.shape, np.uint8, [hb])
             _write_member(zf, "keys", karr.shape, np.int64, [karr])
@@ -658,6 +685,10 @@ def save_map(m: EvidentialMap, path: str | os.PathLike, frame: MapFrame | None =
                 _write_member(
                     zf, "dynamic", (n, ts, ts), np.float32, (m.dynamic_tiles[k] for k in keys)
                 )
+        except BaseException:  # Ctrl-C included: the temporary file goes, quietly
+            _abandon_zip(zf)
+            raise
+        zf.close()
 
     return atomic_write(path, write)
 
