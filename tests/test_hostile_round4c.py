@@ -194,3 +194,51 @@ def test_ctrl_c_while_a_map_is_saved_leaves_no_file_and_prints_nothing(
     assert list(tmp_path.iterdir()) == []  # no map, no temporary file
     monkeypatch.undo()
     assert save_map(_small_map(), tmp_path / "fused.npz").exists()  # and saving still works
+
+
+# --- 6. points at the sensor origin are no returns -----------------------------------------------
+
+
+def test_points_at_the_sensor_origin_are_dropped_and_counted_not_a_free_disc(caplog):
+    # before: a sweep of (0, 0, 0) points (the lidar 1.8 m up, so within the height band)
+    # painted every ray's 15 m as free: a full free disc from no return at all
+    from evgrid.geometry import GridSpec
+    from evgrid.ism import ray_ilm_with_stats
+
+    grid = GridSpec(64, 0.5)
+    s2e = SE3.from_matrix(np.array([[1, 0, 0, 0.5], [0, 1, 0, 0], [0, 0, 1, 1.8], [0, 0, 0, 1.0]]))
+    at_origin = np.zeros((50, 3), np.float32)
+    at_origin[:10] = 4e-4  # within 1 mm too
+    with caplog.at_level(logging.WARNING, logger="evgrid.ism.lidar"):
+        r = ray_ilm_with_stats(at_origin, s2e, grid=grid)
+    assert r.n_at_origin == 50 and r.n_used == 0 and r.n_dropped == 0
+    assert (r.masses[..., 2] == 1.0).all()  # vacuous: no measurement
+    assert "all 50 finite point(s) lie within 0.001 m of the sensor" in caplog.text
+    # one real return beside them: the origin points change nothing
+    wall = np.array([[5.0, 0.0, 0.0]], np.float32)
+    alone = ray_ilm_with_stats(wall, s2e, grid=grid)
+    mixed = ray_ilm_with_stats(np.r_[at_origin, wall], s2e, grid=grid)
+    np.testing.assert_array_equal(mixed.masses, alone.masses)
+    assert mixed.n_at_origin == 50 and mixed.n_used == 1
+    # 2 mm from the sensor is a return (in the lidar's own cell, which stops no ray)
+    near = ray_ilm_with_stats(np.full((3, 3), 2e-3 / np.sqrt(3), np.float32), s2e, grid=grid)
+    assert near.n_at_origin == 0 and near.n_used == 3
+
+
+def test_the_mapper_counts_points_at_the_origin(frames):
+    from evgrid.config import MapperConfig
+    from evgrid.mapper import OccupancyMapper
+    from evgrid.preprocess import SelfReturnParams
+
+    f = frames[0]
+    pts = f.lidar.points.copy()
+    pts[:100, :3] = 0.0
+    sweep = dataclasses.replace(f.lidar, points=pts)
+    # the self-return filter (auto) would drop them first; off, they reach the ray ILM
+    config = MapperConfig(maps=("ray_ilm",), self_returns=SelfReturnParams(mode="off"))
+    mapper = OccupancyMapper(config)
+    try:
+        mapper.process(dataclasses.replace(f, lidar=sweep, is_keyframe=True))
+        assert mapper.counts()["lidar_points_at_origin"] >= 100
+    finally:
+        mapper.close()
