@@ -242,3 +242,76 @@ def test_the_mapper_counts_points_at_the_origin(frames):
         assert mapper.counts()["lidar_points_at_origin"] >= 100
     finally:
         mapper.close()
+
+
+# --- 4. a saved map keeps its frame, stamp and metadata, and `evgrid export` uses them ----------
+
+
+@pytest.fixture(scope="module")
+def saved(frames, tmp_path_factory):
+    """The maps a short run saved (its fixed frame `world`, the simulator's), in both frames."""
+    from evgrid.config import MapperConfig, OutputConfig
+    from evgrid.runs import map_scene
+
+    out = tmp_path_factory.mktemp("saved")
+    outputs = OutputConfig(save_maps=True, figures=False)
+    paths = {}
+    for kind in ("world", "first_pose"):
+        cfg = MapperConfig(maps=("ray_ilm",), frame=kind)
+        res = map_scene(frames, out / kind, cfg, outputs, name="s")
+        paths[kind] = res.files["map_ray_ilm"]
+    return paths
+
+
+def _mcap_of(path):
+    pytest.importorskip("mcap_ros2")
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    with open(path, "rb") as fh:
+        reader = make_reader(fh, decoder_factories=[DecoderFactory()])
+        msgs = [(ch.topic, m.log_time, d) for _, ch, m, d in reader.iter_decoded_messages()]
+    with open(path, "rb") as fh:
+        meta = {m.name: m.metadata for m in make_reader(fh).iter_metadata()}
+    return msgs, meta
+
+
+def test_a_saved_map_keeps_its_stamp(frames, saved):
+    from evgrid.grid import load_map
+
+    stamps = {f.timestamp for f in frames}
+    for kind, path in saved.items():
+        frame = load_map(path).frame
+        assert frame.kind == kind and frame.fixed_frame == "world"
+        assert frame.stamp_us in stamps and frame.stamp_us > frames[0].timestamp
+
+
+@pytest.mark.parametrize("kind,map_frame", [("world", "world"), ("first_pose", "map")])
+def test_export_of_a_saved_map_carries_its_frame_stamp_and_metadata(
+    saved, tmp_path, kind, map_frame
+):
+    # before: frame `map`, stamp 0 and no metadata, while the run's own exports carried the
+    # recording's frame
+    from evgrid.grid import load_map
+
+    frame = load_map(saved[kind]).frame
+    out = tmp_path / "m.mcap"
+    r = runner.invoke(app, ["export", saved[kind], "--format", "mcap", "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    msgs, meta = _mcap_of(out)
+    (grid,) = [(t, d) for topic, t, d in msgs if topic.endswith("/occupancy")]
+    assert grid[1].header.frame_id == map_frame and grid[0] == frame.stamp_us * 1000
+    evg = meta["evgrid"]
+    assert evg["map_frame"] == map_frame and evg["fixed_frame"] == "world"
+    assert evg["stamp_us"] == str(frame.stamp_us) and "first_pose_xyz" in evg
+    assert json.loads(evg["map ray_ilm"])["rule"] == "ray_ilm"
+    tfs = [d for topic, _, d in msgs if topic == "/tf"]
+    assert len(tfs) == (kind == "first_pose")  # map -> world only when they differ
+    # nav2: the YAML says the frames and the stamp in its comments
+    r = runner.invoke(
+        app, ["export", saved[kind], "--format", "nav2", "--out", str(tmp_path / "n")]
+    )
+    assert r.exit_code == 0, r.output
+    yml = (tmp_path / "n.yaml").read_text()
+    assert f"# map frame '{map_frame}'; the recording's fixed frame 'world'" in yml
+    assert f"# stamp {frame.stamp_us} us (the last update)" in yml

@@ -507,12 +507,14 @@ class MapFrame:
     mapped. ``fixed_frame``: the fixed frame's name (odom, nuScenes ``global``, a rig's
     ``world_frame``; "" when not known). ``first_pose``: the first ego pose mapped, in the fixed
     frame (None when not known); with ``first_pose`` maps it puts the map back into the
-    recording.
+    recording. ``stamp_us``: the time of the last update (the maps' stamp, us; None when not
+    known).
     """
 
     kind: str = "world"
     fixed_frame: str = ""
     first_pose: SE3 | None = None
+    stamp_us: int | None = None
 
     def __post_init__(self) -> None:
         if self.kind not in MAP_FRAME_KINDS:
@@ -523,27 +525,46 @@ class MapFrame:
             raise ValueError(
                 f"MapFrame.first_pose must be an SE3 or None, got {type(self.first_pose).__name__}"
             )
+        if self.stamp_us is not None and (
+            isinstance(self.stamp_us, bool) or not isinstance(self.stamp_us, (int, np.integer))
+        ):
+            raise ValueError(f"MapFrame.stamp_us must be an integer or None, got {self.stamp_us!r}")
 
     @classmethod
     def of(cls, mapper: Any, fixed_frame: str = "") -> MapFrame:
         """The frame ``mapper`` (an :class:`~evgrid.mapper.OccupancyMapper`) builds its maps in."""
-        return cls(mapper.config.frame, fixed_frame, mapper.first_pose)
+        stamp = getattr(mapper, "last_update_us", None)
+        return cls(
+            mapper.config.frame,
+            fixed_frame,
+            mapper.first_pose,
+            None if stamp is None else int(stamp),
+        )
 
     def to_dict(self) -> dict[str, Any]:
         """JSON values; the pose as its 4x4 matrix, rows (floats round-trip exactly)."""
         pose = None if self.first_pose is None else self.first_pose.matrix().tolist()
-        return {"kind": self.kind, "fixed_frame": self.fixed_frame, "first_pose": pose}
+        return {
+            "kind": self.kind,
+            "fixed_frame": self.fixed_frame,
+            "first_pose": pose,
+            "stamp_us": None if self.stamp_us is None else int(self.stamp_us),
+        }
 
     @classmethod
     def from_dict(cls, d: Any) -> MapFrame:
-        """The inverse of :meth:`to_dict`; ValueError (or TypeError) naming what is wrong."""
-        if not isinstance(d, dict) or set(d) - {"kind", "fixed_frame", "first_pose"}:
-            raise ValueError(f"a map frame is {{kind, fixed_frame, first_pose}}, got {d!r}")
+        """The inverse of :meth:`to_dict` (files without ``stamp_us`` too); ValueError (or
+        TypeError) naming what is wrong."""
+        if not isinstance(d, dict) or set(d) - {"kind", "fixed_frame", "first_pose", "stamp_us"}:
+            raise ValueError(
+                f"a map frame is {{kind, fixed_frame, first_pose, stamp_us}}, got {d!r}"
+            )
         pose = d.get("first_pose")
         return cls(
             d.get("kind", "world"),
             d.get("fixed_frame", ""),
             None if pose is None else SE3.from_matrix(np.asarray(pose, dtype=np.float64)),
+            d.get("stamp_us"),
         )
 
 

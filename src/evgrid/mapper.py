@@ -128,6 +128,7 @@ class OccupancyMapper:
         self.n_frames = 0
         self.n_updates = 0
         self.n_lidar_at_origin = 0  # lidar points at the sensor origin: no returns, dropped
+        self.last_update_us: int | None = None  # the last update's frame time (us)
         # the last update's time (us) and planar position (m): the distance seen since it
         # decides the geometric ISMs' free mass (MapperConfig.evidence)
         self._last_seen: tuple[int, float, float] | None = None
@@ -177,6 +178,7 @@ class OccupancyMapper:
             self.timings.setdefault(k, []).append(ms)
         self._time("step_total", t0)
         self.n_updates += 1
+        self.last_update_us = frame.timestamp  # the maps' stamp
         self.last_isms = isms
         self.trajectory.append((pose.x, pose.y, pose.yaw))
         update = MapUpdate(frame, pose, isms, self.maps)
