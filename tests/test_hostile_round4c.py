@@ -315,3 +315,48 @@ def test_export_of_a_saved_map_carries_its_frame_stamp_and_metadata(
     yml = (tmp_path / "n.yaml").read_text()
     assert f"# map frame '{map_frame}'; the recording's fixed frame 'world'" in yml
     assert f"# stamp {frame.stamp_us} us (the last update)" in yml
+
+
+# --- 7. fine-tuning: one recording says how; the parent's score beside the new one ------------
+
+
+def test_one_recording_for_training_and_validation_says_how_to_fine_tune_on_it(tmp_path):
+    # before: `scene(s) ['drive'] are both training and validation scenes ... remove that line
+    # to name recordings by their file names`, which still names both `drive`
+    from evgrid.sources import BagSource
+    from evgrid.train_run import _check_disjoint
+
+    bag = tmp_path / "drive.mcap"
+    bag.write_bytes(b"")
+    rig = _rig(tmp_path)
+    same = {"train": BagSource((str(bag),), str(rig)), "val": BagSource((str(bag),), str(rig))}
+    with pytest.raises(ValueError) as e:
+        _check_disjoint(same)
+    msg = str(e.value)
+    assert msg.startswith(f"{bag}: both a training and a validation recording")
+    assert "cut it in two by time" in msg and "--val-bag" in msg and "\n" not in msg
+
+
+def test_fine_tuning_reports_the_parents_validation_score_beside_the_new_one(tmp_path):
+    # before: the parent checkpoint's validation score was never shown
+    from evgrid.console import train_report
+    from evgrid.ism.evnet import EvNetConfig
+    from evgrid.learn.train import TrainConfig, build_cache, fine_tune_config, train
+    from evgrid_sim import SimConfig, simulate_scene
+
+    cfg = TrainConfig(
+        epochs=1, batch_size=2, workers=0, frame_stride=10,
+        model=EvNetConfig(in_channels=6, width=4, depth=2),
+    )  # fmt: skip
+    scenes = [simulate_scene(s, SimConfig(duration_s=1.0)) for s in (0, 4)]
+    names = build_cache(scenes, tmp_path / "cache", cfg, with_irm=True)
+    parent = train(cfg, tmp_path / "cache", names[:1], names[1:], tmp_path / "parent")
+    assert parent.parent_val is None  # a fresh network has no parent
+    child_cfg = fine_tune_config(cfg, tmp_path / "parent" / "best.safetensors")
+    child = train(child_cfg, tmp_path / "cache", names[:1], names[1:], tmp_path / "child")
+    assert child.parent_recorded_val == pytest.approx(parent.best, nan_ok=True)
+    # the parent on the same validation scenes, before any step: what the child's best beats
+    assert child.parent_val == pytest.approx(parent.best, nan_ok=True)
+    text = train_report(child, tmp_path / "child")
+    assert "validation IoU on these scenes: fine-tuned free" in text
+    assert "the parent before fine-tuning free" in text
