@@ -345,6 +345,7 @@ def test_masses_on_simplex_and_detections_exact(points, sx, sy):
     assert np.allclose(m.sum(-1), 1.0, atol=1e-6)
     e = s2e.apply(pts)
     keep = (e[:, 2] >= 0.3) & (e[:, 2] <= 3.0)
+    keep &= (pts.astype(np.float64) ** 2).sum(axis=1) >= 1e-3**2  # else no return (1 mm)
     r, c = grid.xy_to_cell(e[keep, 0], e[keep, 1])
     inside = grid.contains_cell(r, c)
     expect = np.zeros((64, 64), bool)

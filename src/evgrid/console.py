@@ -178,11 +178,23 @@ def failures(failed: Mapping[str, str], out: Any) -> str | None:
     return f"{len(failed)} scene(s) failed ({listed}); the others are in {out}"
 
 
+def _ious(d: Mapping[str, float] | None) -> str:
+    return ", ".join(f"{c} {v:.3f}" for c, v in (d or {}).items()) or "not recorded"
+
+
 def train_report(res: Any, out: Any) -> str:
-    """What ``evgrid train`` prints at its end."""
-    return (
+    """What ``evgrid train`` prints at its end; after fine-tuning, the parent checkpoint's
+    validation IoU on the same scenes beside the new one (and the one it recorded on its own)."""
+    text = (
         f"best epoch {res.best_epoch}: {res.best}; ray IRM baseline {res.ray_irm_baseline}; "
         f"{res.seconds_per_epoch:.0f} s per epoch; checkpoint {out / 'best.safetensors'}"
+    )
+    if getattr(res, "parent_val", None) is None:
+        return text
+    return (
+        f"{text}\nvalidation IoU on these scenes: fine-tuned {_ious(res.best)}; the parent "
+        f"before fine-tuning {_ious(res.parent_val)} (on its own validation scenes: "
+        f"{_ious(res.parent_recorded_val)})"
     )
 
 

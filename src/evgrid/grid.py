@@ -507,12 +507,14 @@ class MapFrame:
     mapped. ``fixed_frame``: the fixed frame's name (odom, nuScenes ``global``, a rig's
     ``world_frame``; "" when not known). ``first_pose``: the first ego pose mapped, in the fixed
     frame (None when not known); with ``first_pose`` maps it puts the map back into the
-    recording.
+    recording. ``stamp_us``: the time of the last update (the maps' stamp, us; None when not
+    known).
     """
 
     kind: str = "world"
     fixed_frame: str = ""
     first_pose: SE3 | None = None
+    stamp_us: int | None = None
 
     def __post_init__(self) -> None:
         if self.kind not in MAP_FRAME_KINDS:
@@ -523,27 +525,46 @@ class MapFrame:
             raise ValueError(
                 f"MapFrame.first_pose must be an SE3 or None, got {type(self.first_pose).__name__}"
             )
+        if self.stamp_us is not None and (
+            isinstance(self.stamp_us, bool) or not isinstance(self.stamp_us, (int, np.integer))
+        ):
+            raise ValueError(f"MapFrame.stamp_us must be an integer or None, got {self.stamp_us!r}")
 
     @classmethod
     def of(cls, mapper: Any, fixed_frame: str = "") -> MapFrame:
         """The frame ``mapper`` (an :class:`~evgrid.mapper.OccupancyMapper`) builds its maps in."""
-        return cls(mapper.config.frame, fixed_frame, mapper.first_pose)
+        stamp = getattr(mapper, "last_update_us", None)
+        return cls(
+            mapper.config.frame,
+            fixed_frame,
+            mapper.first_pose,
+            None if stamp is None else int(stamp),
+        )
 
     def to_dict(self) -> dict[str, Any]:
         """JSON values; the pose as its 4x4 matrix, rows (floats round-trip exactly)."""
         pose = None if self.first_pose is None else self.first_pose.matrix().tolist()
-        return {"kind": self.kind, "fixed_frame": self.fixed_frame, "first_pose": pose}
+        return {
+            "kind": self.kind,
+            "fixed_frame": self.fixed_frame,
+            "first_pose": pose,
+            "stamp_us": None if self.stamp_us is None else int(self.stamp_us),
+        }
 
     @classmethod
     def from_dict(cls, d: Any) -> MapFrame:
-        """The inverse of :meth:`to_dict`; ValueError (or TypeError) naming what is wrong."""
-        if not isinstance(d, dict) or set(d) - {"kind", "fixed_frame", "first_pose"}:
-            raise ValueError(f"a map frame is {{kind, fixed_frame, first_pose}}, got {d!r}")
+        """The inverse of :meth:`to_dict` (files without ``stamp_us`` too); ValueError (or
+        TypeError) naming what is wrong."""
+        if not isinstance(d, dict) or set(d) - {"kind", "fixed_frame", "first_pose", "stamp_us"}:
+            raise ValueError(
+                f"a map frame is {{kind, fixed_frame, first_pose, stamp_us}}, got {d!r}"
+            )
         pose = d.get("first_pose")
         return cls(
             d.get("kind", "world"),
             d.get("fixed_frame", ""),
             None if pose is None else SE3.from_matrix(np.asarray(pose, dtype=np.float64)),
+            d.get("stamp_us"),
         )
 
 
@@ -611,7 +632,8 @@ def _covered_any(m: EvidentialMap, key: tuple[int, int]) -> bool:
 def _write_member(zf: zipfile.ZipFile, name: str, shape: tuple, dtype, blocks) -> None:
     """Member ``name.npy`` of an .npz, written block by block (the array is never whole in
     memory); readers see the .npy that ``np.savez_compressed`` writes."""
-    with zf.open(name + ".npy", "w", force_zip64=True) as f:
+    f = zf.open(name + ".npy", "w", force_zip64=True)
+    try:
         header = {
             "descr": np.lib.format.dtype_to_descr(np.dtype(dtype)),
             "fortran_order": False,
@@ -620,6 +642,31 @@ def _write_member(zf: zipfile.ZipFile, name: str, shape: tuple, dtype, blocks) -
         np.lib.format.write_array_header_1_0(f, header)
         for b in blocks:
             f.write(np.ascontiguousarray(b, dtype=dtype).tobytes())
+        f.close()
+    except BaseException:
+        _quietly(f.close)  # into the file about to be removed; the error is the caller's
+        raise
+
+
+def _quietly(close: Callable[[], None]) -> None:
+    """Close what a failed (or interrupted) save leaves open, ignoring its errors: the file is
+    removed anyway, and the first error is the one to report."""
+    try:
+        close()
+    except BaseException:
+        pass
+
+
+def _abandon_zip(zf: zipfile.ZipFile) -> None:
+    """Close a zip that a failed save throws away, before its file is closed and removed.
+
+    Left to ``ZipFile.__del__``, its close would run after the file is gone and Python would
+    print ``Exception ignored in: ZipFile.__del__ ... seek of closed file`` after the clean
+    Ctrl-C message. A Ctrl-C that lands inside ``zf.open`` leaves it marked as writing a member
+    with no handle to close, so that mark is cleared first."""
+    zf._writing = False  # no member is written any more
+    _quietly(zf.close)
+    zf.fp = None  # even when close failed: nothing writes to the file again
 
 
 def save_map(m: EvidentialMap, path: str | os.PathLike, frame: MapFrame | None = None) -> Path:
@@ -648,7 +695,8 @@ def save_map(m: EvidentialMap, path: str | os.PathLike, frame: MapFrame | None =
     n = len(keys)
 
     def write(f) -> None:
-        with zipfile.ZipFile(f, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+        zf = zipfile.ZipFile(f, "w", compression=zipfile.ZIP_DEFLATED)
+        try:
             hb = np.frombuffer(json.dumps(header).encode(), dtype=np.uint8)
             _write_member(zf, "header", hb.shape, np.uint8, [hb])
             _write_member(zf, "keys", karr.shape, np.int64, [karr])
@@ -658,6 +706,10 @@ def save_map(m: EvidentialMap, path: str | os.PathLike, frame: MapFrame | None =
                 _write_member(
                     zf, "dynamic", (n, ts, ts), np.float32, (m.dynamic_tiles[k] for k in keys)
                 )
+        except BaseException:  # Ctrl-C included: the temporary file goes, quietly
+            _abandon_zip(zf)
+            raise
+        zf.close()
 
     return atomic_write(path, write)
 

@@ -127,6 +127,8 @@ class OccupancyMapper:
         self._doppler_seen: dict[str, int] = {}  # per radar, the sweep the Doppler cue last used
         self.n_frames = 0
         self.n_updates = 0
+        self.n_lidar_at_origin = 0  # lidar points at the sensor origin: no returns, dropped
+        self.last_update_us: int | None = None  # the last update's frame time (us)
         # the last update's time (us) and planar position (m): the distance seen since it
         # decides the geometric ISMs' free mass (MapperConfig.evidence)
         self._last_seen: tuple[int, float, float] | None = None
@@ -176,6 +178,7 @@ class OccupancyMapper:
             self.timings.setdefault(k, []).append(ms)
         self._time("step_total", t0)
         self.n_updates += 1
+        self.last_update_us = frame.timestamp  # the maps' stamp
         self.last_isms = isms
         self.trajectory.append((pose.x, pose.y, pose.yaw))
         update = MapUpdate(frame, pose, isms, self.maps)
@@ -217,7 +220,7 @@ class OccupancyMapper:
         """Each ISM the maps need, once, on the local grid of ``frame`` (radar buffer already
         updated). ``travelled_m`` and ``dt_s`` since the last update set the geometric ISMs'
         free mass (``config.evidence``); None: the ISMs' own per-look masses."""
-        from evgrid.ism import ray_ilm, ray_irm
+        from evgrid.ism import ray_ilm_with_stats, ray_irm
 
         cfg = self.config
         need = self.maps.required_isms
@@ -234,7 +237,9 @@ class OccupancyMapper:
         t = time.perf_counter()
         if "ray_ilm" in need:
             lidar = self.preprocess.lidar(frame.lidar)  # the vehicle's own returns stop no ray
-            out["ray_ilm"] = ray_ilm(lidar, grid=cfg.grid, params=lidar_params, threads=cfg.threads)
+            ilm = ray_ilm_with_stats(lidar, grid=cfg.grid, params=lidar_params, threads=cfg.threads)
+            self.n_lidar_at_origin += ilm.n_at_origin
+            out["ray_ilm"] = ilm.masses
             t = self._time("ray_ilm", t)
         if "ray_irm" in need:
             out["ray_irm"] = ray_irm(
@@ -315,6 +320,7 @@ class OccupancyMapper:
             "radar_sweeps_out_of_order": self.buffer.n_out_of_order,
             "radar_sweeps_missing": self.buffer.n_missing,
             "lidar_frames_missing": self.lidar_frames_missing,
+            "lidar_points_at_origin": self.n_lidar_at_origin,
             "radar_detections_filtered": self.preprocess.n_radar_filtered,
             **self.preprocess.self_returns.counts(),
             # invalid ISM cells taken as vacuous before the warp, and window cells a rule refused

@@ -224,6 +224,8 @@ def _map_with(
         if progress is not None:
             progress()
     seconds = time.perf_counter() - t0
+    if mapper.n_updates == 0:  # empty maps are no result: the scene fails, saying why
+        raise NoFrameMapped(nothing_mapped(name, mapper.n_frames, frames))
     files: dict[str, str] = {}
     for fmt, exporter in zip(outputs.exports, exporters):
         written = exporter.close()
@@ -262,6 +264,30 @@ def _map_with(
         # the scene is complete: its maps are in the files above, and the store goes
         shutil.rmtree(out / STORE_FOLDER, ignore_errors=True)
     return SceneResult(name, jsonable(metrics), files, metrics["frames_per_second"])
+
+
+class NoFrameMapped(ValueError):
+    """A scene of which no frame was mapped (every frame skipped, or none made): its maps would
+    be empty, so the scene fails rather than give a table of n/a (docs/hostile-input.md)."""
+
+
+def nothing_mapped(name: str, n_frames: int, frames: Any) -> str:
+    """The one line saying why scene ``name`` mapped nothing: the frames made and the skips its
+    source counted, each under its reason."""
+    report = _source_report(frames).get("source_report", {})
+    skips = {
+        k: v
+        for part in ("counts", "stats")
+        for k, v in (report.get(part) or {}).items()
+        if isinstance(v, int) and not isinstance(v, bool) and v > 0
+    }
+    why = (
+        "; skipped: " + ", ".join(f"{k} {v}" for k, v in skips.items())
+        if skips
+        else "; the source skipped nothing it counts"
+    )
+    stopped = f"; {report['stopped']}" if report.get("stopped") else ""
+    return f"{name}: no frame mapped ({n_frames} frame(s) made){why}{stopped}"
 
 
 def _exporters(

@@ -205,13 +205,24 @@ def _build_caches(run: TrainRunConfig, cache: Path, on_cache) -> dict[str, list[
 def _check_disjoint(sources: dict[str, Any]) -> None:
     """One cache holds the training and the validation scenes by name: a name in both would
     train on the validation scene (its shard replaces the training one). Refuse it."""
-    both = sorted(set(sources["train"].names()) & set(sources["val"].names()))
+    train, val = sources["train"], sources["val"]
+    paths = [set(map(os.path.realpath, getattr(s, "paths", ()))) for s in (train, val)]
+    same = sorted(paths[0] & paths[1])
+    if same:  # fine-tuning on one drive: its scores would be those of the data trained on
+        raise ValueError(
+            f"{', '.join(same)}: both a training and a validation recording (--bag and "
+            "--val-bag); the validation scores would be those of the data trained on. To "
+            "fine-tune on one drive, cut it in two by time with a bag tool (an MCAP with the "
+            "mcap CLI's 'filter', a ROS 1 bag with 'rosbag filter', a ROS 2 bag with 'ros2 bag "
+            "convert') and give one part to --bag, the other to --val-bag"
+        )
+    both = sorted(set(train.names()) & set(val.names()))
     if both:
         hint = ""
-        if type(sources["train"]).__name__ == "BagSource":
+        if type(train).__name__ == "BagSource":
             hint = (
-                " (a lone recording is named by the rig file's 'scene:'; remove that line to "
-                "name recordings by their file names)"
+                " (one recording alone is named by the rig file's 'scene:', else by its file "
+                "name: remove that line, or rename a file, so that the names differ)"
             )
         raise ValueError(
             f"scene(s) {both} are both training and validation scenes; give validation scenes "

@@ -48,6 +48,9 @@ RADAR_CHANNELS: tuple[str, ...] = (
 
 #: Columns of ``LidarSweep.points`` (float32): metres, metres, metres, intensity 0-255, ring 0-31.
 LIDAR_COLUMNS: tuple[str, ...] = ("x", "y", "z", "intensity", "ring")
+#: A point closer than this to its sensor (m) is no return: drivers of organised clouds mark a
+#: beam without one as (0, 0, 0), and no sensor measures a range of a millimetre.
+NO_RETURN_RANGE_M = 1e-3
 
 #: Columns of ``RadarSweep.points`` (float32), named as in the nuScenes radar ``.pcd`` files:
 #: position (m, sensor frame), radar cross-section (dBsm), raw and ego-motion compensated

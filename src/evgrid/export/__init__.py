@@ -19,10 +19,17 @@ import os
 from pathlib import Path
 from typing import Any
 
-from evgrid.export._files import ExportFileError
+from evgrid.export._files import EmptyMapError, ExportFileError
 from evgrid.grid import EvidentialMap
 
-__all__ = ["FORMATS", "ExportFileError", "export_map", "make_observer", "params_class"]
+__all__ = [
+    "FORMATS",
+    "EmptyMapError",
+    "ExportFileError",
+    "export_map",
+    "make_observer",
+    "params_class",
+]
 
 #: Export formats: map_server's PGM + YAML, an MCAP file, a rerun recording.
 FORMATS = ("nav2", "mcap", "rerun")
@@ -59,21 +66,37 @@ def export_map(
     ``path`` is a file stem for nav2 (``.pgm`` and ``.yaml`` are added) and a file otherwise
     (``.mcap`` / ``.rrd`` is added when missing); a folder is written into (``map.pgm`` +
     ``map.yaml``, ``maps.mcap``, ``maps.rrd``). ``name`` names the map's topic or entity
-    (default: the map's rule). Existing files are refused unless ``overwrite``.
+    (default: the map's rule). Existing files are refused unless ``overwrite``. The map's
+    frame, first pose and stamp, as its file keeps them (``m.frame``), go into the export as a
+    run's exports carry them: the frames' names, the nav2 YAML's comments, the MCAP's stamp,
+    ``/tf`` and metadata, rerun's ``info``.
     """
     if format not in FORMATS:
         raise ValueError(f"export format must be one of {FORMATS}, got {format!r}")
+    from evgrid.export._place import saved_placement
+
+    # the frames, first pose and stamp the map's file keeps (m.frame), as a run's exports
+    # carry them (docs/ros.md#frames)
+    frame = getattr(m, "frame", None)
+    map_frame, fixed_frame, placement = saved_placement(frame)
+    stamp = 0 if frame is None or frame.stamp_us is None else int(frame.stamp_us)
     if format == "nav2":
         from evgrid.export.nav2 import write_nav2
 
-        return list(write_nav2(m, path, overwrite=overwrite))
+        notes = [] if placement is None else placement.comments()
+        if placement is None and frame is not None and frame.fixed_frame:
+            notes.append(f"map frame '{map_frame}'; the recording's fixed frame '{fixed_frame}'")
+        if frame is not None and frame.stamp_us is not None:
+            notes.append(f"stamp {stamp} us (the last update)")
+        return list(write_nav2(m, path, overwrite=overwrite, comments=notes))
     if format == "mcap":
-        from evgrid.export.mcap import write_map_mcap
+        from evgrid.export.mcap import McapParams, write_map_mcap
 
-        return [write_map_mcap(m, path, name, overwrite=overwrite)]
+        params = McapParams(map_frame=map_frame, fixed_frame=fixed_frame)
+        return [write_map_mcap(m, path, name, params, overwrite, stamp, placement)]
     from evgrid.export.rerun import write_map_rrd
 
-    return [write_map_rrd(m, path, name, overwrite)]
+    return [write_map_rrd(m, path, name, overwrite, placement)]
 
 
 def make_observer(

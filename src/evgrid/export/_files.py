@@ -2,6 +2,8 @@
 
 * An existing file is refused unless ``overwrite``; a folder given as the target is written
   into (the file gets its default name there).
+* A map with no observed cell is refused by every writer alike (:func:`refuse_empty`), as
+  nav2's map_server refuses an empty image: an export of nothing is no result.
 * Files are written by :class:`evgrid.io.AtomicFile`, evgrid's one atomic writer: a temporary
   name in the file's folder, renamed when complete, removed on any exception; every error names
   the file.
@@ -10,7 +12,9 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 from evgrid.io import AtomicFile, refuse_existing, write_error
 from evgrid.io import FileWriteError as ExportFileError
@@ -20,11 +24,28 @@ __all__ = [
     "ExportExistsError",
     "ExportFileError",
     "AtomicFile",
+    "EmptyMapError",
+    "refuse_empty",
     "target_path",
     "refuse_existing",
     "write_all",
     "write_error",
 ]
+
+
+class EmptyMapError(ValueError):
+    """A map with no observed cell given to an exporter."""
+
+
+def refuse_empty(maps: Mapping[str, Any], target: str | os.PathLike) -> None:
+    """Refuse, naming ``target`` and the map, any of ``maps`` (name -> EvidentialMap) that has no
+    observed cell, before a file is opened."""
+    empty = [name for name, m in maps.items() if m.covered_bounds()[2] == 0]
+    if empty:
+        raise EmptyMapError(
+            f"{target}: the map {', '.join(map(repr, empty))} has no observed cell (an empty "
+            "map); nothing to export"
+        )
 
 
 def target_path(path: str | os.PathLike, default_name: str, suffix: str = "") -> Path:

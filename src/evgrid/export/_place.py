@@ -17,7 +17,12 @@ from typing import Any
 
 from evgrid.geometry import SE2, SE3
 
-__all__ = ["MapPlacement", "fixed_in_map"]
+__all__ = ["FIRST_POSE_FRAME", "MapPlacement", "fixed_in_map", "saved_placement"]
+
+
+#: The map frame's name when the maps are built in the first ego pose's frame (the default
+#: ``map_frame`` of every export's parameters, REP 105's ``map``).
+FIRST_POSE_FRAME = "map"
 
 
 def fixed_in_map(update: Any) -> SE2:
@@ -66,3 +71,22 @@ class MapPlacement:
             f"'{self.fixed_frame}' in '{self.map_frame}': x y yaw_deg "
             f"{d['fixed_in_map_xy_yaw_deg']}",
         ]
+
+
+def saved_placement(frame: Any) -> tuple[str, str, MapPlacement | None]:
+    """``(map frame, fixed frame, placement)`` of a saved map from its
+    :class:`~evgrid.grid.MapFrame` (``m.frame``), named as a run's exports name them: maps in
+    the fixed frame (``world``) are in that frame; maps in the first pose's frame are in
+    :data:`FIRST_POSE_FRAME`, a parent of the fixed frame. The placement is None when the file
+    does not know the first pose; the names are the exports' defaults when it knows no frame."""
+    if frame is None or not frame.fixed_frame:
+        return FIRST_POSE_FRAME, "odom", None
+    fixed = frame.fixed_frame
+    own = fixed if frame.kind == "world" else FIRST_POSE_FRAME
+    if frame.first_pose is None:
+        return own, fixed, None
+    # the first update's pose in the map frame is the origin (first_pose) or the ego pose in
+    # the fixed frame itself (world): fixed_in_map as the run's first update gave it
+    first = frame.first_pose.to_se2()
+    in_map = first.inverse() if frame.kind == "first_pose" else SE2(0.0, 0.0, 0.0)
+    return own, fixed, MapPlacement(own, fixed, frame.first_pose, in_map)

@@ -28,6 +28,7 @@ the frames' timestamps.
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 import os
@@ -38,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from evgrid.export._files import AtomicFile, target_path, write_error
+from evgrid.export._files import AtomicFile, refuse_empty, target_path, write_error
 from evgrid.export._place import MapPlacement, fixed_in_map
 from evgrid.export.nav2 import (
     OCCUPANCY_VALUES,
@@ -526,11 +527,37 @@ def write_maps_mcap(
     path: str | os.PathLike,
     params: McapParams = McapParams(),
     overwrite: bool = False,
+    stamp_us: int = 0,
+    placement: MapPlacement | None = None,
 ) -> Path:
-    """Saved maps as one MCAP file: each whole, stamped 0 (``params.layers`` and values)."""
+    """Saved maps as one MCAP file: each whole, stamped ``stamp_us`` (``params.layers`` and
+    values, frames ``params.map_frame`` and ``fixed_frame``), with the metadata record
+    ``evgrid`` (the frames, ``placement`` when known, the stamp, each map's own metadata) and,
+    for a map frame other than the fixed frame, its ``/tf`` link as a run writes it."""
+    from evgrid.ros import tf_message, transform_msg
+
+    refuse_empty(maps, path)
     exp = McapExporter(path, params, overwrite)
     with exp:
-        exp.write_maps(maps, 0, None)
+        p = params
+        meta = {"map_frame": p.map_frame, "fixed_frame": p.fixed_frame}
+        if placement is not None:
+            meta.update(placement.as_dict())
+            if p.map_frame != p.fixed_frame:
+                fixed = SE3.from_se2(placement.fixed_in_map)
+                tf = transform_msg(p.map_frame, p.fixed_frame, stamp_us, fixed, exp.store)
+                exp._guarded(
+                    exp._write,
+                    "/tf",
+                    "tf2_msgs/msg/TFMessage",
+                    stamp_us,
+                    tf_message([tf], exp.store),
+                )
+        meta["stamp_us"] = str(int(stamp_us))
+        meta["params"] = repr(p.to_dict())
+        meta.update({f"map {n}": json.dumps(m.metadata, default=str) for n, m in maps.items()})
+        exp._guarded(exp._w.add_metadata, "evgrid", {k: str(v) for k, v in meta.items()})
+        exp.write_maps(maps, stamp_us, None)
     return exp.path
 
 
@@ -540,6 +567,16 @@ def write_map_mcap(
     name: str | None = None,
     params: McapParams = McapParams(),
     overwrite: bool = False,
+    stamp_us: int = 0,
+    placement: MapPlacement | None = None,
 ) -> Path:
-    """One saved map as an MCAP file (topic ``/evgrid/NAME/...``, NAME default the map's rule)."""
-    return write_maps_mcap({name or str(m.metadata.get("rule", "map")): m}, path, params, overwrite)
+    """One saved map as an MCAP file (topic ``/evgrid/NAME/...``, NAME default the map's rule;
+    the rest as :func:`write_maps_mcap`)."""
+    return write_maps_mcap(
+        {name or str(m.metadata.get("rule", "map")): m},
+        path,
+        params,
+        overwrite,
+        stamp_us,
+        placement,
+    )

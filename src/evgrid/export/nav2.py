@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from evgrid.export._files import refuse_existing, write_all
+from evgrid.export._files import refuse_empty, refuse_existing, write_all
 from evgrid.export._place import MapPlacement
 from evgrid.grid import EvidentialMap
 from evgrid.validation import check_number
@@ -214,9 +214,8 @@ def nav2_files(
 
     ``comments`` are extra ``#`` lines for the YAML (map_server reads only its keys).
     """
+    refuse_empty({stem.name: m}, stem)
     r0, c0, h, w = m.covered_bounds()
-    if h == 0:
-        raise ValueError(f"{stem}: the map has no observed cell; nothing to export")
     cls, (ox, oy) = map_to_occupancy(classify_map(m, r0, c0, h, w, th), r0, c0, m.grid.resolution)
     img = np.full(cls.shape, PIXEL[UNKNOWN], dtype=np.uint8)
     img[cls == FREE] = PIXEL[FREE]

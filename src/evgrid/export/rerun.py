@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from evgrid.export._files import AtomicFile, target_path, write_error
+from evgrid.export._files import AtomicFile, refuse_empty, target_path, write_error
 from evgrid.export._place import MapPlacement
 from evgrid.grid import EvidentialMap
 
@@ -316,13 +316,19 @@ def write_map_rrd(
     path: str | os.PathLike,
     name: str | None = None,
     overwrite: bool = False,
+    placement: MapPlacement | None = None,
 ) -> Path:
-    """One saved map as a rerun recording (entity ``final/NAME``, a quad in metres)."""
+    """One saved map as a rerun recording (entity ``final/NAME``, a quad in metres; ``info``,
+    as a run writes it, when the ``placement`` is known)."""
+    refuse_empty({name or str(m.metadata.get("rule", "map")): m}, path)
     rr = _rr()
     rec = rr.RecordingStream("evgrid")
     out = _RrdFile(rec, target_path(path, "maps", ".rrd"), overwrite)
     try:
         rec.log("/", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        if placement is not None:
+            text = "\n".join(f"* {k}: {v}" for k, v in placement.as_dict().items())
+            rec.log("info", rr.TextDocument(text, media_type="text/markdown"), static=True)
         pic, corners = _whole(m)
         rec.log(
             f"final/{name or m.metadata.get('rule', 'map')}", _quad(rr, pic, corners), static=True

@@ -32,13 +32,15 @@ class IsmResult:
 
     ``n_points``: points given; ``n_dropped``: of those, dropped because x, y or z was NaN or
     inf; ``n_used``: points that became detections (finite, passing the ISM's filter; they
-    may still lie outside the grid).
+    may still lie outside the grid); ``n_at_origin``: finite points dropped as no return,
+    within :data:`~evgrid.data.frame.NO_RETURN_RANGE_M` of the sensor (the lidar ISM).
     """
 
     masses: np.ndarray
     n_points: int
     n_dropped: int
     n_used: int
+    n_at_origin: int = 0
 
 
 def check_ism_args(

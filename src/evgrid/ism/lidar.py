@@ -23,8 +23,10 @@ Decisions the paper leaves open (documented here once):
   return in that cell cannot blank the whole grid. Returns from the vehicle's body in other
   cells do stop the rays through them; ``min_range_m`` (not in the paper, 0 by default)
   ignores returns that close to the lidar;
-* a sweep without a single finite point is no measurement: the grid stays vacuous. A sweep
-  whose finite points are all filtered out by height (say, only ground hits) still casts
+* a point within ``NO_RETURN_RANGE_M`` (1 mm) of the sensor is no return (organised clouds
+  mark a beam without one as (0, 0, 0)): it is dropped and counted, like a NaN point;
+* a sweep without a single finite return is no measurement: the grid stays vacuous. A sweep
+  whose returns are all filtered out by height (say, only ground hits) still casts
   every ray to 15 m: the sensor saw no obstacle there;
 * rays are at angles ``k * step`` in the grid's frame, ``step = 360 / round(360 /
   angular_resolution_deg)`` degrees so that they divide the circle evenly.
@@ -39,7 +41,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from evgrid.data.frame import LIDAR_COLUMNS, LidarSweep
+from evgrid.data.frame import LIDAR_COLUMNS, NO_RETURN_RANGE_M, LidarSweep
 from evgrid.geometry import SE3, GridSpec
 from evgrid.ism._common import (
     FREE,
@@ -98,17 +100,22 @@ _DEFAULT_PARAMS = RayIlmParams()
 
 
 @numba.njit(cache=True)
-def _k_ilm_points(pts, se, eg, z_min, z_max, min_range, half, inv_res, labels):
-    """Mark detection cells; returns (n_dropped, n_used). ``se``: sensor->ego 3x4, ``eg``: ego->grid
-    2x4."""
+def _k_ilm_points(pts, se, eg, z_min, z_max, min_range, no_return, half, inv_res, labels):
+    """Mark detection cells; returns (n_dropped, n_at_origin, n_used). ``se``: sensor->ego 3x4,
+    ``eg``: ego->grid 2x4; points within ``no_return`` of the sensor are no returns."""
     n_r, n_c = labels.shape
     min_r2 = min_range * min_range
+    no_return2 = no_return * no_return
     n_dropped = 0
+    n_at_origin = 0
     n_used = 0
     for i in range(pts.shape[0]):
         finite, x, y, z = point_xyz(pts, i)
         if not finite:
             n_dropped += 1
+            continue
+        if x * x + y * y + z * z < no_return2:
+            n_at_origin += 1
             continue
         ex = se[0, 0] * x + se[0, 1] * y + se[0, 2] * z + se[0, 3]
         ey = se[1, 0] * x + se[1, 1] * y + se[1, 2] * z + se[1, 3]
@@ -129,7 +136,7 @@ def _k_ilm_points(pts, se, eg, z_min, z_max, min_range, half, inv_res, labels):
         fc = math.floor(half - gy * inv_res)
         if fr >= 0 and fr < n_r and fc >= 0 and fc < n_c:
             labels[int(fr), int(fc)] = OCCUPIED
-    return n_dropped, n_used
+    return n_dropped, n_at_origin, n_used
 
 
 @numba.njit(cache=True, inline="always")
@@ -266,7 +273,8 @@ def ray_ilm_with_stats(
     (ego -> global), that pose's ego frame: points and the lidar origin are moved into it
     (heights are still taken in the sweep's ego frame). ``threads > 1`` runs the ray casting
     on that many numba threads. ``out``: a float32 ``(n, n, 3)`` array to write into.
-    NaN/inf points are dropped, counted and logged once per call.
+    NaN/inf points are dropped, counted and logged once per call; points at the sensor origin
+    (no returns) are dropped and counted (``n_at_origin``).
     """
     threads = check_ism_args("ray_ilm", grid, params, RayIlmParams, threads, out)
     pts, sensor_to_ego, ego_pose = _resolve_inputs(sweep, sensor_to_ego, ego_pose)
@@ -283,20 +291,29 @@ def ray_ilm_with_stats(
     n = grid.n_cells
     inv_res = 1.0 / grid.resolution
     labels = label_scratch(grid, "ilm")
-    n_dropped, n_used = _k_ilm_points(
+    n_dropped, n_at_origin, n_used = _k_ilm_points(
         pts,
         se,
         eg,
         float(params.z_min_m),
         float(params.z_max_m),
         float(params.min_range_m),
+        NO_RETURN_RANGE_M,
         n / 2.0,
         inv_res,
         labels,
     )
     n_points = int(pts.shape[0])
     log_dropped(logger, "ray_ilm", int(n_dropped), n_points)
-    if n_points - n_dropped > 0:  # no finite point at all: no measurement, stay vacuous
+    if n_at_origin and n_points - n_dropped - n_at_origin == 0:
+        # before: a sweep of (0, 0, 0) points painted a full free disc
+        logger.warning(
+            "ray_ilm: all %d finite point(s) lie within %g m of the sensor (no return): no "
+            "measurement, the grid stays vacuous",
+            int(n_at_origin),
+            NO_RETURN_RANGE_M,
+        )
+    if n_points - n_dropped - n_at_origin > 0:  # no return at all: no measurement, vacuous
         # Continuous cell coordinates of the origin: u = n/2 - x/res puts cell edges at integers.
         u0 = n / 2.0 - origin[0] * inv_res
         v0 = n / 2.0 - origin[1] * inv_res
@@ -307,7 +324,7 @@ def ray_ilm_with_stats(
         else:
             _k_ilm_rays(labels, u0, v0, params.n_rays, t_end)
     masses = labels_to_masses(labels, params.m_free, params.m_occupied, out, threads)
-    return IsmResult(masses, n_points, int(n_dropped), int(n_used))
+    return IsmResult(masses, n_points, int(n_dropped), int(n_used), int(n_at_origin))
 
 
 def ray_ilm(sweep: LidarSweep | np.ndarray, *args, **kwargs) -> np.ndarray:

@@ -546,6 +546,10 @@ class TrainResult:
     #: the forward pass's dtype: ``float32``, or ``bfloat16`` / ``float16`` on CUDA
     precision: str = "float32"
     samples_per_second: float = math.nan
+    #: fine-tuning: the parent checkpoint's IoU on this run's validation scenes before any
+    #: step (beside ``best``, whether fine-tuning helped), and the one it recorded on its own
+    parent_val: dict[str, float] | None = None
+    parent_recorded_val: dict[str, float] | None = None
 
 
 def _seed_all(seed: int) -> None:
@@ -736,6 +740,7 @@ def _initial_model(config: TrainConfig, device: torch.device) -> tuple[EvNet, di
         "epoch": ck.extra.get("epoch"),
         "radar_filter": ck.extra.get("radar_filter"),
         "data": ck.extra.get("data"),
+        "val_iou": ck.extra.get("val_iou"),  # on the parent's own validation scenes
     }
     return ck.model.train().to(device), parent
 
@@ -949,6 +954,10 @@ def train(
     """
     out = Path(out_dir)
     run = _setup(config, cache_dir, train_scenes, val_scenes, out, data, config_document)
+    if "parent" in run.extra and run.rank == 0:
+        # the parent on these validation scenes, before any step: the score to beat
+        val, _, _ = evaluate_model(run.model, run.val_loader, run.device)
+        run.extra["parent"]["val_iou_here"] = val
     state_path = out / "resume.pt"
     if resume and state_path.exists():
         _resume(run, state_path)
@@ -985,4 +994,6 @@ def _finish(run: _Run, out: Path) -> TrainResult:
         float(np.mean(run.epoch_times)) if run.epoch_times else math.nan,
         run.precision.name,
         run.samples / seconds if run.epoch_times else math.nan,
+        run.extra.get("parent", {}).get("val_iou_here"),
+        run.extra.get("parent", {}).get("val_iou"),
     )

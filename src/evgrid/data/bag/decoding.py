@@ -9,7 +9,7 @@ import numpy as np
 
 from evgrid.data.bag.errors import BagError
 from evgrid.data.bag.rig import RADIAL, LidarTopic, RadarTopic
-from evgrid.data.frame import LIDAR_COLUMNS, RADAR_COLUMNS
+from evgrid.data.frame import LIDAR_COLUMNS, NO_RETURN_RANGE_M, RADAR_COLUMNS
 
 __all__ = [
     "RADAR_REQUIRED",
@@ -29,7 +29,7 @@ RADAR_DEFAULTS = {"dyn_prop": 1.0, "ambig_state": 3.0, "invalid_state": 0.0, "pd
 
 #: A point is plausible when its range is within these bounds (m): no lidar or radar sees
 #: beyond 10 km, and a byte-swapped float is mostly either astronomically large or tiny.
-PLAUSIBLE_RANGE_M = (1e-3, 1e4)
+PLAUSIBLE_RANGE_M = (NO_RETURN_RANGE_M, 1e4)
 
 
 def _plausible_share(xyz: np.ndarray) -> float:

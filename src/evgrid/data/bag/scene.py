@@ -162,9 +162,40 @@ class BagScene:
         if self.stopped:
             logger.warning("%s; mapping what was read before", self.stopped)
         self._check(tf)
+        self._said_silent_radars(index)
+        self._said_second_parents(tf, next(iter(types)))
         self._tf = tf
         self._poses = _PoseTrack(tf, rig.world_frame, rig.base_frame)
         self._extrinsics: dict[str, SE3] = {}
+
+    def _said_silent_radars(self, index: dict[str, int]) -> None:
+        """A radar topic of the rig that the recording holds no message of: the radar maps are
+        made without that radar, which a user must hear of (issue 39); counted in
+        ``radar_topics_silent``. A warning, not an error: the other sensors still map, and a
+        radar that was off is a fact of the recording, not a wrong rig."""
+        silent = [r.topic for r in self.rig.radars if r.topic not in index]
+        self._pose_counts["radar_topics_silent"] = len(silent)
+        for topic in silent:
+            logger.warning(
+                "%s: radar topic %s has no message; the radar maps are made without it",
+                self.path,
+                topic,
+            )
+
+    def _said_second_parents(self, tf: TransformBuffer, topic: str) -> None:
+        """Pose samples of a second tf parent (kept apart by the buffer): counted in
+        ``pose_samples_second_parent`` and logged naming the topic."""
+        n = sum(sum(p.values()) for p in tf.second_parents.values())
+        self._pose_counts["pose_samples_second_parent"] = n
+        for child, parents in tf.second_parents.items():
+            logger.warning(
+                "%s %s: %d sample(s) give frame %r a second parent (%s)",
+                self.path,
+                topic,
+                sum(parents.values()),
+                child,
+                ", ".join(parents),
+            )
 
     def _skip_pose(self, where: str, sample: tuple) -> None:
         """A transform the buffer refused (not finite, or a quaternion without length): counted
