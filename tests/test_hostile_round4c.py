@@ -360,3 +360,21 @@ def test_fine_tuning_reports_the_parents_validation_score_beside_the_new_one(tmp
     text = train_report(child, tmp_path / "child")
     assert "validation IoU on these scenes: fine-tuned free" in text
     assert "the parent before fine-tuning free" in text
+
+
+def test_a_parent_of_the_map_path_that_is_a_file_is_named(tmp_path):
+    # before: `FileExistsError: [Errno 17] File exists: '.../afile'` from save_map, and
+    # `[Errno 20] Not a directory` from a run's --out
+    from evgrid.geometry import GridSpec
+    from evgrid.grid import EvidentialMap, save_map
+    from evgrid.io import NotAFolderError
+    from evgrid.outdir import results_folder
+
+    afile = tmp_path / "afile"
+    afile.write_text("not a folder")
+    with pytest.raises(NotAFolderError, match=r"afile is a file, not a folder$"):
+        save_map(EvidentialMap(GridSpec()), afile / "fused.npz")
+    with pytest.raises(NotAFolderError, match=r"run cannot be made: .*afile is a file$"):
+        with results_folder(afile / "deeper" / "run"):
+            pass
+    assert afile.read_text() == "not a folder"

@@ -83,9 +83,32 @@ class FileWriteError(OSError):
 
 def write_error(path: Path, e: BaseException) -> BaseException:
     """``e`` as an error naming ``path`` (OS errors), or ``e`` itself (anything else)."""
+    if isinstance(e, NotAFolderError):
+        return e  # make_folder's own one line
     if isinstance(e, OSError) and not isinstance(e, (FileWriteError, FileExistsError)):
         return FileWriteError(path, e)
     return e
+
+
+class NotAFolderError(NotADirectoryError):
+    """A folder to make whose path runs through a file; the message names both."""
+
+    def __str__(self) -> str:
+        return str(self.strerror)
+
+
+def make_folder(folder: str | os.PathLike) -> Path:
+    """``folder`` and its parents, made where missing; a path through a file is refused naming
+    that file (mkdir's own words are ``File exists`` or ``Not a directory``, naming neither)."""
+    folder = Path(folder)
+    for p in (folder, *folder.parents):
+        if p.exists() or p.is_symlink():
+            if not p.is_dir():
+                why = "is a file, not a folder" if p == folder else f"cannot be made: {p} is a file"
+                raise NotAFolderError(errno.ENOTDIR, f"{folder} {why}", str(p))
+            break
+    folder.mkdir(parents=True, exist_ok=True)
+    return folder
 
 
 def refuse_existing(paths: Iterable[Path], overwrite: bool) -> None:
@@ -127,7 +150,7 @@ class AtomicFile:
         self.overwrite = overwrite
         refuse_existing([self.path], overwrite)
         try:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
+            make_folder(self.path.parent)
             fd, tmp = tempfile.mkstemp(
                 prefix="." + self.path.name + ".", suffix=".part", dir=self.path.parent
             )

@@ -29,7 +29,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from evgrid.io import load_json_bounded, write_json
+from evgrid.io import load_json_bounded, make_folder, write_json
 
 __all__ = [
     "ResultsExistError",
@@ -231,7 +231,7 @@ def locked(out: str | os.PathLike) -> Iterator[Path]:
     :func:`results_folder` does, without its policy on existing content (``evgrid train``
     continues into its folder)."""
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    make_folder(out)
     lock = _take_lock(out)
     try:
         yield out
@@ -253,7 +253,7 @@ def results_folder(
     if out.exists() and not out.is_dir():
         raise ResultsExistError(f"{out} is a file, not a results folder")
     created = not out.exists()
-    out.mkdir(parents=True, exist_ok=True)
+    make_folder(out)
     try:
         lock = _take_lock(out)
     except BaseException:
