@@ -237,21 +237,7 @@ class RecordingRig:
                 **({"frame": self.lidar.frame} if self.lidar.frame else {}),
                 **({"fields": dict(self.lidar.fields)} if self.lidar.fields else {}),
             },
-            "radars": [
-                {
-                    "topic": r.topic,
-                    "channel": r.channel,
-                    **({"frame": r.frame} if r.frame else {}),
-                    **({"fields": dict(r.fields)} if r.fields else {}),
-                    **({} if r.compensated else {"compensated": False}),
-                    **(
-                        {"type": r.msgtype.split("/")[-1]}
-                        if r.msgtype != "sensor_msgs/msg/PointCloud2"
-                        else {}
-                    ),
-                }
-                for r in self.radars
-            ],
+            "radars": [_radar_entry(r) for r in self.radars],
             "keyframes": (
                 {"every": self.keyframe_every}
                 | ({"offset": self.keyframe_offset} if self.keyframe_offset else {})
@@ -305,6 +291,20 @@ def _radar_topic(r: Any, where: str, w: str, lidar_topic: str) -> RadarTopic:
         comp,
         typ,
     )
+
+
+def _radar_entry(r: RadarTopic) -> dict[str, Any]:
+    """A radar's entry in a rig file, as :func:`_radar_topic` reads it (defaults left out)."""
+    return {
+        "topic": r.topic,
+        "channel": r.channel,
+        **({"frame": r.frame} if r.frame else {}),
+        **({"fields": dict(r.fields)} if r.fields else {}),
+        **({} if r.compensated else {"compensated": False}),
+        **(
+            {"type": r.msgtype.split("/")[-1]} if r.msgtype != "sensor_msgs/msg/PointCloud2" else {}
+        ),
+    }
 
 
 def _pose_source(d: Mapping[str, Any], where: str) -> tuple[Mapping[str, Any], str]:
