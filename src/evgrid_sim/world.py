@@ -883,6 +883,29 @@ def _roundabout_island(
     lamps around the circulating carriageway."""
     n = max(int(2 * math.pi * rad / 1.2), 10)
     _ring(b, c, rad, n, 0.15, lambda: 0.35, M.BARRIER)
+    _island_planting(b, rng, c, rad)
+    if rng.random() < 0.6:
+        _tree(b, rng, c, street=False, big=True)
+    else:
+        b.add(
+            float(c[0]),
+            float(c[1]),
+            rng.uniform(0, math.pi),
+            0.6,
+            0.6,
+            0.0,
+            rng.uniform(3.0, 6.0),
+            M.WALL,
+        )
+    for k in range(rng.integers(4, 9)):
+        a = rng.uniform(0, 2 * math.pi)
+        p = c + (clear + 1.2) * np.array([math.cos(a), math.sin(a)])
+        b.add(float(p[0]), float(p[1]), 0.0, 0.12, 0.12, 0.0, rng.uniform(6.0, 8.0), M.POLE)
+
+
+def _island_planting(b: _Builder, rng: np.random.Generator, c: np.ndarray, rad: float) -> None:
+    """A hedge ring inside the island's curb, or (on a small island, or by the draw) a few
+    bushes scattered over it."""
     if rng.random() < 0.5 and rad > 3.0:
         r2 = rad - 0.8
         n2 = max(int(2 * math.pi * r2 / 1.5), 8)
@@ -913,23 +936,6 @@ def _roundabout_island(
                 rng.uniform(0.6, 1.4),
                 M.BUSH,
             )
-    if rng.random() < 0.6:
-        _tree(b, rng, c, street=False, big=True)
-    else:
-        b.add(
-            float(c[0]),
-            float(c[1]),
-            rng.uniform(0, math.pi),
-            0.6,
-            0.6,
-            0.0,
-            rng.uniform(3.0, 6.0),
-            M.WALL,
-        )
-    for k in range(rng.integers(4, 9)):
-        a = rng.uniform(0, 2 * math.pi)
-        p = c + (clear + 1.2) * np.array([math.cos(a), math.sin(a)])
-        b.add(float(p[0]), float(p[1]), 0.0, 0.12, 0.12, 0.0, rng.uniform(6.0, 8.0), M.POLE)
 
 
 def _rows_array(rows: list) -> np.ndarray:
