@@ -424,70 +424,85 @@ def _street_furniture(
 def _urban_side(
     b: _Builder, rng: np.random.Generator, side: _Side, density: float, irregular: bool = False
 ) -> None:
-    L = side.length
     max_depth = max(side.depth / 2.0 - 1.0, 8.0)
     if rng.random() < 0.12:
-        # A parking lot or plaza behind a low wall, with a building at the back.
-        u = 0.0
-        while u < L:
-            seg = rng.uniform(6.0, 20.0)
-            side.box(b, u, min(u + seg, L), 0.1, 0.4, 0.0, rng.uniform(0.8, 1.4), M.WALL)
-            u += seg + rng.uniform(3.0, 6.0)
-        for _ in range(rng.integers(2, 7)):
-            _tree(
-                b,
-                rng,
-                side.point(rng.uniform(3.0, L - 3.0), rng.uniform(3.0, min(max_depth, 20.0))),
-                street=False,
-                big=True,
-            )
-        v_row = rng.uniform(6.0, 10.0)
-        u = 5.0
-        while u < L - 5.0:
-            if rng.random() < 0.7 * min(density, 1.3):
-                k, length, width, z0, z1 = _vehicle_dims(rng, moving=False)
-                side.box(b, u, u + width, v_row, v_row + length, z0, z1, k)
-            u += rng.uniform(2.5, 3.2)
-        if max_depth > 25.0:
-            side.box(
-                b,
-                0.0,
-                L,
-                22.0,
-                min(22.0 + rng.uniform(10.0, 20.0), max_depth),
-                0.0,
-                rng.uniform(8.0, 30.0),
-                M.BUILDING,
-            )
+        _lot_behind_wall(b, rng, side, density, max_depth)
     else:
-        u = 0.0
-        while u < L - 2.0:
-            if rng.random() < 0.12:
-                gap = rng.uniform(2.5, 7.0)
-                if rng.random() < 0.5:
-                    klass = M.WALL if rng.random() < 0.5 else M.FENCE
-                    thick = 0.25 if klass == M.WALL else 0.06
-                    side.box(
-                        b, u, min(u + gap, L), 0.05, 0.05 + thick, 0.0, rng.uniform(1.8, 3.0), klass
-                    )
-                u += gap
-                continue
-            w = rng.uniform(8.0, 30.0)
-            setback = (
-                0.0
-                if rng.random() < (0.45 if irregular else 0.7)
-                else rng.uniform(0.5, 4.5 if irregular else 3.0)
-            )
-            depth = min(rng.uniform(12.0, 28.0), max_depth - setback)
-            h = float(np.clip(rng.lognormal(math.log(14.0), 0.5), 5.0, 60.0))
-            if irregular:
-                _irregular_building(b, rng, side, u, min(u + w, L), setback, depth, h)
-            else:
-                side.box(b, u, min(u + w, L), setback, setback + depth, 0.0, h, M.BUILDING)
-            u += w
+        _building_row(b, rng, side, max_depth, irregular)
     _street_furniture(b, rng, side, urban=True, density=density)
     if side.parking:
         _parked_cars(b, rng, side, empty_p=0.22 / max(density, 0.2))
+
+
+def _lot_behind_wall(
+    b: _Builder, rng: np.random.Generator, side: _Side, density: float, max_depth: float
+) -> None:
+    """A parking lot or plaza behind a low wall, trees, a row of parked cars, and (on a deep
+    block) a building at the back."""
+    L = side.length
+    u = 0.0
+    while u < L:
+        seg = rng.uniform(6.0, 20.0)
+        side.box(b, u, min(u + seg, L), 0.1, 0.4, 0.0, rng.uniform(0.8, 1.4), M.WALL)
+        u += seg + rng.uniform(3.0, 6.0)
+    for _ in range(rng.integers(2, 7)):
+        _tree(
+            b,
+            rng,
+            side.point(rng.uniform(3.0, L - 3.0), rng.uniform(3.0, min(max_depth, 20.0))),
+            street=False,
+            big=True,
+        )
+    v_row = rng.uniform(6.0, 10.0)
+    u = 5.0
+    while u < L - 5.0:
+        if rng.random() < 0.7 * min(density, 1.3):
+            k, length, width, z0, z1 = _vehicle_dims(rng, moving=False)
+            side.box(b, u, u + width, v_row, v_row + length, z0, z1, k)
+        u += rng.uniform(2.5, 3.2)
+    if max_depth > 25.0:
+        side.box(
+            b,
+            0.0,
+            L,
+            22.0,
+            min(22.0 + rng.uniform(10.0, 20.0), max_depth),
+            0.0,
+            rng.uniform(8.0, 30.0),
+            M.BUILDING,
+        )
+
+
+def _building_row(
+    b: _Builder, rng: np.random.Generator, side: _Side, max_depth: float, irregular: bool
+) -> None:
+    """Buildings along the street, set back or not, with gaps closed by a wall or a fence."""
+    L = side.length
+    u = 0.0
+    while u < L - 2.0:
+        if rng.random() < 0.12:
+            gap = rng.uniform(2.5, 7.0)
+            if rng.random() < 0.5:
+                klass = M.WALL if rng.random() < 0.5 else M.FENCE
+                thick = 0.25 if klass == M.WALL else 0.06
+                side.box(
+                    b, u, min(u + gap, L), 0.05, 0.05 + thick, 0.0, rng.uniform(1.8, 3.0), klass
+                )
+            u += gap
+            continue
+        w = rng.uniform(8.0, 30.0)
+        setback = (
+            0.0
+            if rng.random() < (0.45 if irregular else 0.7)
+            else rng.uniform(0.5, 4.5 if irregular else 3.0)
+        )
+        depth = min(rng.uniform(12.0, 28.0), max_depth - setback)
+        h = float(np.clip(rng.lognormal(math.log(14.0), 0.5), 5.0, 60.0))
+        if irregular:
+            _irregular_building(b, rng, side, u, min(u + w, L), setback, depth, h)
+        else:
+            side.box(b, u, min(u + w, L), setback, setback + depth, 0.0, h, M.BUILDING)
+        u += w
 
 
 def _irregular_building(
