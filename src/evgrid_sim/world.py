@@ -761,6 +761,12 @@ def _open_square(
             M.BARRIER,
             dyaw=float(rng.choice([0.0, math.pi / 2])),
         )
+    _square_centrepiece(b, rng, f)
+
+
+def _square_centrepiece(b: _Builder, rng: np.random.Generator, f: _Side) -> None:
+    """The middle of a square: a fountain, a statue or a kiosk."""
+    L, D = f.length, f.depth
     c = f.point(L / 2, D / 2)
     r = rng.random()
     if r < 0.45:
