@@ -566,46 +566,9 @@ def _suburban_side(
         lot = rng.uniform(16.0, 26.0)
         end = min(u + lot, L)
         lot = end - u
-        setback = rng.uniform(5.0, 12.0)
-        hw_ = min(rng.uniform(9.0, 15.0), lot - 3.0)
-        hd = min(rng.uniform(8.0, 13.0), side.depth / 2.0 - setback - 2.0)
-        uc = u + (lot - hw_) * rng.uniform(0.2, 0.8)
-        if hw_ > 4.0 and hd > 4.0:
-            side.box(b, uc, uc + hw_, setback, setback + hd, 0.0, rng.uniform(5.0, 8.5), M.BUILDING)
-            if rng.random() < 0.3:  # garage
-                g0 = uc + hw_ + 0.5
-                if g0 + 4.0 < end:
-                    side.box(
-                        b,
-                        g0,
-                        min(g0 + 6.0, end - 0.5),
-                        setback + 1.0,
-                        setback + 7.0,
-                        0.0,
-                        3.0,
-                        M.BUILDING,
-                    )
+        setback, hw_, hd, uc = _house(b, rng, side, u, end, lot)
         drive = u + rng.uniform(1.0, max(lot - 5.0, 1.5))
-        r = rng.random()
-        if r < 0.7:
-            hedge = r >= 0.4
-            thick = rng.uniform(0.6, 1.0) if hedge else 0.06
-            height = rng.uniform(0.9, 1.8) if hedge else rng.uniform(0.9, 1.4)
-            klass = M.HEDGE if hedge else M.FENCE
-            for a, c in ((u + 0.3, drive), (drive + 3.5, end - 0.3)):
-                if c - a > 0.5:
-                    side.box(b, a, c, 0.1, 0.1 + thick, 0.0, height, klass)
-        if rng.random() < 0.4:
-            side.box(
-                b,
-                end - 0.06,
-                end,
-                0.2,
-                setback + hd + rng.uniform(3.0, 10.0),
-                0.0,
-                rng.uniform(1.5, 1.9),
-                M.FENCE,
-            )
+        _lot_fences(b, rng, side, u, end, drive, setback, hd)
         if setback > 6.0 and rng.random() < 0.45 * min(density, 1.5):
             k, length, width, z0, z1 = _vehicle_dims(rng, moving=False)
             length = min(length, setback - 1.5)
@@ -613,46 +576,123 @@ def _suburban_side(
             side.box(
                 b, drive + 1.75 - width / 2, drive + 1.75 + width / 2, v0, v0 + length, z0, z1, k
             )
-        for _ in range(rng.poisson(1.2)):
-            _tree(
-                b,
-                rng,
-                side.point(
-                    rng.uniform(u + 2.0, end - 2.0), rng.uniform(1.5, max(setback - 1.0, 1.6))
-                ),
-                street=False,
-                big=True,
-            )
-        for _ in range(rng.poisson(1.5)):
-            s = rng.uniform(0.8, 2.0)
-            bu = rng.uniform(uc, uc + max(hw_, 1.0))
-            bv = setback - rng.uniform(0.6, 1.6)
-            side.box(
-                b,
-                bu - s / 2,
-                bu + s / 2,
-                bv - s / 2,
-                bv + s / 2,
-                0.0,
-                rng.uniform(0.6, 1.5),
-                M.BUSH,
-            )
-        if irregular and rng.random() < 0.35 and lot > 8.0:
-            # A cluster of trees in the back garden.
-            v_back = setback + max(hd, 0.0) + rng.uniform(2.0, 6.0)
-            if v_back < side.depth / 2.0 - 3.0:
-                for _ in range(rng.integers(2, 6)):
-                    _tree(
-                        b,
-                        rng,
-                        side.point(rng.uniform(u + 2.0, end - 2.0), v_back + rng.uniform(0.0, 5.0)),
-                        street=False,
-                        big=True,
-                    )
+        _garden(b, rng, side, u, end, lot, setback, hw_, hd, uc, irregular)
         u = end
     _street_furniture(b, rng, side, urban=False, density=density)
     if side.parking:
         _parked_cars(b, rng, side, empty_p=0.6 / max(density, 0.2))
+
+
+def _house(
+    b: _Builder, rng: np.random.Generator, side: _Side, u: float, end: float, lot: float
+) -> tuple[float, float, float, float]:
+    """A house set back on the lot from ``u`` to ``end`` (and sometimes a garage beside it);
+    returns its setback, width, depth and start along the street."""
+    setback = rng.uniform(5.0, 12.0)
+    hw_ = min(rng.uniform(9.0, 15.0), lot - 3.0)
+    hd = min(rng.uniform(8.0, 13.0), side.depth / 2.0 - setback - 2.0)
+    uc = u + (lot - hw_) * rng.uniform(0.2, 0.8)
+    if hw_ > 4.0 and hd > 4.0:
+        side.box(b, uc, uc + hw_, setback, setback + hd, 0.0, rng.uniform(5.0, 8.5), M.BUILDING)
+        if rng.random() < 0.3:  # garage
+            g0 = uc + hw_ + 0.5
+            if g0 + 4.0 < end:
+                side.box(
+                    b,
+                    g0,
+                    min(g0 + 6.0, end - 0.5),
+                    setback + 1.0,
+                    setback + 7.0,
+                    0.0,
+                    3.0,
+                    M.BUILDING,
+                )
+    return setback, hw_, hd, uc
+
+
+def _lot_fences(
+    b: _Builder,
+    rng: np.random.Generator,
+    side: _Side,
+    u: float,
+    end: float,
+    drive: float,
+    setback: float,
+    hd: float,
+) -> None:
+    """A hedge or a fence along the street on both sides of the drive, and sometimes a fence
+    between this lot and the next."""
+    r = rng.random()
+    if r < 0.7:
+        hedge = r >= 0.4
+        thick = rng.uniform(0.6, 1.0) if hedge else 0.06
+        height = rng.uniform(0.9, 1.8) if hedge else rng.uniform(0.9, 1.4)
+        klass = M.HEDGE if hedge else M.FENCE
+        for a, c in ((u + 0.3, drive), (drive + 3.5, end - 0.3)):
+            if c - a > 0.5:
+                side.box(b, a, c, 0.1, 0.1 + thick, 0.0, height, klass)
+    if rng.random() < 0.4:
+        side.box(
+            b,
+            end - 0.06,
+            end,
+            0.2,
+            setback + hd + rng.uniform(3.0, 10.0),
+            0.0,
+            rng.uniform(1.5, 1.9),
+            M.FENCE,
+        )
+
+
+def _garden(
+    b: _Builder,
+    rng: np.random.Generator,
+    side: _Side,
+    u: float,
+    end: float,
+    lot: float,
+    setback: float,
+    hw_: float,
+    hd: float,
+    uc: float,
+    irregular: bool,
+) -> None:
+    """Trees in the front garden, bushes before the house, and (irregular towns) a cluster of
+    trees in the back garden."""
+    for _ in range(rng.poisson(1.2)):
+        _tree(
+            b,
+            rng,
+            side.point(rng.uniform(u + 2.0, end - 2.0), rng.uniform(1.5, max(setback - 1.0, 1.6))),
+            street=False,
+            big=True,
+        )
+    for _ in range(rng.poisson(1.5)):
+        s = rng.uniform(0.8, 2.0)
+        bu = rng.uniform(uc, uc + max(hw_, 1.0))
+        bv = setback - rng.uniform(0.6, 1.6)
+        side.box(
+            b,
+            bu - s / 2,
+            bu + s / 2,
+            bv - s / 2,
+            bv + s / 2,
+            0.0,
+            rng.uniform(0.6, 1.5),
+            M.BUSH,
+        )
+    if irregular and rng.random() < 0.35 and lot > 8.0:
+        # A cluster of trees in the back garden.
+        v_back = setback + max(hd, 0.0) + rng.uniform(2.0, 6.0)
+        if v_back < side.depth / 2.0 - 3.0:
+            for _ in range(rng.integers(2, 6)):
+                _tree(
+                    b,
+                    rng,
+                    side.point(rng.uniform(u + 2.0, end - 2.0), v_back + rng.uniform(0.0, 5.0)),
+                    street=False,
+                    big=True,
+                )
 
 
 def _rect_frame(rect: tuple[float, float, float, float]) -> _Side:
