@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -153,8 +153,16 @@ def costs(
         n_maps * per_side**2 * float(t) ** 2 * tile_bytes,
         f"{per_side**2} tiles of {t} x {t} cells under the local grid, for each of {n_maps} map(s)",
     )
-    if outputs is None:
-        return out
+    if outputs is not None:
+        _output_costs(outputs, res, n_maps, add)
+    return out
+
+
+def _output_costs(
+    outputs: Any, res: float, n_maps: int, add: Callable[[str, float, str], None]
+) -> None:
+    """The memory of the outputs' windows: the MCAP window, the GIF frames kept, the rerun
+    picture (each passed to ``add``)."""
     exports = tuple(outputs.exports)
     mcap = outputs.mcap
     if "mcap" in exports and mcap.window_m > 0:
@@ -189,7 +197,6 @@ def costs(
             side * side * (PICTURE_PIXEL_BYTES + RGB_BYTES),
             f"a rerun picture of {rerun.window_m:g} m ({side:.0f} x {side:.0f} pixels) per map",
         )
-    return out
 
 
 def check_budget(

@@ -817,6 +817,26 @@ def _check_tile_values(path: Path, tiles: np.ndarray, scores: np.ndarray | None)
         )
 
 
+def _check_array_shapes(path: Path, shapes: dict, ts: int, n_keys: int) -> None:
+    """MapFileError unless every array's declared shape and dtype agree with the header's
+    tile_cells ``ts`` and the ``n_keys`` keys."""
+    want = {  # shape, dtype test, what it is
+        "keys": ((n_keys, 2), lambda d: d.kind == "i", "integer tile keys"),
+        "tiles": ((n_keys, ts, ts, 3), lambda d: d == np.float32, "float32 masses"),
+        "covered": ((n_keys, ts, ts), lambda d: d == np.bool_, "bool coverage"),
+        "dynamic": ((n_keys, ts, ts), lambda d: d == np.float32, "float32 scores"),
+    }
+    for name, (shape, ok, what) in want.items():
+        if name not in shapes:
+            continue
+        got_shape, got_dtype = shapes[name]
+        if got_shape != shape or not ok(got_dtype):
+            raise MapFileError(
+                f"{path} is inconsistent: array '{name}' is {got_shape} {got_dtype}; "
+                f"the header's tile_cells {ts} and {n_keys} keys make it {shape} {what}"
+            )
+
+
 def _checked_head(path: Path):
     """``(tile_cells, grid, metadata, frame, declared shapes, keys)`` of a map file, every
     array's declared shape checked against the header and the keys checked; MapFileError if
@@ -839,21 +859,7 @@ def _checked_head(path: Path):
                 header = json.loads(np.lib.format.read_array(f, allow_pickle=False).tobytes())
             ts, spec, metadata, frame = _header_fields(path, header)
             n_keys = shapes["keys"][0][0] if len(shapes["keys"][0]) == 2 else -1
-            want = {  # shape, dtype test, what it is
-                "keys": ((n_keys, 2), lambda d: d.kind == "i", "integer tile keys"),
-                "tiles": ((n_keys, ts, ts, 3), lambda d: d == np.float32, "float32 masses"),
-                "covered": ((n_keys, ts, ts), lambda d: d == np.bool_, "bool coverage"),
-                "dynamic": ((n_keys, ts, ts), lambda d: d == np.float32, "float32 scores"),
-            }
-            for name, (shape, ok, what) in want.items():
-                if name not in shapes:
-                    continue
-                got_shape, got_dtype = shapes[name]
-                if got_shape != shape or not ok(got_dtype):
-                    raise MapFileError(
-                        f"{path} is inconsistent: array '{name}' is {got_shape} {got_dtype}; "
-                        f"the header's tile_cells {ts} and {n_keys} keys make it {shape} {what}"
-                    )
+            _check_array_shapes(path, shapes, ts, n_keys)
             with zf.open("keys.npy") as f:
                 keys = np.lib.format.read_array(f, allow_pickle=False)
             # each tile's covered cells, read tile by tile (for the extent check)

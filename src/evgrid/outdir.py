@@ -130,6 +130,27 @@ def _started(holder: dict[str, Any]) -> str:
     return ", started " + time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(t))
 
 
+def _refuse_live_holder(out: Path, lock: Path, holder: dict[str, Any], host: str) -> None:
+    """Raise RunLockedError unless ``holder`` is a run on this host that is gone: a holder on
+    another host cannot be checked, a live pid here still writes."""
+    if holder["host"] != host:
+        hint = BREAK_LOCK_HINT.format(out=out)
+        raise RunLockedError(
+            f"{out} is locked by pid {holder['pid']} on host {holder['host']!r}"
+            f"{_started(holder)} (lock {lock}); that is not this host "
+            f"({host!r}), so evgrid cannot tell whether that run still lives. The "
+            "lock may be stale (a container gets a new host name at every start): if "
+            f"no run writes into {out}, clear it with `{hint}`; --overwrite does not "
+            "clear it"
+        ) from None
+    if _pid_alive(holder["pid"]):
+        raise RunLockedError(
+            f"{out} is in use by another evgrid run (pid {holder['pid']} on "
+            f"{holder['host']}{_started(holder)}, lock {lock}); wait for it or choose "
+            "another --out"
+        ) from None
+
+
 def _take_lock(out: Path) -> Path:
     lock = out / LOCK_NAME
     me = {"pid": os.getpid(), "host": socket.gethostname(), "started": time.time()}
@@ -149,23 +170,8 @@ def _take_lock(out: Path) -> Path:
                     time.sleep(0.2)  # being written by its holder right now
                     continue
                 log.warning("%s: taking over the lock file %s: %s", out, lock, why)
-            elif holder["host"] != me["host"]:
-                hint = BREAK_LOCK_HINT.format(out=out)
-                raise RunLockedError(
-                    f"{out} is locked by pid {holder['pid']} on host {holder['host']!r}"
-                    f"{_started(holder)} (lock {lock}); that is not this host "
-                    f"({me['host']!r}), so evgrid cannot tell whether that run still lives. The "
-                    "lock may be stale (a container gets a new host name at every start): if "
-                    f"no run writes into {out}, clear it with `{hint}`; --overwrite does not "
-                    "clear it"
-                ) from None
-            elif _pid_alive(holder["pid"]):
-                raise RunLockedError(
-                    f"{out} is in use by another evgrid run (pid {holder['pid']} on "
-                    f"{holder['host']}{_started(holder)}, lock {lock}); wait for it or choose "
-                    "another --out"
-                ) from None
             else:
+                _refuse_live_holder(out, lock, holder, me["host"])
                 log.warning(
                     "%s: taking over the lock of a run that is gone (pid %s on %s)",
                     out,

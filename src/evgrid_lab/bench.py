@@ -287,6 +287,63 @@ def _dynamic_scene_cost(frames: Sequence, deep, repeats: int) -> dict[str, float
     return {"scene_on": on, "scene_off": off, "scene_cost": on - off}
 
 
+#: What the per-frame figures are.
+_PER_FRAME_NOTE = (
+    "components_ms are medians per map update (the median over runs of each run's median), "
+    "components_ms_p10 the 10th percentile over all updates; step_total is one whole update of "
+    "all listed maps"
+)
+
+
+def _deep_parts_at_scene_end(frames: list[Any], deep: Any, timing_repeat: int) -> dict[str, Any]:
+    """The deep IRM's steps timed on the sweeps buffered at the scene's last frame."""
+    mapper, _ = _map_frames(frames, ("fused",), deep)
+    sweeps = mapper.buffer.sweeps(deep.params.n_sweeps)
+    return _deep_parts(deep, sweeps, frames[-1].ego_pose, frames[-1].timestamp, timing_repeat)
+
+
+def _grid_costs(
+    grid: Any, frames: list[Any], deep: Any, repeats: int, rep: int
+) -> tuple[dict[str, float], dict[str, Any]]:
+    """The kernels' medians on random mass grids (ms, ``rep`` calls each), and the dynamic
+    score's cost on those grids and on the scene's frames."""
+    from evgrid import fusion, mass
+    from evgrid.geometry import SE2
+    from evgrid.grid import Warper
+
+    rng = np.random.default_rng(0)
+    a = rng.dirichlet([1, 1, 1], grid.shape).astype(np.float32)
+    b = rng.dirichlet([1, 1, 1], grid.shape).astype(np.float32)
+    cur, out = a.copy(), np.empty_like(a)
+    params = fusion.FusionParams()
+    warper = Warper(grid)
+    one_map = fusion.MapSet(grid, params, names=("deep_disc",))
+    pose = SE2(3.3, -1.7, math.radians(45))  # 45 degrees: the largest window
+    kernels = {
+        "dempster_512": median_ms(lambda: mass.dempster(a, b, out), repeat=rep),
+        "deep_disc_update_512": median_ms(
+            lambda: fusion.update_deep_disc(cur, b, params), repeat=rep
+        ),
+        "fused_update_512": median_ms(lambda: fusion.update_fused(cur, b, a, params), repeat=rep),
+        "warp_512_yaw45": median_ms(lambda: warper.warp(a, pose), repeat=rep),
+        "warp_and_deep_disc_fuse_512_yaw45": median_ms(
+            lambda: one_map.update(pose, {"deep_irm": a}), repeat=rep
+        ),
+    }
+    dynamic = _dynamic_cost(grid, a, b, pose, rep) | _dynamic_scene_cost(frames, deep, repeats)
+    return kernels, dynamic
+
+
+def _machine() -> dict[str, Any]:
+    """The processor, its cores and the load the timings ran under."""
+    return {
+        "processor": platform.processor() or platform.machine(),
+        "cpus": os.cpu_count(),
+        "threads": 1,
+        "load_average": os.getloadavg() if hasattr(os, "getloadavg") else None,
+    }
+
+
 def run_bench(
     duration_s: float = 6.0,
     checkpoint: str | None = None,
@@ -305,9 +362,7 @@ def run_bench(
     import numba
     import torch
 
-    from evgrid import fusion, mass
-    from evgrid.geometry import SE2, GridSpec
-    from evgrid.grid import Warper
+    from evgrid.geometry import GridSpec
     from evgrid.ism.deep import DeepIrm
     from evgrid_sim import SimConfig, simulate_scene
 
@@ -319,53 +374,22 @@ def run_bench(
     frames = list(scene)
 
     runs = _per_frame(frames, deep, repeats)
-    mapper, _ = _map_frames(frames, ("fused",), deep)
-    sweeps = mapper.buffer.sweeps(deep.params.n_sweeps)
-    parts = _deep_parts(deep, sweeps, frames[-1].ego_pose, frames[-1].timestamp, timing_repeat)
+    parts = _deep_parts_at_scene_end(frames, deep, timing_repeat)
 
-    rng = np.random.default_rng(0)
-    a = rng.dirichlet([1, 1, 1], grid.shape).astype(np.float32)
-    b = rng.dirichlet([1, 1, 1], grid.shape).astype(np.float32)
-    cur, out = a.copy(), np.empty_like(a)
-    params = fusion.FusionParams()
-    warper = Warper(grid)
-    one_map = fusion.MapSet(grid, params, names=("deep_disc",))
-    pose = SE2(3.3, -1.7, math.radians(45))  # 45 degrees: the largest window
-    rep = timing_repeat
-    kernels = {
-        "dempster_512": median_ms(lambda: mass.dempster(a, b, out), repeat=rep),
-        "deep_disc_update_512": median_ms(
-            lambda: fusion.update_deep_disc(cur, b, params), repeat=rep
-        ),
-        "fused_update_512": median_ms(lambda: fusion.update_fused(cur, b, a, params), repeat=rep),
-        "warp_512_yaw45": median_ms(lambda: warper.warp(a, pose), repeat=rep),
-        "warp_and_deep_disc_fuse_512_yaw45": median_ms(
-            lambda: one_map.update(pose, {"deep_irm": a}), repeat=rep
-        ),
-    }
+    kernels, dynamic = _grid_costs(grid, frames, deep, repeats, timing_repeat)
     result: dict[str, Any] = {
-        "dynamic_score_ms": _dynamic_cost(grid, a, b, pose, rep)
-        | _dynamic_scene_cost(frames, deep, repeats),
-        "machine": {
-            "processor": platform.processor() or platform.machine(),
-            "cpus": os.cpu_count(),
-            "threads": 1,
-            "load_average": os.getloadavg() if hasattr(os, "getloadavg") else None,
-        },
+        "dynamic_score_ms": dynamic,
+        "machine": _machine(),
         "scene": {"name": scene.name, "duration_s": duration_s},
         "checkpoint": str(deep.checkpoint),
         "runtime": deep.runtime.name,
         "per_frame": runs,
         "deep_irm_parts_ms": parts,
         "kernels_ms": kernels,
-        "note": "components_ms are medians per map update (the median over runs of each run's "
-        "median), components_ms_p10 the 10th percentile over all updates; step_total is one "
-        "whole update of all listed maps",
+        "note": _PER_FRAME_NOTE,
     }
-    rig_s = duration_s if rig_s is None else rig_s
-    end_to_end_s = duration_s if end_to_end_s is None else end_to_end_s
-    if rig_s > 0:
-        result["rig"] = _rig(deep, 4, rig_s)
-    if end_to_end_s > 0:
-        result["end_to_end"] = _end_to_end(deep, 4, end_to_end_s)
+    for key, length, run in (("rig", rig_s, _rig), ("end_to_end", end_to_end_s, _end_to_end)):
+        length = duration_s if length is None else length
+        if length > 0:
+            result[key] = run(deep, 4, length)
     return result

@@ -82,6 +82,44 @@ class LidarConfig:
         _positive(o, "power_threshold", self.power_threshold)
 
 
+#: The RadarConfig fields that must be positive, and those that may also be zero.
+_RADAR_POSITIVE = (
+    "rate_hz",
+    "ray_spacing_deg",
+    "fov_deg",
+    "max_range_m",
+    "edge_range_m",
+    "far_range_m",
+    "far_spacing_deg",
+    "elevation_half_deg",
+    "reference_range_m",
+    "scatter_strip_m",
+    "detection_softness_db",
+    "range_resolution_m",
+    "far_range_resolution_m",
+    "azimuth_resolution_deg",
+    "far_azimuth_resolution_deg",
+    "doppler_resolution_mps",
+)
+_RADAR_NON_NEGATIVE = (
+    "far_fov_deg",
+    "far_gain_db",
+    "corner_gain_db",
+    "rcs_fluctuation_db",
+    "range_noise_m",
+    "far_range_noise_m",
+    "far_min_range_m",
+    "azimuth_noise_deg",
+    "azimuth_noise_mid_deg",
+    "azimuth_noise_edge_deg",
+    "far_azimuth_noise_deg",
+    "doppler_noise_mps",
+    "clutter_rate",
+    "road_clutter_rate",
+    "multipath_loss_db",
+)
+
+
 @dataclass(frozen=True)
 class RadarConfig:
     """The five Continental ARS 408-21 radars: rate, field of view, resolution, noise, clutter and
@@ -157,42 +195,9 @@ class RadarConfig:
 
     def __post_init__(self) -> None:
         o = "RadarConfig"
-        for name in (
-            "rate_hz",
-            "ray_spacing_deg",
-            "fov_deg",
-            "max_range_m",
-            "edge_range_m",
-            "far_range_m",
-            "far_spacing_deg",
-            "elevation_half_deg",
-            "reference_range_m",
-            "scatter_strip_m",
-            "detection_softness_db",
-            "range_resolution_m",
-            "far_range_resolution_m",
-            "azimuth_resolution_deg",
-            "far_azimuth_resolution_deg",
-            "doppler_resolution_mps",
-        ):
+        for name in _RADAR_POSITIVE:
             _positive(o, name, getattr(self, name))
-        for name in (
-            "far_fov_deg",
-            "far_gain_db",
-            "corner_gain_db",
-            "rcs_fluctuation_db",
-            "range_noise_m",
-            "far_range_noise_m",
-            "far_min_range_m",
-            "azimuth_noise_deg",
-            "azimuth_noise_mid_deg",
-            "azimuth_noise_edge_deg",
-            "far_azimuth_noise_deg",
-            "doppler_noise_mps",
-            "clutter_rate",
-            "road_clutter_rate",
-            "multipath_loss_db",
-        ):
+        for name in _RADAR_NON_NEGATIVE:
             _positive(o, name, getattr(self, name), allow_zero=True)
         _fraction(o, "scatter_probability", self.scatter_probability)
         _fraction(o, "multipath_probability", self.multipath_probability)

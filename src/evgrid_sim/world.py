@@ -424,70 +424,85 @@ def _street_furniture(
 def _urban_side(
     b: _Builder, rng: np.random.Generator, side: _Side, density: float, irregular: bool = False
 ) -> None:
-    L = side.length
     max_depth = max(side.depth / 2.0 - 1.0, 8.0)
     if rng.random() < 0.12:
-        # A parking lot or plaza behind a low wall, with a building at the back.
-        u = 0.0
-        while u < L:
-            seg = rng.uniform(6.0, 20.0)
-            side.box(b, u, min(u + seg, L), 0.1, 0.4, 0.0, rng.uniform(0.8, 1.4), M.WALL)
-            u += seg + rng.uniform(3.0, 6.0)
-        for _ in range(rng.integers(2, 7)):
-            _tree(
-                b,
-                rng,
-                side.point(rng.uniform(3.0, L - 3.0), rng.uniform(3.0, min(max_depth, 20.0))),
-                street=False,
-                big=True,
-            )
-        v_row = rng.uniform(6.0, 10.0)
-        u = 5.0
-        while u < L - 5.0:
-            if rng.random() < 0.7 * min(density, 1.3):
-                k, length, width, z0, z1 = _vehicle_dims(rng, moving=False)
-                side.box(b, u, u + width, v_row, v_row + length, z0, z1, k)
-            u += rng.uniform(2.5, 3.2)
-        if max_depth > 25.0:
-            side.box(
-                b,
-                0.0,
-                L,
-                22.0,
-                min(22.0 + rng.uniform(10.0, 20.0), max_depth),
-                0.0,
-                rng.uniform(8.0, 30.0),
-                M.BUILDING,
-            )
+        _lot_behind_wall(b, rng, side, density, max_depth)
     else:
-        u = 0.0
-        while u < L - 2.0:
-            if rng.random() < 0.12:
-                gap = rng.uniform(2.5, 7.0)
-                if rng.random() < 0.5:
-                    klass = M.WALL if rng.random() < 0.5 else M.FENCE
-                    thick = 0.25 if klass == M.WALL else 0.06
-                    side.box(
-                        b, u, min(u + gap, L), 0.05, 0.05 + thick, 0.0, rng.uniform(1.8, 3.0), klass
-                    )
-                u += gap
-                continue
-            w = rng.uniform(8.0, 30.0)
-            setback = (
-                0.0
-                if rng.random() < (0.45 if irregular else 0.7)
-                else rng.uniform(0.5, 4.5 if irregular else 3.0)
-            )
-            depth = min(rng.uniform(12.0, 28.0), max_depth - setback)
-            h = float(np.clip(rng.lognormal(math.log(14.0), 0.5), 5.0, 60.0))
-            if irregular:
-                _irregular_building(b, rng, side, u, min(u + w, L), setback, depth, h)
-            else:
-                side.box(b, u, min(u + w, L), setback, setback + depth, 0.0, h, M.BUILDING)
-            u += w
+        _building_row(b, rng, side, max_depth, irregular)
     _street_furniture(b, rng, side, urban=True, density=density)
     if side.parking:
         _parked_cars(b, rng, side, empty_p=0.22 / max(density, 0.2))
+
+
+def _lot_behind_wall(
+    b: _Builder, rng: np.random.Generator, side: _Side, density: float, max_depth: float
+) -> None:
+    """A parking lot or plaza behind a low wall, trees, a row of parked cars, and (on a deep
+    block) a building at the back."""
+    L = side.length
+    u = 0.0
+    while u < L:
+        seg = rng.uniform(6.0, 20.0)
+        side.box(b, u, min(u + seg, L), 0.1, 0.4, 0.0, rng.uniform(0.8, 1.4), M.WALL)
+        u += seg + rng.uniform(3.0, 6.0)
+    for _ in range(rng.integers(2, 7)):
+        _tree(
+            b,
+            rng,
+            side.point(rng.uniform(3.0, L - 3.0), rng.uniform(3.0, min(max_depth, 20.0))),
+            street=False,
+            big=True,
+        )
+    v_row = rng.uniform(6.0, 10.0)
+    u = 5.0
+    while u < L - 5.0:
+        if rng.random() < 0.7 * min(density, 1.3):
+            k, length, width, z0, z1 = _vehicle_dims(rng, moving=False)
+            side.box(b, u, u + width, v_row, v_row + length, z0, z1, k)
+        u += rng.uniform(2.5, 3.2)
+    if max_depth > 25.0:
+        side.box(
+            b,
+            0.0,
+            L,
+            22.0,
+            min(22.0 + rng.uniform(10.0, 20.0), max_depth),
+            0.0,
+            rng.uniform(8.0, 30.0),
+            M.BUILDING,
+        )
+
+
+def _building_row(
+    b: _Builder, rng: np.random.Generator, side: _Side, max_depth: float, irregular: bool
+) -> None:
+    """Buildings along the street, set back or not, with gaps closed by a wall or a fence."""
+    L = side.length
+    u = 0.0
+    while u < L - 2.0:
+        if rng.random() < 0.12:
+            gap = rng.uniform(2.5, 7.0)
+            if rng.random() < 0.5:
+                klass = M.WALL if rng.random() < 0.5 else M.FENCE
+                thick = 0.25 if klass == M.WALL else 0.06
+                side.box(
+                    b, u, min(u + gap, L), 0.05, 0.05 + thick, 0.0, rng.uniform(1.8, 3.0), klass
+                )
+            u += gap
+            continue
+        w = rng.uniform(8.0, 30.0)
+        setback = (
+            0.0
+            if rng.random() < (0.45 if irregular else 0.7)
+            else rng.uniform(0.5, 4.5 if irregular else 3.0)
+        )
+        depth = min(rng.uniform(12.0, 28.0), max_depth - setback)
+        h = float(np.clip(rng.lognormal(math.log(14.0), 0.5), 5.0, 60.0))
+        if irregular:
+            _irregular_building(b, rng, side, u, min(u + w, L), setback, depth, h)
+        else:
+            side.box(b, u, min(u + w, L), setback, setback + depth, 0.0, h, M.BUILDING)
+        u += w
 
 
 def _irregular_building(
@@ -551,46 +566,9 @@ def _suburban_side(
         lot = rng.uniform(16.0, 26.0)
         end = min(u + lot, L)
         lot = end - u
-        setback = rng.uniform(5.0, 12.0)
-        hw_ = min(rng.uniform(9.0, 15.0), lot - 3.0)
-        hd = min(rng.uniform(8.0, 13.0), side.depth / 2.0 - setback - 2.0)
-        uc = u + (lot - hw_) * rng.uniform(0.2, 0.8)
-        if hw_ > 4.0 and hd > 4.0:
-            side.box(b, uc, uc + hw_, setback, setback + hd, 0.0, rng.uniform(5.0, 8.5), M.BUILDING)
-            if rng.random() < 0.3:  # garage
-                g0 = uc + hw_ + 0.5
-                if g0 + 4.0 < end:
-                    side.box(
-                        b,
-                        g0,
-                        min(g0 + 6.0, end - 0.5),
-                        setback + 1.0,
-                        setback + 7.0,
-                        0.0,
-                        3.0,
-                        M.BUILDING,
-                    )
+        setback, hw_, hd, uc = _house(b, rng, side, u, end, lot)
         drive = u + rng.uniform(1.0, max(lot - 5.0, 1.5))
-        r = rng.random()
-        if r < 0.7:
-            hedge = r >= 0.4
-            thick = rng.uniform(0.6, 1.0) if hedge else 0.06
-            height = rng.uniform(0.9, 1.8) if hedge else rng.uniform(0.9, 1.4)
-            klass = M.HEDGE if hedge else M.FENCE
-            for a, c in ((u + 0.3, drive), (drive + 3.5, end - 0.3)):
-                if c - a > 0.5:
-                    side.box(b, a, c, 0.1, 0.1 + thick, 0.0, height, klass)
-        if rng.random() < 0.4:
-            side.box(
-                b,
-                end - 0.06,
-                end,
-                0.2,
-                setback + hd + rng.uniform(3.0, 10.0),
-                0.0,
-                rng.uniform(1.5, 1.9),
-                M.FENCE,
-            )
+        _lot_fences(b, rng, side, u, end, drive, setback, hd)
         if setback > 6.0 and rng.random() < 0.45 * min(density, 1.5):
             k, length, width, z0, z1 = _vehicle_dims(rng, moving=False)
             length = min(length, setback - 1.5)
@@ -598,46 +576,123 @@ def _suburban_side(
             side.box(
                 b, drive + 1.75 - width / 2, drive + 1.75 + width / 2, v0, v0 + length, z0, z1, k
             )
-        for _ in range(rng.poisson(1.2)):
-            _tree(
-                b,
-                rng,
-                side.point(
-                    rng.uniform(u + 2.0, end - 2.0), rng.uniform(1.5, max(setback - 1.0, 1.6))
-                ),
-                street=False,
-                big=True,
-            )
-        for _ in range(rng.poisson(1.5)):
-            s = rng.uniform(0.8, 2.0)
-            bu = rng.uniform(uc, uc + max(hw_, 1.0))
-            bv = setback - rng.uniform(0.6, 1.6)
-            side.box(
-                b,
-                bu - s / 2,
-                bu + s / 2,
-                bv - s / 2,
-                bv + s / 2,
-                0.0,
-                rng.uniform(0.6, 1.5),
-                M.BUSH,
-            )
-        if irregular and rng.random() < 0.35 and lot > 8.0:
-            # A cluster of trees in the back garden.
-            v_back = setback + max(hd, 0.0) + rng.uniform(2.0, 6.0)
-            if v_back < side.depth / 2.0 - 3.0:
-                for _ in range(rng.integers(2, 6)):
-                    _tree(
-                        b,
-                        rng,
-                        side.point(rng.uniform(u + 2.0, end - 2.0), v_back + rng.uniform(0.0, 5.0)),
-                        street=False,
-                        big=True,
-                    )
+        _garden(b, rng, side, u, end, lot, setback, hw_, hd, uc, irregular)
         u = end
     _street_furniture(b, rng, side, urban=False, density=density)
     if side.parking:
         _parked_cars(b, rng, side, empty_p=0.6 / max(density, 0.2))
+
+
+def _house(
+    b: _Builder, rng: np.random.Generator, side: _Side, u: float, end: float, lot: float
+) -> tuple[float, float, float, float]:
+    """A house set back on the lot from ``u`` to ``end`` (and sometimes a garage beside it);
+    returns its setback, width, depth and start along the street."""
+    setback = rng.uniform(5.0, 12.0)
+    hw_ = min(rng.uniform(9.0, 15.0), lot - 3.0)
+    hd = min(rng.uniform(8.0, 13.0), side.depth / 2.0 - setback - 2.0)
+    uc = u + (lot - hw_) * rng.uniform(0.2, 0.8)
+    if hw_ > 4.0 and hd > 4.0:
+        side.box(b, uc, uc + hw_, setback, setback + hd, 0.0, rng.uniform(5.0, 8.5), M.BUILDING)
+        if rng.random() < 0.3:  # garage
+            g0 = uc + hw_ + 0.5
+            if g0 + 4.0 < end:
+                side.box(
+                    b,
+                    g0,
+                    min(g0 + 6.0, end - 0.5),
+                    setback + 1.0,
+                    setback + 7.0,
+                    0.0,
+                    3.0,
+                    M.BUILDING,
+                )
+    return setback, hw_, hd, uc
+
+
+def _lot_fences(
+    b: _Builder,
+    rng: np.random.Generator,
+    side: _Side,
+    u: float,
+    end: float,
+    drive: float,
+    setback: float,
+    hd: float,
+) -> None:
+    """A hedge or a fence along the street on both sides of the drive, and sometimes a fence
+    between this lot and the next."""
+    r = rng.random()
+    if r < 0.7:
+        hedge = r >= 0.4
+        thick = rng.uniform(0.6, 1.0) if hedge else 0.06
+        height = rng.uniform(0.9, 1.8) if hedge else rng.uniform(0.9, 1.4)
+        klass = M.HEDGE if hedge else M.FENCE
+        for a, c in ((u + 0.3, drive), (drive + 3.5, end - 0.3)):
+            if c - a > 0.5:
+                side.box(b, a, c, 0.1, 0.1 + thick, 0.0, height, klass)
+    if rng.random() < 0.4:
+        side.box(
+            b,
+            end - 0.06,
+            end,
+            0.2,
+            setback + hd + rng.uniform(3.0, 10.0),
+            0.0,
+            rng.uniform(1.5, 1.9),
+            M.FENCE,
+        )
+
+
+def _garden(
+    b: _Builder,
+    rng: np.random.Generator,
+    side: _Side,
+    u: float,
+    end: float,
+    lot: float,
+    setback: float,
+    hw_: float,
+    hd: float,
+    uc: float,
+    irregular: bool,
+) -> None:
+    """Trees in the front garden, bushes before the house, and (irregular towns) a cluster of
+    trees in the back garden."""
+    for _ in range(rng.poisson(1.2)):
+        _tree(
+            b,
+            rng,
+            side.point(rng.uniform(u + 2.0, end - 2.0), rng.uniform(1.5, max(setback - 1.0, 1.6))),
+            street=False,
+            big=True,
+        )
+    for _ in range(rng.poisson(1.5)):
+        s = rng.uniform(0.8, 2.0)
+        bu = rng.uniform(uc, uc + max(hw_, 1.0))
+        bv = setback - rng.uniform(0.6, 1.6)
+        side.box(
+            b,
+            bu - s / 2,
+            bu + s / 2,
+            bv - s / 2,
+            bv + s / 2,
+            0.0,
+            rng.uniform(0.6, 1.5),
+            M.BUSH,
+        )
+    if irregular and rng.random() < 0.35 and lot > 8.0:
+        # A cluster of trees in the back garden.
+        v_back = setback + max(hd, 0.0) + rng.uniform(2.0, 6.0)
+        if v_back < side.depth / 2.0 - 3.0:
+            for _ in range(rng.integers(2, 6)):
+                _tree(
+                    b,
+                    rng,
+                    side.point(rng.uniform(u + 2.0, end - 2.0), v_back + rng.uniform(0.0, 5.0)),
+                    street=False,
+                    big=True,
+                )
 
 
 def _rect_frame(rect: tuple[float, float, float, float]) -> _Side:
@@ -746,6 +801,12 @@ def _open_square(
             M.BARRIER,
             dyaw=float(rng.choice([0.0, math.pi / 2])),
         )
+    _square_centrepiece(b, rng, f)
+
+
+def _square_centrepiece(b: _Builder, rng: np.random.Generator, f: _Side) -> None:
+    """The middle of a square: a fountain, a statue or a kiosk."""
+    L, D = f.length, f.depth
     c = f.point(L / 2, D / 2)
     r = rng.random()
     if r < 0.45:
@@ -883,6 +944,29 @@ def _roundabout_island(
     lamps around the circulating carriageway."""
     n = max(int(2 * math.pi * rad / 1.2), 10)
     _ring(b, c, rad, n, 0.15, lambda: 0.35, M.BARRIER)
+    _island_planting(b, rng, c, rad)
+    if rng.random() < 0.6:
+        _tree(b, rng, c, street=False, big=True)
+    else:
+        b.add(
+            float(c[0]),
+            float(c[1]),
+            rng.uniform(0, math.pi),
+            0.6,
+            0.6,
+            0.0,
+            rng.uniform(3.0, 6.0),
+            M.WALL,
+        )
+    for k in range(rng.integers(4, 9)):
+        a = rng.uniform(0, 2 * math.pi)
+        p = c + (clear + 1.2) * np.array([math.cos(a), math.sin(a)])
+        b.add(float(p[0]), float(p[1]), 0.0, 0.12, 0.12, 0.0, rng.uniform(6.0, 8.0), M.POLE)
+
+
+def _island_planting(b: _Builder, rng: np.random.Generator, c: np.ndarray, rad: float) -> None:
+    """A hedge ring inside the island's curb, or (on a small island, or by the draw) a few
+    bushes scattered over it."""
     if rng.random() < 0.5 and rad > 3.0:
         r2 = rad - 0.8
         n2 = max(int(2 * math.pi * r2 / 1.5), 8)
@@ -913,23 +997,6 @@ def _roundabout_island(
                 rng.uniform(0.6, 1.4),
                 M.BUSH,
             )
-    if rng.random() < 0.6:
-        _tree(b, rng, c, street=False, big=True)
-    else:
-        b.add(
-            float(c[0]),
-            float(c[1]),
-            rng.uniform(0, math.pi),
-            0.6,
-            0.6,
-            0.0,
-            rng.uniform(3.0, 6.0),
-            M.WALL,
-        )
-    for k in range(rng.integers(4, 9)):
-        a = rng.uniform(0, 2 * math.pi)
-        p = c + (clear + 1.2) * np.array([math.cos(a), math.sin(a)])
-        b.add(float(p[0]), float(p[1]), 0.0, 0.12, 0.12, 0.0, rng.uniform(6.0, 8.0), M.POLE)
 
 
 def _rows_array(rows: list) -> np.ndarray:

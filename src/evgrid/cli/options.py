@@ -79,6 +79,17 @@ def _dashed(cls: type | None) -> dict[str, tuple[str, Any]]:
     return {n.replace("_", "-"): (n, tp) for n, tp in hints.items()}
 
 
+def _option_type(name: str, aliases: Mapping, group: Mapping, cls: type) -> Any:
+    """The type of --``name``: its field's in ``cls`` (an alias) or in the plain group."""
+    if name in aliases:
+        return field_type(cls, next(k for k in aliases[name] if "=" not in k))
+    if name in group:
+        return group[name][1]
+    raise ConfigError(
+        f"no such option --{name}; options: --{', --'.join(sorted([*aliases, *group]))}"
+    )
+
+
 def options_to_overrides(
     args: Sequence[str],
     aliases: Mapping[str, tuple[str, ...]],
@@ -103,14 +114,7 @@ def options_to_overrides(
         name, eq, text = arg[2:].partition("=")
         negated = name.startswith("no-") and name[3:] in {**aliases, **group}
         name = name[3:] if negated else name
-        if name in aliases:
-            tp = field_type(cls, next(k for k in aliases[name] if "=" not in k))
-        elif name in group:
-            tp = group[name][1]
-        else:
-            raise ConfigError(
-                f"no such option --{name}; options: --{', --'.join(sorted([*aliases, *group]))}"
-            )
+        tp = _option_type(name, aliases, group, cls)
         if tp is bool and not eq:
             # --flag, --no-flag, or --flag on|off (a value with a space, as for other options)
             value = args[i + 1].strip().lower() if i + 1 < len(args) and not negated else ""

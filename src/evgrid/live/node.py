@@ -284,22 +284,7 @@ class LiveNode:
             self._graph.reader(topic, typ, qos.get(topic, SENSOR_QOS))
             for topic, typ in sweep_topics(self.rig).items()
         ]
-        self._map_writer = self._graph.writer(MAP_TOPIC, "nav_msgs/msg/OccupancyGrid", MAP_QOS)
-        self._pose_writer = self._graph.writer(
-            POSE_TOPIC, "geometry_msgs/msg/PoseStamped", QosProfile(True, False, 10)
-        )
-        self._map_writers = {
-            n: self._graph.writer(f"/evgrid/{n}/occupancy", "nav_msgs/msg/OccupancyGrid", MAP_QOS)
-            for n in self.options.publish
-        }
-        self._grid_writers = (
-            {
-                n: self._graph.writer(f"/evgrid/{n}/grid_map", "grid_map_msgs/msg/GridMap", MAP_QOS)
-                for n in (self._map_name, *self.options.publish)
-            }
-            if self.options.grid_map
-            else {}
-        )
+        self._advertise(self._graph)
         self._started = time.monotonic()
         self._receiver = threading.Thread(target=self._receive, name="evgrid-live-rx", daemon=True)
         self._receiver.start()
@@ -307,6 +292,26 @@ class LiveNode:
             f"evgrid live: ready on ROS_DOMAIN_ID {self._graph.domain}: mapping "
             f"{', '.join(names)} from {', '.join(sweep_topics(self.rig))}; publishing {MAP_TOPIC} "
             f"({self._map_name}) at {self.options.map_rate_hz:g} Hz"
+        )
+
+    def _advertise(self, graph: Graph) -> None:
+        """The writers of the navigation map, the pose, each --publish map and (with
+        --grid-map) each map's GridMap."""
+        self._map_writer = graph.writer(MAP_TOPIC, "nav_msgs/msg/OccupancyGrid", MAP_QOS)
+        self._pose_writer = graph.writer(
+            POSE_TOPIC, "geometry_msgs/msg/PoseStamped", QosProfile(True, False, 10)
+        )
+        self._map_writers = {
+            n: graph.writer(f"/evgrid/{n}/occupancy", "nav_msgs/msg/OccupancyGrid", MAP_QOS)
+            for n in self.options.publish
+        }
+        self._grid_writers = (
+            {
+                n: graph.writer(f"/evgrid/{n}/grid_map", "grid_map_msgs/msg/GridMap", MAP_QOS)
+                for n in (self._map_name, *self.options.publish)
+            }
+            if self.options.grid_map
+            else {}
         )
 
     # -- receiving -----------------------------------------------------------------------------

@@ -18,7 +18,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -145,6 +145,19 @@ def _ego_track(path: Path, rig: RecordingRig) -> tuple[SE3, SE3, int, int]:
     return transform_to_se3(a, qa), transform_to_se3(b, qb), t0 * 1000, t1 * 1000
 
 
+def _recorded_topics(path: Path, topics: Mapping[str, str]) -> tuple[dict[str, str], int | None]:
+    """Which of ``topics`` the recording has, with their types as recorded, and the first
+    message's time."""
+    found: dict[str, str] = {}
+    first_ns = None
+    for topic, typ, t, _ in raw_messages(path, set(topics)):
+        found.setdefault(topic, typ)
+        first_ns = t if first_ns is None else first_ns
+        if len(found) == len(topics):
+            break
+    return found, first_ns
+
+
 def replay(
     recording: str | Path,
     rig: RecordingRig,
@@ -168,14 +181,7 @@ def replay(
     path = Path(recording)
     topics = sweep_topics(rig)
     store = typestore(2)
-    # which topics the recording has, and their types as recorded
-    found: dict[str, str] = {}
-    first_ns = None
-    for topic, typ, t, _ in raw_messages(path, set(topics)):
-        found.setdefault(topic, typ)
-        first_ns = t if first_ns is None else first_ns
-        if len(found) == len(topics):
-            break
+    found, first_ns = _recorded_topics(path, topics)
     missing = [t for t in topics if t not in found and t != rig.tf_static_topic]
     if missing:
         raise BagError(f"{path}: rig topic(s) {missing} not in the recording")

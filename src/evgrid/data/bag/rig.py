@@ -188,58 +188,10 @@ class RecordingRig:
         if not isinstance(entries, (list, tuple)):
             raise RigError(f"{where}: 'radars' must be a list of radar entries")
         for i, r in enumerate(entries):
-            w = f"radars[{i}]"
-            if not isinstance(r, Mapping) or r.get("topic") is None:
-                raise RigError(f"{where} {w}: each radar needs a 'topic'")
-            _topic(r["topic"], where, f"{w}.topic")
-            if r["topic"] == lidar.topic:
-                # one topic's clouds cannot be both: the entry would be ignored without a word
-                raise RigError(
-                    f"{where} {w}: topic {r['topic']!r} is the lidar's topic too; a topic is the "
-                    "lidar or a radar, not both"
-                )
-            _keys(r, ("topic", "channel", "frame", "fields", "compensated", "type"), where, w)
-            ch = r.get("channel") or r["topic"].strip("/").replace("/", "_").upper()
-            comp = r.get("compensated", True)
-            if not isinstance(comp, bool):
-                raise RigError(f"{where} {w}: compensated must be true or false, got {comp!r}")
-            typ = _RADAR_TYPES.get(r.get("type", "PointCloud2"))
-            if typ is None:
-                raise RigError(
-                    f"{where} {w}: type must be one of {sorted(_RADAR_TYPES)}, got "
-                    f"{r.get('type')!r}"
-                )
-            radars.append(
-                RadarTopic(
-                    r["topic"],
-                    str(ch),
-                    _name(r.get("frame"), where, f"{w}.frame"),
-                    _fields(r.get("fields"), RADAR_COLUMNS + (RADIAL,), f"{where} {w}"),
-                    comp,
-                    typ,
-                )
-            )
-        poses = d.get("poses") or {}
-        if not isinstance(poses, Mapping):
-            raise RigError(f"{where}: 'poses' must be a mapping")
-        _keys(poses, ("source", "topic", "tf_topic", "tf_static_topic"), where, "poses")
-        source = poses.get("source", "tf")
-        if source not in ("tf", "odometry"):
-            raise RigError(f"{where}: poses.source must be 'tf' or 'odometry', got {source!r}")
-        if source == "odometry" and not isinstance(poses.get("topic"), str):
-            raise RigError(f"{where}: poses.source 'odometry' needs poses.topic")
-        if source == "tf" and "topic" in poses:
-            raise RigError(f"{where}: poses.topic goes with source: odometry (tf uses tf_topic)")
-        kf = d.get("keyframes") or {"every": 10}
-        if not isinstance(kf, Mapping):
-            raise RigError(f"{where}: 'keyframes' must be a mapping with 'every' or 'rate_hz'")
-        _keys(kf, ("every", "rate_hz", "offset", "offset_s"), where, "keyframes")
-        ext = {}
-        extrinsics = d.get("extrinsics") or {}
-        if not isinstance(extrinsics, Mapping):
-            raise RigError(f"{where}: 'extrinsics' must map frame names to poses")
-        for frame, e in extrinsics.items():
-            ext[str(frame)] = _extrinsic(e, f"{where} extrinsics.{frame}")
+            radars.append(_radar_topic(r, where, f"radars[{i}]", lidar.topic))
+        poses, source = _pose_source(d, where)
+        kf = _keyframes(d, where)
+        ext = _extrinsics(d.get("extrinsics"), where)
         try:
             return cls(
                 lidar=lidar,
@@ -285,21 +237,7 @@ class RecordingRig:
                 **({"frame": self.lidar.frame} if self.lidar.frame else {}),
                 **({"fields": dict(self.lidar.fields)} if self.lidar.fields else {}),
             },
-            "radars": [
-                {
-                    "topic": r.topic,
-                    "channel": r.channel,
-                    **({"frame": r.frame} if r.frame else {}),
-                    **({"fields": dict(r.fields)} if r.fields else {}),
-                    **({} if r.compensated else {"compensated": False}),
-                    **(
-                        {"type": r.msgtype.split("/")[-1]}
-                        if r.msgtype != "sensor_msgs/msg/PointCloud2"
-                        else {}
-                    ),
-                }
-                for r in self.radars
-            ],
+            "radars": [_radar_entry(r) for r in self.radars],
             "keyframes": (
                 {"every": self.keyframe_every}
                 | ({"offset": self.keyframe_offset} if self.keyframe_offset else {})
@@ -321,6 +259,88 @@ class RecordingRig:
                 for k, p in self.extrinsics.items()
             }
         return out
+
+
+def _radar_topic(r: Any, where: str, w: str, lidar_topic: str) -> RadarTopic:
+    """The radar entry ``w`` of a rig file: its topic (not the lidar's), channel, frame, fields,
+    compensation and message type."""
+    if not isinstance(r, Mapping) or r.get("topic") is None:
+        raise RigError(f"{where} {w}: each radar needs a 'topic'")
+    _topic(r["topic"], where, f"{w}.topic")
+    if r["topic"] == lidar_topic:
+        # one topic's clouds cannot be both: the entry would be ignored without a word
+        raise RigError(
+            f"{where} {w}: topic {r['topic']!r} is the lidar's topic too; a topic is the "
+            "lidar or a radar, not both"
+        )
+    _keys(r, ("topic", "channel", "frame", "fields", "compensated", "type"), where, w)
+    ch = r.get("channel") or r["topic"].strip("/").replace("/", "_").upper()
+    comp = r.get("compensated", True)
+    if not isinstance(comp, bool):
+        raise RigError(f"{where} {w}: compensated must be true or false, got {comp!r}")
+    typ = _RADAR_TYPES.get(r.get("type", "PointCloud2"))
+    if typ is None:
+        raise RigError(
+            f"{where} {w}: type must be one of {sorted(_RADAR_TYPES)}, got {r.get('type')!r}"
+        )
+    return RadarTopic(
+        r["topic"],
+        str(ch),
+        _name(r.get("frame"), where, f"{w}.frame"),
+        _fields(r.get("fields"), RADAR_COLUMNS + (RADIAL,), f"{where} {w}"),
+        comp,
+        typ,
+    )
+
+
+def _radar_entry(r: RadarTopic) -> dict[str, Any]:
+    """A radar's entry in a rig file, as :func:`_radar_topic` reads it (defaults left out)."""
+    return {
+        "topic": r.topic,
+        "channel": r.channel,
+        **({"frame": r.frame} if r.frame else {}),
+        **({"fields": dict(r.fields)} if r.fields else {}),
+        **({} if r.compensated else {"compensated": False}),
+        **(
+            {"type": r.msgtype.split("/")[-1]} if r.msgtype != "sensor_msgs/msg/PointCloud2" else {}
+        ),
+    }
+
+
+def _pose_source(d: Mapping[str, Any], where: str) -> tuple[Mapping[str, Any], str]:
+    """A rig file's ``poses`` mapping and its source, ``tf`` or ``odometry``."""
+    poses = d.get("poses") or {}
+    if not isinstance(poses, Mapping):
+        raise RigError(f"{where}: 'poses' must be a mapping")
+    _keys(poses, ("source", "topic", "tf_topic", "tf_static_topic"), where, "poses")
+    source = poses.get("source", "tf")
+    if source not in ("tf", "odometry"):
+        raise RigError(f"{where}: poses.source must be 'tf' or 'odometry', got {source!r}")
+    if source == "odometry" and not isinstance(poses.get("topic"), str):
+        raise RigError(f"{where}: poses.source 'odometry' needs poses.topic")
+    if source == "tf" and "topic" in poses:
+        raise RigError(f"{where}: poses.topic goes with source: odometry (tf uses tf_topic)")
+    return poses, source
+
+
+def _keyframes(d: Mapping[str, Any], where: str) -> Mapping[str, Any]:
+    """A rig file's ``keyframes`` mapping (every tenth lidar sweep when absent)."""
+    kf = d.get("keyframes") or {"every": 10}
+    if not isinstance(kf, Mapping):
+        raise RigError(f"{where}: 'keyframes' must be a mapping with 'every' or 'rate_hz'")
+    _keys(kf, ("every", "rate_hz", "offset", "offset_s"), where, "keyframes")
+    return kf
+
+
+def _extrinsics(extrinsics: Any, where: str) -> dict[str, SE3]:
+    """A rig file's ``extrinsics``: each frame name's pose."""
+    ext = {}
+    extrinsics = extrinsics or {}
+    if not isinstance(extrinsics, Mapping):
+        raise RigError(f"{where}: 'extrinsics' must map frame names to poses")
+    for frame, e in extrinsics.items():
+        ext[str(frame)] = _extrinsic(e, f"{where} extrinsics.{frame}")
+    return ext
 
 
 def _extrinsic(e: Any, where: str) -> SE3:
