@@ -180,9 +180,9 @@ def test_a_radius_that_means_nothing_is_refused(radius):
 
 def test_the_mapper_with_radius_0_maps_as_with_every_tile_resident():
     from evgrid.config import MapperConfig
-    from evgrid.data import SimConfig, simulate_scene
     from evgrid.mapper import OccupancyMapper
     from evgrid.observers import SceneScores, TruthTracker
+    from evgrid_sim import SimConfig, simulate_scene
 
     frames = list(simulate_scene(3, SimConfig(duration_s=2.0)))
     out = []
@@ -223,8 +223,8 @@ def test_the_masses_encoding_gives_back_every_bit(values):
 
 def test_a_run_keeps_its_store_in_its_folder_while_mapping_and_removes_it_when_complete(tmp_path):
     from evgrid.config import MapperConfig, OutputConfig
-    from evgrid.data import SimConfig, simulate_scene
     from evgrid.runs import STORE_FOLDER, map_scene
+    from evgrid_sim import SimConfig, simulate_scene
 
     out = tmp_path / "scene"
     (out / STORE_FOLDER / "ray_ilm").mkdir(parents=True)  # what a killed run left

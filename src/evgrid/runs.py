@@ -41,6 +41,7 @@ from evgrid.io import jsonable, write_json
 from evgrid.mapper import OccupancyMapper
 from evgrid.observers import GifRecorder, SceneScores, TruthTracker
 from evgrid.outdir import ResultsExistError, is_complete, mark_complete, results_folder
+from evgrid.store import TileStore
 
 #: The tile store's folder in a scene's results folder (docs/store.md).
 STORE_FOLDER = "store"
@@ -115,6 +116,7 @@ def map_scene(
     overwrite: bool = False,
     source: dict[str, Any] | None = None,
     fixed_frame: str | None = None,
+    resume: bool = False,
 ) -> SceneResult:
     """Map a whole scene; with ``out_dir`` write ``config.json`` (naming ``source``, a source as
     :func:`~evgrid.sources.source_to_dict` gives it, and this scene), ``metrics.json``, figures,
@@ -125,7 +127,9 @@ def map_scene(
     the simulator's ``world``): the exports' map frame when ``config.frame`` is ``world``, the
     map frame's parent otherwise. ``observers`` (e.g. exporters) see every map update after the
     built-in ones. Files are written under temporary names and renamed when complete (the
-    exports when closed; on any exception, Ctrl-C included, they are aborted).
+    exports when closed; on any exception, Ctrl-C included, they are aborted). With ``out_dir``,
+    the scene's resumable state is saved every ``outputs.checkpoint_every_s`` seconds of the
+    drive, and ``resume`` continues from it (docs/store.md).
     """
     from evgrid.sources import fixed_frame_of
 
@@ -141,7 +145,7 @@ def map_scene(
         try:
             return _map_scene(
                 frames, out, config, outputs, deep, name, progress, observers, source, exporters,
-                fixed_frame,
+                fixed_frame, resume,
             )  # fmt: skip
         except BaseException:
             # Ctrl-C included: an export not closed is incomplete, and its temporary file goes
@@ -188,41 +192,113 @@ def _maps_the_rig_can_make(
 
 
 def _map_scene(
-    frames, out, config, outputs, deep, name, progress, observers, source, exporters, fixed_frame
-) -> SceneResult:
+    frames, out, config, outputs, deep, name, progress, observers, source, exporters, fixed_frame,
+    resume=False,
+) -> SceneResult:  # fmt: skip
+    from evgrid.checkpoint import checkpoint_path
+
     truth = TruthTracker(config.grid, config.tile_cells)
     # the tile store in the scene's folder (docs/store.md): what a killed run leaves is there
-    if out is not None:  # a store left by a killed run of this scene: this run starts afresh
-        shutil.rmtree(out / STORE_FOLDER, ignore_errors=True)
-    mapper = OccupancyMapper(config, deep, store=None if out is None else out / STORE_FOLDER)
+    saved = _checkpointing(out, outputs, observers, name)
+    if out is not None and not (resume and saved and checkpoint_path(out / STORE_FOLDER).exists()):
+        shutil.rmtree(out / STORE_FOLDER, ignore_errors=True)  # a killed run's: start afresh
+    store = None
+    if out is not None and config.store.paging:
+        store = TileStore(out / STORE_FOLDER)
+    state = _resumed(out, store, config, outputs, deep, name, source) if saved else None
+    if state is None:
+        mapper = OccupancyMapper(config, deep, store=store)
+        state = {"mapper": mapper, "truth": truth, "seconds": 0.0, "frame_ms": []}
+    else:
+        mapper = state["mapper"]
+        for exporter in exporters:  # the checkpoint's exporters replace the fresh ones
+            exporter.abort()
+        exporters[:] = state["exporters"]
     try:
         return _map_with(
-            mapper, truth, frames, out, config, outputs, name, progress, observers, source,
-            exporters, fixed_frame,
+            state, frames, out, config, outputs, name, progress, observers, source, exporters,
+            fixed_frame, saved,
         )  # fmt: skip
     finally:
         mapper.close()
 
 
+def _checkpointing(out: Path | None, outputs: OutputConfig, observers: tuple, name: str) -> bool:
+    """Whether a scene saves resumable states: with a results folder, ``checkpoint_every_s``
+    and nothing that streams into a file as it goes (the MCAP and rerun exports, the viewer)
+    or that the run does not own (observers passed in)."""
+    if out is None or not outputs.checkpoint_every_s:
+        return False
+    streams = [e for e in outputs.exports if e != "nav2"] + (["viewer"] if outputs.viewer else [])
+    if streams or observers:
+        log.info(
+            "%s: no checkpoints (%s); --resume maps it again from its first frame",
+            name,
+            f"{', '.join(streams)} write as they go" if streams else "observers passed in",
+        )
+        return False
+    return True
+
+
+def _checkpoint_hash(config, outputs, source, name) -> str:
+    """What a checkpoint must have been written for to be continued (its interval aside)."""
+    outputs = replace(outputs, checkpoint_every_s=OutputConfig.checkpoint_every_s)
+    return config_hash(RunConfig(config, outputs, source, (name,)))
+
+
+def _resumed(out, store, config, outputs, deep, name, source) -> dict[str, Any] | None:
+    """The scene's last resumable state, if a checkpoint of this config is in its store."""
+    from evgrid.checkpoint import checkpoint_path, load_checkpoint
+    from evgrid.mapper import deep_irm
+
+    path = checkpoint_path(out / STORE_FOLDER)
+    if not path.exists():
+        return None
+    state, made_for = load_checkpoint(path, store, lambda: deep or deep_irm(config))
+    if made_for != _checkpoint_hash(config, outputs, source, name):
+        log.warning("%s: its checkpoint is of another config; mapping it from frame 0", name)
+        shutil.rmtree(out / STORE_FOLDER, ignore_errors=True)
+        return None
+    log.warning("resuming %s at frame %d", name, state["mapper"].n_frames)
+    return state
+
+
 def _map_with(
-    mapper, truth, frames, out, config, outputs, name, progress, observers, source, exporters,
-    fixed_frame,
+    state, frames, out, config, outputs, name, progress, observers, source, exporters,
+    fixed_frame, saved,
 ) -> SceneResult:  # fmt: skip
-    scores = SceneScores(mapper.maps.maps, truth, track=outputs.convergence)
-    gif = (
-        GifRecorder(config.grid, outputs.gif_window_m, outputs.gif_step, outputs.gif_max_frames)
-        if out is not None and outputs.figures
-        else None
-    )
-    mapper.observers += [truth, scores, *([gif] if gif else []), *exporters, *observers]
-    t0 = time.perf_counter()
-    frame_ms: list[float] = []  # mapper and observers, without reading the frame
-    for frame in frames:
+    mapper, truth = state["mapper"], state["truth"]
+    if "scores" not in state:  # else resumed: the observers are the checkpoint's
+        scores = SceneScores(mapper.maps.maps, truth, track=outputs.convergence)
+        gif = None
+        if out is not None and outputs.figures:
+            gif = GifRecorder(
+                config.grid, outputs.gif_window_m, outputs.gif_step, outputs.gif_max_frames
+            )
+        mapper.observers += [truth, scores, *([gif] if gif else []), *exporters, *observers]
+        state.update(scores=scores, gif=gif, exporters=list(exporters), costs=[], next_us=None)
+    scores, gif, costs = state["scores"], state["gif"], state["costs"]
+    frame_ms: list[float] = state["frame_ms"]  # mapper and observers, without reading the frame
+    every_us = outputs.checkpoint_every_s * 1e6 if saved else None
+    frames_iter = iter(frames)
+    for k in range(mapper.n_frames):  # resumed: the frames mapped before the checkpoint
+        if next(frames_iter, None) is None:
+            raise ValueError(f"{name}: the source has {k} frames, the checkpoint {mapper.n_frames}")
+        if progress is not None:
+            progress()
+    t0 = time.perf_counter() - state["seconds"]
+    for frame in frames_iter:
         t = time.perf_counter()
         mapper.process(frame)
         frame_ms.append((time.perf_counter() - t) * 1e3)
         if progress is not None:
             progress()
+        due = state["next_us"]  # of the drive's clock: the same frames in every run
+        if every_us is not None and (due is None or frame.timestamp >= due):
+            state["next_us"] = frame.timestamp + every_us
+            if due is not None:
+                state["seconds"] = time.perf_counter() - t0
+                costs.append(_save_state(state, out, config, outputs, name, source))
     seconds = time.perf_counter() - t0
     files: dict[str, str] = {}
     for fmt, exporter in zip(outputs.exports, exporters):
@@ -232,6 +308,11 @@ def _map_with(
     if outputs.viewer:
         exporters[-1].close()
     metrics = _scene_metrics(name, mapper, scores, seconds, frame_ms)
+    if costs:  # what the resumable states cost (docs/store.md)
+        metrics["checkpoints"] = {
+            "n": len(costs),
+            **{f"{k}_mean": float(np.mean([c[k] for c in costs])) for k in costs[0]},
+        }
     metrics.update(_source_report(frames))
     if out is not None:
         run = RunConfig(config, outputs, source, (name,) if source is not None else None)
@@ -262,6 +343,20 @@ def _map_with(
         # the scene is complete: its maps are in the files above, and the store goes
         shutil.rmtree(out / STORE_FOLDER, ignore_errors=True)
     return SceneResult(name, jsonable(metrics), files, metrics["frames_per_second"])
+
+
+def _save_state(state, out, config, outputs, name, source) -> dict[str, float]:
+    """Write the scene's resumable state (:mod:`evgrid.checkpoint`); returns its cost."""
+    from evgrid.checkpoint import checkpoint_path, save_checkpoint
+
+    mapper = state["mapper"]
+    return save_checkpoint(
+        checkpoint_path(out / STORE_FOLDER),
+        state,
+        mapper.store,
+        mapper.deep,
+        _checkpoint_hash(config, outputs, source, name),
+    )
 
 
 def _exporters(
@@ -405,7 +500,7 @@ def _scene_metrics(
 def _map_one(args: tuple) -> dict[str, Any]:
     from evgrid.sources import fixed_frame_of
 
-    source, name, out_dir, config, outputs, source_dict, on_frame = args
+    source, name, out_dir, config, outputs, source_dict, on_frame, resume = args
     scene = source.load(name)
     progress = None
     if on_frame is not None:  # only in this process (a callback does not cross processes)
@@ -422,6 +517,7 @@ def _map_one(args: tuple) -> dict[str, Any]:
         progress=progress,
         source=source_dict,
         fixed_frame=fixed_frame_of(source, scene),
+        resume=resume,
     )
     return res.metrics
 
@@ -582,7 +678,8 @@ def map_scenes(
     ``OUT/config.json`` (re-run with ``evgrid map --config``), ``OUT/<scene>/...`` with its own
     ``config.json`` and a completion marker, ``OUT/summary.json`` (``failed``: the scenes that
     raised, with their errors) and ``OUT/table.md``. With ``resume``, scenes complete for the
-    same config are kept and the rest redone. Ctrl-C raises :class:`RunInterrupted`.
+    same config are kept, those with a checkpoint continue from it and the rest are redone.
+    Ctrl-C raises :class:`RunInterrupted`.
     """
     from evgrid.budget import check_budget
     from evgrid.engine import fan_out
@@ -607,7 +704,9 @@ def map_scenes(
         # fan_out runs jobs in this process with one worker or one job: frames can be shown
         in_process = engine == "local" and (workers <= 1 or len(todo) <= 1)
         on_frame = events.frame if in_process else None
-        jobs = [(n, (source, n, str(out), config, outputs, source_dict, on_frame)) for n in todo]
+        jobs = [
+            (n, (source, n, str(out), config, outputs, source_dict, on_frame, resume)) for n in todo
+        ]
         try:
             for o in fan_out(_map_one, jobs, engine=engine, workers=workers):
                 if o.ok:
