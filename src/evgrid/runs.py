@@ -240,12 +240,6 @@ def _checkpointing(out: Path | None, outputs: OutputConfig, observers: tuple, na
     return True
 
 
-def _checkpoint_hash(config, outputs, source, name) -> str:
-    """What a checkpoint must have been written for to be continued (its interval aside)."""
-    outputs = replace(outputs, checkpoint_every_s=OutputConfig.checkpoint_every_s)
-    return config_hash(RunConfig(config, outputs, source, (name,)))
-
-
 def _resumed(out, store, config, outputs, deep, name, source) -> dict[str, Any] | None:
     """The scene's last resumable state, if a checkpoint of this config is in its store."""
     from evgrid.checkpoint import checkpoint_path, load_checkpoint
@@ -255,7 +249,7 @@ def _resumed(out, store, config, outputs, deep, name, source) -> dict[str, Any] 
     if not path.exists():
         return None
     state, made_for = load_checkpoint(path, store, lambda: deep or deep_irm(config))
-    if made_for != _checkpoint_hash(config, outputs, source, name):
+    if made_for != scene_config_hash(RunConfig(config, outputs, source), name):
         log.warning("%s: its checkpoint is of another config; mapping it from frame 0", name)
         shutil.rmtree(out / STORE_FOLDER, ignore_errors=True)
         return None
@@ -355,7 +349,7 @@ def _save_state(state, out, config, outputs, name, source) -> dict[str, float]:
         state,
         mapper.store,
         mapper.deep,
-        _checkpoint_hash(config, outputs, source, name),
+        scene_config_hash(RunConfig(config, outputs, source), name),
     )
 
 
@@ -523,8 +517,47 @@ def _map_one(args: tuple) -> dict[str, Any]:
 
 
 def scene_config_hash(run: RunConfig, name: str) -> str:
-    """The hash a scene's completion marker holds: its mapper, outputs, source and name."""
-    return config_hash(replace(run, scenes=(name,)))
+    """The hash a scene's completion marker and checkpoint hold: its mapper, outputs (the
+    checkpoints' interval aside), source and name."""
+    outputs = replace(run.outputs, checkpoint_every_s=OutputConfig.checkpoint_every_s)
+    return config_hash(replace(run, outputs=outputs, scenes=(name,)))
+
+
+#: Fields a resumed run may change: the scenes (more, or fewer), how often states are saved.
+RESUME_MAY_CHANGE = ("scenes", "outputs.checkpoint_every_s")
+
+
+def _check_same_config(path: Path, run: RunConfig) -> None:
+    """``--resume`` continues the run of ``path`` (its config.json): a config that differs in
+    any field but :data:`RESUME_MAY_CHANGE` is refused, naming the fields."""
+    import json
+
+    try:
+        old = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return  # no run to continue: every scene is mapped
+    changed = [
+        k
+        for k in _changed_fields(old, json.loads(json.dumps(jsonable(run.to_dict()))))
+        if k not in RESUME_MAY_CHANGE
+    ]
+    if changed:
+        raise ResultsExistError(
+            f"{path}: --resume with a changed config ({', '.join(changed)}); resume with that "
+            "config (drop the options that changed it), or recompute with --overwrite or "
+            "another --out"
+        )
+
+
+def _changed_fields(old: Any, new: Any, prefix: str = "") -> list[str]:
+    if isinstance(old, dict) and isinstance(new, dict):
+        keys = sorted(set(old) | set(new))
+        return [
+            k
+            for key in keys
+            for k in _changed_fields(old.get(key), new.get(key), prefix + key + ".")
+        ]
+    return [] if old == new else [prefix.rstrip(".")]
 
 
 def summarize(per_scene: list[dict[str, Any]]) -> dict[str, Any]:
@@ -693,6 +726,8 @@ def map_scenes(
     source_dict = source_to_dict(source)
     run = RunConfig(config, outputs, source_dict, tuple(names))
     with results_folder(out_dir, overwrite, resume) as out:
+        if resume:
+            _check_same_config(out / "config.json", run)
         write_json(out / "config.json", run.to_dict())
         hashes = {n: scene_config_hash(run, n) for n in names}
         done: dict[str, dict[str, Any]] = {}
