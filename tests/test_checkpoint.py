@@ -63,11 +63,14 @@ def test_a_stopped_scene_resumes_from_its_checkpoint_with_the_same_maps(tmp_path
     assert not (tmp_path / "cut" / STORE_FOLDER).exists()  # complete: the store went
 
 
-def test_a_damaged_checkpoint_or_one_of_another_version_is_refused_naming_the_file(tmp_path):
+def test_a_damaged_checkpoint_or_one_of_another_version_is_refused_naming_the_file(
+    tmp_path, caplog
+):
     with pytest.raises(KeyboardInterrupt):
         map_scene(_frames(25), tmp_path / "cut", CONFIG, OUTPUTS, overwrite=True)
     path = checkpoint_path(tmp_path / "cut" / STORE_FOLDER)
-    data = bytearray(path.read_bytes())
+    whole = path.read_bytes()
+    data = bytearray(whole)
     data[-100] ^= 0xFF
     path.write_bytes(bytes(data))
     with pytest.raises(StoreError, match=f"{path}: the checkpoint is damaged"):
@@ -77,6 +80,12 @@ def test_a_damaged_checkpoint_or_one_of_another_version_is_refused_naming_the_fi
     path.write_bytes(bytes(data))
     with pytest.raises(StoreError, match=f"{path}: a checkpoint of version"):
         map_scene(_frames(), tmp_path / "cut", CONFIG, OUTPUTS, overwrite=True, resume=True)
+    # a checkpoint of another config: the scene is mapped from its first frame
+    path.write_bytes(whole)
+    other = OutputConfig(figures=False, save_maps=True, checkpoint_every_s=1.0)
+    done = map_scene(_frames(), tmp_path / "cut", CONFIG, other, overwrite=True, resume=True)
+    assert any("checkpoint is of another config" in r.message for r in caplog.records)
+    assert done.metrics["checkpoints"]["n"] >= 2
 
 
 def _evgrid(out: Path, *more: str) -> subprocess.Popen:

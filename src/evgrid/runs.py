@@ -200,12 +200,14 @@ def _map_scene(
     truth = TruthTracker(config.grid, config.tile_cells)
     # the tile store in the scene's folder (docs/store.md): what a killed run leaves is there
     saved = _checkpointing(out, outputs, observers, name)
-    if out is not None and not (resume and saved and checkpoint_path(out / STORE_FOLDER).exists()):
+    path = None if out is None else checkpoint_path(out / STORE_FOLDER)
+    go_on = resume and saved and path.exists() and _same_run(path, config, outputs, source, name)
+    if out is not None and not go_on:
         shutil.rmtree(out / STORE_FOLDER, ignore_errors=True)  # a killed run's: start afresh
     store = None
     if out is not None and config.store.paging:
         store = TileStore(out / STORE_FOLDER)
-    state = _resumed(out, store, config, outputs, deep, name, source) if saved else None
+    state = _resumed(path, store, config, deep, name) if go_on else None
     if state is None:
         mapper = OccupancyMapper(config, deep, store=store)
         state = {"mapper": mapper, "truth": truth, "seconds": 0.0, "frame_ms": []}
@@ -240,19 +242,24 @@ def _checkpointing(out: Path | None, outputs: OutputConfig, observers: tuple, na
     return True
 
 
-def _resumed(out, store, config, outputs, deep, name, source) -> dict[str, Any] | None:
-    """The scene's last resumable state, if a checkpoint of this config is in its store."""
-    from evgrid.checkpoint import checkpoint_path, load_checkpoint
+def _same_run(path: Path, config, outputs, source, name) -> bool:
+    """Whether the checkpoint ``path`` was written for this scene's config (a damaged one or
+    one of another version is refused naming it)."""
+    from evgrid.checkpoint import read_header
+
+    head, _ = read_header(path)
+    if head["config_sha256"] != scene_config_hash(RunConfig(config, outputs, source), name):
+        log.warning("%s: its checkpoint is of another config; mapping it from frame 0", name)
+        return False
+    return True
+
+
+def _resumed(path, store, config, deep, name) -> dict[str, Any]:
+    """The scene's state at its last checkpoint."""
+    from evgrid.checkpoint import load_checkpoint
     from evgrid.mapper import deep_irm
 
-    path = checkpoint_path(out / STORE_FOLDER)
-    if not path.exists():
-        return None
-    state, made_for = load_checkpoint(path, store, lambda: deep or deep_irm(config))
-    if made_for != scene_config_hash(RunConfig(config, outputs, source), name):
-        log.warning("%s: its checkpoint is of another config; mapping it from frame 0", name)
-        shutil.rmtree(out / STORE_FOLDER, ignore_errors=True)
-        return None
+    state, _ = load_checkpoint(path, store, lambda: deep or deep_irm(config))
     log.warning("resuming %s at frame %d", name, state["mapper"].n_frames)
     return state
 
