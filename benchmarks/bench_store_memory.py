@@ -31,7 +31,7 @@ duration, seed, every = float(sys.argv[1]), int(sys.argv[2]), float(sys.argv[4])
 exports, out = sys.argv[3], Path(sys.argv[5])
 import evgrid
 from evgrid.config import MapperConfig, OutputConfig
-from evgrid.data import SimConfig, simulate_scene
+from evgrid_sim import SimConfig, simulate_scene
 from evgrid.fusion import MAP_NAMES
 from evgrid.runs import map_scene
 
@@ -81,6 +81,7 @@ m = json.loads((out / name / "metrics.json").read_text())
 rec = {"done": True, "seconds": time.perf_counter() - t0, **status()}
 rec.update(map_area_km2=m["map_area_km2"], frame_ms=m["frame_ms"])
 rec.update(page_out_ms=m["timings_ms"].get("page_out"), tile_cells=config.tile_cells)
+rec.update(checkpoints=m.get("checkpoints"))  # the resumable states' cost (docs/store.md)
 print(json.dumps({**rec, "resolution": config.grid.resolution}), flush=True)
 """
 

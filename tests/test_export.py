@@ -374,3 +374,24 @@ def test_missing_extras_say_how_to_install(monkeypatch):
     monkeypatch.setitem(sys.modules, "rosbags", None)
     with pytest.raises(ImportError, match=re.escape(evgrid.install_hint("ros"))):
         require("rosbags")
+
+
+def test_the_nav2_pgm_written_in_bands_is_the_whole_map_classified(tmp_path):
+    """The PGM is written a tile column at a time; its pixels are those of the whole box
+    classified at once and put in ROS order (map_to_occupancy), top row first."""
+    from evgrid.export.nav2 import PIXEL, _read_pgm, classify_map, map_to_occupancy, write_nav2
+    from evgrid.grid import MapWindow
+
+    rng = np.random.default_rng(35)
+    m = EvidentialMap(GridSpec(n_cells=64, length_m=6.4), 16)
+    for _ in range(12):  # patches on both sides of the origin, across tile borders
+        r, c = rng.integers(-80, 80, 2)
+        h, w = rng.integers(1, 50, 2)
+        masses = rng.dirichlet([1, 1, 1], size=(h, w)).astype(np.float32)
+        window = MapWindow(int(r), int(c), masses, rng.random((h, w)) < 0.8)
+        m.apply(window, lambda view, x: view.__setitem__(slice(None), x))
+    r0, c0, h, w = m.covered_bounds()
+    cls, _ = map_to_occupancy(classify_map(m, r0, c0, h, w), r0, c0, m.grid.resolution)
+    pgm, _ = write_nav2(m, tmp_path / "map")
+    want = np.vectorize(PIXEL.__getitem__)(cls)[::-1]
+    assert np.array_equal(_read_pgm(pgm), want.astype(np.uint8))

@@ -183,9 +183,10 @@ def test_resume_after_a_kill_gives_the_summary_of_an_uninterrupted_run(tmp_path)
     assert r.exit_code == 0, r.output
     assert "kept: ['sim-000004']" in r.output
     assert _scores(killed) == _scores(whole)
-    # a changed config redoes every scene (the markers hold the config's hash)
+    # a changed config is refused, naming the fields that differ (issue 39); nothing is redone
     r = runner.invoke(app, [*common, "--out", str(killed), "--resume", "--update-rate", "5"])
-    assert r.exit_code == 0 and "kept" not in r.output, r.output
+    assert r.exit_code == 1 and "changed config (mapper.update_rate_hz)" in r.output, r.output
+    assert _scores(killed) == _scores(whole)
 
 
 def test_ctrl_c_stops_cleanly_keeps_whole_files_and_resumes(tmp_path):

@@ -182,6 +182,9 @@ class OutputConfig:
     #: keyframe), rerun (.rrd); docs/ros.md
     exports: tuple[str, ...] = ()
     viewer: bool = False  #: show the maps live in a rerun viewer (needs evgrid[rerun])
+    #: seconds of the drive between two resumable states of a scene, which --resume continues
+    #: from (docs/store.md); 0: none
+    checkpoint_every_s: float = 60.0
     # Each export's parameters (docs/ros.md). Their map_frame and fixed_frame are the run's:
     # the recording's fixed frame, and the map frame of MapperConfig.frame.
     nav2: Nav2Params = field(default_factory=Nav2Params)
@@ -212,6 +215,7 @@ class OutputConfig:
         check_number(self, "gif_window_m", min=0.0, min_open=True)
         check_int(self, "gif_step", min=1)
         check_int(self, "gif_max_frames", min=2)
+        check_number(self, "checkpoint_every_s", min=0.0)
 
 
 def _check_cells(label: str, n: int, limit: int, what: str) -> None:

@@ -147,6 +147,18 @@ class Warper:
         self._coarse = np.zeros(((n + 3 + COARSE - 1) // COARSE,) * 2, dtype=np.bool_)
         self.n_rejected = 0
 
+    def __getstate__(self) -> dict:
+        # a checkpoint (evgrid.checkpoint) leaves out the buffers: every update loads its
+        # local grid before it warps, and each warp overwrites the output
+        drop = ("_masses", "_covered", "_src", "_coarse")
+        return {k: v for k, v in self.__dict__.items() if k not in drop}
+
+    def __setstate__(self, state: dict) -> None:
+        n_rejected = state.pop("n_rejected")
+        self.__init__(state.pop("grid"), state.pop("name"))
+        self.__dict__.update(state)
+        self.n_rejected = n_rejected
+
     @property
     def source(self) -> np.ndarray:
         """The loaded local grid with its vacuous border, flat (row stride ``3 (n + 3)``)."""

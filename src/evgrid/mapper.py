@@ -68,6 +68,13 @@ class Observer(Protocol):
     def on_update(self, update: MapUpdate) -> None: ...
 
 
+def deep_irm(config: MapperConfig) -> Any:
+    """The deep IRM of ``config`` (its checkpoint, else the shipped one)."""
+    from evgrid.ism.deep import DeepIrm
+
+    return DeepIrm(config.checkpoint, config.grid, config.image, config.threads, config.runtime)
+
+
 class OccupancyMapper:
     """The maps of one scene, built online: call :meth:`process` with each :class:`Frame` in time
     order.
@@ -100,11 +107,7 @@ class OccupancyMapper:
         self.buffer = RadarBuffer(max(config.radar.n_sweeps, config.image.n_sweeps))
         self.deep = deep
         if deep is None and "deep_irm" in self.maps.required_isms:
-            from evgrid.ism.deep import DeepIrm
-
-            self.deep = DeepIrm(
-                config.checkpoint, config.grid, config.image, config.threads, config.runtime
-            )
+            self.deep = deep_irm(config)
         if self.deep is not None:
             from evgrid.preprocess import check_trained_filter
 

@@ -8,6 +8,7 @@ with how long the vehicle has driven.
 from __future__ import annotations
 
 from collections.abc import Callable
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -225,18 +226,18 @@ class SceneScores:
         names = self.names = tuple(maps)
         truth_ref = self.reference or names[0]
         self.vs_ref = (
-            TileScores(names, lambda k: tile_confusions_vs_map(maps, self.reference, k))
+            TileScores(names, partial(tile_confusions_vs_map, maps, self.reference))
             if self.reference
             else None
         )
         self.vs_truth = (
-            TileScores(names, lambda k: tile_confusions_vs_truth(maps, truth.map, truth_ref, k))
+            TileScores(names, partial(tile_confusions_vs_truth, maps, truth.map, truth_ref))
             if truth is not None
             else None
         )
         # the same against every true cell, not only those the lidar covered: the perception field
         self.field = (
-            TileScores(names, lambda k: tile_confusions_vs_truth(maps, truth.map, None, k))
+            TileScores(names, partial(tile_confusions_vs_truth, maps, truth.map, None))
             if truth is not None
             else None
         )

@@ -41,6 +41,7 @@ from evgrid.io import jsonable, write_json
 from evgrid.mapper import OccupancyMapper
 from evgrid.observers import GifRecorder, SceneScores, TruthTracker
 from evgrid.outdir import ResultsExistError, is_complete, mark_complete, results_folder
+from evgrid.store import TileStore
 
 #: The tile store's folder in a scene's results folder (docs/store.md).
 STORE_FOLDER = "store"
@@ -115,6 +116,7 @@ def map_scene(
     overwrite: bool = False,
     source: dict[str, Any] | None = None,
     fixed_frame: str | None = None,
+    resume: bool = False,
 ) -> SceneResult:
     """Map a whole scene; with ``out_dir`` write ``config.json`` (naming ``source``, a source as
     :func:`~evgrid.sources.source_to_dict` gives it, and this scene), ``metrics.json``, figures,
@@ -125,7 +127,9 @@ def map_scene(
     the simulator's ``world``): the exports' map frame when ``config.frame`` is ``world``, the
     map frame's parent otherwise. ``observers`` (e.g. exporters) see every map update after the
     built-in ones. Files are written under temporary names and renamed when complete (the
-    exports when closed; on any exception, Ctrl-C included, they are aborted).
+    exports when closed; on any exception, Ctrl-C included, they are aborted). With ``out_dir``,
+    the scene's resumable state is saved every ``outputs.checkpoint_every_s`` seconds of the
+    drive, and ``resume`` continues from it (docs/store.md).
     """
     from evgrid.sources import fixed_frame_of
 
@@ -141,7 +145,7 @@ def map_scene(
         try:
             return _map_scene(
                 frames, out, config, outputs, deep, name, progress, observers, source, exporters,
-                fixed_frame,
+                fixed_frame, resume,
             )  # fmt: skip
         except BaseException:
             # Ctrl-C included: an export not closed is incomplete, and its temporary file goes
@@ -188,41 +192,114 @@ def _maps_the_rig_can_make(
 
 
 def _map_scene(
-    frames, out, config, outputs, deep, name, progress, observers, source, exporters, fixed_frame
-) -> SceneResult:
+    frames, out, config, outputs, deep, name, progress, observers, source, exporters, fixed_frame,
+    resume=False,
+) -> SceneResult:  # fmt: skip
+    from evgrid.checkpoint import checkpoint_path
+
     truth = TruthTracker(config.grid, config.tile_cells)
     # the tile store in the scene's folder (docs/store.md): what a killed run leaves is there
-    if out is not None:  # a store left by a killed run of this scene: this run starts afresh
-        shutil.rmtree(out / STORE_FOLDER, ignore_errors=True)
-    mapper = OccupancyMapper(config, deep, store=None if out is None else out / STORE_FOLDER)
+    saved = _checkpointing(out, outputs, observers, name)
+    path = None if out is None else checkpoint_path(out / STORE_FOLDER)
+    go_on = resume and saved and path.exists() and _same_run(path, config, outputs, source, name)
+    if out is not None and not go_on:
+        shutil.rmtree(out / STORE_FOLDER, ignore_errors=True)  # a killed run's: start afresh
+    store = None
+    if out is not None and config.store.paging:
+        store = TileStore(out / STORE_FOLDER)
+    state = _resumed(path, store, config, deep, name) if go_on else None
+    if state is None:
+        mapper = OccupancyMapper(config, deep, store=store)
+        state = {"mapper": mapper, "truth": truth, "seconds": 0.0, "frame_ms": []}
+    else:
+        mapper = state["mapper"]
+        for exporter in exporters:  # the checkpoint's exporters replace the fresh ones
+            exporter.abort()
+        exporters[:] = state["exporters"]
     try:
         return _map_with(
-            mapper, truth, frames, out, config, outputs, name, progress, observers, source,
-            exporters, fixed_frame,
+            state, frames, out, config, outputs, name, progress, observers, source, exporters,
+            fixed_frame, saved,
         )  # fmt: skip
     finally:
         mapper.close()
 
 
+def _checkpointing(out: Path | None, outputs: OutputConfig, observers: tuple, name: str) -> bool:
+    """Whether a scene saves resumable states: with a results folder, ``checkpoint_every_s``
+    and nothing that streams into a file as it goes (the MCAP and rerun exports, the viewer)
+    or that the run does not own (observers passed in)."""
+    if out is None or not outputs.checkpoint_every_s:
+        return False
+    streams = [e for e in outputs.exports if e != "nav2"] + (["viewer"] if outputs.viewer else [])
+    if streams or observers:
+        log.info(
+            "%s: no checkpoints (%s); --resume maps it again from its first frame",
+            name,
+            f"{', '.join(streams)} write as they go" if streams else "observers passed in",
+        )
+        return False
+    return True
+
+
+def _same_run(path: Path, config, outputs, source, name) -> bool:
+    """Whether the checkpoint ``path`` was written for this scene's config (a damaged one or
+    one of another version is refused naming it)."""
+    from evgrid.checkpoint import read_header
+
+    head, _ = read_header(path)
+    if head["config_sha256"] != scene_config_hash(RunConfig(config, outputs, source), name):
+        log.warning("%s: its checkpoint is of another config; mapping it from frame 0", name)
+        return False
+    return True
+
+
+def _resumed(path, store, config, deep, name) -> dict[str, Any]:
+    """The scene's state at its last checkpoint."""
+    from evgrid.checkpoint import load_checkpoint
+    from evgrid.mapper import deep_irm
+
+    state, _ = load_checkpoint(path, store, lambda: deep or deep_irm(config))
+    log.warning("resuming %s at frame %d", name, state["mapper"].n_frames)
+    return state
+
+
 def _map_with(
-    mapper, truth, frames, out, config, outputs, name, progress, observers, source, exporters,
-    fixed_frame,
+    state, frames, out, config, outputs, name, progress, observers, source, exporters,
+    fixed_frame, saved,
 ) -> SceneResult:  # fmt: skip
-    scores = SceneScores(mapper.maps.maps, truth, track=outputs.convergence)
-    gif = (
-        GifRecorder(config.grid, outputs.gif_window_m, outputs.gif_step, outputs.gif_max_frames)
-        if out is not None and outputs.figures
-        else None
-    )
-    mapper.observers += [truth, scores, *([gif] if gif else []), *exporters, *observers]
-    t0 = time.perf_counter()
-    frame_ms: list[float] = []  # mapper and observers, without reading the frame
-    for frame in frames:
+    mapper, truth = state["mapper"], state["truth"]
+    if "scores" not in state:  # else resumed: the observers are the checkpoint's
+        scores = SceneScores(mapper.maps.maps, truth, track=outputs.convergence)
+        gif = None
+        if out is not None and outputs.figures:
+            gif = GifRecorder(
+                config.grid, outputs.gif_window_m, outputs.gif_step, outputs.gif_max_frames
+            )
+        mapper.observers += [truth, scores, *([gif] if gif else []), *exporters, *observers]
+        state.update(scores=scores, gif=gif, exporters=list(exporters), costs=[], next_us=None)
+    scores, gif, costs = state["scores"], state["gif"], state["costs"]
+    frame_ms: list[float] = state["frame_ms"]  # mapper and observers, without reading the frame
+    every_us = outputs.checkpoint_every_s * 1e6 if saved else None
+    frames_iter = iter(frames)
+    for k in range(mapper.n_frames):  # resumed: the frames mapped before the checkpoint
+        if next(frames_iter, None) is None:
+            raise ValueError(f"{name}: the source has {k} frames, the checkpoint {mapper.n_frames}")
+        if progress is not None:
+            progress()
+    t0 = time.perf_counter() - state["seconds"]
+    for frame in frames_iter:
         t = time.perf_counter()
         mapper.process(frame)
         frame_ms.append((time.perf_counter() - t) * 1e3)
         if progress is not None:
             progress()
+        due = state["next_us"]  # of the drive's clock: the same frames in every run
+        if every_us is not None and (due is None or frame.timestamp >= due):
+            state["next_us"] = frame.timestamp + every_us
+            if due is not None:
+                state["seconds"] = time.perf_counter() - t0
+                costs.append(_save_state(state, out, config, outputs, name, source))
     seconds = time.perf_counter() - t0
     if mapper.n_updates == 0:  # empty maps are no result: the scene fails, saying why
         raise NoFrameMapped(nothing_mapped(name, mapper.n_frames, frames))
@@ -234,6 +311,11 @@ def _map_with(
     if outputs.viewer:
         exporters[-1].close()
     metrics = _scene_metrics(name, mapper, scores, seconds, frame_ms)
+    if costs:  # what the resumable states cost (docs/store.md)
+        metrics["checkpoints"] = {
+            "n": len(costs),
+            **{f"{k}_mean": float(np.mean([c[k] for c in costs])) for k in costs[0]},
+        }
     metrics.update(_source_report(frames))
     if out is not None:
         run = RunConfig(config, outputs, source, (name,) if source is not None else None)
@@ -288,6 +370,20 @@ def nothing_mapped(name: str, n_frames: int, frames: Any) -> str:
     )
     stopped = f"; {report['stopped']}" if report.get("stopped") else ""
     return f"{name}: no frame mapped ({n_frames} frame(s) made){why}{stopped}"
+
+
+def _save_state(state, out, config, outputs, name, source) -> dict[str, float]:
+    """Write the scene's resumable state (:mod:`evgrid.checkpoint`); returns its cost."""
+    from evgrid.checkpoint import checkpoint_path, save_checkpoint
+
+    mapper = state["mapper"]
+    return save_checkpoint(
+        checkpoint_path(out / STORE_FOLDER),
+        state,
+        mapper.store,
+        mapper.deep,
+        scene_config_hash(RunConfig(config, outputs, source), name),
+    )
 
 
 def _exporters(
@@ -431,7 +527,7 @@ def _scene_metrics(
 def _map_one(args: tuple) -> dict[str, Any]:
     from evgrid.sources import fixed_frame_of
 
-    source, name, out_dir, config, outputs, source_dict, on_frame = args
+    source, name, out_dir, config, outputs, source_dict, on_frame, resume = args
     scene = source.load(name)
     progress = None
     if on_frame is not None:  # only in this process (a callback does not cross processes)
@@ -448,13 +544,53 @@ def _map_one(args: tuple) -> dict[str, Any]:
         progress=progress,
         source=source_dict,
         fixed_frame=fixed_frame_of(source, scene),
+        resume=resume,
     )
     return res.metrics
 
 
 def scene_config_hash(run: RunConfig, name: str) -> str:
-    """The hash a scene's completion marker holds: its mapper, outputs, source and name."""
-    return config_hash(replace(run, scenes=(name,)))
+    """The hash a scene's completion marker and checkpoint hold: its mapper, outputs (the
+    checkpoints' interval aside), source and name."""
+    outputs = replace(run.outputs, checkpoint_every_s=OutputConfig.checkpoint_every_s)
+    return config_hash(replace(run, outputs=outputs, scenes=(name,)))
+
+
+#: Fields a resumed run may change: the scenes (more, or fewer), how often states are saved.
+RESUME_MAY_CHANGE = ("scenes", "outputs.checkpoint_every_s")
+
+
+def _check_same_config(path: Path, run: RunConfig) -> None:
+    """``--resume`` continues the run of ``path`` (its config.json): a config that differs in
+    any field but :data:`RESUME_MAY_CHANGE` is refused, naming the fields."""
+    import json
+
+    try:
+        old = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return  # no run to continue: every scene is mapped
+    changed = [
+        k
+        for k in _changed_fields(old, json.loads(json.dumps(jsonable(run.to_dict()))))
+        if k not in RESUME_MAY_CHANGE
+    ]
+    if changed:
+        raise ResultsExistError(
+            f"{path}: --resume with a changed config ({', '.join(changed)}); resume with that "
+            "config (drop the options that changed it), or recompute with --overwrite or "
+            "another --out"
+        )
+
+
+def _changed_fields(old: Any, new: Any, prefix: str = "") -> list[str]:
+    if isinstance(old, dict) and isinstance(new, dict):
+        keys = sorted(set(old) | set(new))
+        return [
+            k
+            for key in keys
+            for k in _changed_fields(old.get(key), new.get(key), prefix + key + ".")
+        ]
+    return [] if old == new else [prefix.rstrip(".")]
 
 
 def summarize(per_scene: list[dict[str, Any]]) -> dict[str, Any]:
@@ -608,7 +744,8 @@ def map_scenes(
     ``OUT/config.json`` (re-run with ``evgrid map --config``), ``OUT/<scene>/...`` with its own
     ``config.json`` and a completion marker, ``OUT/summary.json`` (``failed``: the scenes that
     raised, with their errors) and ``OUT/table.md``. With ``resume``, scenes complete for the
-    same config are kept and the rest redone. Ctrl-C raises :class:`RunInterrupted`.
+    same config are kept, those with a checkpoint continue from it and the rest are redone.
+    Ctrl-C raises :class:`RunInterrupted`.
     """
     from evgrid.budget import check_budget
     from evgrid.engine import fan_out
@@ -622,6 +759,8 @@ def map_scenes(
     source_dict = source_to_dict(source)
     run = RunConfig(config, outputs, source_dict, tuple(names))
     with results_folder(out_dir, overwrite, resume) as out:
+        if resume:
+            _check_same_config(out / "config.json", run)
         write_json(out / "config.json", run.to_dict())
         hashes = {n: scene_config_hash(run, n) for n in names}
         done: dict[str, dict[str, Any]] = {}
@@ -633,7 +772,9 @@ def map_scenes(
         # fan_out runs jobs in this process with one worker or one job: frames can be shown
         in_process = engine == "local" and (workers <= 1 or len(todo) <= 1)
         on_frame = events.frame if in_process else None
-        jobs = [(n, (source, n, str(out), config, outputs, source_dict, on_frame)) for n in todo]
+        jobs = [
+            (n, (source, n, str(out), config, outputs, source_dict, on_frame, resume)) for n in todo
+        ]
         try:
             for o in fan_out(_map_one, jobs, engine=engine, workers=workers):
                 if o.ok:

@@ -56,6 +56,9 @@ _TILE_NAME = re.compile(r"^(-?\d+)_(-?\d+)\.g(\d+)\.tile$")
 _GROUP_NAME = re.compile(r"^[A-Za-z0-9_.+-]{1,100}$")
 #: Tiles read without being brought back into the map, kept per group (each a few MiB at most).
 READ_CACHE_TILES = 8
+#: A run's resumable state in its store's folder (:mod:`evgrid.checkpoint`); while it is there,
+#: the tile files it names are kept (a group opened does not remove older generations).
+CHECKPOINT_NAME = "checkpoint.pkl"
 
 
 class StoreError(ValueError):
@@ -204,6 +207,10 @@ class TileGroup:
         # the newest generation of each key on disk, and every file name found per key
         self._files: dict[tuple[int, int], tuple[int, str]] = {}
         self._gen = 0
+        self.pager: Pager | None = None  # the raster paging into this group
+        # files a checkpoint names (kept until the next one), and those replaced since
+        self.pinned: set[str] = set()
+        self.retired: list[str] = []
         stale = []
         for f in os.scandir(folder):
             m = _TILE_NAME.match(f.name)
@@ -220,6 +227,8 @@ class TileGroup:
                 self._files[key] = (gen, f.name)
             else:
                 stale.append(f.path)
+        if (folder.parent / CHECKPOINT_NAME).exists():  # it may name older generations
+            stale = [p for p in stale if p.endswith(".part")]
         for p in stale:  # older generations whose newer file made it, and cut writes
             try:
                 os.unlink(p)
@@ -276,10 +285,35 @@ class TileGroup:
         self._files[key] = (gen, name)
         self.nbytes += len(data)
         if old is not None:
-            p = self.folder / old[1]
-            self.nbytes -= p.stat().st_size
-            p.unlink()
+            if old[1] in self.pinned:  # the last checkpoint names it: it goes at the next one
+                self.retired.append(old[1])
+            else:
+                self._unlink(old[1])
         return len(data)
+
+    def _unlink(self, name: str) -> None:
+        p = self.folder / name
+        self.nbytes -= p.stat().st_size
+        p.unlink()
+
+    def pin(self) -> None:
+        """A checkpoint names the files as they are now: keep them until the next pin, and
+        remove those replaced since the last one."""
+        self.pinned = {n for _, n in self._files.values()}
+        for name in self.retired:
+            if name not in self.pinned:
+                self._unlink(name)
+        self.retired = []
+
+    def restore(self) -> None:
+        """Back to a checkpoint (this group as it was pickled): every tile file it does not name
+        (written after it) goes."""
+        self.pinned = {n for _, n in self._files.values()}
+        self.retired = []
+        for f in os.scandir(self.folder):
+            if f.name not in self.pinned and (_TILE_NAME.match(f.name) or f.name.endswith(".part")):
+                os.unlink(f.path)
+        self.nbytes = sum((self.folder / n).stat().st_size for n in self.pinned)
 
     def read(self, key: tuple[int, int]) -> dict[str, np.ndarray]:
         """The layers of tile ``key`` (fresh, writable arrays); StoreError naming the file if it
@@ -396,6 +430,7 @@ class Pager:
         expect: dict[str, tuple[tuple[int, ...], np.dtype]] | None = None,
     ):
         self.group = group
+        group.pager = self
         self.layers = layers
         self.expect = expect or {}
         self.summary = summary
@@ -403,6 +438,10 @@ class Pager:
         self._cache: OrderedDict[tuple[int, int], dict[str, np.ndarray]] = OrderedDict()
         self.n_out = 0
         self.n_in = 0
+
+    def __getstate__(self) -> dict:
+        # a checkpoint (evgrid.checkpoint) leaves out the read cache: the tiles are on disk
+        return {**self.__dict__, "_cache": OrderedDict()}
 
     def peek(self, key: tuple[int, int]) -> dict[str, np.ndarray]:
         """The layers of stored tile ``key``, read-only, left on disk."""

@@ -31,7 +31,7 @@ MAP_OPTIONS: dict[str, tuple[str, ...]] = {
     "export": ("outputs.exports",), "mcap-window": ("outputs.mcap.window_m",),
     "mcap-rate": ("outputs.mcap.rate_hz",), "mcap-maps": ("outputs.mcap.maps",),
     "mcap-layers": ("outputs.mcap.layers",), "map-frame": ("mapper.frame",),
-    "viewer": ("outputs.viewer",),
+    "viewer": ("outputs.viewer",), "checkpoint-every": ("outputs.checkpoint_every_s",),
 }  # fmt: skip
 
 #: The options of ``evgrid sweep-m-u-min``: the mapper's, and the values swept.

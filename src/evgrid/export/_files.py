@@ -12,7 +12,7 @@
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -59,14 +59,20 @@ def target_path(path: str | os.PathLike, default_name: str, suffix: str = "") ->
     return p
 
 
-def write_all(files: dict[Path, bytes], overwrite: bool = False) -> list[Path]:
+def write_all(
+    files: dict[Path, bytes | Callable[[AtomicFile], None]], overwrite: bool = False
+) -> list[Path]:
     """Write several files together: all of them refused, or all written to temporary names
-    first and then renamed (a failure on any removes every temporary file)."""
+    first and then renamed (a failure on any removes every temporary file). A file's content
+    is its bytes, or a function that writes them piece by piece into the file it is given."""
     refuse_existing(files, overwrite)
     pending = [AtomicFile(p, overwrite) for p in files]
     try:
         for f, data in zip(pending, files.values()):
-            f.write(data)
+            if callable(data):
+                data(f)
+            else:
+                f.write(data)
         return [f.commit() for f in pending]
     finally:
         for f in pending:

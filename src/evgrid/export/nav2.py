@@ -28,6 +28,7 @@ import os
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -181,11 +182,6 @@ def map_to_occupancy(
     return out, (-(r0 + h) * resolution, -(c0 + w) * resolution)
 
 
-def _pgm_bytes(img: np.ndarray) -> bytes:
-    h, w = img.shape
-    return f"P5\n{w} {h}\n255\n".encode() + np.ascontiguousarray(img, dtype=np.uint8).tobytes()
-
-
 def _read_pgm(path: Path) -> np.ndarray:
     data = Path(path).read_bytes()
     tokens, pos = [], 0
@@ -216,10 +212,7 @@ def nav2_files(
     """
     refuse_empty({stem.name: m}, stem)
     r0, c0, h, w = m.covered_bounds()
-    cls, (ox, oy) = map_to_occupancy(classify_map(m, r0, c0, h, w, th), r0, c0, m.grid.resolution)
-    img = np.full(cls.shape, PIXEL[UNKNOWN], dtype=np.uint8)
-    img[cls == FREE] = PIXEL[FREE]
-    img[cls == OCCUPIED] = PIXEL[OCCUPIED]
+    ox, oy = -(r0 + h) * m.grid.resolution, -(c0 + w) * m.grid.resolution  # map_to_occupancy's
     pgm, yml = stem.with_name(stem.name + ".pgm"), stem.with_name(stem.name + ".yaml")
     lines = [
         f"image: {pgm.name}",
@@ -233,8 +226,29 @@ def nav2_files(
         f"{th.unknown_mass!r}",
         *(f"# {c}" for c in comments),
     ]
-    # image rows top-down: the first row is the largest y
-    return {pgm: _pgm_bytes(img[::-1]), yml: ("\n".join(lines) + "\n").encode()}
+    return {
+        pgm: partial(_write_pgm, m, (r0, c0, h, w), th),
+        yml: ("\n".join(lines) + "\n").encode(),
+    }
+
+
+def _write_pgm(m: EvidentialMap, box: tuple[int, int, int, int], th: Nav2Thresholds, f) -> None:
+    """The PGM of map cells ``box``, written in bands of image rows, one tile column of the map
+    each, so that its memory does not grow with the map. Image rows run top-down (the first is
+    the largest y, the map's column ``c0``); image row ``y``, pixel ``i`` is map cell
+    ``(r0 + h - 1 - i, c0 + y)`` (:func:`map_to_occupancy`, flipped top-down)."""
+    r0, c0, h, w = box
+    f.write(f"P5\n{h} {w}\n255\n".encode())
+    lut = np.zeros(256, np.uint8)
+    for cls in (FREE, OCCUPIED, UNKNOWN):
+        lut[np.array(cls, np.int8).view(np.uint8)] = PIXEL[cls]
+    ts = m.tile_cells
+    y = 0
+    while y < w:
+        b = min(w - y, ts - (c0 + y) % ts)  # to the end of this tile column
+        band = classify_map(m, r0, c0 + y, h, b, th)  # (h, b)
+        f.write(np.ascontiguousarray(lut[band.view(np.uint8)][::-1].T).tobytes())
+        y += b
 
 
 def write_nav2(
