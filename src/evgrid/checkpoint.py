@@ -22,8 +22,9 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from evgrid.io import atomic_write_bytes
 from evgrid.package import __version__
-from evgrid.store import CHECKPOINT_NAME, StoreError, TileStore, _write_atomic, read_tile_file
+from evgrid.store import CHECKPOINT_NAME, StoreError, TileStore, read_tile_file
 
 __all__ = ["CHECKPOINT_VERSION", "save_checkpoint", "load_checkpoint", "checkpoint_path"]
 
@@ -100,13 +101,13 @@ def save_checkpoint(
         }
     )
     data = b"".join([_HEAD.pack(_MAGIC, CHECKPOINT_VERSION, len(head)), head, payload])
+    # synced before the rename (evgrid.io), unlike a paged tile: the state resuming starts from
     if store is not None:
-        store._write(lambda: _write_atomic(path, data), path)
+        store._write(lambda: atomic_write_bytes(path, data), path)
         for g in groups.values():  # the files this checkpoint names stay until the next one
             g.pin()
     else:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        _write_atomic(path, data)
+        atomic_write_bytes(path, data)
     return {"ms": (time.perf_counter() - t) * 1e3, "bytes": len(data), "tile_bytes": tile_bytes}
 
 

@@ -142,8 +142,9 @@ class TileStore:
 
 def _write_atomic(path: Path, data: bytes) -> None:
     """Write ``data`` under a temporary name beside ``path`` and rename it into place: a process
-    killed at any moment leaves the old file or the new one, never a part (the page-out path
-    does not fsync: a tile is rewritten often, and a run's checkpoint syncs what resuming needs)."""
+    killed at any moment leaves the old file or the new one, never a part. Not synced: a tile is
+    rewritten often (a checkpoint's own file is, through evgrid.io; the tiles it names are not,
+    so a power loss, unlike a killed process, can cost a checkpoint its tiles)."""
     fd, tmp = tempfile.mkstemp(prefix="." + path.name + ".", suffix=".part", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
