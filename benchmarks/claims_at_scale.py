@@ -38,7 +38,7 @@ os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 from evgrid.classes import CLASSES  # noqa: E402
-from evgrid.config import MapperConfig, OutputConfig  # noqa: E402
+from evgrid.config import OutputConfig, RunConfig, resolve_config  # noqa: E402
 from evgrid.engine import ENGINES, fan_out  # noqa: E402
 from evgrid.evaluate import bootstrap_interval, markdown_table  # noqa: E402
 from evgrid.io import atomic_write_text, write_json  # noqa: E402
@@ -174,13 +174,24 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--duration", type=float, default=20.0)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--engine", choices=ENGINES, default="local")
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="a run config field, e.g. mapper.checkpoint=out/train/best.safetensors or "
+        "mapper.evidence.mode=per_look (repeatable)",
+    )
     a = ap.parse_args(argv)
 
     source = SimSource.split("val", a.scenes, first_seed=a.first_seed, duration_s=a.duration)
     clash = sorted(set(source.seeds) & used_seeds())
     if clash:
         sys.exit(f"claims_at_scale: seeds {clash} were used for training or the m_u_min sweep")
-    config = MapperConfig()
+    overrides = [tuple(item.split("=", 1)) for item in a.set]
+    if any(len(o) != 2 for o in overrides):
+        sys.exit(f"claims_at_scale: --set takes KEY=VALUE, got {a.set}")
+    config = resolve_config(RunConfig, overrides=overrides).mapper
     outputs = replace(OutputConfig(), figures=False, save_maps=False, exports=())
     scenes_dir = a.out / "scenes"
     scenes_dir.mkdir(parents=True, exist_ok=True)
@@ -193,8 +204,12 @@ def main(argv: list[str] | None = None) -> int:
     header = (
         f"`benchmarks/claims_at_scale.py --scenes {a.scenes} --first-seed {a.first_seed} "
         f"--duration {a.duration:g} --workers {a.workers} --engine {a.engine}`: val seeds "
-        f"{source.seeds[0]}, {source.seeds[1]}, ..., {source.seeds[-1]}, the shipped "
-        "checkpoint, the default MapperConfig. "
+        f"{source.seeds[0]}, {source.seeds[1]}, ..., {source.seeds[-1]}, "
+        + (
+            f"MapperConfig with {', '.join(a.set)}. "
+            if a.set
+            else "the shipped checkpoint, the default MapperConfig. "
+        )
     )
     todo = [(n, (source, n, config, outputs)) for n in names if n not in done]
     print(f"{len(done)} scene(s) already mapped, {len(todo)} to map", flush=True)
