@@ -48,7 +48,8 @@ TRAIN_OPTIONS: dict[str, tuple[str, ...]] = {
     ),
     "radar-filter": ("train.radar_filter.mode",), "init": ("train.init",),
     "precision": ("train.precision",), "engine": ("train.engine",),
-    "cache-workers": ("train.cache_workers",),
+    "cache-workers": ("train.cache_workers",), "target": ("train.target.kind",),
+    "target-rule": ("train.target.rule",),
 }  # fmt: skip
 
 #: Each command's options beyond its own: (short options, option group); evaluate, demo and

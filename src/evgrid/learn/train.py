@@ -48,7 +48,6 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, Dataset
 
-from evgrid.classes import FREE, OCCUPIED, UNKNOWN
 from evgrid.data.frame import Frame
 from evgrid.engine import ENGINES, fan_out
 from evgrid.evaluate import CLASSES
@@ -57,6 +56,7 @@ from evgrid.io import atomic_write, atomic_write_bytes, write_json
 from evgrid.ism.deep import CHANNELS, RadarImageParams, detections_to_image, radar_detections
 from evgrid.ism.evnet import EvNet, EvNetConfig, load_checkpoint, save_checkpoint
 from evgrid.learn.loss import evidential_loss
+from evgrid.learn.targets import TargetConfig, TargetWindow, ilm_classes
 from evgrid.preprocess import RadarFilter, SelfReturnParams
 from evgrid.validation import check_choice, check_int, check_number
 
@@ -117,6 +117,8 @@ class TrainConfig:
     cache_workers: int = 1  #: cache jobs at once
     #: mixed precision on CUDA: auto|fp32|bf16|fp16 (auto: bf16 where the GPU has it, else fp16)
     precision: str = "auto"
+    #: the targets: the lidar accumulated around each sample, or the paper's single frame
+    target: TargetConfig = field(default_factory=TargetConfig)
 
     def __post_init__(self) -> None:
         for name in ("epochs", "batch_size", "frame_stride", "cache_workers"):
@@ -150,6 +152,9 @@ class TrainConfig:
                 "radar_filter": self.radar_filter.to_dict(),
                 "self_returns": asdict(self.self_returns),
                 "radar_ranges": self.radar_ranges,
+                # single-frame targets keep the key (and the caches) they had before targets
+                # had a config
+                **({} if self.target.kind == "single_frame" else {"target": asdict(self.target)}),
             },
             sort_keys=True,
         )
@@ -191,22 +196,12 @@ def fine_tune_config(config: TrainConfig, init: str | os.PathLike) -> TrainConfi
 # --- samples ------------------------------------------------------------------------------------
 
 
-def ilm_classes(masses: np.ndarray) -> np.ndarray:
-    """Target classes from ray ILM masses: m_o > 0 OCCUPIED, else m_f > 0 FREE, else UNKNOWN.
-
-    See docs/decisions.md#ev-net-targets-and-loss.
-    """
-    out = np.full(masses.shape[:-1], UNKNOWN, dtype=np.uint8)
-    out[masses[..., 0] > 0] = FREE
-    out[masses[..., 1] > 0] = OCCUPIED
-    return out
-
-
 def scene_samples(
     frames: Iterable[Frame], config: TrainConfig, with_irm: bool = False
 ) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray | None]]:
     """Yield ``(detections, target classes, ray-IRM classes or None)`` for every
-    ``frame_stride``-th frame."""
+    ``frame_stride``-th frame. Accumulated targets (``config.target``) need the frames up to
+    ``after_s`` past a sample, so its sample comes that much later in the stream."""
     from evgrid.data.sweeps import RadarBuffer
     from evgrid.ism import ray_ilm, ray_irm
     from evgrid.preprocess import Preprocessor
@@ -216,17 +211,32 @@ def scene_samples(
     # the vehicle's own lidar returns before the ray ILM); no pose gate: training takes the
     # poses as given
     clean = Preprocessor.from_config(config, gate_poses=False)
+    window = TargetWindow(config.target, config.grid)
+    accumulated = config.target.kind == "accumulated"
+    pending: list[tuple[np.ndarray, Any, np.ndarray | None]] = []  # (det, lidar, irm)
     for k, frame in enumerate(frames):
         for sweep in clean.radar_sweeps(frame):
             buffer.push(sweep)
+        if accumulated:
+            window.push(clean.lidar(frame.lidar))
+            while pending and window.complete_for(pending[0][1]):
+                det, lidar, irm = pending.pop(0)
+                yield det, window.target(lidar), irm
         if k % config.frame_stride:
+            if accumulated:
+                window.drop_before(pending[0][1].timestamp if pending else frame.timestamp)
             continue
         sweeps = buffer.sweeps()
         det = radar_detections(sweeps, frame.ego_pose, frame.timestamp, config.image)
-        # the lidar of sampled frames only, as the mapper cleans only the frames it maps
-        target = ilm_classes(ray_ilm(clean.lidar(frame.lidar), grid=config.grid))
         irm = ilm_classes(ray_irm(sweeps, frame.ego_pose, grid=config.grid)) if with_irm else None
-        yield det, target, irm
+        if accumulated:
+            pending.append((det, window.sweeps[-1], irm))
+            window.drop_before(pending[0][1].timestamp)
+            continue
+        # the lidar of sampled frames only, as the mapper cleans only the frames it maps
+        yield det, ilm_classes(ray_ilm(clean.lidar(frame.lidar), grid=config.grid)), irm
+    for det, lidar, irm in pending:  # the scene's last samples: their windows end with it
+        yield det, window.target(lidar), irm
 
 
 def scene_shard(
