@@ -172,3 +172,14 @@ def test_bad_target_config_is_refused_naming_the_field(field, value):
     with pytest.raises(ValueError, match=rf"TargetConfig\.{field}") as e:
         TargetConfig(**{field: value})
     assert "\n" not in str(e.value)
+
+
+def test_a_config_saved_before_targets_had_one_reads_as_single_frame():
+    from evgrid.learn.train import saved_train_config
+
+    saved = TrainConfig().to_dict()
+    assert saved_train_config(saved, "ck").target == TargetConfig()
+    del saved["target"]  # as checkpoints trained before it saved their config
+    old = saved_train_config(saved, "ck")
+    assert old.target.kind == "single_frame"
+    assert old.data_key() == replace(TrainConfig(), target=old.target).data_key()

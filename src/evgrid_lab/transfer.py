@@ -17,9 +17,15 @@ from pathlib import Path
 import torch
 from torch.utils.data import DataLoader
 
-from evgrid.config import from_dict
 from evgrid.ism.evnet import load_checkpoint
-from evgrid.learn.train import RadarDataset, TrainConfig, build_cache, evaluate_model
+from evgrid.learn.train import (
+    RadarDataset,
+    TargetConfig,
+    TrainConfig,
+    build_cache,
+    evaluate_model,
+    saved_train_config,
+)
 from evgrid.preprocess import RadarFilter
 from evgrid.sources import SimSource
 from evgrid_sim.radar_variants import NOMINAL, OUT_OF_RANGE, TRAINING_RANGES, RadarRanges
@@ -71,12 +77,12 @@ def measure_transfer(
     saved = ck.extra.get("config")
     if saved is not None:
         config = replace(
-            from_dict(TrainConfig, saved, f"{checkpoint}: training config"),
+            saved_train_config(saved, f"{checkpoint}: training config"),
             workers=0,
             radar_ranges=None,
         )
     else:  # checkpoints written before the whole training config was saved
-        config = TrainConfig(workers=0)
+        config = TrainConfig(workers=0, target=TargetConfig(kind="single_frame"))
         if "radar_filter" in ck.extra:
             config = replace(config, radar_filter=RadarFilter.from_dict(ck.extra["radar_filter"]))
     results: dict[str, dict] = {}

@@ -71,6 +71,8 @@ __all__ = [
     "cached_scenes",
     "RadarDataset",
     "fine_tune_config",
+    "saved_train_config",
+    "TargetConfig",
     "CHECKPOINT_NAMES",
     "checkpoint_path",
     "Precision",
@@ -186,11 +188,19 @@ def fine_tune_config(config: TrainConfig, init: str | os.PathLike) -> TrainConfi
     out = replace(config, init=init, model=ck.model.config)
     saved = ck.extra.get("config")
     if isinstance(saved, dict):
-        from evgrid.config import from_dict
-
-        parent = from_dict(TrainConfig, saved, f"{init}: training config")
+        parent = saved_train_config(saved, f"{init}: training config")
         out = replace(out, grid=parent.grid, image=parent.image)
     return out
+
+
+def saved_train_config(saved: dict, where: str) -> TrainConfig:
+    """The :class:`TrainConfig` a checkpoint saved (``extra["config"]``); one saved before
+    targets had a config (no ``target``) trained on single-frame targets, and reads so."""
+    from evgrid.config import from_dict
+
+    if isinstance(saved, dict) and "target" not in saved:
+        saved = {**saved, "target": {"kind": "single_frame"}}
+    return from_dict(TrainConfig, saved, where)
 
 
 # --- samples ------------------------------------------------------------------------------------
