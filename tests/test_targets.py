@@ -12,7 +12,7 @@ from evgrid.classes import FREE, OCCUPIED, UNKNOWN
 from evgrid.data.frame import LidarSweep
 from evgrid.geometry import SE3, GridSpec
 from evgrid.ism import ray_ilm
-from evgrid.learn.targets import TargetConfig, accumulated_classes, ilm_classes
+from evgrid.learn.targets import TargetConfig, TargetWindow, accumulated_classes, ilm_classes
 from evgrid.learn.train import TrainConfig, scene_samples
 from evgrid.preprocess import Preprocessor
 from evgrid_sim import SimConfig, simulate_scene
@@ -94,6 +94,21 @@ def test_a_passing_car_leaves_no_trail_in_the_vote():
     assert dem[cell(*car)] == OCCUPIED and dem[cell(*LEFT[0])] == OCCUPIED
 
 
+def test_the_window_takes_every_frame_step_th_frame_from_the_sample_and_forgets_old_ones():
+    # frame i (0.05 s apart) alone sees wall point i; any occupied look counts here
+    sweeps = [sweep(0.0, 0.05 * i, [LEFT[i]]) for i in range(6)]
+    for step, kept in ((1, {1, 2, 3, 4, 5}), (2, {1, 3, 5})):
+        cfg = TargetConfig(before_s=0.1, after_s=0.1, occupied_share=1e-6, frame_step=step)
+        window = TargetWindow(cfg, GRID)
+        for s in sweeps:
+            window.push(s)
+        assert window.complete_for(sweeps[2]) and not window.complete_for(sweeps[3])
+        out = window.target(sweeps[3])  # its window: frames 1-5 (0.05 to 0.25 s)
+        assert {i for i in range(6) if out[cell(*LEFT[i])] == OCCUPIED} == kept
+        window.drop_before(sweeps[3].timestamp)
+        assert [s for _, s in window.sweeps] == sweeps[1:]
+
+
 @pytest.fixture(scope="module")
 def frames():
     return list(simulate_scene(0, SimConfig(duration_s=1.5)))
@@ -166,7 +181,15 @@ def test_the_cache_key_follows_the_target():
 
 @pytest.mark.parametrize(
     "field, value",
-    [("kind", "lidar"), ("rule", "max"), ("before_s", -1.0), ("after_s", -0.5), ("after_s", "x")],
+    [
+        ("kind", "lidar"),
+        ("rule", "max"),
+        ("before_s", -1.0),
+        ("after_s", -0.5),
+        ("after_s", "x"),
+        ("occupied_share", 0.0),
+        ("frame_step", 0),
+    ],
 )
 def test_bad_target_config_is_refused_naming_the_field(field, value):
     with pytest.raises(ValueError, match=rf"TargetConfig\.{field}") as e:

@@ -240,7 +240,7 @@ def scene_samples(
         det = radar_detections(sweeps, frame.ego_pose, frame.timestamp, config.image)
         irm = ilm_classes(ray_irm(sweeps, frame.ego_pose, grid=config.grid)) if with_irm else None
         if accumulated:
-            pending.append((det, window.sweeps[-1], irm))
+            pending.append((det, window.last, irm))
             window.drop_before(pending[0][1].timestamp)
             continue
         # the lidar of sampled frames only, as the mapper cleans only the frames it maps
