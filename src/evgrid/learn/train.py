@@ -3,8 +3,9 @@ validation.
 
 Samples (paper sec. V-C, docs/decisions.md#ev-net-targets-and-loss): at every
 ``frame_stride``-th lidar frame, the input is the radar detection image of the last
-``n_sweeps`` sweeps of each radar in the current ego frame, the target the ray ILM of the same
-frame (m_o > 0 occupied, m_f > 0 free, else unknown). Inputs are cached sparse (detection
+``n_sweeps`` sweeps of each radar in the current ego frame, the target the classes of the lidar
+frames around it or of the frame alone (``TrainConfig.target``, :mod:`evgrid.learn.targets`;
+docs/training.md#targets). Inputs are cached sparse (detection
 tables, a few kB a sample) and rasterised in the DataLoader workers; targets as uint8 rasters,
 memory-mapped.
 
