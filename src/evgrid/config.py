@@ -33,6 +33,7 @@ from evgrid.geometry import GridSpec
 from evgrid.ism.deep import RadarImageParams
 from evgrid.ism.evidence import EvidenceParams
 from evgrid.ism.lidar import RayIlmParams
+from evgrid.ism.prior_guard import PriorGuardParams
 from evgrid.ism.radar import RayIrmParams
 from evgrid.ism.runtime import RUNTIMES
 from evgrid.nav import NavParams
@@ -113,6 +114,9 @@ class MapperConfig:
     #: constant per look (mode per_look); docs/equations.md#evidence-per-distance-seen
     evidence: EvidenceParams = field(default_factory=EvidenceParams)
     image: RadarImageParams = field(default_factory=RadarImageParams)  # the deep IRM's input
+    #: what the deep IRM's prior may not say: occupied without radar support, occupied on the
+    #: vehicle's own path (docs/equations.md#the-deep-irms-guards)
+    prior_guard: PriorGuardParams = field(default_factory=PriorGuardParams)
     #: Ev-Net weights, a .safetensors file (none: the shipped one); in a config file relative
     #: to the file's folder
     checkpoint: str | None = None

@@ -25,6 +25,7 @@ from evgrid.data.sweeps import GapCounter, RadarBuffer
 from evgrid.fusion import MapSet
 from evgrid.geometry import SE2, SE3
 from evgrid.grid import MapWindow, warp_window
+from evgrid.ism.prior_guard import Trail, clear_path, detections_xy, keep_supported
 from evgrid.preprocess import PoseError, PoseGate, Preprocessor
 from evgrid.store import TileStore
 
@@ -127,6 +128,12 @@ class OccupancyMapper:
         self.timings: dict[str, list[float]] = {}
         self.trajectory: list[tuple[float, float, float]] = []
         self.last_isms: dict[str, np.ndarray] = {}
+        # the vehicle's path within reach of the local grid: the deep IRM's prior never paints it
+        # occupied (MapperConfig.prior_guard.path_m)
+        g = config.prior_guard
+        self.trail = Trail(
+            g.trail_step_m, config.grid.half_extent * math.sqrt(2.0) + (g.path_m or 0)
+        )
         self._doppler_seen: dict[str, int] = {}  # per radar, the sweep the Doppler cue last used
         self.n_frames = 0
         self.n_updates = 0
@@ -174,6 +181,8 @@ class OccupancyMapper:
             return False
         pose = self.pose_in_map(frame.ego_pose)
         isms = self.local_isms(frame, *self._travel(frame))  # each ISM once, in the ego frame
+        if "deep_irm" in isms:
+            isms["deep_irm"] = self.guard_prior(isms["deep_irm"], frame, pose)
         # into the map frame and through every map's update rule (paper Table I), in one pass;
         # the extra map sets are rows of the same pass
         self.maps.update(pose, isms, self.moving_detections())
@@ -260,6 +269,25 @@ class OccupancyMapper:
             )
             t = self._time("deep_irm", t)
         return out
+
+    def guard_prior(self, masses: np.ndarray, frame: Frame, pose: SE2) -> np.ndarray:
+        """The deep IRM's masses with what its prior may not say moved away
+        (``config.prior_guard``, :mod:`evgrid.ism.prior_guard`): occupied mass without radar
+        support, occupied mass on the vehicle's trail (which takes ``pose`` first). One home
+        for both, before the deep masses enter any map."""
+        g, grid = self.config.prior_guard, self.config.grid
+        if g.path_m is not None:
+            self.trail.add(pose)
+        if g.off:
+            return masses
+        t = time.perf_counter()
+        if g.support_m is not None:
+            xy = detections_xy(self.buffer.sweeps(self.config.image.n_sweeps), frame.ego_pose)
+            masses = keep_supported(masses, xy, grid, g.support_m)
+        if g.path_m is not None:
+            masses = clear_path(masses, self.trail.in_ego(pose), grid, g.path_m)
+        self._time("prior_guard", t)
+        return masses
 
     def _travel(self, frame: Frame) -> tuple[float, float]:
         """Metres travelled (planar) and seconds since the last update; the first update counts

@@ -24,8 +24,9 @@ __all__ = [
 #: Procedural environments; ``"mixed"`` picks urban or suburban from the seed.
 ENVIRONMENTS: tuple[str, ...] = ("urban", "suburban", "mixed")
 #: Town layouts: ``"irregular"`` (curved streets, diagonal avenues, squares, parking lots, parks,
-#: roundabouts) or ``"grid"`` (straight perpendicular streets lined with blocks).
-LAYOUTS: tuple[str, ...] = ("irregular", "grid", "highway")
+#: roundabouts) or ``"grid"`` (straight perpendicular streets lined with blocks); or no town:
+#: a ``"highway"`` or an ``"open_road"`` (a held-out family Ev-Net never trains on).
+LAYOUTS: tuple[str, ...] = ("irregular", "grid", "highway", "open_road")
 
 
 def _positive(owner: str, name: str, value: float, allow_zero: bool = False) -> None:
@@ -277,7 +278,9 @@ class WorldConfig:
     #: Random rotation of the whole city in the global frame (streets are not axis aligned).
     random_orientation: bool = True
     #: "irregular" towns (curved and diagonal streets, open squares, ...), the plain "grid", or
-    #: a "highway" (a dual carriageway with barriers; ``environment`` does not apply).
+    #: a "highway" (a dual carriageway with barriers), or an "open_road" (a country road with
+    #: sparse objects on its verges, never used in training); ``environment`` does not apply
+    #: to either.
     layout: str = "irregular"
     #: The ego's cruise speed on a highway is drawn per scene in this range, m/s.
     highway_speed_mps: tuple[float, float] = (25.0, 35.0)

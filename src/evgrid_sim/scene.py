@@ -18,6 +18,7 @@ from evgrid.geometry import SE2, SE3
 from evgrid_sim.config import SimConfig, SweepFaults
 from evgrid_sim.highway import build_highway
 from evgrid_sim.lidar import LidarModel
+from evgrid_sim.open_road import build_open_road
 from evgrid_sim.radar import RadarModel
 from evgrid_sim.raycast import pack_boxes, rasterize_boxes
 from evgrid_sim.trajectory import Trajectory
@@ -47,9 +48,12 @@ def sim_split(seed: int) -> str:
 def world_of(seed: int, config: SimConfig) -> tuple[World, Trajectory, Trajectory]:
     """A scene's world and drive -> (world, true trajectory (global), same in the city frame): a
     town (:func:`~evgrid_sim.world.generate_world`) or, with ``layout = "highway"``, a highway
-    (:func:`~evgrid_sim.highway.build_highway`)."""
+    (:func:`~evgrid_sim.highway.build_highway`), with ``"open_road"`` an open road
+    (:func:`~evgrid_sim.open_road.build_open_road`)."""
     if config.world.layout == "highway":
         return build_highway(seed, config)[:3]
+    if config.world.layout == "open_road":
+        return build_open_road(seed, config)
     return generate_world(seed, config)
 
 

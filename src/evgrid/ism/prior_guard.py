@@ -1,0 +1,151 @@
+"""What the deep IRM's prior may not say (docs/equations.md#the-deep-irms-guards).
+
+Ev-Net learns the shape of the streets it was trained on, and paints it where the radar saw
+nothing: facades beside any road, obstacles on the road the vehicle has just driven. Two rules
+move such occupied mass before the deep masses enter the deep maps (the other masses untouched,
+so the masses stay a valid BBA):
+
+* **radar support**: occupied mass is kept only within ``support_m`` of a radar detection of
+  the deep IRM's input sweeps (an obstacle the prior calls must have been seen by a radar);
+  elsewhere it goes to unknown (``m_u += m_o``, ``m_o = 0``);
+* **the vehicle's path**: occupied mass within ``path_m`` of the vehicle's trail (its positions
+  since it came into the local grid, kept every ``trail_step_m``) goes to free
+  (``m_f += m_o``): the vehicle drove there. Not to unknown: the prior paints the road ahead
+  before the vehicle reaches it, and a vacuous update later changes none of the deep maps
+  (``deep_acc`` combines, ``deep_replace`` keeps the more certain mass, ``deep_disc``'s Yager
+  rule keeps what it has), so only free mass on the trail takes the path back.
+
+Both are off with ``None``, which keeps the paper's deep IRM and the maps bit for bit.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from evgrid.data.frame import RadarSweep
+from evgrid.geometry import SE2, SE3, GridSpec
+from evgrid.validation import check_number
+
+__all__ = ["PriorGuardParams", "Trail", "keep_supported", "clear_path", "detections_xy"]
+
+#: The cells of the radar-support mask are this many local cells a side (coarser than the grid:
+#: the support radius is metres, a detection's position is uncertain by decimetres).
+_SUPPORT_POOL = 4
+
+
+@dataclass(frozen=True)
+class PriorGuardParams:
+    """The deep IRM's guards (docs/equations.md#the-deep-irms-guards); None turns one off."""
+
+    #: occupied mass of the deep IRM kept only within this many metres of a radar detection of
+    #: its input sweeps (none: kept everywhere, as in the paper)
+    support_m: float | None = 2.0
+    #: occupied mass of the deep IRM within this many metres of the vehicle's trail goes to
+    #: free (none: kept, as in the paper); 1 m: half the car's width and a margin
+    path_m: float | None = 1.0
+    #: the trail keeps a position each time the vehicle is this many metres from all it keeps
+    trail_step_m: float = 0.5
+
+    def __post_init__(self) -> None:
+        for name in ("support_m", "path_m"):
+            if getattr(self, name) is not None:
+                check_number(self, name, min=0.0, min_open=True)
+        check_number(self, "trail_step_m", min=0.0, min_open=True)
+
+    @property
+    def off(self) -> bool:
+        """Neither rule applies: the deep masses pass unchanged."""
+        return self.support_m is None and self.path_m is None
+
+
+def _move_occupied(masses: np.ndarray, where: np.ndarray, to: int) -> np.ndarray:
+    """``masses`` with the occupied mass of the cells ``where`` moved to channel ``to`` (0
+    free, 2 unknown), a copy."""
+    out = masses.copy()
+    occ = out[..., 1]
+    out[..., to][where] += occ[where]
+    occ[where] = 0.0
+    return out
+
+
+def _disc(radius_cells: float) -> tuple[np.ndarray, np.ndarray]:
+    r = int(math.ceil(radius_cells))
+    du, dv = np.mgrid[-r : r + 1, -r : r + 1]
+    keep = du * du + dv * dv <= radius_cells * radius_cells
+    return du[keep], dv[keep]
+
+
+def _stamp(n: int, rows: np.ndarray, cols: np.ndarray, radius_cells: float) -> np.ndarray:
+    """A boolean ``(n, n)`` mask of the cells within ``radius_cells`` of any of the cells given."""
+    mask = np.zeros((n, n), bool)
+    if len(rows) == 0:
+        return mask
+    du, dv = _disc(radius_cells)
+    r = (rows[:, None] + du[None, :]).ravel()
+    c = (cols[:, None] + dv[None, :]).ravel()
+    ok = (r >= 0) & (r < n) & (c >= 0) & (c < n)
+    mask[r[ok], c[ok]] = True
+    return mask
+
+
+def detections_xy(sweeps: Sequence[RadarSweep], ego_pose: SE3) -> np.ndarray:
+    """The finite detections of ``sweeps``, ``(k, 2)`` metres in the ego frame at ``ego_pose``."""
+    to_ego = ego_pose.inverse()
+    parts = [np.zeros((0, 2))]
+    for s in sweeps:
+        p = s.points[:, 0:3]
+        p = p[np.isfinite(p).all(axis=1)]
+        if len(p):
+            parts.append((to_ego @ s.ego_pose @ s.sensor_to_ego).apply(p)[:, :2])
+    return np.concatenate(parts)
+
+
+def keep_supported(masses: np.ndarray, xy: np.ndarray, grid: GridSpec, radius_m: float):
+    """Masses with the occupied mass farther than ``radius_m`` from every detection ``xy``
+    (ego-frame metres) moved to unknown. Distances are measured between cells of
+    ``_SUPPORT_POOL`` local cells a side, so the radius holds to within one such cell."""
+    n, pool = grid.n_cells, _SUPPORT_POOL
+    nc = -(-n // pool)
+    rows, cols = grid.xy_to_cell(xy[:, 0], xy[:, 1])
+    rows, cols = np.unique(np.stack([rows // pool, cols // pool]), axis=1)
+    near = _stamp(nc, rows, cols, radius_m / (grid.resolution * pool))
+    near = np.repeat(np.repeat(near, pool, axis=0), pool, axis=1)[:n, :n]
+    return _move_occupied(masses, ~near, 2)
+
+
+def clear_path(masses: np.ndarray, trail_xy: np.ndarray, grid: GridSpec, radius_m: float):
+    """Masses with the occupied mass within ``radius_m`` of the trail points ``trail_xy``
+    (ego-frame metres) moved to free."""
+    rows, cols = grid.xy_to_cell(trail_xy[:, 0], trail_xy[:, 1])
+    return _move_occupied(masses, _stamp(grid.n_cells, rows, cols, radius_m / grid.resolution), 0)
+
+
+class Trail:
+    """The vehicle's path in the map frame as few points as the rule needs: a position is kept
+    when it is ``step_m`` or more from every point kept, and points farther than ``reach_m`` from
+    the vehicle are dropped. Its memory is bounded by the area within ``reach_m``, however long
+    the drive."""
+
+    def __init__(self, step_m: float, reach_m: float):
+        self.step_m, self.reach_m = float(step_m), float(reach_m)
+        self.xy = np.zeros((0, 2))
+
+    def add(self, pose: SE2) -> None:
+        """Take the vehicle's pose in the map frame."""
+        p = np.array([pose.x, pose.y])
+        d = np.hypot(*(self.xy - p).T) if len(self.xy) else np.zeros(0)
+        keep = d <= self.reach_m
+        if not (d < self.step_m).any():
+            self.xy = np.concatenate([self.xy[keep], p[None]])
+        elif not keep.all():
+            self.xy = self.xy[keep]
+
+    def in_ego(self, pose: SE2) -> np.ndarray:
+        """The trail's points ``(k, 2)`` in the ego frame at ``pose``."""
+        c, s = math.cos(pose.yaw), math.sin(pose.yaw)
+        d = self.xy - np.array([pose.x, pose.y])
+        return np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]], axis=1)

@@ -1,0 +1,129 @@
+"""The deep IRM's guards (evgrid.ism.prior_guard): occupied mass needs radar support, and the
+vehicle's own path is never painted occupied by the prior."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from evgrid.classes import OCCUPIED
+from evgrid.config import MapperConfig
+from evgrid.data.frame import Frame, LidarSweep, RadarSweep
+from evgrid.evaluate import classify
+from evgrid.geometry import SE2, SE3, GridSpec
+from evgrid.ism.prior_guard import PriorGuardParams, Trail, clear_path, keep_supported
+from evgrid.mapper import OccupancyMapper
+
+GRID = GridSpec(n_cells=128, length_m=19.2)  # 0.15 m cells
+OCC = np.array([0.1, 0.7, 0.2], np.float32)
+
+
+def _cell(grid: GridSpec, x: float, y: float) -> tuple[int, int]:
+    r, c = grid.xy_to_cell(np.array([x]), np.array([y]))
+    return int(r[0]), int(c[0])
+
+
+def test_support_keeps_occupied_mass_only_near_a_detection():
+    m = np.broadcast_to(OCC, GRID.shape + (3,)).copy()
+    out = keep_supported(m, np.array([[5.0, 0.0]]), GRID, 1.0)
+    near, far = _cell(GRID, 5.0, 0.5), _cell(GRID, 5.0, 3.0)
+    np.testing.assert_array_equal(out[near], OCC)  # 0.5 m from the detection: kept
+    np.testing.assert_allclose(out[far], [0.1, 0.0, 0.9])  # 3 m: to unknown, free untouched
+    np.testing.assert_allclose(out.sum(-1), 1.0, atol=1e-6)
+    assert (keep_supported(m, np.zeros((0, 2)), GRID, 1.0)[..., 1] == 0).all()
+
+
+def test_path_clears_occupied_mass_within_the_radius_only():
+    m = np.broadcast_to(OCC, GRID.shape + (3,)).copy()
+    trail = np.array([[-2.0, 0.0], [-1.5, 0.0], [-1.0, 0.0]])
+    out = clear_path(m, trail, GRID, 1.0)
+    np.testing.assert_allclose(out[_cell(GRID, -1.5, 0.9)], [0.8, 0.0, 0.2])
+    np.testing.assert_array_equal(out[_cell(GRID, -1.5, 1.2)], OCC)
+    np.testing.assert_array_equal(out[_cell(GRID, 0.5, 0.0)], OCC)  # ahead: not driven yet
+
+
+def test_trail_memory_is_bounded_however_long_the_drive():
+    trail = Trail(step_m=0.5, reach_m=30.0)
+    for k in range(20000):  # 40 laps of a 10 m circle, then 1 km straight on
+        a = 2 * math.pi * k / 500
+        trail.add(SE2(10 * math.cos(a), 10 * math.sin(a), a))
+    laps = len(trail.xy)
+    assert laps <= 2 * math.pi * 10 / 0.5 + 2
+    for k in range(2000):
+        trail.add(SE2(10.0 + 0.5 * k, 0.0, 0.0))
+    assert len(trail.xy) <= 30.0 / 0.5 + 2 and trail.xy[:, 0].min() >= 1009.5 - 30.0 - 1e-9
+    ego = trail.in_ego(SE2(trail.xy[-1, 0], trail.xy[-1, 1], math.pi / 2))
+    np.testing.assert_allclose(ego[-2], [0.0, 0.5], atol=1e-9)  # behind: to the vehicle's right
+
+
+class _Occupied:
+    """A deep IRM that calls every cell occupied, or (``road_ahead``) every cell but the road
+    ahead of the vehicle (x > 0, |y| < 2 m), which it calls free: a prior that paints the
+    road behind the vehicle and beside it."""
+
+    def __init__(self, road_ahead: bool = False):
+        m = np.broadcast_to(OCC, GRID.shape + (3,)).copy()
+        if road_ahead:
+            x, y = GRID.cell_to_xy(*np.indices(GRID.shape))
+            m[(x > 0) & (np.abs(y) < 2.0)] = (0.7, 0.0, 0.3)
+        self.masses = m
+
+    def predict(self, sweeps, ego_pose, now_us=None):
+        return self.masses.copy()
+
+
+def _frames(n: int = 25, speed: float = 8.0):
+    empty_lidar = np.zeros((0, 5), np.float32)
+    for k in range(n):
+        t = 100_000 * k
+        pose = SE3.from_se2(SE2(speed * 0.1 * k, 0.0, 0.0))
+        radar = np.zeros((1, 12), np.float32)
+        radar[0, 0:2] = (15.0, 6.0)  # one detection, ahead and to the left
+        sweep = RadarSweep(radar, SE3.identity(), pose, t, "RADAR_FRONT")
+        lidar = LidarSweep(empty_lidar, SE3.identity(), pose, t)
+        yield Frame("straight", k, t, pose, k % 5 == 0, lidar, {"RADAR_FRONT": (sweep,)})
+
+
+DEEP = ("deep_acc", "deep_replace", "deep_disc")
+
+
+def _deep_maps(path_m: float | None, deep, x_end: float):
+    """The classes along the path driven (x from 0 to ``x_end``, y = 0; the cells within 0.75 m
+    of it) and on a line 5 m beside it, in each deep map."""
+    guard = PriorGuardParams(support_m=None, path_m=path_m)
+    config = MapperConfig(grid=GRID, maps=DEEP, frame="first_pose", prior_guard=guard)
+    mapper = OccupancyMapper(config, deep=deep)
+    for f in _frames():
+        mapper.process(f)
+    x = np.arange(0.0, x_end, 0.05)
+    rows, cols = GRID.map_xy_to_cell(x, np.zeros(len(x)))
+    side = GRID.map_xy_to_cell(x, np.full(len(x), 5.0))
+    r0, c0 = rows.min(), min(cols.min(), side[1].min()) - 6
+    out = {}
+    for name in DEEP:
+        cls = classify(mapper.maps[name].read(r0, c0, rows.max() - r0 + 1, 60)[0])
+        path = np.stack([cls[rows - r0, cols - c0 + d] for d in range(-5, 6)])
+        out[name] = path, cls[side[0] - r0, side[1] - c0]
+    return out
+
+
+def test_a_prior_painting_the_road_behind_never_paints_the_path_driven():
+    guarded = _deep_maps(1.0, _Occupied(road_ahead=True), 16.0)
+    plain = _deep_maps(None, _Occupied(road_ahead=True), 16.0)
+    for name in DEEP:
+        path, beside = guarded[name]
+        assert not (path == OCCUPIED).any(), name
+        assert (beside == OCCUPIED).all(), name  # the rule does not reach 5 m aside
+        assert (plain[name][0] == OCCUPIED).any(), name  # without it, the prior paints the path
+
+
+def test_the_path_painted_ahead_is_taken_back_by_the_combining_maps():
+    # A prior calling everything occupied paints the road before the vehicle reaches it; the
+    # trail's free mass takes it back in deep_acc and deep_replace (here for the path driven up
+    # to 8 m: beyond, deep_acc has had fewer free updates than the prior's looks ahead, 12 a
+    # cell at 0.8 m an update). deep_disc discounts the conflicting free mass and keeps it
+    # (docs/equations.md#the-deep-irms-guards).
+    guarded = _deep_maps(1.0, _Occupied(), 8.0)
+    for name in ("deep_acc", "deep_replace"):
+        assert not (guarded[name][0] == OCCUPIED).any(), name
