@@ -56,7 +56,7 @@ from evgrid.geometry import GridSpec
 from evgrid.io import atomic_write, atomic_write_bytes, write_json
 from evgrid.ism.deep import CHANNELS, RadarImageParams, detections_to_image, radar_detections
 from evgrid.ism.evnet import EvNet, EvNetConfig, load_checkpoint, save_checkpoint
-from evgrid.learn.loss import evidential_loss
+from evgrid.learn.loss import LOSSES, evidential_loss, training_loss
 from evgrid.preprocess import RadarFilter, SelfReturnParams
 from evgrid.validation import check_choice, check_int, check_number
 
@@ -117,6 +117,9 @@ class TrainConfig:
     cache_workers: int = 1  #: cache jobs at once
     #: mixed precision on CUDA: auto|fp32|bf16|fp16 (auto: bf16 where the GPU has it, else fp16)
     precision: str = "auto"
+    #: the training loss (evgrid.learn.loss.LOSSES): paper (eqs. (36)-(37)) or paper+cor (the
+    #: paper's plus a correct-evidence term that keeps learning where evidence is low)
+    loss: str = "paper"
 
     def __post_init__(self) -> None:
         for name in ("epochs", "batch_size", "frame_stride", "cache_workers"):
@@ -125,6 +128,7 @@ class TrainConfig:
         check_number(self, "lr", min=0.0, min_open=True)
         check_choice("TrainConfig", "engine", self.engine, choices=ENGINES)
         check_choice("TrainConfig", "precision", self.precision, choices=PRECISIONS)
+        check_choice("TrainConfig", "loss", self.loss, choices=LOSSES)
         if self.init is not None and not isinstance(self.init, str):
             raise ValueError(f"TrainConfig.init must be a path or None, got {self.init!r}")
         if self.model.in_channels != len(CHANNELS):
@@ -608,12 +612,18 @@ class Precision:
         self.scaler.update()
 
 
-def batch_loss(net: torch.nn.Module, x: torch.Tensor, t: torch.Tensor, precision: Precision):
-    """Forward pass in ``precision``; the loss in float32 (paper eq. of the expected squared
-    error, which sums many small terms)."""
+def batch_loss(
+    net: torch.nn.Module,
+    x: torch.Tensor,
+    t: torch.Tensor,
+    precision: Precision,
+    loss: str = "paper",
+):
+    """Forward pass in ``precision``; the loss named ``loss`` (:data:`LOSSES`) in float32 (the
+    expected squared error sums many small terms)."""
     with precision.autocast():
         e = net(x)
-    return evidential_loss(e.float(), t)
+    return training_loss(loss, e.float(), t)
 
 
 @torch.no_grad()
@@ -801,7 +811,7 @@ def _train_epoch(run: _Run, epoch: int, on_batch) -> list[float]:
     for b, (x, t) in enumerate(run.loader):
         x, t = x.to(run.device), t.to(run.device)
         run.opt.zero_grad(set_to_none=True)
-        loss = batch_loss(run.net, x, t, run.precision)
+        loss = batch_loss(run.net, x, t, run.precision, run.config.loss)
         run.precision.step(loss, run.opt)
         run.sched.step()
         losses.append(loss.item())
