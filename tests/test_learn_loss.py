@@ -51,3 +51,11 @@ def test_correct_evidence_term_is_finite_at_zero_evidence():
 def test_unknown_loss_name_is_refused():
     with pytest.raises(ValueError, match="paper"):
         training_loss("mse", torch.zeros(1, 2, 1, 1), torch.zeros(1, 1, 1, dtype=torch.long))
+
+
+def test_train_config_names_its_loss():
+    from evgrid.learn.train import TrainConfig
+
+    assert TrainConfig(loss="paper").loss == "paper"
+    with pytest.raises(ValueError, match="loss"):
+        TrainConfig(loss="mse")
