@@ -117,9 +117,9 @@ class TrainConfig:
     cache_workers: int = 1  #: cache jobs at once
     #: mixed precision on CUDA: auto|fp32|bf16|fp16 (auto: bf16 where the GPU has it, else fp16)
     precision: str = "auto"
-    #: the training loss (evgrid.learn.loss.LOSSES): paper (eqs. (36)-(37)) or paper+cor (the
-    #: paper's plus a correct-evidence term that keeps learning where evidence is low)
-    loss: str = "paper"
+    #: the training loss (evgrid.learn.loss.LOSSES): paper+cor (the paper's eqs. (36)-(37) plus
+    #: a correct-evidence term that keeps learning where evidence is low) or paper (as trained)
+    loss: str = "paper+cor"
 
     def __post_init__(self) -> None:
         for name in ("epochs", "batch_size", "frame_stride", "cache_workers"):
