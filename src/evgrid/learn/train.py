@@ -56,7 +56,7 @@ from evgrid.geometry import GridSpec
 from evgrid.io import atomic_write, atomic_write_bytes, write_json
 from evgrid.ism.deep import CHANNELS, RadarImageParams, detections_to_image, radar_detections
 from evgrid.ism.evnet import EvNet, EvNetConfig, load_checkpoint, save_checkpoint
-from evgrid.learn.loss import evidential_loss
+from evgrid.learn.loss import LOSSES, evidential_loss, training_loss
 from evgrid.learn.targets import TargetConfig, TargetWindow, ilm_classes
 from evgrid.preprocess import RadarFilter, SelfReturnParams
 from evgrid.validation import check_choice, check_int, check_number
@@ -122,6 +122,9 @@ class TrainConfig:
     precision: str = "auto"
     #: the targets: the lidar accumulated around each sample, or the paper's single frame
     target: TargetConfig = field(default_factory=TargetConfig)
+    #: the training loss (evgrid.learn.loss.LOSSES): paper+cor (the paper's eqs. (36)-(37) plus
+    #: a correct-evidence term that keeps learning where evidence is low) or paper (as trained)
+    loss: str = "paper+cor"
 
     def __post_init__(self) -> None:
         for name in ("epochs", "batch_size", "frame_stride", "cache_workers"):
@@ -130,6 +133,7 @@ class TrainConfig:
         check_number(self, "lr", min=0.0, min_open=True)
         check_choice("TrainConfig", "engine", self.engine, choices=ENGINES)
         check_choice("TrainConfig", "precision", self.precision, choices=PRECISIONS)
+        check_choice("TrainConfig", "loss", self.loss, choices=LOSSES)
         if self.init is not None and not isinstance(self.init, str):
             raise ValueError(f"TrainConfig.init must be a path or None, got {self.init!r}")
         if self.model.in_channels != len(CHANNELS):
@@ -629,12 +633,18 @@ class Precision:
         self.scaler.update()
 
 
-def batch_loss(net: torch.nn.Module, x: torch.Tensor, t: torch.Tensor, precision: Precision):
-    """Forward pass in ``precision``; the loss in float32 (paper eq. of the expected squared
-    error, which sums many small terms)."""
+def batch_loss(
+    net: torch.nn.Module,
+    x: torch.Tensor,
+    t: torch.Tensor,
+    precision: Precision,
+    loss: str = "paper",
+):
+    """Forward pass in ``precision``; the loss named ``loss`` (:data:`LOSSES`) in float32 (the
+    expected squared error sums many small terms)."""
     with precision.autocast():
         e = net(x)
-    return evidential_loss(e.float(), t)
+    return training_loss(loss, e.float(), t)
 
 
 @torch.no_grad()
@@ -822,7 +832,7 @@ def _train_epoch(run: _Run, epoch: int, on_batch) -> list[float]:
     for b, (x, t) in enumerate(run.loader):
         x, t = x.to(run.device), t.to(run.device)
         run.opt.zero_grad(set_to_none=True)
-        loss = batch_loss(run.net, x, t, run.precision)
+        loss = batch_loss(run.net, x, t, run.precision, run.config.loss)
         run.precision.step(loss, run.opt)
         run.sched.step()
         losses.append(loss.item())
