@@ -114,9 +114,9 @@ def summarize(names: list[str], a: argparse.Namespace) -> tuple[str, dict]:
     common = sorted(set.intersection(*(set(s) for s in scenes.values()))) if scenes else []
     result: dict = {"scenes": len(common), "variants": {}}
     head = "| variant | " + " | ".join(f"`{m}` free 1 s" for m in MAPS)
-    head += " | fused - ray_irm 1 s | fused - ray_irm 2 s | `fused` occ. 1 s"
+    head += " | fused - ray_irm 1 s | fused - ray_irm 2 s | `fused` occ. 1 s | deep occ. 1 s"
     head += " | vs the one before: fused free 1 s | deep_acc free 1 s |"
-    lines = [head, "|" + "---|" * (len(MAPS) + 6)]
+    lines = [head, "|" + "---|" * (len(MAPS) + 7)]
     prev = None
     for n in names:
         ms = [scenes[n][s] for s in common]
@@ -128,6 +128,8 @@ def summarize(names: list[str], a: argparse.Namespace) -> tuple[str, dict]:
             [free_at(x, "fused", 1) - free_at(x, "ray_irm", 1) for x in ms]
         )
         row["fused_occupied_1s"] = bootstrap_interval([occ_at(x, "fused", 0) for x in ms])
+        for m in MAPS[:3]:
+            row[f"{m}_occupied_1s"] = bootstrap_interval([occ_at(x, m, 0) for x in ms])
         if prev is not None:
             ps = [scenes[prev][s] for s in common]
             row["step_fused_1s"] = bootstrap_interval(
@@ -140,6 +142,7 @@ def summarize(names: list[str], a: argparse.Namespace) -> tuple[str, dict]:
         cells = [f"{100 * row[m]['mean']:.1f}" for m in MAPS]
         cells += [pts(row["fused_minus_ray_irm_1s"]), pts(row["fused_minus_ray_irm_2s"])]
         cells += [f"{100 * row['fused_occupied_1s']['mean']:.1f}"]
+        cells += ["/".join(f"{100 * row[f'{m}_occupied_1s']['mean']:.1f}" for m in MAPS[:3])]
         cells += [pts(row.get("step_fused_1s", {})), pts(row.get("step_deep_acc_1s", {}))]
         lines.append(f"| {n} | " + " | ".join(cells) + " |")
         prev = n
@@ -162,6 +165,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--eval-duration", type=float, default=20.0)
     ap.add_argument("--eval-workers", type=int, default=1)
     ap.add_argument("--jobs", type=int, default=1, help="variants at once")
+    ap.add_argument(
+        "--report-only", action="store_true", help="train and map nothing: report what is there"
+    )
     a = ap.parse_args(argv)
     if a.eval_first_seed + 5 * a.eval_scenes > 3000:
         sys.exit(
@@ -170,16 +176,19 @@ def main(argv: list[str] | None = None) -> int:
     variants = [parse_variant(v) for v in a.variant]
     a.out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
+    timings: dict[str, dict] = {}
     with ThreadPoolExecutor(max_workers=a.jobs) as pool:
-        futures = {n: pool.submit(one_variant, n, o, a) for n, o in variants}
-        timings = {}
+        futures = (
+            {} if a.report_only else {n: pool.submit(one_variant, n, o, a) for n, o in variants}
+        )
         for n, f in futures.items():
             try:
                 timings[n] = f.result()
                 print(f"{n}: {timings[n]}", flush=True)
             except RuntimeError as e:
                 print(f"{n}: failed: {e}", flush=True)
-    names = [n for n, _ in variants if n in timings]
+    have = [n for n, _ in variants if per_scene(a.out / n)]
+    names = have if a.report_only else [n for n, _ in variants if n in timings]
     text, result = summarize(names, a)
     result["timings_s"] = timings
     result["variants_sets"] = dict(variants)
