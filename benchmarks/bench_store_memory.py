@@ -58,7 +58,9 @@ frames = simulate_scene(seed, SimConfig(duration_s=duration))
 total = len(frames)
 name = "drive"
 state = {"i": 0, "t": time.perf_counter(), "i0": 0, "next": every}
-print(json.dumps({"evgrid": evgrid.__file__, "frames": total}), flush=True)
+# The simulator builds its world for the whole drive up front (frames are made lazily, one at a
+# time): the RSS here, before a frame is mapped, is the simulator's and the libraries' share.
+print(json.dumps({"evgrid": evgrid.__file__, "frames": total, "sim_rss": status()}), flush=True)
 
 def progress():
     state["i"] += 1

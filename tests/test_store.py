@@ -6,6 +6,8 @@ from __future__ import annotations
 import errno
 import json
 import math
+import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -251,3 +253,39 @@ def test_a_folder_that_is_not_a_store_is_refused_naming_the_file(tmp_path):
     with pytest.raises(StoreError, match="store.json is missing"):
         open_store_map(store.root / "ray_ilm")
     assert not (store.root / "store.json").exists()  # opening writes nothing
+
+
+def test_a_checkpoint_syncs_the_tiles_written_since_the_last_one_before_its_own_file(
+    tmp_path, monkeypatch
+):
+    import evgrid.checkpoint as ckpt
+    import evgrid.store as store_module
+
+    m, store = _small_store(tmp_path)
+    group = m.pager.group
+    events: list[tuple[str, str]] = []
+    real_fsync, real_write = os.fsync, ckpt.atomic_write_bytes
+
+    def fsync(fd):
+        events.append(("fsync", os.readlink(f"/proc/self/fd/{fd}")))
+        return real_fsync(fd)
+
+    def write(path, data):
+        events.append(("checkpoint", str(path)))
+        return real_write(path, data)
+
+    monkeypatch.setattr(store_module.os, "fsync", fsync)
+    monkeypatch.setattr(ckpt, "atomic_write_bytes", write)
+    path = ckpt.checkpoint_path(store.root)
+    ckpt.save_checkpoint(path, {"m": m}, store, None, "h")
+    at = events.index(("checkpoint", str(path)))
+    synced = {Path(p).name for what, p in events[:at] if what == "fsync"}
+    # every tile the checkpoint names (all on disk now) was synced before it, and the folder
+    assert {n for _, n in group._files.values()} <= synced and group.folder.name in synced
+    # the next checkpoint syncs only what was written since
+    events.clear()
+    m.pager.page_out(list(m.pager.layers["masses"])[:1])
+    ckpt.save_checkpoint(path, {"m": m}, store, None, "h")
+    at = events.index(("checkpoint", str(path)))
+    tiles = [p for what, p in events[:at] if what == "fsync" and p.endswith(".tile")]
+    assert 1 <= len(tiles) <= len(m.pager.layers["masses"]) + 1

@@ -101,8 +101,11 @@ def save_checkpoint(
         }
     )
     data = b"".join([_HEAD.pack(_MAGIC, CHECKPOINT_VERSION, len(head)), head, payload])
-    # synced before the rename (evgrid.io), unlike a paged tile: the state resuming starts from
+    # synced before the rename (evgrid.io), after the tiles it names (only those written since
+    # the last checkpoint, and their folders): a power loss leaves a checkpoint whose tiles exist
     if store is not None:
+        for g in groups.values():
+            store._write(g.sync, g.folder)
         store._write(lambda: atomic_write_bytes(path, data), path)
         for g in groups.values():  # the files this checkpoint names stay until the next one
             g.pin()

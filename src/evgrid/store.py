@@ -142,9 +142,10 @@ class TileStore:
 
 def _write_atomic(path: Path, data: bytes) -> None:
     """Write ``data`` under a temporary name beside ``path`` and rename it into place: a process
-    killed at any moment leaves the old file or the new one, never a part. Not synced: a tile is
-    rewritten often (a checkpoint's own file is, through evgrid.io; the tiles it names are not,
-    so a power loss, unlike a killed process, can cost a checkpoint its tiles)."""
+    killed at any moment leaves the old file or the new one, never a part. Not synced here: a
+    tile is rewritten often; a checkpoint syncs the files written since the last one
+    (:meth:`TileGroup.sync`) before its own file is written, so the tiles it names survive a
+    power loss too."""
     fd, tmp = tempfile.mkstemp(prefix="." + path.name + ".", suffix=".part", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
@@ -156,6 +157,21 @@ def _write_atomic(path: Path, data: bytes) -> None:
         except OSError:
             pass
         raise
+
+
+def _fsync_dir(folder: Path) -> None:
+    """fsync a folder (its entries: files renamed into it); a no-op where folders cannot be
+    opened (Windows)."""
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
 
 
 def _is_masses(a: np.ndarray) -> bool:
@@ -212,6 +228,8 @@ class TileGroup:
         # files a checkpoint names (kept until the next one), and those replaced since
         self.pinned: set[str] = set()
         self.retired: list[str] = []
+        # tile files written (renamed into place) since the last sync: a checkpoint syncs them
+        self.unsynced: set[str] = set()
         stale = []
         for f in os.scandir(folder):
             m = _TILE_NAME.match(f.name)
@@ -284,6 +302,7 @@ class TileGroup:
         self.store._write(lambda: _write_atomic(path, data), path)
         old = self._files.get(key)
         self._files[key] = (gen, name)
+        self.unsynced.add(name)
         self.nbytes += len(data)
         if old is not None:
             if old[1] in self.pinned:  # the last checkpoint names it: it goes at the next one
@@ -292,7 +311,23 @@ class TileGroup:
                 self._unlink(old[1])
         return len(data)
 
+    def sync(self) -> int:
+        """Make the tile files written since the last sync durable (fsync each, then the
+        group's folder, whose entries the renames changed), so that a checkpoint written after
+        this names only tiles a power loss keeps; returns how many files were synced."""
+        names = [n for n in self.unsynced if (self.folder / n).exists()]
+        for name in names:
+            fd = os.open(self.folder / name, os.O_RDONLY)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+        _fsync_dir(self.folder)
+        self.unsynced = set()
+        return len(names)
+
     def _unlink(self, name: str) -> None:
+        self.unsynced.discard(name)
         p = self.folder / name
         self.nbytes -= p.stat().st_size
         p.unlink()
@@ -311,6 +346,7 @@ class TileGroup:
         (written after it) goes."""
         self.pinned = {n for _, n in self._files.values()}
         self.retired = []
+        self.unsynced = set()  # those it names were synced before it was written
         for f in os.scandir(self.folder):
             if f.name not in self.pinned and (_TILE_NAME.match(f.name) or f.name.endswith(".part")):
                 os.unlink(f.path)
