@@ -37,6 +37,7 @@ from evgrid.ism.prior_guard import PriorGuardParams
 from evgrid.ism.radar import RayIrmParams
 from evgrid.ism.runtime import RUNTIMES
 from evgrid.nav import NavParams
+from evgrid.package import SHIPPED_CHECKPOINTS
 from evgrid.preprocess import PoseLimits, RadarFilter, SelfReturnParams
 from evgrid.serial import ConfigError, from_dict, to_dict
 from evgrid.store import StoreParams
@@ -117,8 +118,8 @@ class MapperConfig:
     #: what the deep IRM's prior may not say: occupied without radar support, occupied on the
     #: vehicle's own path (docs/equations.md#the-deep-irms-guards)
     prior_guard: PriorGuardParams = field(default_factory=PriorGuardParams)
-    #: Ev-Net weights, a .safetensors file (none: the shipped one); in a config file relative
-    #: to the file's folder
+    #: Ev-Net weights: a .safetensors file (in a config file relative to the file's folder) or
+    #: the name of a shipped one (shipped, sim-v1; docs/training.md); none: shipped
     checkpoint: str | None = None
     #: map updates per second; keyframes are always updated (they are where maps are scored)
     # The paper's 133,708 training samples over ~700 nuScenes scenes of 20 s are ~10 Hz, not the
@@ -340,7 +341,8 @@ def _absolute(d: Any, base: Path) -> Any:
 
 def _absolute_path(v: Any, base: Path) -> Any:
     if isinstance(v, str):
-        return str(base / v) if not os.path.isabs(v) else v
+        # a shipped checkpoint's name (evgrid.package.SHIPPED_CHECKPOINTS) is not a path
+        return v if os.path.isabs(v) or v in SHIPPED_CHECKPOINTS else str(base / v)
     if isinstance(v, list):
         return [_absolute_path(x, base) for x in v]
     return v

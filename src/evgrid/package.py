@@ -4,9 +4,33 @@ to install an extra there. The ground floor: imports nothing of evgrid.
 
 from __future__ import annotations
 
-__all__ = ["__version__", "install_hint", "source_checkout"]
+__all__ = [
+    "SHIPPED_CHECKPOINTS",
+    "__version__",
+    "install_hint",
+    "shipped_checkpoint",
+    "source_checkout",
+]
 
 __version__ = "0.2.0"
+
+#: Ev-Net checkpoints shipped inside the package (``evgrid/ism/checkpoints/``), by the name a
+#: config or option may give instead of a path (docs/training.md#the-shipped-checkpoints):
+#: ``shipped`` is the default deep IRM; older ones stay loadable by their names.
+SHIPPED_CHECKPOINTS: dict[str, str] = {
+    "shipped": "evnet_sim.safetensors",
+    "sim-v1": "evnet_sim.safetensors",
+}
+
+
+def shipped_checkpoint(name: object):
+    """The file of the shipped checkpoint ``name`` (a key of :data:`SHIPPED_CHECKPOINTS`), else
+    None (``name`` is a path, or no name)."""
+    from pathlib import Path
+
+    if not isinstance(name, str) or name not in SHIPPED_CHECKPOINTS:
+        return None
+    return Path(__file__).resolve().parent / "ism" / "checkpoints" / SHIPPED_CHECKPOINTS[name]
 
 
 def install_hint(extra: str) -> str:

@@ -41,6 +41,7 @@ import numpy as np
 
 from evgrid.data.frame import RadarSweep, radar_column
 from evgrid.geometry import SE3, GridSpec
+from evgrid.package import shipped_checkpoint
 from evgrid.validation import check_int, check_number
 
 logger = logging.getLogger(__name__)
@@ -53,6 +54,7 @@ __all__ = [
     "detections_to_image",
     "radar_image",
     "DeepIrm",
+    "checkpoint_file",
     "default_checkpoint",
     "evidence_to_masses",
     "RCS_RANGE_DBSM",
@@ -517,7 +519,15 @@ def evidence_to_masses(evidence: np.ndarray, grid: GridSpec) -> np.ndarray:
 
 def default_checkpoint() -> Path:
     """Path of the Ev-Net checkpoint shipped inside the package (trained on simulated scenes)."""
-    return Path(__file__).resolve().parent / "checkpoints" / "evnet_sim.safetensors"
+    return shipped_checkpoint("shipped")
+
+
+def checkpoint_file(checkpoint: str | Path | None) -> Path:
+    """The file a checkpoint setting names: None the default, a name of
+    :data:`evgrid.package.SHIPPED_CHECKPOINTS` its shipped file, anything else a path."""
+    if checkpoint is None:
+        return default_checkpoint()
+    return shipped_checkpoint(checkpoint) or Path(checkpoint)
 
 
 class DeepIrm:
@@ -547,7 +557,7 @@ class DeepIrm:
             raise ValueError(f"threads must be a positive integer, got {threads!r}")
         if runtime not in RUNTIMES:
             raise ValueError(f"runtime must be one of {RUNTIMES}, got {runtime!r}")
-        path = Path(checkpoint) if checkpoint is not None else default_checkpoint()
+        path = checkpoint_file(checkpoint)
         loaded = load_checkpoint(path)
         trained_spec = loaded.extra.get("grid")
         if trained_spec is not None and GridSpec.from_dict(trained_spec) != grid:

@@ -58,6 +58,7 @@ from evgrid.ism.deep import CHANNELS, RadarImageParams, detections_to_image, rad
 from evgrid.ism.evnet import EvNet, EvNetConfig, load_checkpoint, save_checkpoint
 from evgrid.learn.loss import LOSSES, evidential_loss, training_loss
 from evgrid.learn.targets import TargetConfig, TargetWindow, ilm_classes
+from evgrid.package import SHIPPED_CHECKPOINTS, shipped_checkpoint
 from evgrid.preprocess import RadarFilter, SelfReturnParams
 from evgrid.validation import check_choice, check_int, check_number
 
@@ -169,17 +170,13 @@ class TrainConfig:
 
 
 #: Checkpoints that may be named instead of given by path (``--init shipped``).
-CHECKPOINT_NAMES: tuple[str, ...] = ("shipped",)
+CHECKPOINT_NAMES: tuple[str, ...] = tuple(SHIPPED_CHECKPOINTS)
 
 
 def checkpoint_path(init: str | os.PathLike) -> str:
-    """The checkpoint file that ``init`` names: ``shipped`` is the checkpoint shipped with
-    evgrid (:func:`evgrid.ism.deep.default_checkpoint`), anything else a path."""
-    if str(init) == "shipped":
-        from evgrid.ism.deep import default_checkpoint
-
-        return str(default_checkpoint())
-    return str(init)
+    """The checkpoint file that ``init`` names: a name of :data:`CHECKPOINT_NAMES` is a
+    checkpoint shipped with evgrid (``shipped`` the default deep IRM's), anything else a path."""
+    return str(shipped_checkpoint(str(init)) or init)
 
 
 def fine_tune_config(config: TrainConfig, init: str | os.PathLike) -> TrainConfig:
