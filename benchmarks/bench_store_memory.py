@@ -12,6 +12,7 @@ in the scene's tile store. Measures and prints; asserts nothing.
     nice -n 5 python benchmarks/bench_store_memory.py --durations 600 --export nav2,mcap,rerun
     nice -n 5 python benchmarks/bench_store_memory.py --durations 1800 --every 60
     python benchmarks/bench_store_memory.py --durations 30 --src /path/to/other/tree/src
+    python benchmarks/bench_store_memory.py --durations 1800 --every 60 --keep-store out/s1800
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ CHILD = r"""
 import json, os, sys, tempfile, time
 from pathlib import Path
 duration, seed, every = float(sys.argv[1]), int(sys.argv[2]), float(sys.argv[4])
-exports, out = sys.argv[3], Path(sys.argv[5])
+exports, out, keep = sys.argv[3], Path(sys.argv[5]), sys.argv[6]
 import evgrid
 from evgrid.config import MapperConfig, OutputConfig
 from evgrid_sim import SimConfig, simulate_scene
@@ -73,6 +74,9 @@ def progress():
         rec = {"t_s": round(t_sim, 1), **status(), "ms_per_frame": ms}
         print(json.dumps({**rec, "store_bytes": b, "store_fused_tiles": tiles}), flush=True)
         state.update(t=now, i0=state["i"], next=state["next"] + every)
+    if keep and state["i"] == total:  # the store as the last frame left it (hard links)
+        import shutil
+        shutil.copytree(out / name / "store", keep, copy_function=os.link)
 
 exp = tuple(e for e in exports.split(",") if e)
 config = MapperConfig(maps=(*MAP_NAMES, "nav"))
@@ -88,10 +92,13 @@ print(json.dumps({**rec, "resolution": config.grid.resolution}), flush=True)
 """
 
 
-def run(src: str, duration: float, seed: int, exports: str, every: float, tmp: Path) -> dict:
+def run(
+    src: str, duration: float, seed: int, exports: str, every: float, tmp: Path, keep: str = ""
+) -> dict:
     env = {**os.environ, "PYTHONPATH": src}
     out = tmp / f"d{duration:g}-{time.time_ns()}"
     cmd = [sys.executable, "-c", CHILD, str(duration), str(seed), exports, str(every), str(out)]
+    cmd += [keep]
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, text=True)
     lines = []
@@ -114,6 +121,12 @@ def main() -> None:
     here = str(Path(__file__).resolve().parents[1] / "src")
     ap.add_argument("--src", nargs="+", default=[here], help="trees' src folders, run in turns")
     ap.add_argument("--tmp", default=None, help="where the runs write (default: a temp folder)")
+    ap.add_argument(
+        "--keep-store",
+        default="",
+        help="copy (hard links) the tile store as the drive's last frame left it to this "
+        "folder (one drive), to re-measure its bytes later",
+    )
     a = ap.parse_args()
     import tempfile
 
@@ -122,7 +135,7 @@ def main() -> None:
     rows = []
     for d in a.durations:
         for src in a.src:  # in turns
-            r = run(src, d, a.seed, a.export, a.every, tmp)
+            r = run(src, d, a.seed, a.export, a.every, tmp, a.keep_store)
             rows.append(r)
             area = r.get("map_area_km2") or float("nan")
             last = max((c.get("store_bytes", 0) for c in r["curve"]), default=0)

@@ -16,7 +16,12 @@ them). Variants run ``--jobs`` at a time; each trains with its own cache.
     PYTHONPATH=src python benchmarks/prior_ablation.py --out out/ablation --jobs 2 \\
         --variant shipped \\
         --variant "paper:train.target.kind=single_frame;train.loss=paper" \\
-        --variant "targets:train.loss=paper"
+        --variant "targets:train.loss=paper" \\
+        --variant "inputs:train.image.n_sweeps=20;train.image.horizon_s=2;\\
+mapper.image.n_sweeps=20;mapper.image.horizon_s=2"
+
+A ``mapper.*`` setting of a variant maps its evaluation scenes (the radar image's sweeps and
+horizon come from the mapping config, and must match the training's ``train.image.*``).
 
 Prints and writes ``OUT/ablation.md`` and ``OUT/ablation.json``; asserts nothing. Run again
 with the same ``--out``: finished trainings and mapped scenes are kept.
@@ -63,7 +68,11 @@ def one_variant(name: str, overrides: list[str], a: argparse.Namespace) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     log = out / "log.txt"
     timing: dict[str, float] = {}
+    # mapper.* settings map the evaluation scenes (an input that the mapping config decides,
+    # such as mapper.image.n_sweeps, must match the training's train.image.*); the rest train
     mapper_sets = ["mapper.evidence.mode=per_look"]
+    mapper_sets += [s for s in overrides if s.startswith("mapper.")]
+    overrides = [s for s in overrides if not s.startswith("mapper.")]
     if name != "shipped":
         ckpt = out / "train" / "best.safetensors"
         if not ckpt.exists():
