@@ -39,3 +39,14 @@ def test_a_config_file_keeps_a_name_and_makes_a_path_absolute(tmp_path):
     assert load_config(tmp_path / "b.json").mapper.checkpoint == str(
         tmp_path / "ck" / "evnet.safetensors"
     )
+
+
+def test_a_name_given_with_set_stays_a_name(tmp_path, monkeypatch):
+    from evgrid.config import resolve_config
+
+    monkeypatch.chdir(tmp_path)
+    for name in SHIPPED_CHECKPOINTS:
+        config = resolve_config(RunConfig, overrides=[("mapper.checkpoint", name)])
+        assert config.mapper.checkpoint == name
+    config = resolve_config(RunConfig, overrides=[("mapper.checkpoint", "mine.safetensors")])
+    assert config.mapper.checkpoint == str(tmp_path / "mine.safetensors")

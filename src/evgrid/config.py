@@ -443,7 +443,7 @@ def _override(cls: type, d: dict, key: str, value: Any, where: str) -> None:
             if isinstance(value, str):
                 value = parse_value(tp, value, f"{where}: {key}")
             if part in PATH_KEYS and isinstance(value, str):
-                value = os.path.abspath(value)  # given on the command line: from here
+                value = _absolute_path(value, Path.cwd())  # given on the command line: from here
             node[part] = value
             return
         if node.get(part) is None:
