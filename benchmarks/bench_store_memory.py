@@ -6,7 +6,9 @@ no figures, the exports asked for), importing evgrid from ``--src`` (default: th
 ``src``; give another tree's ``src`` to measure it the same way, in turns). Every
 ``--every`` simulated seconds the child prints the drive's time, its RSS now and at peak
 (VmRSS, VmHWM), the mean milliseconds per frame since the last line and the bytes and tiles
-in the scene's tile store. Measures and prints; asserts nothing.
+in the scene's tile store; after the drive, a line per end-of-run step (the tiles paged out,
+each export's close, the metrics) with the RSS before and after it and VmHWM after it, so
+that the step where VmHWM rises is where the peak comes. Measures and prints; asserts nothing.
 
     nice -n 5 python benchmarks/bench_store_memory.py --durations 30 240 --export nav2
     nice -n 5 python benchmarks/bench_store_memory.py --durations 600 --export nav2,mcap,rerun
@@ -78,6 +80,28 @@ def progress():
         import shutil
         shutil.copytree(out / name / "store", keep, copy_function=os.link)
 
+# a line after each end-of-run step: VmHWM rising in a step is where the peak comes
+def watch(owner, attr, label):
+    fn = getattr(owner, attr, None)
+    if fn is None:  # a tree without that step
+        return
+    def stepped(*a, **k):
+        before = status()
+        try:
+            return fn(*a, **k)
+        finally:
+            after = status()
+            rec = {"step": label, "rss_before": before["VmRSS"], "rss_after": after["VmRSS"]}
+            print(json.dumps({**rec, "VmHWM": after["VmHWM"]}), flush=True)
+    setattr(owner, attr, stepped)
+
+import importlib
+import evgrid.runs as runs
+from evgrid.mapper import OccupancyMapper
+watch(OccupancyMapper, "page_out_all", "page_out_all")
+for fmt, cls in (("nav2", "Nav2Exporter"), ("mcap", "McapExporter"), ("rerun", "RerunRecorder")):
+    watch(getattr(importlib.import_module(f"evgrid.export.{fmt}"), cls), "close", f"{fmt} close")
+watch(runs, "_scene_metrics", "metrics")
 exp = tuple(e for e in exports.split(",") if e)
 config = MapperConfig(maps=(*MAP_NAMES, "nav"))
 outputs = OutputConfig(figures=False, exports=exp)

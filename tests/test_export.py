@@ -380,18 +380,105 @@ def test_the_nav2_pgm_written_in_bands_is_the_whole_map_classified(tmp_path):
     """The PGM is written a tile column at a time; its pixels are those of the whole box
     classified at once and put in ROS order (map_to_occupancy), top row first."""
     from evgrid.export.nav2 import PIXEL, _read_pgm, classify_map, map_to_occupancy, write_nav2
-    from evgrid.grid import MapWindow
 
-    rng = np.random.default_rng(35)
-    m = EvidentialMap(GridSpec(n_cells=64, length_m=6.4), 16)
-    for _ in range(12):  # patches on both sides of the origin, across tile borders
-        r, c = rng.integers(-80, 80, 2)
-        h, w = rng.integers(1, 50, 2)
-        masses = rng.dirichlet([1, 1, 1], size=(h, w)).astype(np.float32)
-        window = MapWindow(int(r), int(c), masses, rng.random((h, w)) < 0.8)
-        m.apply(window, lambda view, x: view.__setitem__(slice(None), x))
+    m = _patches()
     r0, c0, h, w = m.covered_bounds()
     cls, _ = map_to_occupancy(classify_map(m, r0, c0, h, w), r0, c0, m.grid.resolution)
     pgm, _ = write_nav2(m, tmp_path / "map")
     want = np.vectorize(PIXEL.__getitem__)(cls)[::-1]
     assert np.array_equal(_read_pgm(pgm), want.astype(np.uint8))
+
+
+def _patches(seed: int = 35, tile_cells: int = 16) -> EvidentialMap:
+    """Patches of random masses on both sides of the origin, across tile borders, 80 % covered."""
+    from evgrid.grid import MapWindow
+
+    rng = np.random.default_rng(seed)
+    m = EvidentialMap(GridSpec(n_cells=64, length_m=6.4), tile_cells)
+    for _ in range(12):
+        r, c = rng.integers(-80, 80, 2)
+        h, w = rng.integers(1, 50, 2)
+        masses = rng.dirichlet([1, 1, 1], size=(h, w)).astype(np.float32)
+        window = MapWindow(int(r), int(c), masses, rng.random((h, w)) < 0.8)
+        m.apply(window, lambda view, x: view.__setitem__(slice(None), x))
+    return m
+
+
+@pytest.mark.parametrize("values", ["trinary", "scale"])
+@pytest.mark.parametrize("frame_id", ["map", "odom_frame"])
+def test_a_whole_maps_occupancy_grid_bytes_are_those_of_its_message(values, frame_id):
+    """The final maps' OccupancyGrids are made straight into their CDR bytes: the same bytes as
+    the message serialised (frame names of other lengths move the fields' alignment)."""
+    from evgrid.export.mcap import TiledCells, occupancy_grid_cdr, occupancy_grid_msg
+    from evgrid.ros import typestore
+
+    store, th = typestore(2), Nav2Thresholds()
+    for seed in (35, 36):
+        m = _patches(seed)
+        cells = TiledCells(m, *m.covered_bounds())
+        msg = occupancy_grid_msg(cells, 1_700_000_000_123_456, frame_id, store, th, values)
+        want = bytes(store.serialize_cdr(msg, "nav_msgs/msg/OccupancyGrid"))
+        got = occupancy_grid_cdr(cells, 1_700_000_000_123_456, frame_id, store, th, values)
+        assert bytes(got) == want
+
+
+def test_the_mcap_of_whole_maps_is_the_file_the_messages_gave(tmp_path, monkeypatch):
+    """Byte for byte the file written before the OccupancyGrids were made as bytes."""
+    pytest.importorskip("mcap")
+    import evgrid.export.mcap as mc
+
+    maps = {"a": _patches(35), "b": _patches(36, tile_cells=32)}
+    params = McapParams(occupancy_values="scale")
+    new = mc.write_maps_mcap(maps, tmp_path / "new.mcap", params, stamp_us=123)
+
+    def from_message(cells, t_us, frame_id, store, th, values):
+        msg = mc.occupancy_grid_msg(cells, t_us, frame_id, store, th, values)
+        return bytes(store.serialize_cdr(msg, "nav_msgs/msg/OccupancyGrid"))
+
+    monkeypatch.setattr(mc, "occupancy_grid_cdr", from_message)
+    old = mc.write_maps_mcap(maps, tmp_path / "old.mcap", params, stamp_us=123)
+    assert new.read_bytes() == old.read_bytes()
+
+
+def test_a_whole_maps_occupancy_grid_takes_one_byte_a_cell_once():
+    """The message of a whole map is one buffer, filled tile by tile: no copy of the box's
+    values (ROS order, the message's array, its serialisation) on top of it (traced
+    allocations, not the process's memory: the same on every run)."""
+    import tracemalloc
+
+    from evgrid.export.mcap import TiledCells, occupancy_grid_cdr
+    from evgrid.grid import MapWindow
+    from evgrid.ros import typestore
+
+    m = EvidentialMap(GridSpec(n_cells=64, length_m=6.4), 64)
+    ones = np.full((8, 8, 3), 1 / 3, np.float32)
+    for r, c in [(0, 0), (1500, 0), (0, 1500), (1500, 1500)]:  # four tiles, a box of 2.3 MB
+        m.apply(MapWindow(r, c, ones, np.ones((8, 8), bool)), lambda v, x: v.__setitem__(..., x))
+    r0, c0, h, w = m.covered_bounds()
+    store, cells = typestore(2), TiledCells(m, r0, c0, h, w)
+    occupancy_grid_cdr(cells, 0, "map", store)  # the type store's first use allocates too
+    tracemalloc.start()
+    try:
+        data = occupancy_grid_cdr(cells, 0, "map", store)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert len(data) > h * w == 1508 * 1508
+    assert peak < 1.2 * h * w  # the buffer, and a tile's values at a time
+
+
+def test_the_rerun_whole_map_picture_made_in_bands_is_the_whole_map_sampled():
+    from evgrid.export.rerun import _whole, quad_corners
+    from evgrid.render import map_rgb, sample_map
+
+    m = _patches()
+    r0, c0, h, w = m.covered_bounds()
+    for max_cells in (2048, 64, 37, 9):  # steps 1, 3, 5 and 18 (the tiles are 16 cells)
+        step = -(-max(h, w) // max_cells)
+        want = map_rgb(sample_map(m, r0, c0, h, w, step)[0])
+        pic, corners = _whole(m, max_cells)
+        assert np.array_equal(pic, want), step
+        hh, ww = want.shape[:2]
+        np.testing.assert_array_equal(
+            corners, quad_corners(r0, c0, hh * step, ww * step, m.grid.resolution)
+        )

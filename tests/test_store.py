@@ -289,3 +289,65 @@ def test_a_checkpoint_syncs_the_tiles_written_since_the_last_one_before_its_own_
     at = events.index(("checkpoint", str(path)))
     tiles = [p for what, p in events[:at] if what == "fsync" and p.endswith(".tile")]
     assert 1 <= len(tiles) <= len(m.pager.layers["masses"]) + 1
+
+
+def test_page_out_all_leaves_no_tile_in_memory_and_the_maps_as_they_were():
+    """The end of a drive: every tile of every map (hidden rows included) and of the truth map
+    to the store, the maps reading as before, and further updates as with every tile resident."""
+    from evgrid.config import MapperConfig
+    from evgrid.mapper import OccupancyMapper
+    from evgrid.observers import TruthTracker
+    from evgrid_sim import SimConfig, simulate_scene
+
+    frames = list(simulate_scene(3, SimConfig(duration_s=2.0)))
+    half = len(frames) // 2
+    out = []
+    for radius in (50.0, 1e9):
+        config = MapperConfig(
+            maps=("ray_ilm", "ray_irm", "fused", "nav"),
+            dynamic=DynamicParams(enabled=True, gate_nav=True),
+            store=StoreParams(resident_m=radius),
+            tile_cells=64,
+        )
+        truth = TruthTracker(config.grid, config.tile_cells)
+        mapper = OccupancyMapper(config)
+        mapper.observers.append(truth)
+        for f in frames[:half]:
+            mapper.process(f)
+        out.append((mapper, truth, mapper.page_out_all()))
+    (paged, ptruth, moved), (ref, rtruth, none) = out
+    rows = [r.map for r in paged.maps._rows]
+    assert len(rows) > 4 and moved == sum(len(m.tiles) for m in rows) + len(ptruth.map.tiles)
+    assert none == 0 and ref.store is None  # every tile resident: nothing to page out
+    assert not any(m._tiles for m in rows) and not ptruth.map._tiles
+    for name in ref.maps.names:
+        _same(paged.maps.maps[name], ref.maps.maps[name])
+    _same(ptruth.map, rtruth.map)
+    for f in frames[half:]:  # the tiles an update writes come back
+        paged.process(f)
+        ref.process(f)
+    for name in ref.maps.names:
+        _same(paged.maps.maps[name], ref.maps.maps[name])
+    paged.close()
+
+
+def test_a_run_pages_every_tile_out_before_its_exports_write_the_final_maps(tmp_path, monkeypatch):
+    from evgrid.config import MapperConfig, OutputConfig
+    from evgrid.export.nav2 import Nav2Exporter
+    from evgrid.runs import map_scene
+    from evgrid_sim import SimConfig, simulate_scene
+
+    resident = []
+    close = Nav2Exporter.close
+
+    def counting(self):
+        resident.append({n: len(m._tiles) for n, m in self._maps.items()})
+        return close(self)
+
+    monkeypatch.setattr(Nav2Exporter, "close", counting)
+    config = MapperConfig(maps=("ray_ilm", "ray_irm", "fused"), tile_cells=64)
+    outputs = OutputConfig(figures=False, exports=("nav2",))
+    frames = simulate_scene(3, SimConfig(duration_s=1.0))
+    map_scene(frames, tmp_path / "scene", config, outputs, overwrite=True)
+    (counts,) = resident
+    assert set(counts) >= {"ray_ilm", "fused", "nav"} and not any(counts.values())

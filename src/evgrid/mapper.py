@@ -37,6 +37,21 @@ __all__ = ["OccupancyMapper", "MapUpdate", "Observer", "PoseGate", "PoseError", 
 logger = logging.getLogger(__name__)
 
 
+def release_freed_memory() -> None:
+    """Give the heap's free pages back to the system (glibc's ``malloc_trim``; elsewhere nothing).
+
+    Tiles are under glibc's mmap threshold once it has grown, so a tile freed stays in the heap
+    for the process's next allocations of its size; the large arrays an export makes are
+    mmapped afresh, and would come on top of those free pages in the resident memory."""
+    import ctypes
+
+    try:
+        trim = ctypes.CDLL(None).malloc_trim  # the C library the process runs on
+    except (OSError, AttributeError):  # not glibc (musl, macOS, Windows): no malloc_trim
+        return
+    trim(0)
+
+
 @dataclass(frozen=True, slots=True, eq=False)
 class MapUpdate:
     """One map update, as observers see it: the frame, the ego pose in the map, the ISMs and the
@@ -220,6 +235,24 @@ class OccupancyMapper:
                 n += page(self.store, pose.x, pose.y, r)
         if n:
             self.timings.setdefault("page_out", []).append((time.perf_counter() - t) * 1e3)
+
+    def page_out_all(self) -> int:
+        """Move every tile in memory, of the maps and of the observers that keep tiled rasters,
+        to the store (none: nothing to do), and give the memory they held back to the system;
+        returns how many moved. For a drive that is over: what reads the maps then (the
+        exports' final maps, figures, ``--save-maps``, the scores) reads them tile by tile, so
+        its own memory comes on top of the drive's fixed costs only, not of its resident tiles
+        too. The maps are unchanged, and an update after it brings back the tiles it writes."""
+        if self.store is None:
+            return 0
+        n = self.maps.page_out(0.0, 0.0, -1.0)  # every tile lies at 0 m or more
+        for obs in self.observers:
+            page = getattr(obs, "page_out", None)
+            if page is not None:
+                n += page(self.store, 0.0, 0.0, -1.0)
+        self._paged_at = None
+        release_freed_memory()
+        return n
 
     def close(self) -> None:
         """Remove the tile store when it is a temporary folder (a run's own folder keeps it)."""

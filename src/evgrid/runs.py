@@ -303,6 +303,9 @@ def _map_with(
     seconds = time.perf_counter() - t0
     if mapper.n_updates == 0:  # empty maps are no result: the scene fails, saying why
         raise NoFrameMapped(nothing_mapped(name, mapper.n_frames, frames))
+    # the drive is over: its tiles to the store, so that what follows (the exports' final
+    # maps above all) reads them from there and its memory does not come on top of theirs
+    mapper.page_out_all()
     files: dict[str, str] = {}
     for fmt, exporter in zip(outputs.exports, exporters):
         written = exporter.close()

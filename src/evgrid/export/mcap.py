@@ -32,6 +32,7 @@ import json
 import logging
 import math
 import os
+import struct
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -43,6 +44,7 @@ from evgrid.export._files import AtomicFile, refuse_empty, target_path, write_er
 from evgrid.export._place import MapPlacement, fixed_in_map
 from evgrid.export.nav2 import (
     OCCUPANCY_VALUES,
+    UNKNOWN,
     Nav2Thresholds,
     map_to_occupancy,
     occupancy_values,
@@ -56,6 +58,7 @@ __all__ = [
     "McapExporter",
     "McapParams",
     "occupancy_grid_msg",
+    "occupancy_grid_cdr",
     "grid_map_msg",
     "write_maps_mcap",
     "write_map_mcap",
@@ -133,9 +136,15 @@ class TiledCells:
     def resolution(self) -> float:
         return self.map.grid.resolution
 
-    def occupancy(self, th: Nav2Thresholds, values: str) -> np.ndarray:
+    def occupancy(
+        self, th: Nav2Thresholds, values: str, out: np.ndarray | None = None
+    ) -> np.ndarray:
+        """The OccupancyGrid values of the cells, into ``out`` (``(h, w)`` int8, any strides:
+        a view of a message's buffer) when given."""
         m = self.map
-        out = np.full((self.h, self.w), -1, dtype=np.int8)
+        if out is None:
+            out = np.empty((self.h, self.w), dtype=np.int8)
+        out[...] = UNKNOWN  # where no tile is stored
         for key, tr, tc, wr, wc in m.pieces(self.r0, self.c0, self.h, self.w):
             t = m.tiles.get(key)
             if t is not None:
@@ -163,21 +172,68 @@ def occupancy_grid_of(
 ) -> Any:
     """``nav_msgs/OccupancyGrid`` of OccupancyGrid values (int8) of the map cells
     ``[r0:, c0:]``, in ROS order (:func:`~evgrid.export.nav2.map_to_occupancy`)."""
+    data, origin = map_to_occupancy(values, r0, c0, resolution)
+    return _occupancy_grid(data.reshape(-1), data.shape, origin, resolution, t_us, frame_id, store)
+
+
+def _occupancy_grid(
+    data: np.ndarray,
+    shape: tuple[int, int],
+    origin: tuple[float, float],
+    resolution: float,
+    t_us: int,
+    frame_id: str,
+    store: Any,
+) -> Any:
+    """``nav_msgs/OccupancyGrid`` of ``shape`` (height, width) with ``data`` (ROS order, flat)."""
     from evgrid.ros import header, us_to_stamp
 
-    data, (ox, oy) = map_to_occupancy(values, r0, c0, resolution)
     sec, ns = us_to_stamp(t_us)
     t = store.types
     info = t["nav_msgs/msg/MapMetaData"](
         map_load_time=t["builtin_interfaces/msg/Time"](sec=sec, nanosec=ns),
         resolution=float(resolution),
-        width=int(data.shape[1]),
-        height=int(data.shape[0]),
-        origin=_pose_msg(store, ox, oy),
+        width=int(shape[1]),
+        height=int(shape[0]),
+        origin=_pose_msg(store, *origin),
     )
     return t["nav_msgs/msg/OccupancyGrid"](
-        header=header(sec, ns, frame_id, store), info=info, data=data.reshape(-1)
+        header=header(sec, ns, frame_id, store), info=info, data=data
     )
+
+
+#: The OccupancyGrid message type.
+_OCCUPANCY_GRID = "nav_msgs/msg/OccupancyGrid"
+
+
+def occupancy_grid_cdr(
+    cells: TiledCells,
+    t_us: int,
+    frame_id: str,
+    store: Any,
+    th: Nav2Thresholds = Nav2Thresholds(),
+    values: str = "trinary",
+) -> bytearray:
+    """The CDR bytes of :func:`occupancy_grid_msg` of ``cells``, the same as
+    ``store.serialize_cdr`` gives them, made in one buffer: the values are written tile by tile
+    straight to their places in ROS order, so a whole map costs one byte a cell once (not the
+    values, their ROS-order copy, the message and its serialised copies, each a byte a cell).
+
+    ``data`` is the message's last field and int8 (no alignment), so the bytes are those of
+    the message with no data, its sequence length set, then the cells."""
+    h, w = cells.h, cells.w
+    r0, c0, res = cells.r0, cells.c0, cells.resolution
+    origin = (-(r0 + h) * res, -(c0 + w) * res)  # map_to_occupancy's
+    empty = _occupancy_grid(np.zeros(0, np.int8), (w, h), origin, res, t_us, frame_id, store)
+    head = store.serialize_cdr(empty, _OCCUPANCY_GRID)
+    buf = bytearray(len(head) + h * w)
+    buf[: len(head)] = head
+    # the CDR encapsulation header says the byte order: 0x0001 little-endian, 0x0000 big
+    struct.pack_into("<I" if head[1] else ">I", buf, len(head) - 4, h * w)
+    data = np.frombuffer(buf, np.int8, offset=len(head)).reshape(w, h)
+    # data[j, i] is box cell (h - 1 - i, w - 1 - j) (map_to_occupancy): this view is in map order
+    cells.occupancy(th, values, out=data.swapaxes(0, 1)[::-1, ::-1])
+    return buf
 
 
 def grid_map_msg(
@@ -354,6 +410,10 @@ class McapExporter:
     # -- writing -----------------------------------------------------------------------------
 
     def _write(self, topic: str, msgtype: str, t_us: int, msg: Any) -> None:
+        self._write_cdr(topic, msgtype, t_us, bytes(self.store.serialize_cdr(msg, msgtype)))
+
+    def _write_cdr(self, topic: str, msgtype: str, t_us: int, data: bytes | bytearray) -> None:
+        """Write a message serialised already (CDR bytes)."""
         c = self._channels.get(topic)
         if c is None:
             text, _ = self.store.generate_msgdef(msgtype, ros_version=2)
@@ -361,7 +421,6 @@ class McapExporter:
             c = self._channels[topic] = self._w.register_channel(
                 topic=topic, message_encoding="cdr", schema_id=sid
             )
-        data = bytes(self.store.serialize_cdr(msg, msgtype))
         t_ns = int(t_us) * 1000
         self._w.add_message(channel_id=c, log_time=t_ns, data=data, publish_time=t_ns)
         self.n_messages += 1
@@ -399,11 +458,17 @@ class McapExporter:
             cells = (
                 TiledCells(m, *b) if whole else MapCells.read(m, b, DYNAMIC_LAYER in grid_layers)
             )
-            if "occupancy" in p.layers:
+            topic = f"/evgrid/{name}/occupancy"
+            if "occupancy" in p.layers and whole:  # a byte a cell, once (the box can be large)
+                th, values = p.thresholds, p.occupancy_values
+                data = occupancy_grid_cdr(cells, t_us, frame, self.store, th, values)
+                self._write_cdr(topic, _OCCUPANCY_GRID, t_us, data)
+                del data  # before the next map's
+            elif "occupancy" in p.layers:
                 msg = occupancy_grid_msg(
                     cells, t_us, frame, self.store, p.thresholds, p.occupancy_values
                 )
-                self._write(f"/evgrid/{name}/occupancy", "nav_msgs/msg/OccupancyGrid", t_us, msg)
+                self._write(topic, _OCCUPANCY_GRID, t_us, msg)
             if grid_layers:
                 msg = grid_map_msg(cells, t_us, frame, self.store, grid_layers)
                 self._write(f"/evgrid/{name}/grid_map", "grid_map_msgs/msg/GridMap", t_us, msg)

@@ -121,13 +121,21 @@ def _whole_step(m: EvidentialMap, max_cells: int = 2048) -> int:
 
 
 def _whole(m: EvidentialMap, max_cells: int = 2048) -> tuple[np.ndarray, np.ndarray]:
-    """A whole map as a picture (every ``step``-th cell) and its quad's corners."""
+    """A whole map as a picture (every ``step``-th cell) and its quad's corners.
+
+    Sampled in bands of a tile's rows, so that the masses read at once (12 bytes a sampled
+    cell, and map_rgb's float copies) are those of a band, not of the whole picture."""
     from evgrid.render import map_rgb, sample_map
 
     r0, c0, h, w = m.covered_bounds()
     step = _whole_step(m, max_cells)
-    pic = map_rgb(sample_map(m, r0, c0, h, w, step)[0])
-    hh, ww = pic.shape[:2]
+    hh, ww = -(-h // step), -(-w // step)
+    pic = np.empty((hh, ww, 3), np.uint8)
+    band = max(1, m.tile_cells // step)  # picture rows a band
+    for i in range(0, hh, band):
+        rows = min(band * step, h - i * step)  # map rows from the band's first sampled one
+        part = map_rgb(sample_map(m, r0 + i * step, c0, rows, w, step)[0])
+        pic[i : i + part.shape[0]] = part
     # the sampled picture covers hh * step rows from r0 (the last sample's cell included)
     return pic, quad_corners(r0, c0, hh * step, ww * step, m.grid.resolution)
 
@@ -292,10 +300,13 @@ class RerunRecorder:
             if m.covered_bounds()[2]:
                 pic, corners = _whole(m)
                 self.rec.log(f"final/{name}", _quad(self.rr, pic, corners), static=True)
+                del pic
                 if self.params.dynamic and m.dynamic:
                     th = self._mapset.dynamic.threshold
                     points = _dynamic_points(self.rr, m, m.covered_bounds(), _whole_step(m), th)
                     self.rec.log(f"final/{name}/dynamic", points, static=True)
+                if self._out is not None:  # each map's picture to the file before the next's
+                    self._out.drain()
         self.rec.flush()
 
     def close(self) -> Path | None:
