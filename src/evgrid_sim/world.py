@@ -9,6 +9,7 @@ origin) and then moved by one rigid transform into the *global frame* that poses
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
@@ -1212,20 +1213,27 @@ def _touch(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 #: Samples of a track whose bounds are merged into one piece's bounds.
 _SEGMENT = 16
+#: Samples a piece of an accepted mover's track: the bounds it keeps for the whole build. A
+#: piece's bounds hold its samples', so any piece size finds the same touching samples; larger
+#: pieces keep less (a 30-minute drive: 9 MiB instead of 35).
+_KEPT_PIECE = 64
+#: Bytes of accepted movers' tracks (boxes and bounds per sample) kept while the world is
+#: built, the most recently used first; the others are recomputed when a candidate comes
+#: near. Keeping them all grew with traffic x duration (1.7 GiB for a 30-minute drive).
+_TRACK_CACHE_BYTES = 48 << 20
 
 
-def _segment_bounds(box: np.ndarray) -> np.ndarray:
-    """Bounds of each run of ``_SEGMENT`` consecutive sample bounds (the last may be shorter)."""
+def _segment_bounds(box: np.ndarray, size: int = _SEGMENT) -> np.ndarray:
+    """Bounds of each run of ``size`` consecutive sample bounds (the last may be shorter)."""
     n = len(box)
-    pad = np.concatenate([box, np.repeat(box[-1:], (-n) % _SEGMENT, axis=0)]).reshape(
-        -1, _SEGMENT, 4
-    )
+    pad = np.concatenate([box, np.repeat(box[-1:], (-n) % size, axis=0)]).reshape(-1, size, 4)
     return np.concatenate([pad[:, :, :2].min(1), pad[:, :, 2:].max(1)], -1)
 
 
-def _segment_samples(segs: np.ndarray, n: int) -> np.ndarray:
-    """Indices of the samples in pieces ``segs`` of a track of ``n`` samples."""
-    idx = (segs[:, None] * _SEGMENT + np.arange(_SEGMENT)).ravel()
+def _segment_samples(segs: np.ndarray, n: int, size: int = _SEGMENT) -> np.ndarray:
+    """Indices of the samples in pieces ``segs`` (of ``size`` samples) of a track of ``n``
+    samples."""
+    idx = (segs[:, None] * size + np.arange(size)).ravel()
     return idx[idx < n]
 
 
@@ -1250,10 +1258,13 @@ class _MoverSet:
         self.static_hi = static[:, 7] if len(static) else np.zeros(0)
         self.static_aabb = _aabbs(static) if len(static) else np.zeros((0, 4))
         self.accepted: list[dict] = []
-        self.tracks: list[np.ndarray] = []
-        self.track_aabbs: list[np.ndarray] = []
-        self.track_segs: list[np.ndarray] = []
+        self.track_pieces: list[np.ndarray] = []
         self.track_bounds = np.zeros((0, 4))
+        #: accepted mover -> (its track, its sample bounds), least recently used first
+        self.track_cache: OrderedDict[int, tuple[np.ndarray, np.ndarray]] = OrderedDict()
+        self.cached_bytes = 0
+        #: tracks recomputed after leaving the cache (for tests and benchmarks)
+        self.recomputed = 0
 
     def _track(self, m: dict) -> np.ndarray:
         """Packed boxes of one candidate at every sample time."""
@@ -1288,10 +1299,15 @@ class _MoverSet:
         near = _touch(box, self.ego_aabb)
         if near.any() and _overlap(tr[near], self.ego[near]).any():
             return False
+        pieces = _segment_bounds(box, _KEPT_PIECE)
         for k in np.nonzero(_touch(self.track_bounds, bounds))[0]:
-            idx = _segment_samples(np.nonzero(_touch(segs, self.track_segs[k]))[0], len(box))
-            near = idx[_touch(box[idx], self.track_aabbs[k][idx])]
-            if len(near) and _overlap(tr[near], self.tracks[k][near]).any():
+            close = np.nonzero(_touch(pieces, self.track_pieces[int(k)]))[0]
+            if not len(close):
+                continue
+            other, other_box = self._accepted_track(int(k))
+            idx = _segment_samples(close, len(box), _KEPT_PIECE)
+            near = idx[_touch(box[idx], other_box[idx])]
+            if len(near) and _overlap(tr[near], other[near]).any():
                 return False
         if len(self.static):
             cand = np.nonzero(
@@ -1312,11 +1328,31 @@ class _MoverSet:
                 if ok.any() and _overlap(tr[t_idx[ok]], self.static[c_idx[ok]]).any():
                     return False
         self.accepted.append(m)
-        self.tracks.append(tr)
-        self.track_aabbs.append(box)
-        self.track_segs.append(segs)
+        self.track_pieces.append(pieces)
         self.track_bounds = np.vstack([self.track_bounds, bounds])
+        self._keep(len(self.accepted) - 1, tr, box)
         return True
+
+    def _keep(self, k: int, tr: np.ndarray, box: np.ndarray) -> None:
+        """Cache accepted mover ``k``'s track, dropping the least recently used over budget."""
+        self.track_cache[k] = (tr, box)
+        self.cached_bytes += tr.nbytes + box.nbytes
+        while self.cached_bytes > _TRACK_CACHE_BYTES and len(self.track_cache) > 1:
+            _, (a, b) = self.track_cache.popitem(last=False)
+            self.cached_bytes -= a.nbytes + b.nbytes
+
+    def _accepted_track(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """Accepted mover ``k``'s track and sample bounds, from the cache or recomputed (the
+        same arithmetic on the same inputs, so the same bytes)."""
+        hit = self.track_cache.get(k)
+        if hit is not None:
+            self.track_cache.move_to_end(k)
+            return hit
+        self.recomputed += 1
+        tr = self._track(self.accepted[k])
+        box = _aabbs(tr)
+        self._keep(k, tr, box)
+        return tr, box
 
     def movers(self) -> Movers:
         if not self.accepted:
