@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from evgrid_sim import SimConfig, simulate_scene
 from evgrid_sim import scene as sim_scene
@@ -41,35 +43,37 @@ def _world_bytes(seed: int, config: SimConfig) -> list[bytes]:
 
 
 @pytest.mark.parametrize(("seed", "layout"), [(4, "irregular"), (2, "highway"), (5, "grid")])
-def test_recomputed_tracks_build_the_same_world(monkeypatch, seed, layout):
-    """Tracks dropped from the builder's cache and recomputed (a cache of one track, and the
-    old 16-sample pieces) accept and refuse the same movers as tracks all kept."""
-
+@pytest.mark.parametrize(("budget", "chunk", "piece"), [(0, 256, 16), (96 << 10, 24, 64)])
+def test_recomputed_tracks_build_the_same_world(monkeypatch, seed, layout, budget, chunk, piece):
+    """Tracks dropped from the builder's cache (whole, or some of their chunks) and recomputed
+    accept and refuse the same movers as tracks all kept, with any size of the pieces whose
+    bounds every accepted track keeps."""
     cfg = SimConfig(duration_s=40.0, world=WorldConfig(layout=layout))
     monkeypatch.setattr(sim_world, "_TRACK_CACHE_BYTES", 1 << 40)
     made = _movers_sets(monkeypatch)
     kept = _world_bytes(seed, cfg)
     assert made[-1].recomputed == 0
-    monkeypatch.setattr(sim_world, "_TRACK_CACHE_BYTES", 0)
-    monkeypatch.setattr(sim_world, "_KEPT_PIECE", sim_world._SEGMENT)
+    monkeypatch.setattr(sim_world, "_TRACK_CACHE_BYTES", budget)
+    monkeypatch.setattr(sim_world, "_TRACK_CHUNK", chunk)
+    monkeypatch.setattr(sim_world, "_KEPT_PIECE", piece)
     dropped = _world_bytes(seed, cfg)
-    assert made[-1].recomputed > 0  # the test did exercise recomputation
-    assert len(made[-1].track_cache) == 1
+    ms = made[-1]
+    assert ms.recomputed > 0  # the test did exercise recomputation
+    assert ms.cached_bytes <= max(budget, chunk * 32)
     assert dropped == kept
 
 
 def test_builder_keeps_its_tracks_within_the_budget(monkeypatch):
     made = _movers_sets(monkeypatch)
-    monkeypatch.setattr(sim_world, "_TRACK_CACHE_BYTES", 2 << 20)
+    monkeypatch.setattr(sim_world, "_TRACK_CACHE_BYTES", 256 << 10)
     world_of(4, DRIVE)
     ms = made[-1]
-    track = ms._track(ms.accepted[0])
-    one = track.nbytes + sim_world._aabbs(track).nbytes
-    assert ms.cached_bytes == len(ms.track_cache) * one <= 2 << 20
+    one = len(ms.ts) * 4 * 8  # centre, cos and sin of yaw, float64, a sample
+    assert ms.cached_bytes == len(ms.track_cache) * one <= 256 << 10
     assert len(ms.accepted) > len(ms.track_cache)  # some dropped: a real test of the budget
     # What every accepted mover keeps: its pieces' bounds, one row per _KEPT_PIECE samples.
     pieces = -(-len(ms.ts) // sim_world._KEPT_PIECE)
-    assert all(p.shape == (pieces, 4) for p in ms.track_pieces)
+    assert all(p.shape == (pieces, 4) and p.dtype == np.float32 for p in ms.track_pieces)
 
 
 def test_dropped_radar_labels_come_back_the_same(monkeypatch):
@@ -113,3 +117,14 @@ def test_radar_deliveries_by_frame_with_faults():
         len(np.unique(scene._delivery[c][1])) < len(scene._delivery[c][1])
         for c in rig.radar_channels
     )
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.floats(-1e5, 1e5), min_size=4, max_size=4))
+def test_kept_bounds_hold_the_exact_ones(v):
+    """Piece bounds kept in float32 are rounded outward: they hold the float64 bounds."""
+    b = np.array([[min(v[0], v[2]), min(v[1], v[3]), max(v[0], v[2]), max(v[1], v[3])]])
+    kept = sim_world._outward_f32(b)
+    assert kept.dtype == np.float32
+    assert np.all(kept[:, :2] <= b[:, :2]) and np.all(kept[:, 2:] >= b[:, 2:])
+    assert np.all(np.abs(kept.astype(np.float64) - b) <= 1e-2 + 1e-6 * np.abs(b))
