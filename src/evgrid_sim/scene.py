@@ -7,6 +7,7 @@ sweep index), so any frame can be produced alone, in any order, with the same by
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from collections.abc import Iterator
 from dataclasses import dataclass
 
@@ -32,6 +33,9 @@ OCC_STATIC = 1
 OCC_DYNAMIC = 2
 
 _US_PER_DAY = 86_400_000_000
+#: Radar sweeps whose labels a scene keeps (about 60 s of six radars at 13 Hz); keeping every
+#: sweep's grew with the drive (about 65 MB in 30 minutes).
+_LABELS_KEPT = 4096
 
 
 def scene_name(seed: int) -> str:
@@ -111,7 +115,9 @@ class SimScene:
             ch: self._radar_clock(rng, rate, t_last)
             for ch, rate in zip(self.radar_channels, rig.rates(config.radar.rate_hz))
         }
-        self._delivery: dict[str, list[tuple[int, int]]] = {
+        # (frame, sweep) of each delivery, as two int64 arrays in delivery order (frames never
+        # go back): a frame's sweeps are one slice, found by bisection.
+        self._delivery: dict[str, tuple[np.ndarray, np.ndarray]] = {
             ch: self._delivered(ts, faults, frng) for ch, ts in self.radar_timestamps.items()
         }
         self._odo = self._make_odometry(rng)
@@ -120,7 +126,9 @@ class SimScene:
         self._radars = {
             ch: RadarModel(config.radar, self._mounts[ch]) for ch in self.radar_channels
         }
-        self._labels: dict[tuple[str, int], np.ndarray] = {}
+        # The labels of the latest radar sweeps (most recent last); older ones are simulated
+        # again when asked for (the same bytes: each sweep has its own generator).
+        self._labels: OrderedDict[tuple[str, int], np.ndarray] = OrderedDict()
 
     def _radar_clock(self, rng: np.random.Generator, rate: float, t_last: int) -> np.ndarray:
         """Timestamps (us) of a radar's sweeps at ``rate`` Hz up to ``t_last``, at a phase drawn
@@ -134,10 +142,10 @@ class SimScene:
 
     def _delivered(
         self, ts: np.ndarray, faults: SweepFaults, frng: np.random.Generator | None
-    ) -> list[tuple[int, int]]:
-        """(frame, sweep) in delivery order of a radar's sweeps at ``ts``: sweep j goes to the
-        first frame whose lidar timestamp is >= its own; faults (drawn from ``frng``) drop,
-        repeat or delay some (delivered in this order, frames never going back)."""
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(frames, sweeps), int64, in delivery order of a radar's sweeps at ``ts``: sweep j goes
+        to the first frame whose lidar timestamp is >= its own; faults (drawn from ``frng``)
+        drop, repeat or delay some (delivered in this order, frames never going back)."""
         frames = np.searchsorted(self.lidar_timestamps, ts, side="left")
         order = list(range(len(ts)))
         if frng is not None:
@@ -147,7 +155,8 @@ class SimScene:
             f = int(frames[j]) if not out else max(int(frames[j]), out[-1][0])
             if f < len(self.lidar_timestamps):
                 out.append((f, j))
-        return out
+        pairs = np.array(out, dtype=np.int64).reshape(-1, 2)
+        return pairs[:, 0].copy(), pairs[:, 1].copy()
 
     # --- Scene protocol ---------------------------------------------------------------------
     def __len__(self) -> int:
@@ -279,6 +288,9 @@ class SimScene:
             rng,
         )
         self._labels[(channel, j)] = labels
+        self._labels.move_to_end((channel, j))
+        while len(self._labels) > _LABELS_KEPT:
+            self._labels.popitem(last=False)
         return RadarSweep(
             pts, self._mounts[channel].sensor_to_ego(), self._ego_se3(ts), ts, channel
         ), labels
@@ -286,10 +298,11 @@ class SimScene:
     def radar_sweep_indices(self, i: int) -> dict[str, np.ndarray]:
         """For frame ``i``, the indices of each channel's sweeps delivered with it (oldest first,
         unless the rig's faults repeat or delay some)."""
-        return {
-            ch: np.array([j for f, j in d if f == i], dtype=np.int64)
-            for ch, d in self._delivery.items()
-        }
+        out = {}
+        for ch, (frames, sweeps) in self._delivery.items():
+            lo, hi = np.searchsorted(frames, [i, i + 1], side="left")
+            out[ch] = sweeps[lo:hi].copy()
+        return out
 
     def radar_labels(self, channel: str, timestamp_us: int) -> np.ndarray:
         """Ground-truth labels (0 real, 1 clutter, 2 ghost) of the radar sweep at a timestamp."""
@@ -301,9 +314,10 @@ class SimScene:
         if len(hits) == 0:
             raise KeyError(f"no {channel} sweep at timestamp {timestamp_us}")
         j = int(hits[0])
-        if (channel, j) not in self._labels:
-            self.radar_sweep(channel, j)
-        return self._labels[(channel, j)]
+        labels = self._labels.get((channel, j))
+        if labels is None:
+            _, labels = self.radar_sweep(channel, j)
+        return labels
 
     def occupancy(self, i: int) -> np.ndarray:
         """True occupancy on the local grid of frame ``i``'s true ego pose (uint8: 0 free,

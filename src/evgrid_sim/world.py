@@ -9,6 +9,7 @@ origin) and then moved by one rigid transform into the *global frame* that poses
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
@@ -1212,20 +1213,41 @@ def _touch(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 #: Samples of a track whose bounds are merged into one piece's bounds.
 _SEGMENT = 16
+#: Samples a piece of an accepted mover's track: the bounds it keeps for the whole build
+#: (float32, rounded outward: 18 MiB for a 30-minute drive instead of 35). A piece's bounds hold
+#: its samples', so any piece size and any outward rounding find the same touching samples;
+#: larger pieces keep less but make more tracks be recomputed.
+_KEPT_PIECE = _SEGMENT
+#: Bytes of accepted movers' tracks (32 a sample) kept while the world is built, the most
+#: recently used; the others are recomputed when a candidate comes near. Keeping every track
+#: and its bounds grew with traffic x duration (1.7 GiB for a 30-minute drive).
+_TRACK_CACHE_BYTES = 48 << 20
+#: Samples a chunk of a cached track (51 s): a long track passes near others for a short
+#: while, and only the chunks that are asked for stay.
+_TRACK_CHUNK = 256
 
 
-def _segment_bounds(box: np.ndarray) -> np.ndarray:
-    """Bounds of each run of ``_SEGMENT`` consecutive sample bounds (the last may be shorter)."""
+def _segment_bounds(box: np.ndarray, size: int = _SEGMENT) -> np.ndarray:
+    """Bounds of each run of ``size`` consecutive sample bounds (the last may be shorter)."""
     n = len(box)
-    pad = np.concatenate([box, np.repeat(box[-1:], (-n) % _SEGMENT, axis=0)]).reshape(
-        -1, _SEGMENT, 4
-    )
+    pad = np.concatenate([box, np.repeat(box[-1:], (-n) % size, axis=0)]).reshape(-1, size, 4)
     return np.concatenate([pad[:, :, :2].min(1), pad[:, :, 2:].max(1)], -1)
 
 
-def _segment_samples(segs: np.ndarray, n: int) -> np.ndarray:
-    """Indices of the samples in pieces ``segs`` of a track of ``n`` samples."""
-    idx = (segs[:, None] * _SEGMENT + np.arange(_SEGMENT)).ravel()
+def _outward_f32(bounds: np.ndarray) -> np.ndarray:
+    """Bounds ``(x_lo, y_lo, x_hi, y_hi)`` as float32 rounded outward: they hold the float64
+    bounds, so every pair of bounds that touches still touches."""
+    out = bounds.astype(np.float32)
+    lo, hi = out[:, :2], out[:, 2:]
+    lo[:] = np.where(lo > bounds[:, :2], np.nextafter(lo, np.float32(-np.inf)), lo)
+    hi[:] = np.where(hi < bounds[:, 2:], np.nextafter(hi, np.float32(np.inf)), hi)
+    return out
+
+
+def _segment_samples(segs: np.ndarray, n: int, size: int = _SEGMENT) -> np.ndarray:
+    """Indices of the samples in pieces ``segs`` (of ``size`` samples) of a track of ``n``
+    samples."""
+    idx = (segs[:, None] * size + np.arange(size)).ravel()
     return idx[idx < n]
 
 
@@ -1250,10 +1272,14 @@ class _MoverSet:
         self.static_hi = static[:, 7] if len(static) else np.zeros(0)
         self.static_aabb = _aabbs(static) if len(static) else np.zeros((0, 4))
         self.accepted: list[dict] = []
-        self.tracks: list[np.ndarray] = []
-        self.track_aabbs: list[np.ndarray] = []
-        self.track_segs: list[np.ndarray] = []
+        self.track_pieces: list[np.ndarray] = []
         self.track_bounds = np.zeros((0, 4))
+        #: (accepted mover, chunk) -> its samples' centres, cos and sin of yaw, least recently
+        #: used first
+        self.track_cache: OrderedDict[tuple[int, int], np.ndarray] = OrderedDict()
+        self.cached_bytes = 0
+        #: tracks recomputed after leaving the cache (for tests and benchmarks)
+        self.recomputed = 0
 
     def _track(self, m: dict) -> np.ndarray:
         """Packed boxes of one candidate at every sample time."""
@@ -1288,10 +1314,15 @@ class _MoverSet:
         near = _touch(box, self.ego_aabb)
         if near.any() and _overlap(tr[near], self.ego[near]).any():
             return False
+        pieces = segs if _KEPT_PIECE == _SEGMENT else _segment_bounds(box, _KEPT_PIECE)
         for k in np.nonzero(_touch(self.track_bounds, bounds))[0]:
-            idx = _segment_samples(np.nonzero(_touch(segs, self.track_segs[k]))[0], len(box))
-            near = idx[_touch(box[idx], self.track_aabbs[k][idx])]
-            if len(near) and _overlap(tr[near], self.tracks[k][near]).any():
+            close = np.nonzero(_touch(pieces, self.track_pieces[int(k)]))[0]
+            if not len(close):
+                continue
+            idx = _segment_samples(close, len(box), _KEPT_PIECE)
+            other = self._accepted_samples(int(k), idx)
+            hit = _touch(box[idx], _aabbs(other))
+            if hit.any() and _overlap(tr[idx[hit]], other[hit]).any():
                 return False
         if len(self.static):
             cand = np.nonzero(
@@ -1312,11 +1343,45 @@ class _MoverSet:
                 if ok.any() and _overlap(tr[t_idx[ok]], self.static[c_idx[ok]]).any():
                     return False
         self.accepted.append(m)
-        self.tracks.append(tr)
-        self.track_aabbs.append(box)
-        self.track_segs.append(segs)
+        self.track_pieces.append(_outward_f32(pieces))
         self.track_bounds = np.vstack([self.track_bounds, bounds])
+        self._keep(len(self.accepted) - 1, tr, None)
         return True
+
+    def _keep(self, k: int, tr: np.ndarray, needed: np.ndarray | None) -> None:
+        """Cache accepted mover ``k``'s track by chunks of samples (centres, cos and sin of yaw;
+        the rest is its constant size): the ``needed`` chunks (None: all) as the most recently
+        used, the others as the least; then drop the least recently used over budget."""
+        for c in range(-(-len(tr) // _TRACK_CHUNK)):
+            part = tr[c * _TRACK_CHUNK : (c + 1) * _TRACK_CHUNK, :4].copy()
+            old = self.track_cache.pop((k, c), None)
+            self.cached_bytes += part.nbytes - (0 if old is None else old.nbytes)
+            self.track_cache[(k, c)] = part
+            if needed is not None and c not in needed:
+                self.track_cache.move_to_end((k, c), last=False)
+        while self.cached_bytes > _TRACK_CACHE_BYTES and len(self.track_cache) > 1:
+            _, old = self.track_cache.popitem(last=False)
+            self.cached_bytes -= old.nbytes
+
+    def _accepted_samples(self, k: int, idx: np.ndarray) -> np.ndarray:
+        """Packed boxes of accepted mover ``k`` at samples ``idx`` (ascending), from the cache
+        or its track recomputed (the same arithmetic on the same inputs: the same bytes)."""
+        m = self.accepted[k]
+        chunks = np.unique(idx // _TRACK_CHUNK)
+        parts = [self.track_cache.get((k, int(c))) for c in chunks]
+        if any(p is None for p in parts):
+            self.recomputed += 1
+            tr = self._track(m)
+            self._keep(k, tr, set(chunks.tolist()))
+            return tr[idx]
+        for c in chunks:
+            self.track_cache.move_to_end((k, int(c)))
+        first = np.concatenate([[0], np.cumsum([len(p) for p in parts])[:-1]])
+        at = first[np.searchsorted(chunks, idx // _TRACK_CHUNK)] + idx % _TRACK_CHUNK
+        out = np.empty((len(idx), 8))
+        out[:, :4] = (parts[0] if len(parts) == 1 else np.concatenate(parts))[at]
+        out[:, 4:] = (m["hl"], m["hw"], m["z0"], m["z1"])
+        return out
 
     def movers(self) -> Movers:
         if not self.accepted:
