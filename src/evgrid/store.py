@@ -504,7 +504,7 @@ class TileGroup:
         (None) of every member, a copy's named ``MEMBER/NAME``; StoreError naming the file if it
         is damaged or of another version."""
         path = self.folder / self._files[key][1]
-        got = read_tile_file(path, key)
+        got = read_tile_file(path, key, member)
         return got if member is None else _member_layers(got, member)
 
     def write_meta(self, meta: dict[str, Any]) -> None:
@@ -545,9 +545,12 @@ def read_group_meta(folder: Path) -> dict[str, Any]:
     return d
 
 
-def read_tile_file(path: Path, key: tuple[int, int] | None = None) -> dict[str, np.ndarray]:
-    """The layers of one tile file; StoreError naming it if it is damaged, of another version, or
-    (with ``key``) holds another tile."""
+def read_tile_file(
+    path: Path, key: tuple[int, int] | None = None, member: str | None = None
+) -> dict[str, np.ndarray]:
+    """The layers of one tile file (a copy's named ``MEMBER/NAME``; with ``member`` only those of
+    that member, ``""`` the map's, named as in the file); StoreError naming it if it is damaged,
+    of another version, or (with ``key``) holds another tile."""
     blosc2 = _codec()
     try:
         data = path.read_bytes()
@@ -568,9 +571,14 @@ def read_tile_file(path: Path, key: tuple[int, int] | None = None) -> dict[str, 
         out: dict[str, np.ndarray] = {}
         encoded: dict[str, np.ndarray] = {}  # the map's layers as stored, for its copies'
         at = _HEAD.size + n
+        pre = None if member is None else f"{member}/" if member else ""
+        wanted = {e.get("against") for e in header["layers"] if pre and e["name"].startswith(pre)}
         for e in header["layers"]:
             blob = data[at : at + e["nbytes"]]
             at += e["nbytes"]
+            mine = pre is None or (e["name"].startswith(pre) if pre else "/" not in e["name"])
+            if not mine and e["name"] not in wanted:
+                continue  # another member's, not needed to decode this one's
             if len(blob) != e["nbytes"] or zlib.crc32(blob) != e["crc32"]:
                 raise ValueError(f"layer {e['name']!r} fails its CRC-32")
             dtype, shape = np.dtype(e["dtype"]), tuple(e["shape"])
@@ -582,6 +590,8 @@ def read_tile_file(path: Path, key: tuple[int, int] | None = None) -> dict[str, 
                 raw ^= encoded[against]  # KeyError: a copy against a layer the file lacks
             elif "/" not in e["name"]:
                 encoded[e["name"]] = raw
+            if not mine:
+                continue
             encoding = e.get("encoding")
             if encoding == "masses":
                 out[e["name"]] = _decode_masses(raw, shape)
