@@ -1,4 +1,4 @@
-"""The tile store's bytes on disk per km^2 (docs/store.md#bytes-on-disk-per-km2).
+"""The tile store's bytes on disk per km^2 (docs/store.md#bytes-on-disk).
 
 Maps a simulated drive (six maps plus nav, the defaults: 50 m resident radius, dynamic score,
 nav's gated inputs) into a store in ``--out``, writes every tile still in memory to it at the

@@ -3,11 +3,14 @@
 A :class:`TileStore` is a folder; each map (or other tiled raster) paged into it has a group,
 a sub-folder of its own, holding one file per tile (``TI_TJ.gN.tile``: tile row, tile column,
 generation) with every layer of that tile (masses, coverage, dynamic score), each compressed
-with blosc2 (zstd, byte shuffle; lossless) and checked by a CRC-32. A tile file is written under
-a temporary name and renamed into place, so a run killed at any moment leaves only whole
-files; a tile written again gets a new generation, and the older file goes once the newer one is
-in place. ``map.json`` in a group says what the tiles belong to (grid, tiling, metadata, map
-frame), so a group opens as a map by itself (:func:`evgrid.grid.load_map` on its folder).
+with blosc2 (zstd, byte shuffle; lossless) and checked by a CRC-32: the masses with the largest
+of a cell's three as a residual of the other two, and a copy of the map (nav's gated input)
+as the XOR of its layers against the map's, in the same file (docs/store.md#layout-on-disk).
+A tile file is written under a temporary name and renamed into place, so a run killed at any
+moment leaves only whole files; a tile written again gets a new generation, and the older
+file goes once the newer one is in place. ``map.json`` in a group says what the tiles belong
+to (grid, tiling, metadata, map frame), so a group opens as a map by itself
+(:func:`evgrid.grid.load_map` on its folder).
 
 :class:`Pager` is what a tiled raster (:class:`evgrid.grid.EvidentialMap`, the mover trail)
 keeps beside its tiles in memory: which tiles are on disk, a small cache of tiles read
