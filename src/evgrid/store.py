@@ -250,9 +250,9 @@ def _residual_to_largest(
 
 
 def _encode_masses(a: np.ndarray) -> np.ndarray:
-    """Masses ``(..., 3)`` float32 as bytes: three planes (m_f, m_o, m_u as uint32 bits, the
-    largest of each cell replaced by its residual) then one byte a cell naming the largest;
-    lossless (:func:`_decode_masses`)."""
+    """Masses ``(..., 3)`` float32 as bytes: three uint32 planes (each cell's largest mass as its
+    residual, then the other two masses' bits, the smaller first) and one byte a cell saying
+    which mass is the largest; lossless (:func:`_decode_masses`)."""
     flat = np.ascontiguousarray(a).reshape(-1, 3)
     n = len(flat)
     out = np.empty(13 * n, np.uint8)
@@ -265,6 +265,7 @@ def _encode_masses(a: np.ndarray) -> np.ndarray:
 
 
 def _decode_masses(buf: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    """The masses of shape ``shape`` that :func:`_encode_masses` made ``buf`` of."""
     n = int(np.prod(shape[:-1], dtype=np.int64))
     if len(buf) != 13 * n:
         raise ValueError(f"masses of {len(buf)} bytes, not {13 * n}")
@@ -309,7 +310,7 @@ def _members_of(tag: str | None) -> frozenset[str]:
 
 
 def _tile_name(key: tuple[int, int], gen: int, members: frozenset[str]) -> str:
-    tag = "" if members == {""} else "." + "+".join(sorted(m or "map" for m in members))
+    tag = "" if members == {""} else "." + "+".join(m or "map" for m in sorted(members))
     return f"{key[0]}_{key[1]}.g{gen}{tag}.tile"
 
 
