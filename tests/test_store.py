@@ -346,6 +346,23 @@ def test_a_run_keeps_its_store_in_its_folder_while_mapping_and_removes_it_when_c
     assert [p.name for p in (out / "maps").iterdir()] == ["ray_ilm.npz"]
 
 
+def test_a_tile_left_unchanged_since_its_last_write_is_not_written_again(tmp_path):
+    m, store = _small_store(tmp_path)
+    group = m.pager.group
+    m.flush()  # as a checkpoint does
+    key = next(iter(m._tiles))
+    files, names = dict(group._files), sorted(p.name for p in group.folder.iterdir())
+    # it leaves memory unchanged: the file the flush wrote holds it, and stays the only one
+    assert m.pager.page_out([key]) == 0
+    assert group._files == files and sorted(p.name for p in group.folder.iterdir()) == names
+    assert key in m.pager.stored and key not in m._tiles
+    t, _ = m.tile(key)  # back, and changed: a new generation
+    t[0, 0] = (0.5, 0.25, 0.25)
+    want = t.copy()
+    assert m.pager.page_out([key]) > 0 and group._files[key][0] > files[key][0]
+    assert np.array_equal(open_store_map(store.root / "ray_ilm").tiles[key], want)
+
+
 def test_a_folder_that_is_not_a_store_is_refused_naming_the_file(tmp_path):
     m, store = _small_store(tmp_path)
     (store.root / "store.json").unlink()
@@ -383,7 +400,9 @@ def test_a_checkpoint_syncs_the_tiles_written_since_the_last_one_before_its_own_
     assert {n for _, n in group._files.values()} <= synced and group.folder.name in synced
     # the next checkpoint syncs only what was written since
     events.clear()
-    m.pager.page_out(list(m.pager.layers["masses"])[:1])
+    key = next(iter(m.pager.layers["masses"]))
+    m.tile(key)[0][0, 0] = (0.5, 0.25, 0.25)  # changed since the checkpoint: written again
+    m.pager.page_out([key])
     ckpt.save_checkpoint(path, {"m": m}, store, None, "h")
     at = events.index(("checkpoint", str(path)))
     tiles = [p for what, p in events[:at] if what == "fsync" and p.endswith(".tile")]

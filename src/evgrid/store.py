@@ -381,7 +381,8 @@ class TileGroup:
 
     def write(self, key: tuple[int, int], members: dict[str, dict[str, np.ndarray]]) -> int:
         """Write tile ``key``: the layers of each member (``""``: the map, else a copy of it)
-        atomically in one file (replacing any older file of it); returns the bytes written."""
+        atomically in one file (replacing any older file of it); returns the bytes written (0:
+        the file of the tile holds these layers already, and stays)."""
         blosc2 = _codec()
         blobs, entries = [], []
         encoded: dict[str, tuple[str, np.ndarray]] = {}  # the map's layers, encoded
@@ -416,13 +417,17 @@ class TileGroup:
                 entries.append(entry)
         header = json.dumps({"key": list(key), "layers": entries}).encode()
         data = b"".join([_HEAD.pack(_MAGIC, STORE_VERSION, len(header)), header, *blobs])
+        old = self._files.get(key)
+        if old is not None and self._holds(old[1], data):
+            # not changed since its last write (a tile that a checkpoint wrote and that left
+            # memory later unwritten): no new generation beside the one the checkpoint keeps
+            return 0
         gen = self._gen
         self._gen += 1
         held = frozenset(members)
         name = _tile_name(key, gen, held)
         path = self.folder / name
         self.store._write(lambda: _write_atomic(path, data), path)
-        old = self._files.get(key)
         self._files[key] = (gen, name)
         self._members[key] = held
         self.unsynced.add(name)
@@ -433,6 +438,15 @@ class TileGroup:
             else:
                 self._unlink(old[1])
         return len(data)
+
+    def _holds(self, name: str, data: bytes) -> bool:
+        """Whether tile file ``name`` holds ``data`` (the encoding is deterministic: the same
+        layers give the same bytes)."""
+        path = self.folder / name
+        try:
+            return path.stat().st_size == len(data) and path.read_bytes() == data
+        except OSError:
+            return False
 
     def put(self, key: tuple[int, int], take: bool) -> int:
         """Write tile ``key`` of every member: those in memory as they are, those stored as their
