@@ -47,15 +47,18 @@ def status():
     return d
 
 def store_size(folder):
-    n, tiles = 0, 0
+    # bytes of every tile file (older generations a checkpoint keeps included: the disk used),
+    # and the tiles of the fused map (its keys, each once): the area the store covers
+    n, keys = 0, set()
     if folder.is_dir():
         for g in os.scandir(folder):
             if g.is_dir():
                 for f in os.scandir(g.path):
                     if f.name.endswith(".tile"):
                         n += f.stat().st_size
-                        tiles += g.name == "fused"
-    return n, tiles
+                        if g.name == "fused":
+                            keys.add(f.name.split(".g")[0])
+    return n, len(keys)
 
 frames = simulate_scene(seed, SimConfig(duration_s=duration))
 total = len(frames)

@@ -24,10 +24,10 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=4)
     a = ap.parse_args()
     from evgrid.config import MapperConfig
-    from evgrid.data import SimConfig, simulate_scene
     from evgrid.fusion import MAP_NAMES
     from evgrid.mapper import OccupancyMapper
     from evgrid.store import StoreParams, TileStore
+    from evgrid_sim import SimConfig, simulate_scene
 
     print("cpu flags:", open("/proc/cpuinfo").read().split("flags")[1].split("\n")[0][:200])
     config = MapperConfig(maps=(*MAP_NAMES, "nav"), store=StoreParams(resident_m=1e9))

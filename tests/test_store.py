@@ -90,6 +90,9 @@ def test_a_drive_away_and_back_with_a_30_m_radius_gives_the_same_maps(resident, 
         _same(m, ref[name])
     fused = paged.maps["fused"]
     assert fused.pager.n_out > 0 and fused.pager.n_in > 0  # tiles left and came back
+    # nav's gated copies live in the files of the maps they are copies of
+    assert not (store.root / "fused.gated").exists() and not (store.root / "ray_ilm.gated").exists()
+    assert any(p.name.endswith(".map+gated.tile") for p in (store.root / "fused").iterdir())
     assert len(fused._tiles) < len(fused.tiles)  # and some are on disk now
     # the store alone holds each map once its resident tiles are flushed, and opens as one
     fused.flush()
@@ -147,13 +150,85 @@ def test_a_damaged_tile_or_a_foreign_store_is_refused_naming_the_file(tmp_path):
     path.write_bytes(b"junk")
     with pytest.raises(StoreError, match="truncated"):
         open_store_map(store.root / "ray_ilm").tiles[key]
+    # a tile of the store's first version (before copies and the largest-mass residual)
+    v1 = b"EVGTILE\x00" + (1).to_bytes(4, "little") + (2).to_bytes(4, "little") + b"{}"
+    path.write_bytes(v1)
+    with pytest.raises(StoreError, match=f"{path.name} is a tile of store version 1; this"):
+        open_store_map(store.root / "ray_ilm").tiles[key]
     head = store.root / "store.json"
+    head.write_text(json.dumps({"format": "evgrid-tile-store", "version": 1}))
+    with pytest.raises(StoreError, match="store.json is a tile store of version 1; this evgrid"):
+        open_store_map(store.root / "ray_ilm")
     head.write_text(json.dumps({"format": "evgrid-tile-store", "version": 99}))
     with pytest.raises(StoreError, match="store.json is a tile store of version 99"):
         open_store_map(store.root / "ray_ilm")
     (store.root / "ray_ilm" / "map.json").write_text("{")
     with pytest.raises(StoreError, match="map.json is damaged"):
         open_store_map(store.root / "ray_ilm")
+
+
+def _masses(rng: np.random.Generator, ts: int) -> np.ndarray:
+    return rng.dirichlet([0.5, 0.5, 2.0], size=(ts, ts)).astype(np.float32)
+
+
+def test_a_copy_kept_in_its_maps_files_comes_back_whatever_the_order_of_paging(tmp_path):
+    from evgrid.grid import EvidentialMap
+
+    ts, rng = 16, np.random.default_rng(7)
+    group = TileStore(tmp_path / "s").group("m")
+    a, b = EvidentialMap(tile_cells=ts, dynamic=True), EvidentialMap(tile_cells=ts, dynamic=True)
+    a.attach_store(group)
+    b.attach_store(group, copy="gated")
+    want: dict[tuple[str, tuple[int, int]], tuple] = {}
+
+    def fill(m, name, key, like=None):
+        t, c = m.tile(key)
+        t[:] = _masses(rng, ts) if like is None else like[0]
+        if like is not None:  # a copy: a few cells differ, as where the gate took occupied mass
+            t[::5, ::3] = _masses(rng, ts)[::5, ::3]
+        c[:] = rng.random((ts, ts)) < 0.7
+        m.dynamic_tiles[key][:] = rng.random((ts, ts)) * (rng.random((ts, ts)) < 0.3)
+        want[name, key] = (t.copy(), c.copy(), m.dynamic_tiles[key].copy())
+
+    for key in [(0, 0), (0, 1), (1, 0)]:
+        fill(a, "a", key)
+    for key in [(0, 0), (0, 1)]:
+        fill(b, "b", key, want["a", key])
+    fill(b, "b", (2, 2))  # a key the map has not
+
+    def check(a, b):
+        for (name, key), (t, c, d) in want.items():
+            m = a if name == "a" else b
+            assert np.array_equal(m.tiles[key].view(np.uint32), t.view(np.uint32)), (name, key)
+            assert np.array_equal(m.covered_tiles[key], c) and np.array_equal(
+                m.dynamic_tiles[key], d
+            )
+        assert sorted(a.tiles) == sorted(k for n, k in want if n == "a")
+        assert sorted(b.tiles) == sorted(k for n, k in want if n == "b")
+
+    a.page_out(1e6, 1e6, 1.0)  # the copy's tiles of the same keys leave with the map's
+    assert not a._tiles and set(b._tiles) == {(2, 2)}
+    assert group._members[0, 0] == {"", "gated"} and group._members[1, 0] == {""}
+    check(a, b)
+    # the map's tile alone comes back and leaves again: the copy's is carried into the new file
+    fill(a, "a", (0, 0))
+    a.page_out(1e6, 1e6, 1.0)
+    # the copy's tile alone comes back and leaves again: the map's is carried
+    fill(b, "b", (0, 1), want["a", (0, 1)])
+    b.page_out(1e6, 1e6, 1.0)
+    assert group._files[2, 2][1].endswith(".gated.tile") and group._members[2, 2] == {"gated"}
+    check(a, b)
+    # the copy stored against the map compresses to less than the map itself
+    both, alone = (group.folder / group._files[k][1] for k in [(0, 1), (1, 0)])
+    assert both.stat().st_size < 1.6 * alone.stat().st_size
+    # a store opened again holds both, each by its own name
+    group2 = TileStore(tmp_path / "s").group("m")
+    a2, b2 = EvidentialMap(tile_cells=ts, dynamic=True), EvidentialMap(tile_cells=ts, dynamic=True)
+    b2.attach_store(group2, write_meta=False, copy="gated")  # either may attach first
+    a2.attach_store(group2, write_meta=False)
+    check(a2, b2)
+    with pytest.raises(ValueError, match="already has a raster paging as 'gated'"):
+        EvidentialMap(tile_cells=ts).attach_store(group2, copy="gated")
 
 
 def test_a_full_disk_while_paging_names_the_store_and_keeps_the_map(tmp_path, monkeypatch):
@@ -219,8 +294,32 @@ def test_the_masses_encoding_gives_back_every_bit(values):
 
     n = len(values) // 3
     a = np.array(values[: 3 * n], np.float32).reshape(n, 3)
-    back = _decode_masses(_encode_masses(a))
+    back = _decode_masses(_encode_masses(a), a.shape)
     assert np.array_equal(back.view(np.uint32), a.view(np.uint32))
+
+
+def test_the_largest_mass_is_stored_as_a_small_residual_and_comes_back_bit_for_bit():
+    from evgrid.store import _decode_masses, _encode_masses
+
+    rng = np.random.default_rng(35)
+    a = rng.dirichlet([0.5, 0.5, 2.0], size=(64, 64)).astype(np.float32)
+    a.view(np.uint32)[::7, ::3] ^= rng.integers(0, 2**32, (10, 22, 3), dtype=np.uint32)  # junk
+    a[0, 0] = (np.nan, 0.5, 0.5)
+    a[0, 1] = (np.inf, -np.inf, 0.0)
+    a[0, 2] = (-0.0, 1.0, 0.0)
+    buf = _encode_masses(a)
+    assert np.array_equal(_decode_masses(buf, a.shape).view(np.uint32), a.view(np.uint32))
+    planes, largest = buf[: 12 * 64 * 64].view(np.uint32).reshape(3, -1), buf[12 * 64 * 64 :]
+    assert largest[0] == largest[1] == 3  # a non-finite mass: the cell is stored as it is
+    ok = np.zeros((64, 64), bool)
+    ok[::7, ::3] = True
+    ok = ~ok.reshape(-1)
+    ok[:3] = False
+    assert set(np.unique(largest[ok])) <= {0, 1, 2, 4, 5, 6}
+    assert (planes[0, ok] <= 8).all()  # masses summing to 1: a few ulps off
+    buf[12 * 64 * 64 + 5] = 7  # a damaged file (its CRC aside) is refused, never misread
+    with pytest.raises(ValueError, match="largest mass"):
+        _decode_masses(buf, a.shape)
 
 
 def test_a_run_keeps_its_store_in_its_folder_while_mapping_and_removes_it_when_complete(tmp_path):
@@ -245,6 +344,23 @@ def test_a_run_keeps_its_store_in_its_folder_while_mapping_and_removes_it_when_c
     assert any(seen)  # tiles went to the store in the scene's folder while mapping
     assert not (out / STORE_FOLDER).exists()
     assert [p.name for p in (out / "maps").iterdir()] == ["ray_ilm.npz"]
+
+
+def test_a_tile_left_unchanged_since_its_last_write_is_not_written_again(tmp_path):
+    m, store = _small_store(tmp_path)
+    group = m.pager.group
+    m.flush()  # as a checkpoint does
+    key = next(iter(m._tiles))
+    files, names = dict(group._files), sorted(p.name for p in group.folder.iterdir())
+    # it leaves memory unchanged: the file the flush wrote holds it, and stays the only one
+    assert m.pager.page_out([key]) == 0
+    assert group._files == files and sorted(p.name for p in group.folder.iterdir()) == names
+    assert key in m.pager.stored and key not in m._tiles
+    t, _ = m.tile(key)  # back, and changed: a new generation
+    t[0, 0] = (0.5, 0.25, 0.25)
+    want = t.copy()
+    assert m.pager.page_out([key]) > 0 and group._files[key][0] > files[key][0]
+    assert np.array_equal(open_store_map(store.root / "ray_ilm").tiles[key], want)
 
 
 def test_a_folder_that_is_not_a_store_is_refused_naming_the_file(tmp_path):
@@ -284,7 +400,9 @@ def test_a_checkpoint_syncs_the_tiles_written_since_the_last_one_before_its_own_
     assert {n for _, n in group._files.values()} <= synced and group.folder.name in synced
     # the next checkpoint syncs only what was written since
     events.clear()
-    m.pager.page_out(list(m.pager.layers["masses"])[:1])
+    key = next(iter(m.pager.layers["masses"]))
+    m.tile(key)[0][0, 0] = (0.5, 0.25, 0.25)  # changed since the checkpoint: written again
+    m.pager.page_out([key])
     ckpt.save_checkpoint(path, {"m": m}, store, None, "h")
     at = events.index(("checkpoint", str(path)))
     tiles = [p for what, p in events[:at] if what == "fsync" and p.endswith(".tile")]

@@ -83,12 +83,12 @@ def save_checkpoint(
     tile_bytes = 0
     groups = dict(store._groups) if store is not None else {}
     for gname, g in groups.items():
-        if g.pager is None:
-            continue
-        tile_bytes += g.pager.flush()
-        for layer, d in g.pager.layers.items():
-            for key, a in d.items():
-                tiles[id(a)] = ("tile", gname, g._files[key][1], list(key), layer)
+        tile_bytes += g.flush()
+        for p in g.pagers.values():  # a copy's layers are MEMBER/NAME in its map's files
+            for layer, d in p.layers.items():
+                name = f"{p.member}/{layer}" if p.member else layer
+                for key, a in d.items():
+                    tiles[id(a)] = ("tile", gname, g._files[key][1], list(key), name)
     buf = io.BytesIO()
     _Pickler(buf, store, deep, tiles).dump({**state, "groups": groups})
     payload = buf.getvalue()

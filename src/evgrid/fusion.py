@@ -732,11 +732,21 @@ class MapSet:
 
     def attach_store(self, store: TileStore, prefix: str = "") -> None:
         """Page every map of this set (hidden rows and sets attached included) to ``store``, each
-        in a group of its own: the map's name (hidden rows ``NAME.gated``, the ungated lidar map
-        beside them ``NAME.plain``, attached sets ``setI.NAME``)."""
+        in a group of its own: the map's name (the ungated lidar map beside nav's gated inputs
+        ``NAME.plain``, attached sets ``setI.NAME``); a hidden row that is a gated copy of a map
+        of the set is kept in that map's tile files (copy "gated": docs/store.md), other hidden
+        rows in ``NAME.gated``."""
+        groups = {}
         for row in self._rows:
-            tag = "" if row.shown else ".plain" if row.plain else ".gated"
-            row.map.attach_store(store.group(f"{prefix}{row.name}{tag}"))
+            if row.shown or row.plain:
+                groups[row.name] = f"{prefix}{row.name}{'' if row.shown else '.plain'}"
+                row.map.attach_store(store.group(groups[row.name]))
+        for row in self._rows:
+            if not (row.shown or row.plain):
+                if row.name in groups:
+                    row.map.attach_store(store.group(groups[row.name]), copy="gated")
+                else:
+                    row.map.attach_store(store.group(f"{prefix}{row.name}.gated"))
         for i, s in enumerate(self._attached):
             s.attach_store(store, f"{prefix}set{i}.")
 

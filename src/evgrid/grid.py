@@ -333,9 +333,12 @@ class EvidentialMap:
 
     # --- the tile store (evgrid.store, docs/store.md) -------------------------------------------
 
-    def attach_store(self, group: TileGroup, write_meta: bool = True) -> None:
+    def attach_store(self, group: TileGroup, write_meta: bool = True, copy: str = "") -> None:
         """Page this map's tiles to ``group`` from now on (:meth:`page_out`); tiles the group
-        already holds (a map reopened) become this map's stored tiles."""
+        already holds (a map reopened) become this map's stored tiles. ``copy``: this map is a
+        copy of the group's map named so (nav's gated inputs: "gated"), kept in the map's tile
+        files as its difference from it (evgrid.store.TileGroup); its tiles leave memory with
+        the map's."""
         if self.pager is not None:
             raise ValueError(f"this map already pages to {self.pager.group.folder}")
         ts = self.tile_cells
@@ -347,8 +350,8 @@ class EvidentialMap:
         if self.dynamic:
             layers["dynamic"] = self._dynamic
             expect["dynamic"] = ((ts, ts), np.dtype(np.float32))
-        self.pager = Pager(group, layers, _covered_box, expect)
-        if write_meta:
+        self.pager = Pager(group, layers, _covered_box, expect, member=copy)
+        if write_meta and not copy:
             self.write_store_meta()
 
     def write_store_meta(self) -> None:
@@ -374,7 +377,8 @@ class EvidentialMap:
         holds the whole map as it is now. Returns the bytes written."""
         if self.pager is None:
             raise ValueError("flush needs a store: attach_store first")
-        self.write_store_meta()
+        if not self.pager.member:
+            self.write_store_meta()
         return self.pager.flush()
 
     def pieces(

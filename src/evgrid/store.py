@@ -3,11 +3,14 @@
 A :class:`TileStore` is a folder; each map (or other tiled raster) paged into it has a group,
 a sub-folder of its own, holding one file per tile (``TI_TJ.gN.tile``: tile row, tile column,
 generation) with every layer of that tile (masses, coverage, dynamic score), each compressed
-with blosc2 (zstd, byte shuffle; lossless) and checked by a CRC-32. A tile file is written under
-a temporary name and renamed into place, so a run killed at any moment leaves only whole
-files; a tile written again gets a new generation, and the older file goes once the newer one is
-in place. ``map.json`` in a group says what the tiles belong to (grid, tiling, metadata, map
-frame), so a group opens as a map by itself (:func:`evgrid.grid.load_map` on its folder).
+with blosc2 (zstd, byte shuffle; lossless) and checked by a CRC-32: the masses with the largest
+of a cell's three as a residual of the other two, and a copy of the map (nav's gated input)
+as the XOR of its layers against the map's, in the same file (docs/store.md#layout-on-disk).
+A tile file is written under a temporary name and renamed into place, so a run killed at any
+moment leaves only whole files; a tile written again gets a new generation, and the older
+file goes once the newer one is in place. ``map.json`` in a group says what the tiles belong
+to (grid, tiling, metadata, map frame), so a group opens as a map by itself
+(:func:`evgrid.grid.load_map` on its folder).
 
 :class:`Pager` is what a tiled raster (:class:`evgrid.grid.EvidentialMap`, the mover trail)
 keeps beside its tiles in memory: which tiles are on disk, a small cache of tiles read
@@ -31,6 +34,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numba
 import numpy as np
 
 logger = logging.getLogger(__name__)
@@ -49,10 +53,14 @@ __all__ = [
 
 _STORE_FORMAT = "evgrid-tile-store"
 #: The version of the store's layout and tile files; a store of another version is refused.
-STORE_VERSION = 1
+#: 2: the masses' largest mass as a residual, copies (nav's gated inputs) in their map's files.
+STORE_VERSION = 2
 _MAGIC = b"EVGTILE\x00"
 _HEAD = struct.Struct("<8sII")  # magic, version, header length
-_TILE_NAME = re.compile(r"^(-?\d+)_(-?\d+)\.g(\d+)\.tile$")
+#: ``TI_TJ.gN[.MEMBERS].tile``: MEMBERS, "+"-joined, are what the file holds ("map": the group's
+#: own map, else copies of it such as "gated"); none named: the map alone.
+_TILE_NAME = re.compile(r"^(-?\d+)_(-?\d+)\.g(\d+)(?:\.([a-z]+(?:\+[a-z]+)*))?\.tile$")
+_MEMBER_NAME = re.compile(r"^[a-z]{1,20}$")
 _GROUP_NAME = re.compile(r"^[A-Za-z0-9_.+-]{1,100}$")
 #: Tiles read without being brought back into the map, kept per group (each a few MiB at most).
 READ_CACHE_TILES = 8
@@ -178,25 +186,105 @@ def _is_masses(a: np.ndarray) -> bool:
     return a.dtype == np.float32 and a.ndim >= 1 and a.shape[-1] == 3
 
 
+# The masses of a cell sum to 1 up to float32 rounding, so the largest of the three is known from
+# the other two to within a few units in its last place (its ulp is the largest of the three):
+# per cell, plane 0 holds the zigzag of the difference of its bits from those of
+# ``1 - (a + b)`` (small: mostly 0 to 3), planes 1 and 2 the other two, smaller first, and one
+# byte says which mass is the largest (bits 0-1) and whether the other two were swapped (bit 2);
+# 3: the three as they are (a cell with a non-finite mass). Every bit comes back: the decoder
+# computes the same float32 prediction from the same two values. Planes of like values compress
+# better than planes of m_f, m_o, m_u (3-4 % on the maps of a drive, docs/store.md).
+
+
+@numba.njit(cache=True, nogil=True)
+def _largest_as_residual(m, bits, planes, largest, scratch, scratch_bits):  # pragma: no cover
+    one = np.float32(1.0)
+    for i in range(m.shape[0]):
+        f, o, u = m[i, 0], m[i, 1], m[i, 2]
+        k = 0 if f >= o and f >= u else (1 if o >= u else 2)
+        ia, ib = (k + 1) % 3, (k + 2) % 3
+        scratch[0] = one - (m[i, ia] + m[i, ib])
+        if not (np.isfinite(f) and np.isfinite(o) and np.isfinite(u) and np.isfinite(scratch[0])):
+            for j in range(3):
+                planes[j, i] = bits[i, j]
+            largest[i] = 3
+            continue
+        swap = m[i, ia] > m[i, ib]
+        if swap:
+            ia, ib = ib, ia
+        d = np.int64(bits[i, k]) - np.int64(scratch_bits[0])
+        if d >= 2**31:
+            d -= 2**32
+        elif d < -(2**31):
+            d += 2**32
+        planes[0, i] = np.uint32(2 * d if d >= 0 else -2 * d - 1)
+        planes[1, i] = bits[i, ia]
+        planes[2, i] = bits[i, ib]
+        largest[i] = k + 4 * swap
+
+
+@numba.njit(cache=True, nogil=True)
+def _residual_to_largest(
+    planes, planes_f, largest, out, out_bits, scratch, scratch_bits
+):  # pragma: no cover
+    one = np.float32(1.0)
+    for i in range(out.shape[0]):
+        s = largest[i]
+        if s > 6 or s & 3 == 3 and s != 3:
+            return False
+        if s == 3:
+            for j in range(3):
+                out_bits[i, j] = planes[j, i]
+            continue
+        k = s & 3
+        ia, ib = (k + 1) % 3, (k + 2) % 3
+        if s >= 4:
+            ia, ib = ib, ia
+        out_bits[i, ia] = planes[1, i]
+        out_bits[i, ib] = planes[2, i]
+        scratch[0] = one - (planes_f[1, i] + planes_f[2, i])
+        z = np.int64(planes[0, i])
+        d = z >> 1 if (z & 1) == 0 else -(z >> 1) - 1
+        out_bits[i, k] = np.uint32((np.int64(scratch_bits[0]) + d) & 0xFFFFFFFF)
+    return True
+
+
 def _encode_masses(a: np.ndarray) -> np.ndarray:
-    """Masses ``(..., 3)`` float32 as three planes: m_f, m_o, and m_u's bits XOR those of the
-    float32 ``1 - m_f - m_o`` (zero almost everywhere, so it compresses to little); lossless:
-    :func:`_decode_masses` computes the same float32 value and undoes the XOR."""
-    f, o, u = a[..., 0], a[..., 1], a[..., 2]
-    rest = (np.float32(1.0) - f) - o
-    out = np.empty((3, *a.shape[:-1]), np.float32)
-    out[0], out[1] = f, o
-    out[2] = (u.view(np.uint32) ^ rest.view(np.uint32)).view(np.float32)
+    """Masses ``(..., 3)`` float32 as bytes: three uint32 planes (each cell's largest mass as its
+    residual, then the other two masses' bits, the smaller first) and one byte a cell saying
+    which mass is the largest; lossless (:func:`_decode_masses`)."""
+    flat = np.ascontiguousarray(a).reshape(-1, 3)
+    n = len(flat)
+    out = np.empty(13 * n, np.uint8)
+    scratch = np.empty(1, np.float32)
+    planes = out[: 12 * n].view(np.uint32).reshape(3, n)
+    _largest_as_residual(
+        flat, flat.view(np.uint32), planes, out[12 * n :], scratch, scratch.view(np.uint32)
+    )
     return out
 
 
-def _decode_masses(planes: np.ndarray) -> np.ndarray:
-    f, o, x = planes
-    rest = (np.float32(1.0) - f) - o
-    out = np.empty((*f.shape, 3), np.float32)
-    out[..., 0], out[..., 1] = f, o
-    out[..., 2] = (x.view(np.uint32) ^ rest.view(np.uint32)).view(np.float32)
-    return out
+def _decode_masses(buf: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    """The masses of shape ``shape`` that :func:`_encode_masses` made ``buf`` of."""
+    n = int(np.prod(shape[:-1], dtype=np.int64))
+    if len(buf) != 13 * n:
+        raise ValueError(f"masses of {len(buf)} bytes, not {13 * n}")
+    planes = buf[: 12 * n].view(np.uint32).reshape(3, n)
+    out = np.empty((n, 3), np.float32)
+    scratch = np.empty(1, np.float32)
+    sel, bits = buf[12 * n :], scratch.view(np.uint32)
+    if not _residual_to_largest(
+        planes, planes.view(np.float32), sel, out, out.view(np.uint32), scratch, bits
+    ):
+        raise ValueError("the masses name a largest mass that is none of the three")
+    return out.reshape(shape)
+
+
+def _encode(a: np.ndarray) -> tuple[str, np.ndarray, int]:
+    """A layer as (encoding, bytes, blosc2's typesize)."""
+    if _is_masses(a):
+        return "masses", _encode_masses(a), 4
+    return "raw", a.reshape(-1).view(np.uint8), a.dtype.itemsize
 
 
 def check_store_header(head: Path) -> None:
@@ -214,17 +302,37 @@ def check_store_header(head: Path) -> None:
         )
 
 
+def _members_of(tag: str | None) -> frozenset[str]:
+    """The members a tile file's name says it holds ("" for the group's own map)."""
+    if not tag:
+        return frozenset({""})
+    return frozenset("" if m == "map" else m for m in tag.split("+"))
+
+
+def _tile_name(key: tuple[int, int], gen: int, members: frozenset[str]) -> str:
+    tag = "" if members == {""} else "." + "+".join(m or "map" for m in sorted(members))
+    return f"{key[0]}_{key[1]}.g{gen}{tag}.tile"
+
+
 class TileGroup:
-    """The tiles of one map in a store: ``write``/``read`` a tile's layers by tile key."""
+    """The tiles of one map in a store: ``write``/``read`` a tile's layers by tile key.
+
+    A group's files may also hold copies of its map (members other than ``""``, such as nav's
+    gated copy of the map: :attr:`Pager.member`), each layer of a copy stored as the XOR of its
+    encoded bytes against the map's layer of the same tile in the same file (a copy differs from
+    its map in few cells, so that compresses to little). Map and copies of a tile change together,
+    in one file, so a file never needs another to be read.
+    """
 
     def __init__(self, store: TileStore, folder: Path):
         self.store = store
         self.folder = folder
         folder.mkdir(exist_ok=True)
-        # the newest generation of each key on disk, and every file name found per key
+        # the newest generation of each key on disk: (generation, file name), and its members
         self._files: dict[tuple[int, int], tuple[int, str]] = {}
+        self._members: dict[tuple[int, int], frozenset[str]] = {}
         self._gen = 0
-        self.pager: Pager | None = None  # the raster paging into this group
+        self.pagers: dict[str, Pager] = {}  # the rasters paging into this group, by member
         # files a checkpoint names (kept until the next one), and those replaced since
         self.pinned: set[str] = set()
         self.retired: list[str] = []
@@ -244,6 +352,7 @@ class TileGroup:
                 if old is not None:
                     stale.append(str(folder / old[1]))
                 self._files[key] = (gen, f.name)
+                self._members[key] = _members_of(m[4])
             else:
                 stale.append(f.path)
         if (folder.parent / CHECKPOINT_NAME).exists():  # it may name older generations
@@ -258,50 +367,69 @@ class TileGroup:
     def __repr__(self) -> str:
         return f"TileGroup({str(self.folder)!r}, {len(self._files)} tiles)"
 
-    def keys(self) -> list[tuple[int, int]]:
-        """The tile keys on disk."""
-        return list(self._files)
+    @property
+    def pager(self) -> Pager | None:
+        """The group's own map's pager (None before one is attached)."""
+        return self.pagers.get("")
+
+    def keys(self, member: str = "") -> list[tuple[int, int]]:
+        """The tile keys on disk (of ``member``: the map, or a copy of it)."""
+        return [k for k, ms in self._members.items() if member in ms]
 
     def __contains__(self, key: tuple[int, int]) -> bool:
         return key in self._files
 
-    def write(self, key: tuple[int, int], layers: dict[str, np.ndarray]) -> int:
-        """Write tile ``key``'s ``layers`` atomically (replacing any older file of it); returns
-        the bytes written."""
+    def write(self, key: tuple[int, int], members: dict[str, dict[str, np.ndarray]]) -> int:
+        """Write tile ``key``: the layers of each member (``""``: the map, else a copy of it)
+        atomically in one file (replacing any older file of it); returns the bytes written (0:
+        the file of the tile holds these layers already, and stays)."""
         blosc2 = _codec()
         blobs, entries = [], []
-        for name, a in layers.items():
-            a = np.ascontiguousarray(a)
-            encoding = "masses" if _is_masses(a) else "raw"
-            data = _encode_masses(a) if encoding == "masses" else a
-            blob = blosc2.compress2(
-                data,
-                typesize=a.dtype.itemsize,
-                codec=blosc2.Codec.ZSTD,
-                clevel=1,
-                filters=[blosc2.Filter.SHUFFLE],
-                nthreads=1,
-            )
-            blobs.append(blob)
-            entries.append(
-                {
-                    "name": name,
-                    "dtype": a.dtype.str,
-                    "shape": list(a.shape),
-                    "nbytes": len(blob),
-                    "crc32": zlib.crc32(blob),
-                    "encoding": encoding,
-                }
-            )
+        encoded: dict[str, tuple[str, np.ndarray]] = {}  # the map's layers, encoded
+        for member in sorted(members):  # the map first: copies are stored against it
+            for name, a in members[member].items():
+                a = np.ascontiguousarray(a)
+                encoding, data, typesize = _encode(a)
+                entry = {"name": f"{member}/{name}" if member else name, "dtype": a.dtype.str}
+                base = encoded.get(name)
+                if (
+                    member
+                    and base is not None
+                    and base[0] == encoding
+                    and len(base[1]) == len(data)
+                ):
+                    data = np.bitwise_xor(data, base[1])
+                    entry["against"] = name
+                elif not member:
+                    encoded[name] = (encoding, data)
+                blob = blosc2.compress2(
+                    data,
+                    typesize=typesize,
+                    codec=blosc2.Codec.ZSTD,
+                    clevel=1,
+                    filters=[blosc2.Filter.SHUFFLE],
+                    nthreads=1,
+                )
+                blobs.append(blob)
+                entry.update(
+                    shape=list(a.shape), nbytes=len(blob), crc32=zlib.crc32(blob), encoding=encoding
+                )
+                entries.append(entry)
         header = json.dumps({"key": list(key), "layers": entries}).encode()
         data = b"".join([_HEAD.pack(_MAGIC, STORE_VERSION, len(header)), header, *blobs])
+        old = self._files.get(key)
+        if old is not None and self._holds(old[1], data):
+            # not changed since its last write (a tile that a checkpoint wrote and that left
+            # memory later unwritten): no new generation beside the one the checkpoint keeps
+            return 0
         gen = self._gen
         self._gen += 1
-        name = f"{key[0]}_{key[1]}.g{gen}.tile"
+        held = frozenset(members)
+        name = _tile_name(key, gen, held)
         path = self.folder / name
         self.store._write(lambda: _write_atomic(path, data), path)
-        old = self._files.get(key)
         self._files[key] = (gen, name)
+        self._members[key] = held
         self.unsynced.add(name)
         self.nbytes += len(data)
         if old is not None:
@@ -310,6 +438,43 @@ class TileGroup:
             else:
                 self._unlink(old[1])
         return len(data)
+
+    def _holds(self, name: str, data: bytes) -> bool:
+        """Whether tile file ``name`` holds ``data`` (the encoding is deterministic: the same
+        layers give the same bytes)."""
+        path = self.folder / name
+        try:
+            return path.stat().st_size == len(data) and path.read_bytes() == data
+        except OSError:
+            return False
+
+    def put(self, key: tuple[int, int], take: bool) -> int:
+        """Write tile ``key`` of every member: those in memory as they are, those stored as their
+        file holds them; with ``take`` the members' tiles in memory then leave it (as the maps
+        they are copies of, a copy's tiles leave and stay together). Returns the bytes written;
+        a tile whose write fails stays in memory."""
+        members: dict[str, dict[str, np.ndarray]] = {}
+        moving = []
+        old = None
+        for member, p in self.pagers.items():
+            layers = p.resident_layers(key)
+            if layers is not None:
+                members[member] = layers
+                moving.append(p)
+            elif key in p.stored:
+                if old is None:
+                    old = self.read(key)
+                members[member] = _member_layers(old, member)
+        n = self.write(key, members) if members else 0
+        if take:
+            for p in moving:
+                p.took(key, members[p.member])
+        return n
+
+    def flush(self) -> int:
+        """Write every tile in memory of every member (they stay in memory); returns the bytes."""
+        keys = dict.fromkeys(k for p in self.pagers.values() for k in p.resident_keys())
+        return sum(self.put(k, take=False) for k in keys)
 
     def sync(self) -> int:
         """Make the tile files written since the last sync durable (fsync each, then the
@@ -352,11 +517,13 @@ class TileGroup:
                 os.unlink(f.path)
         self.nbytes = sum((self.folder / n).stat().st_size for n in self.pinned)
 
-    def read(self, key: tuple[int, int]) -> dict[str, np.ndarray]:
-        """The layers of tile ``key`` (fresh, writable arrays); StoreError naming the file if it
+    def read(self, key: tuple[int, int], member: str | None = None) -> dict[str, np.ndarray]:
+        """The layers of tile ``key`` (fresh, writable arrays): of ``member`` by their names, or
+        (None) of every member, a copy's named ``MEMBER/NAME``; StoreError naming the file if it
         is damaged or of another version."""
         path = self.folder / self._files[key][1]
-        return read_tile_file(path, key)
+        got = read_tile_file(path, key, member)
+        return got if member is None else _member_layers(got, member)
 
     def write_meta(self, meta: dict[str, Any]) -> None:
         """``map.json``: what the group's tiles belong to."""
@@ -367,6 +534,14 @@ class TileGroup:
     def read_meta(self) -> dict[str, Any]:
         """What :meth:`write_meta` wrote; StoreError naming the file if missing or damaged."""
         return read_group_meta(self.folder)
+
+
+def _member_layers(layers: dict[str, np.ndarray], member: str) -> dict[str, np.ndarray]:
+    """The layers of one member among a tile file's (a copy's are named ``MEMBER/NAME``)."""
+    if not member:
+        return {n: a for n, a in layers.items() if "/" not in n}
+    pre = member + "/"
+    return {n[len(pre) :]: a for n, a in layers.items() if n.startswith(pre)}
 
 
 def read_group_meta(folder: Path) -> dict[str, Any]:
@@ -388,9 +563,12 @@ def read_group_meta(folder: Path) -> dict[str, Any]:
     return d
 
 
-def read_tile_file(path: Path, key: tuple[int, int] | None = None) -> dict[str, np.ndarray]:
-    """The layers of one tile file; StoreError naming it if it is damaged, of another version, or
-    (with ``key``) holds another tile."""
+def read_tile_file(
+    path: Path, key: tuple[int, int] | None = None, member: str | None = None
+) -> dict[str, np.ndarray]:
+    """The layers of one tile file (a copy's named ``MEMBER/NAME``; with ``member`` only those of
+    that member, ``""`` the map's, named as in the file); StoreError naming it if it is damaged,
+    of another version, or (with ``key``) holds another tile."""
     blosc2 = _codec()
     try:
         data = path.read_bytes()
@@ -409,22 +587,34 @@ def read_tile_file(path: Path, key: tuple[int, int] | None = None) -> dict[str, 
         header = json.loads(data[_HEAD.size : _HEAD.size + n])
         got = tuple(header["key"])
         out: dict[str, np.ndarray] = {}
+        encoded: dict[str, np.ndarray] = {}  # the map's layers as stored, for its copies'
         at = _HEAD.size + n
+        pre = None if member is None else f"{member}/" if member else ""
+        wanted = {e.get("against") for e in header["layers"] if pre and e["name"].startswith(pre)}
         for e in header["layers"]:
             blob = data[at : at + e["nbytes"]]
             at += e["nbytes"]
+            mine = pre is None or (e["name"].startswith(pre) if pre else "/" not in e["name"])
+            if not mine and e["name"] not in wanted:
+                continue  # another member's, not needed to decode this one's
             if len(blob) != e["nbytes"] or zlib.crc32(blob) != e["crc32"]:
                 raise ValueError(f"layer {e['name']!r} fails its CRC-32")
             dtype, shape = np.dtype(e["dtype"]), tuple(e["shape"])
             if dtype.hasobject:
                 raise ValueError(f"layer {e['name']!r} has dtype {dtype}")
-            raw = blosc2.decompress2(blob)
-            encoding = e.get("encoding", "raw")
+            raw = np.frombuffer(bytearray(blosc2.decompress2(blob)), np.uint8)
+            against = e.get("against")
+            if against is not None:
+                raw ^= encoded[against]  # KeyError: a copy against a layer the file lacks
+            elif "/" not in e["name"]:
+                encoded[e["name"]] = raw
+            if not mine:
+                continue
+            encoding = e.get("encoding")
             if encoding == "masses":
-                planes = np.frombuffer(bytearray(raw), dtype=dtype).reshape((3, *shape[:-1]))
-                out[e["name"]] = _decode_masses(planes)
+                out[e["name"]] = _decode_masses(raw, shape)
             elif encoding == "raw":
-                out[e["name"]] = np.frombuffer(bytearray(raw), dtype=dtype).reshape(shape)
+                out[e["name"]] = raw.view(dtype).reshape(shape)
             else:
                 raise ValueError(f"layer {e['name']!r} has an unknown encoding {encoding!r}")
     except StoreError:
@@ -456,7 +646,9 @@ class Pager:
     reads and writes). A tile paged out leaves every layer's dict for one file; reading a stored
     tile (:meth:`peek`) gives read-only arrays from a small cache and leaves it on disk; taking
     it back to write (:meth:`page_in`) puts it back into the dicts. ``summary`` (optional) is
-    computed from a tile's layers as it leaves and kept in :attr:`stored`.
+    computed from a tile's layers as it leaves and kept in :attr:`stored`. ``member``: ``""``
+    for the group's own map, else the name of a copy of it kept in the same files (its tiles
+    leave memory with the map's of the same key).
     """
 
     def __init__(
@@ -465,13 +657,21 @@ class Pager:
         layers: dict[str, dict[tuple[int, int], np.ndarray]],
         summary: Callable[[dict[str, np.ndarray]], Any] | None = None,
         expect: dict[str, tuple[tuple[int, ...], np.dtype]] | None = None,
+        member: str = "",
     ):
+        if member and not _MEMBER_NAME.match(member) or member == "map":
+            raise ValueError(f"a copy's name is 1-20 letters a-z but not 'map', got {member!r}")
+        if member in group.pagers:
+            raise ValueError(f"{group.folder} already has a raster paging as {member or 'map'!r}")
+        if any("/" in name for name in layers):
+            raise ValueError(f"a layer's name has no '/', got {sorted(layers)}")
         self.group = group
-        group.pager = self
+        self.member = member
+        group.pagers[member] = self
         self.layers = layers
         self.expect = expect or {}
         self.summary = summary
-        self.stored: dict[tuple[int, int], Any] = {k: None for k in group.keys()}
+        self.stored: dict[tuple[int, int], Any] = {k: None for k in group.keys(member)}
         self._cache: OrderedDict[tuple[int, int], dict[str, np.ndarray]] = OrderedDict()
         self.n_out = 0
         self.n_in = 0
@@ -479,6 +679,22 @@ class Pager:
     def __getstate__(self) -> dict:
         # a checkpoint (evgrid.checkpoint) leaves out the read cache: the tiles are on disk
         return {**self.__dict__, "_cache": OrderedDict()}
+
+    def resident_keys(self) -> list[tuple[int, int]]:
+        """The keys of the tiles in memory."""
+        return list(next(iter(self.layers.values()), {}))
+
+    def resident_layers(self, key: tuple[int, int]) -> dict[str, np.ndarray] | None:
+        """Tile ``key``'s layers in memory, or None when it is not in memory."""
+        got = {name: d[key] for name, d in self.layers.items() if key in d}
+        return got or None
+
+    def took(self, key: tuple[int, int], layers: dict[str, np.ndarray]) -> None:
+        """Tile ``key`` (its ``layers``) is in the group now: it leaves memory."""
+        for d in self.layers.values():
+            d.pop(key, None)
+        self.stored[key] = self.summary(layers) if self.summary else None
+        self.n_out += 1
 
     def peek(self, key: tuple[int, int]) -> dict[str, np.ndarray]:
         """The layers of stored tile ``key``, read-only, left on disk."""
@@ -495,14 +711,15 @@ class Pager:
         return got
 
     def _read(self, key: tuple[int, int]) -> dict[str, np.ndarray]:
-        got = self.group.read(key)
+        got = self.group.read(key, self.member)
         for name, (shape, dtype) in self.expect.items():
             a = got.get(name)
             if a is None or a.shape != shape or a.dtype != dtype:
                 what = "missing" if a is None else f"{a.dtype} {a.shape}"
+                who = f" of copy {self.member!r}" if self.member else ""
                 raise StoreError(
-                    f"{self.group.folder / self.group._files[key][1]}: layer {name!r} is {what}, "
-                    f"not {np.dtype(dtype)} {shape}; the store is damaged or of another map"
+                    f"{self.group.folder / self.group._files[key][1]}: layer {name!r}{who} is "
+                    f"{what}, not {np.dtype(dtype)} {shape}; the store is damaged or of another map"
                 )
         return got
 
@@ -517,27 +734,16 @@ class Pager:
         self.n_in += 1
 
     def page_out(self, keys: list[tuple[int, int]]) -> int:
-        """Write resident tiles ``keys`` to the group and drop them from memory; returns the bytes
+        """Write resident tiles ``keys`` to the group and drop them from memory (with the tiles
+        of the same keys of the map's copies, or of the map a copy is of); returns the bytes
         written. A tile whose write fails stays in memory."""
-        n = 0
-        for key in keys:
-            layers = {name: d[key] for name, d in self.layers.items() if key in d}
-            n += self.group.write(key, layers)
-            for d in self.layers.values():
-                d.pop(key, None)
-            self.stored[key] = self.summary(layers) if self.summary else None
-            self.n_out += 1
-        return n
+        return sum(self.group.put(key, take=True) for key in keys)
 
     def flush(self) -> int:
         """Write every resident tile to the group, keeping it in memory (the group then holds the
-        whole raster as it is now); returns the bytes written."""
-        first = next(iter(self.layers.values()))
-        n = 0
-        for key in list(first):
-            layers = {name: d[key] for name, d in self.layers.items() if key in d}
-            n += self.group.write(key, layers)
-        return n
+        whole raster as it is now, and its copies or the map it is a copy of); returns the bytes
+        written."""
+        return self.group.flush()
 
 
 class TileLayer(MutableMapping):
