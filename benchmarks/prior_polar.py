@@ -13,7 +13,10 @@ scored by range band from the ego (``--bands``, metres; the grid's corners reach
 * against the ray ILM of the same frame, classed as the paper's single-frame target
   (:func:`evgrid.learn.targets.ilm_classes`; 15 m reach): free, occupied and unknown IoU.
 
-Intersections and unions are summed over keyframes and scenes. Run:
+Intersections and unions are summed over keyframes and scenes. ``--pairs A:B,...`` also prints
+the difference A - B of each band's truth IoU, per scene, as a mean with its 95 % bootstrap
+interval over scenes (paired: the same frames), for each pair and for the pairs' mean (e.g. a
+polar and a Cartesian net trained with each of two seeds). Run:
 ``PYTHONPATH=src python benchmarks/prior_polar.py --checkpoints cart=A.safetensors,polar=B.sft``.
 Measures and prints; asserts nothing.
 """
@@ -21,6 +24,7 @@ Measures and prints; asserts nothing.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import time
 
@@ -32,7 +36,7 @@ from harness import machine_line  # noqa: E402
 
 from evgrid.classes import FREE, OCCUPIED, UNKNOWN  # noqa: E402
 from evgrid.config import MapperConfig, OutputConfig  # noqa: E402
-from evgrid.evaluate import classify, observable  # noqa: E402
+from evgrid.evaluate import bootstrap_interval, classify, observable  # noqa: E402
 from evgrid.ism.prior_guard import PriorGuardParams  # noqa: E402
 from evgrid.learn.targets import ilm_classes  # noqa: E402
 from evgrid.runs import map_scene  # noqa: E402
@@ -52,6 +56,12 @@ class BandScores:
         self.truth = np.zeros((nb, 2, 2), np.int64)  # band, (free, occ), (inter, union)
         self.ilm = np.zeros((nb, 3, 2), np.int64)  # band, class, (inter, union)
         self.free_as_occ = np.zeros((nb, 2), np.int64)  # band, (called occupied, truly free)
+        self.per_scene: list[np.ndarray] = []  # each scene's truth counts
+        self._mark = self.truth.copy()
+
+    def end_scene(self) -> None:
+        self.per_scene.append(self.truth - self._mark)
+        self._mark = self.truth.copy()
 
     def on_update(self, u) -> None:
         truth = u.frame.occupancy
@@ -93,6 +103,7 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=10.0)
     ap.add_argument("--first-seed", type=int, default=2000)
     ap.add_argument("--bands", default="0,10,20,28.3", help="band edges in metres")
+    ap.add_argument("--pairs", default="", help="A:B,... labels whose difference A - B to print")
     args = ap.parse_args()
     edges = [float(v) for v in args.bands.split(",")]
     bands = list(zip(edges[:-1], edges[1:]))
@@ -118,6 +129,7 @@ def main() -> None:
             map_scene(frames, None, config, OutputConfig(figures=False), name=name,
                       observers=(scores[label],))  # fmt: skip
             seconds[label] += time.perf_counter() - t
+            scores[label].end_scene()
         print(f"  {name} done", flush=True)
     head = ("| ISM | band m | truth free IoU | truth occ IoU | truly free called occ % | "
             "ray ILM free IoU | ray ILM occ IoU | ray ILM unknown IoU |")  # fmt: skip
@@ -129,6 +141,34 @@ def main() -> None:
                   f"{_pct(s.free_as_occ[k])} | {_pct(s.ilm[k, FREE])} | "
                   f"{_pct(s.ilm[k, OCCUPIED])} | {_pct(s.ilm[k, UNKNOWN])} |")  # fmt: skip
     print("mapping s: " + ", ".join(f"{k} {v:.0f}" for k, v in seconds.items()))
+    if args.pairs:
+        _print_differences(scores, [tuple(p.split(":")) for p in args.pairs.split(",")], bands)
+
+
+def _iou(c: np.ndarray) -> float:
+    return c[0] / c[1] if c[1] else math.nan
+
+
+def _print_differences(scores: dict, pairs: list[tuple[str, str]], bands: list) -> None:
+    """Per band and truth class: A - B per scene, mean and bootstrap interval (points)."""
+    head = "| A - B | band m | truth free IoU, points | truth occ IoU, points |"
+    print(head)
+    print("|" + " --- |" * (head.count("|") - 1))
+    n_scenes = len(scores[pairs[0][0]].per_scene)
+    rows = {f"{a} - {b}": [(a, b)] for a, b in pairs}
+    if len(pairs) > 1:
+        rows["mean of the pairs"] = pairs
+    for label, group in rows.items():
+        for k, (lo, hi) in enumerate(bands):
+            cells = []
+            for j in range(2):
+                diffs = [np.mean([_iou(scores[a].per_scene[s][k, j]) -
+                                  _iou(scores[b].per_scene[s][k, j]) for a, b in group])
+                         for s in range(n_scenes)]  # fmt: skip
+                ci = bootstrap_interval(diffs)
+                cells.append(f"{100 * ci['mean']:+.1f} ({100 * ci['lo']:+.1f} to "
+                             f"{100 * ci['hi']:+.1f}), {ci['n']} scenes")  # fmt: skip
+            print(f"| {label} | {lo:g}-{hi:g} | {cells[0]} | {cells[1]} |")
 
 
 if __name__ == "__main__":
