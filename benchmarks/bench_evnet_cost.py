@@ -1,8 +1,9 @@
 """The deep IRM's cost per map update for Ev-Net trunks of several widths and depths, in turns.
 
-Run: ``python benchmarks/bench_evnet_cost.py [--configs 12x4,8x4] [--repeats 30]``. Each
-``WIDTHxDEPTH`` is an :class:`~evgrid.ism.evnet.EvNetConfig` (pool and channels at their
-defaults), saved with fresh weights (cost does not depend on them) and run through
+Run: ``python benchmarks/bench_evnet_cost.py [--configs 12x4,8x4,12x4p] [--repeats 30]``.
+Each ``WIDTHxDEPTH`` is an :class:`~evgrid.ism.evnet.EvNetConfig` (pool and channels at their
+defaults; a trailing ``p``: in the polar frame, its default bins), saved with fresh weights
+(cost does not depend on them) and run through
 :meth:`DeepIrm.predict` (pooled input, trunk, upsampling into masses) on the synthetic street's
 radar sweeps, one thread, every configuration timed in turns (A, B, A, B) so all see the same
 machine load. Prints the median and minimum ms and each trunk's parameters.
@@ -35,8 +36,10 @@ def main() -> None:
     fns, params = {}, {}
     with tempfile.TemporaryDirectory() as tmp:
         for spec in args.configs.split(","):
-            w, d = (int(v) for v in spec.split("x"))
-            cfg = EvNetConfig(width=w, depth=d)
+            w, d = (int(v) for v in spec.removesuffix("p").split("x"))
+            cfg = EvNetConfig(
+                width=w, depth=d, frame="polar" if spec.endswith("p") else "cartesian"
+            )
             net = EvNet(cfg).eval()
             params[spec] = sum(p.numel() for p in net.parameters())
             path = save_checkpoint(net, Path(tmp) / f"{spec}.safetensors", {"grid": grid.to_dict()})

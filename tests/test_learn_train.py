@@ -200,3 +200,21 @@ def test_mixed_precision_is_off_on_the_cpu_and_chosen_on_cuda():
         TrainConfig(precision="fp8")
     with pytest.raises(ValueError, match="engine"):
         TrainConfig(engine="spark")
+
+
+def test_a_polar_net_trains_and_its_checkpoint_says_so(cache, tmp_path):
+    from dataclasses import replace
+
+    from evgrid.learn.train import saved_train_config
+
+    root, names = cache
+    polar = EvNetConfig(in_channels=6, width=4, depth=2, frame="polar", range_bins=32,
+                        azimuth_bins=128)  # fmt: skip
+    train(replace(CFG, epochs=1, model=polar), root, names[:1], names[1:], tmp_path)
+    ck = load_checkpoint(tmp_path / "best.safetensors")
+    assert ck.model.config == polar
+    # the saved training config reads back with the frame (``--set train.model.frame=polar``)
+    assert saved_train_config(ck.extra["config"], "best").model == polar
+    assert saved_train_config({**CFG.to_dict(), "model": {"frame": "polar"}}, "x").model.frame == (
+        "polar"
+    )

@@ -4,7 +4,10 @@ The published interface (paper sec. V-C; docs/decisions.md#ev-net-architecture):
 radar detection image in the current ego frame goes in, max-pooled at the input; an encoder-decoder
 CNN; bilinear upsampling at the output; two non-negative evidence channels ``[e_f, e_o]`` come out,
 turned into masses by :func:`evgrid.mass.from_evidence`. The exact layers of Ev-Net are not public:
-this is a small U-Net with that interface (0.44 M parameters, 1.8 MB by default).
+this is a small U-Net with that interface (0.44 M parameters, 1.8 MB by default). With
+``EvNetConfig.frame="polar"`` the U-Net runs on the pooled input resampled into a range x azimuth
+image centred on the ego origin, and its evidence is resampled back (after arXiv 2112.04282;
+docs/decisions.md#ev-net-in-the-polar-frame).
 
 Checkpoints are safetensors files (plain tensors, never code) with the model configuration
 in their metadata and, from format version 2, a SHA-256 of the tensors, checked at load. The
@@ -34,6 +37,7 @@ from evgrid.validation import check_int
 # Targets: classes of the ray ILM's cells (docs/decisions.md#ev-net-targets-and-loss).
 
 __all__ = [
+    "FRAMES",
     "EvNetConfig",
     "EvNet",
     "save_checkpoint",
@@ -45,29 +49,98 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 
+#: Where the U-Net runs: on the pooled Cartesian grid, or on a range x azimuth image of it.
+FRAMES: tuple[str, ...] = ("cartesian", "polar")
+
+
 @dataclass(frozen=True)
 class EvNetConfig:
-    """Architecture of an Ev-Net: input channels, first stage width, input max-pool factor."""
+    """Architecture of an Ev-Net: input channels, first stage width, input max-pool factor, and
+    the frame the U-Net runs in (``polar``: ``range_bins x azimuth_bins``, ranges linear up to
+    the grid's half diagonal, azimuth over 360 deg)."""
 
     in_channels: int = 6
     width: int = 12  #: channels of the first stage (each deeper stage doubles them)
     pool: int = 4
     depth: int = 4  #: stages of the encoder
+    frame: str = "cartesian"  #: cartesian|polar
+    #: polar only: range bins (64: 0.44 m on the default grid's 28.3 m half diagonal)
+    range_bins: int = 64
+    #: polar only: azimuth bins over 360 deg (256: 1.4 deg; with 64 range bins as many pixels as
+    #: the default pooled grid's 128 x 128)
+    azimuth_bins: int = 256
 
     def __post_init__(self) -> None:
-        for name in ("in_channels", "width", "pool", "depth"):
+        for name in ("in_channels", "width", "pool", "depth", "range_bins", "azimuth_bins"):
             check_int(self, name, min=1)
+        if self.frame not in FRAMES:
+            raise ValueError(f"EvNetConfig.frame must be one of {FRAMES}, got {self.frame!r}")
+
+    def to_metadata(self) -> dict[str, Any]:
+        """The fields a checkpoint saves: a Cartesian net's are the four it always had (its file
+        stays byte for byte what it was, and older evgrid reads it)."""
+        d = asdict(self)
+        if self.frame == "cartesian":
+            for k in _POLAR_FIELDS:
+                del d[k]
+        return d
 
 
-def _block(c_in: int, c_out: int, dilation: int = 1) -> nn.Sequential:
+_POLAR_FIELDS = ("frame", "range_bins", "azimuth_bins")
+
+
+class _AzimuthConv(nn.Conv2d):
+    """A 3x3 convolution on a range x azimuth image: zero padding in range, circular in azimuth
+    (the last column's neighbour is the first). Same weights as :class:`nn.Conv2d`."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        d = self.dilation[1]
+        # concatenation rather than F.pad(mode="circular"): pads one dimension only, exports to
+        # ONNX as Slice + Concat
+        x = torch.cat([x[..., -d:], x, x[..., :d]], dim=-1)
+        return F.conv2d(x, self.weight, self.bias, 1, (self.dilation[0], 0), self.dilation)
+
+
+def _block(c_in: int, c_out: int, dilation: int = 1, polar: bool = False) -> nn.Sequential:
+    conv = _AzimuthConv if polar else nn.Conv2d
     return nn.Sequential(
-        nn.Conv2d(c_in, c_out, 3, padding=dilation, dilation=dilation, bias=False),
+        conv(c_in, c_out, 3, padding=dilation, dilation=dilation, bias=False),
         nn.BatchNorm2d(c_out),
         nn.ReLU(inplace=True),
-        nn.Conv2d(c_out, c_out, 3, padding=dilation, dilation=dilation, bias=False),
+        conv(c_out, c_out, 3, padding=dilation, dilation=dilation, bias=False),
         nn.BatchNorm2d(c_out),
         nn.ReLU(inplace=True),
     )
+
+
+def polar_sampling(
+    h: int, w: int, range_bins: int, azimuth_bins: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The ``F.grid_sample`` grids between a Cartesian image ``(h, w)`` centred on the ego (row 0
+    ahead, column 0 left, as :class:`evgrid.geometry.GridSpec`) and a polar one ``(range_bins,
+    azimuth_bins)``: ``to_polar`` ``(1, 2 range_bins, 2 azimuth_bins, 2)`` samples the Cartesian
+    image at the centres of each polar bin's 2 x 2 sub-bins (range ``(i + 0.5) / (2 range_bins)``
+    of the half diagonal, azimuth ``-180 + (j + 0.5) * 180 / azimuth_bins`` deg from the x axis
+    towards y), to be max-pooled by 2; ``to_cartesian``
+    ``(1, h, w, 2)`` samples the polar image, padded by one column either side (azimuth wraps),
+    at each Cartesian cell's centre. Coordinates as ``align_corners=False``, float32.
+    """
+    diag = math.sqrt(2.0)  # the half diagonal in units of the half edge (a square grid)
+    nr, na = 2 * range_bins, 2 * azimuth_bins
+    rho = (torch.arange(nr, dtype=torch.float64) + 0.5) / nr * diag
+    phi = -math.pi + (torch.arange(na, dtype=torch.float64) + 0.5) * (2 * math.pi / na)
+    x = rho[:, None] * torch.cos(phi)[None, :]  # ego x (ahead), y (left): half edges
+    y = rho[:, None] * torch.sin(phi)[None, :]
+    to_polar = torch.stack([-y, -x], dim=-1)  # grid_sample's (column, row) coordinates
+    gy = (2 * torch.arange(h, dtype=torch.float64) + 1) / h - 1  # row -> -x
+    gx = (2 * torch.arange(w, dtype=torch.float64) + 1) / w - 1  # column -> -y
+    xs, ys = -gy[:, None].expand(h, w), -gx[None, :].expand(h, w)
+    r = torch.sqrt(xs**2 + ys**2)
+    a = torch.atan2(ys, xs)  # [-pi, pi]
+    u = a / math.pi * azimuth_bins / (azimuth_bins + 2)  # in the padded image
+    v = r / diag * 2 - 1
+    to_cartesian = torch.stack([u, v], dim=-1)
+    return to_polar[None].float(), to_cartesian[None].float()
 
 
 class EvNet(nn.Module):
@@ -77,26 +150,57 @@ class EvNet(nn.Module):
     def __init__(self, config: EvNetConfig = EvNetConfig()):
         super().__init__()
         self.config = config
+        polar = config.frame == "polar"
         w, d = config.width, config.depth
         widths = [w * 2**k for k in range(d)]
         self.pool_in = nn.MaxPool2d(config.pool) if config.pool > 1 else nn.Identity()
         self.enc = nn.ModuleList()
         c = config.in_channels
         for k, wk in enumerate(widths):
-            self.enc.append(_block(c, wk))
+            self.enc.append(_block(c, wk, polar=polar))
             c = wk
         # Dilated bottleneck: radar detections are sparse, free space lies between them and the
         # sensor, metres away; dilation widens the receptive field cheaply.
-        self.bottleneck = _block(c, c, dilation=2)
+        self.bottleneck = _block(c, c, dilation=2, polar=polar)
         self.dec = nn.ModuleList()
         for k in range(d - 2, -1, -1):
-            self.dec.append(_block(c + widths[k], widths[k]))
+            self.dec.append(_block(c + widths[k], widths[k], polar=polar))
             c = widths[k]
         self.head = nn.Conv2d(c, 2, 1)
+        self._grids: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
 
     def trunk(self, h: torch.Tensor) -> torch.Tensor:
         """Evidence ``[e_f, e_o]`` at the max-pooled input's resolution: the U-Net between the
-        input pooling and the output upsampling (what the deep IRM's fast path runs)."""
+        input pooling and the output upsampling (what the deep IRM's fast path runs); in the
+        polar frame, with the resampling into and out of it."""
+        if self.config.frame == "cartesian":
+            return self._unet(h)
+        to_polar, to_cart = self._sampling(h)
+        b = h.shape[0]
+        # Every channel bilinear at 2 x 2 points a polar bin, then the max of the four (the input
+        # is a max-pool already): where polar bins are coarser than pooled cells (beyond 20 m by
+        # default) one point a bin, nearest or bilinear, skips cells and their detections; this
+        # reaches every cell. Zeros beyond the grid: no detection is known there.
+        p = F.grid_sample(
+            h, to_polar.expand(b, -1, -1, -1), "bilinear", "zeros", align_corners=False
+        )
+        e = self._unet(F.max_pool2d(p, 2))
+        e = torch.cat([e[..., -1:], e, e[..., :1]], dim=-1)  # azimuth wraps
+        # bilinear: evidence stays non-negative under a convex mix
+        return F.grid_sample(
+            e, to_cart.expand(b, -1, -1, -1), "bilinear", "border", align_corners=False
+        )
+
+    def _sampling(self, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """:func:`polar_sampling`'s grids for inputs like ``h``, made once per size and device."""
+        key = (int(h.shape[-2]), int(h.shape[-1]), h.device, h.dtype)
+        if key not in self._grids:
+            c = self.config
+            grids = polar_sampling(key[0], key[1], c.range_bins, c.azimuth_bins)
+            self._grids[key] = tuple(g.to(h.device, h.dtype) for g in grids)
+        return self._grids[key]
+
+    def _unet(self, h: torch.Tensor) -> torch.Tensor:
         skips = []
         for k, blk in enumerate(self.enc):
             if k:
@@ -128,7 +232,14 @@ _DIGEST_KEY = "tensors_sha256"
 
 # Bounds on what a checkpoint may ask for, checked before anything is allocated: far above any
 # useful Ev-Net (the shipped one has 0.44 M parameters), far below what would exhaust memory.
-_CONFIG_MAX = {"in_channels": 64, "width": 512, "pool": 64, "depth": 8}
+_CONFIG_MAX = {
+    "in_channels": 64,
+    "width": 512,
+    "pool": 64,
+    "depth": 8,
+    "range_bins": 1024,
+    "azimuth_bins": 4096,
+}
 _MAX_PARAMS = 64_000_000
 #: The largest magnitude a weight (or normalisation statistic) may have. A finite but huge
 #: weight that passes the checksum (a file written that way on purpose) would overflow float32
@@ -238,7 +349,7 @@ def _config_from(meta: dict[str, str], path: Path) -> EvNetConfig:
         raise CheckpointError(
             f"{path}: checkpoint metadata field 'config' must be a JSON object, got {cfg!r:.80}"
         )
-    unknown = sorted(set(cfg) - set(_CONFIG_MAX))
+    unknown = sorted(set(cfg) - set(_CONFIG_MAX) - {"frame"})
     if unknown:
         raise CheckpointError(
             f"{path}: checkpoint metadata field 'config' has unknown key(s) {unknown}"
@@ -250,8 +361,13 @@ def _config_from(meta: dict[str, str], path: Path) -> EvNetConfig:
                 f"{path}: checkpoint metadata field 'config.{key}' must be an integer in [1, "
                 f"{hi}], got {v!r:.80}"
             )
+    if "frame" in cfg and cfg["frame"] not in FRAMES:
+        raise CheckpointError(
+            f"{path}: checkpoint metadata field 'config.frame' must be one of {FRAMES}, got "
+            f"{cfg['frame']!r:.80}"
+        )
     try:
-        return EvNetConfig(**cfg)
+        return EvNetConfig(**cfg)  # a file without 'frame' (before it existed) is Cartesian
     except (TypeError, ValueError) as e:
         raise CheckpointError(f"{path}: checkpoint metadata field 'config' is invalid ({e})") from e
 
@@ -281,7 +397,7 @@ def _serialise(model: EvNet, extra: dict[str, Any] | None) -> bytes:
     meta = {
         "format": _FORMAT,
         "version": str(_FORMAT_VERSION),
-        "config": json.dumps(asdict(model.config)),
+        "config": json.dumps(model.config.to_metadata()),
         "extra": json.dumps(extra or {}),
     }
     tensors = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
