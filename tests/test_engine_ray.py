@@ -38,13 +38,19 @@ SCENE_S = 2.0
 
 
 class _LastMaps:
-    """An observer that keeps the map set of the last update, to digest its masses."""
+    """An observer that digests the masses of every map after each update (the last one's
+    digest is the run's: a run without a folder removes its temporary tile store when over)."""
 
     def __init__(self) -> None:
-        self.maps = None
+        self.digest = None
 
     def on_update(self, update) -> None:
-        self.maps = update.maps
+        digest = hashlib.sha256()
+        for map_name, m in sorted(update.maps.maps.items()):
+            for key in sorted(m.tiles):
+                digest.update(f"{map_name}{key}".encode())
+                digest.update(m.tiles[key].tobytes())
+        self.digest = digest.hexdigest()
 
 
 def map_metrics(args: tuple) -> dict:
@@ -67,16 +73,11 @@ def map_metrics(args: tuple) -> dict:
         name=name,
         observers=(last,),
     )
-    digest = hashlib.sha256()
-    for map_name, m in sorted(last.maps.maps.items()):
-        for key in sorted(m.tiles):
-            digest.update(f"{map_name}{key}".encode())
-            digest.update(m.tiles[key].tobytes())
     return {
         "vs_ray_ilm": res.metrics["vs_ray_ilm"],
         "vs_truth": res.metrics.get("vs_truth"),
         "confusion_vs_ray_ilm": res.metrics["confusion_vs_ray_ilm"],
-        "masses_sha256": digest.hexdigest(),
+        "masses_sha256": last.digest,
         "node": _ray_node(),
         "evgrid": __import__("evgrid").__file__,
     }
@@ -322,7 +323,7 @@ def test_two_node_cluster_maps_like_the_local_engine(two_node_cluster):
     out = res["out"]
     assert out["raises"] == [None, "RuntimeError: scene 19 fails on purpose second line"]
     on_ray = {k: v[0] for k, v in out.items() if k != "raises"}
-    assert all(out[k][1] is None for k in on_ray)
+    assert all(out[k][1] is None for k in on_ray), {k: out[k][1] for k in on_ray}
     # two jobs in flight, one CPU per node: both nodes mapped scenes
     assert len({m.pop("node") for m in on_ray.values()}) == 2
     local = {

@@ -453,6 +453,29 @@ def test_page_out_all_leaves_no_tile_in_memory_and_the_maps_as_they_were():
     paged.close()
 
 
+def test_maps_kept_past_the_end_of_their_run_say_their_temporary_store_is_gone():
+    """A run without a folder pages into a temporary store that its end removes: a map an
+    observer kept reads its resident tiles, and a paged one raises one line saying why."""
+    from evgrid.config import MapperConfig
+    from evgrid.mapper import OccupancyMapper
+    from evgrid.store import StoreError
+    from evgrid_sim import SimConfig, simulate_scene
+
+    mapper = OccupancyMapper(MapperConfig(maps=("ray_ilm",), tile_cells=64))
+    for f in simulate_scene(3, SimConfig(duration_s=1.0)):
+        mapper.process(f)
+    m = mapper.maps.maps["ray_ilm"]
+    assert mapper.page_out_all() > 0
+    first, *others = sorted(m.tiles)
+    assert others
+    before = m.tiles[first].copy()  # read back (made resident again) while the store is there
+    mapper.close()
+    assert not mapper.store.root.exists()
+    assert np.array_equal(m.tiles[first], before)
+    with pytest.raises(StoreError, match="temporary tile store .* removed when its run ended"):
+        m.tiles[others[0]]
+
+
 def test_a_run_pages_every_tile_out_before_its_exports_write_the_final_maps(tmp_path, monkeypatch):
     from evgrid.config import MapperConfig, OutputConfig
     from evgrid.export.nav2 import Nav2Exporter

@@ -111,6 +111,7 @@ class TileStore:
                 head,
             )
         self._groups: dict[str, TileGroup] = {}
+        self.removed = False  # a temporary store after close: its tiles are gone
 
     def __repr__(self) -> str:
         return f"TileStore({str(self.root)!r}, {len(self._groups)} groups)"
@@ -134,6 +135,7 @@ class TileStore:
         if self._tmp is not None:
             self._tmp.cleanup()
             self._tmp = None
+            self.removed = True
 
     def _write(self, fn: Callable[[], Any], what: Path) -> Any:
         """Run a write; a full disk (or a quota) becomes one line naming the store."""
@@ -521,6 +523,12 @@ class TileGroup:
         """The layers of tile ``key`` (fresh, writable arrays): of ``member`` by their names, or
         (None) of every member, a copy's named ``MEMBER/NAME``; StoreError naming the file if it
         is damaged or of another version."""
+        if self.store.removed:  # e.g. maps an observer kept past the end of their run
+            raise StoreError(
+                f"tile {key} of {self.folder.name!r} was paged out to a temporary tile store "
+                f"({self.store.root}) removed when its run ended: read the maps during the run, "
+                "or save them (--save-maps, evgrid.grid.save_map)"
+            )
         path = self.folder / self._files[key][1]
         got = read_tile_file(path, key, member)
         return got if member is None else _member_layers(got, member)
