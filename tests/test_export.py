@@ -431,13 +431,111 @@ def test_the_mcap_of_whole_maps_is_the_file_the_messages_gave(tmp_path, monkeypa
     params = McapParams(occupancy_values="scale")
     new = mc.write_maps_mcap(maps, tmp_path / "new.mcap", params, stamp_us=123)
 
-    def from_message(cells, t_us, frame_id, store, th, values):
+    def from_message(cells, t_us, frame_id, store, th, values, step=1):
+        assert step == 1
         msg = mc.occupancy_grid_msg(cells, t_us, frame_id, store, th, values)
         return bytes(store.serialize_cdr(msg, "nav_msgs/msg/OccupancyGrid"))
 
     monkeypatch.setattr(mc, "occupancy_grid_cdr", from_message)
     old = mc.write_maps_mcap(maps, tmp_path / "old.mcap", params, stamp_us=123)
     assert new.read_bytes() == old.read_bytes()
+
+
+def test_coarser_values_keep_every_obstacle_and_call_free_only_what_was_all_seen_free():
+    """By hand: 2x2 blocks of OccupancyGrid values (trinary, and scale's shades)."""
+    from evgrid.export.mcap import coarse_step, coarsen_values
+
+    fine = np.array(
+        [
+            [0, 0, 0, -1, 100, -1, -1, -1],
+            [0, 0, 0, 0, 0, 0, -1, -1],
+            [10, 19, 70, 3, -1, 100, 0, 0],
+            [5, 0, 0, 12, -1, -1, 0, 18],
+        ],
+        np.int8,
+    )
+    want = np.array([[0, -1, 100, -1], [19, 70, 100, 18]], np.int8)
+    assert np.array_equal(coarsen_values(fine, 2, Nav2Thresholds()), want)
+    assert np.array_equal(coarsen_values(fine, 1, Nav2Thresholds()), fine)
+    # the smallest whole factor that fits; 0: no limit
+    assert [coarse_step(h, w, 16384) for h, w in [(16384, 9), (16385, 9), (9, 22224)]] == [1, 2, 2]
+    assert coarse_step(40000, 3, 16384) == 3 and coarse_step(10**6, 10**6, 0) == 1
+
+
+@pytest.mark.parametrize("values", ["trinary", "scale"])
+@pytest.mark.parametrize("step", [2, 3, 7])
+def test_a_coarse_final_grid_lies_where_its_cells_do(values, step):
+    """Every fine occupied cell's position falls in an occupied cell of the coarse message, and
+    every coarse free cell holds free cells only; the bands (a tile's rows) give the same values
+    as the box coarsened at once."""
+    from evgrid.export.mcap import TiledCells, coarsen_values, occupancy_grid_cdr
+    from evgrid.export.nav2 import _class_value_bounds
+    from evgrid.grid import MapWindow
+    from evgrid.ros import typestore
+
+    store, th = typestore(2), Nav2Thresholds()
+    rng = np.random.default_rng(37)
+    m = EvidentialMap(GridSpec(n_cells=64, length_m=6.4), 16)
+    for _ in range(6):  # free patches with obstacles, holes and shades
+        r, c = rng.integers(-60, 60, 2)
+        p = rng.dirichlet([30, 1, 1], size=(40, 40))
+        p[rng.random((40, 40)) < 0.01] = (0.05, 0.9, 0.05)
+        window = MapWindow(int(r), int(c), p.astype(np.float32), rng.random((40, 40)) < 0.99)
+        m.apply(window, lambda view, x: view.__setitem__(slice(None), x))
+    r0, c0, h, w = m.covered_bounds()
+    res = m.grid.resolution
+    buf = occupancy_grid_cdr(TiledCells(m, r0, c0, h, w), 5, "map", store, th, values, step)
+    msg = store.deserialize_cdr(bytes(buf), "nav_msgs/msg/OccupancyGrid")
+    H, W = -(-h // step), -(-w // step)
+    assert (msg.info.width, msg.info.height) == (H, W)
+    assert msg.info.resolution == pytest.approx(res * step)
+    ox, oy = msg.info.origin.position.x, msg.info.origin.position.y
+    assert (ox, oy) == pytest.approx((-(r0 + H * step) * res, -(c0 + W * step) * res))
+    grid = np.asarray(msg.data, np.int8).reshape(W, H)  # ROS order: [j, i] along y, x
+    fine = TiledCells(m, r0, c0, H * step, W * step).occupancy(th, values)
+    assert np.array_equal(grid.swapaxes(0, 1)[::-1, ::-1], coarsen_values(fine, step, th))
+    occ_min = _class_value_bounds(th)[1]
+    rr, cc = np.nonzero(fine >= occ_min)
+    x, y = -(r0 + rr + 0.5) * res, -(c0 + cc + 0.5) * res  # the cells' centres (map frame)
+    i = np.floor((x - ox) / (res * step)).astype(int)
+    j = np.floor((y - oy) / (res * step)).astype(int)
+    assert len(rr) > 20 and np.all(grid[j, i] >= occ_min)
+    jj, ii = np.nonzero((grid >= 0) & (grid < occ_min))  # coarse free cells
+    assert len(jj) > 5
+    for j0, i0 in zip(jj, ii):
+        # the coarse cell spans x from ox + i0 * step * res: the box's fine rows from
+        # (H - 1 - i0) * step (rows run towards -x), likewise columns along y
+        r, c = (H - 1 - i0) * step, (W - 1 - j0) * step
+        block = fine[r : r + step, c : c + step]
+        assert block.shape == (step, step) and np.all((block >= 0) & (block < occ_min))
+
+
+def test_the_mcap_final_map_above_final_max_side_is_written_coarser_and_says_so(tmp_path, caplog):
+    pytest.importorskip("mcap")
+    import logging
+
+    from evgrid.export.mcap import write_maps_mcap
+    from evgrid.grid import MapWindow
+
+    m = EvidentialMap(GridSpec(n_cells=64, length_m=6.4), 64)
+    occ = np.tile(np.array([0.0, 1.0, 0.0], np.float32), (8, 8, 1))
+    for r, c in [(0, 0), (600, 0)]:  # a box of 608 by 8 cells
+        m.apply(MapWindow(r, c, occ, np.ones((8, 8), bool)), lambda v, x: v.__setitem__(..., x))
+    with caplog.at_level(logging.INFO, logger="evgrid.export.mcap"):
+        path = write_maps_mcap({"a": m}, tmp_path / "a.mcap", McapParams(final_max_side=256))
+    assert "written 3x coarser (203 x 3 cells of 0.3 m" in caplog.text
+    ((topic, _, _, msg),) = [t for t in _decoded(path) if t[0].endswith("/occupancy")]
+    assert (msg.info.width, msg.info.height) == (203, 3)
+    assert msg.info.resolution == pytest.approx(0.3)
+    full = write_maps_mcap({"a": m}, tmp_path / "b.mcap", McapParams(final_max_side=0))
+    ((_, _, _, whole),) = [t for t in _decoded(full) if t[0].endswith("/occupancy")]
+    assert (whole.info.width, whole.info.height) == (608, 8)
+
+
+@pytest.mark.parametrize("side", [-1, 1, 255, 1.5, True, "16384"])
+def test_a_final_max_side_that_means_nothing_is_refused(side):
+    with pytest.raises(ValueError, match="final_max_side must be 0 .* got"):
+        McapParams(final_max_side=side)
 
 
 def test_a_whole_maps_occupancy_grid_takes_one_byte_a_cell_once():
@@ -465,6 +563,14 @@ def test_a_whole_maps_occupancy_grid_takes_one_byte_a_cell_once():
         tracemalloc.stop()
     assert len(data) > h * w == 1508 * 1508
     assert peak < 1.2 * h * w  # the buffer, and a tile's values at a time
+    tracemalloc.start()
+    try:
+        coarse = occupancy_grid_cdr(cells, 0, "map", store, step=4)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert len(coarse) > 377 * 377
+    assert peak < 0.25 * h * w  # 4x coarser: never the box's fine values at once
 
 
 def test_the_rerun_whole_map_picture_made_in_bands_is_the_whole_map_sampled():

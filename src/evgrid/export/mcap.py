@@ -5,7 +5,8 @@ What the file holds (:class:`McapParams`; defaults in brackets, docs/ros.md says
 * ``/evgrid/NAME/occupancy``: ``nav_msgs/OccupancyGrid`` of the maps in ``maps`` [the
   navigation map ``nav``, else ``fused``], a square of ``window_m`` metres [40] around the
   vehicle at ``rate_hz`` [None: at keyframes, 2 Hz in nuScenes]; and of every map in
-  ``final_maps`` [all maps] whole at the end, stamped 1 us after the last update. Values
+  ``final_maps`` [all maps] whole at the end, stamped 1 us after the last update (coarser
+  by a whole factor where a side has over ``final_max_side`` [16384] cells). Values
   (:func:`~evgrid.export.nav2.occupancy_values`) agree with the nav2 export's classes at its
   thresholds: ``trinary`` [0 free, 100 occupied, -1 unknown] or ``scale``;
 * ``/evgrid/NAME/grid_map``: ``grid_map_msgs/GridMap`` with the mass layers of ``layers``
@@ -46,6 +47,7 @@ from evgrid.export.nav2 import (
     OCCUPANCY_VALUES,
     UNKNOWN,
     Nav2Thresholds,
+    _class_value_bounds,
     map_to_occupancy,
     occupancy_values,
 )
@@ -58,6 +60,8 @@ __all__ = [
     "McapExporter",
     "McapParams",
     "occupancy_grid_msg",
+    "coarse_step",
+    "coarsen_values",
     "occupancy_grid_cdr",
     "grid_map_msg",
     "write_maps_mcap",
@@ -206,6 +210,26 @@ def _occupancy_grid(
 _OCCUPANCY_GRID = "nav_msgs/msg/OccupancyGrid"
 
 
+def coarse_step(h: int, w: int, max_side: int) -> int:
+    """The smallest whole factor that brings ``h`` by ``w`` cells to at most ``max_side`` along
+    each side (1: it fits, or ``max_side`` is 0, no limit)."""
+    if max_side <= 0:
+        return 1
+    return max(1, -(-max(h, w) // max_side))
+
+
+def coarsen_values(fine: np.ndarray, step: int, th: Nav2Thresholds) -> np.ndarray:
+    """OccupancyGrid values ``(n * step, m * step)`` made ``step`` times coarser: a coarse cell
+    is occupied (its largest value) if any of its cells is, unknown if any is unknown, else
+    free (its largest value). Conservative for a reader: an obstacle is never hidden, and no
+    cell is called free that was not seen free."""
+    n, m = fine.shape[0] // step, fine.shape[1] // step
+    blocks = fine.reshape(n, step, m, step)
+    top = blocks.max(axis=(1, 3))
+    unseen = blocks.min(axis=(1, 3)) == UNKNOWN
+    return np.where(unseen & (top < _class_value_bounds(th)[1]), np.int8(UNKNOWN), top)
+
+
 def occupancy_grid_cdr(
     cells: TiledCells,
     t_us: int,
@@ -213,18 +237,22 @@ def occupancy_grid_cdr(
     store: Any,
     th: Nav2Thresholds = Nav2Thresholds(),
     values: str = "trinary",
+    step: int = 1,
 ) -> bytearray:
     """The CDR bytes of :func:`occupancy_grid_msg` of ``cells``, the same as
     ``store.serialize_cdr`` gives them, made in one buffer: the values are written tile by tile
     straight to their places in ROS order, so a whole map costs one byte a cell once (not the
     values, their ROS-order copy, the message and its serialised copies, each a byte a cell).
 
+    ``step`` > 1: cells ``step`` times larger (:func:`coarsen_values`), the box extended to a
+    whole number of them (unknown beyond it), made in bands of about a tile's rows.
+
     ``data`` is the message's last field and int8 (no alignment), so the bytes are those of
     the message with no data, its sequence length set, then the cells."""
-    h, w = cells.h, cells.w
+    h, w = -(-cells.h // step), -(-cells.w // step)  # cells of the message
     r0, c0, res = cells.r0, cells.c0, cells.resolution
-    origin = (-(r0 + h) * res, -(c0 + w) * res)  # map_to_occupancy's
-    empty = _occupancy_grid(np.zeros(0, np.int8), (w, h), origin, res, t_us, frame_id, store)
+    origin = (-(r0 + h * step) * res, -(c0 + w * step) * res)  # map_to_occupancy's
+    empty = _occupancy_grid(np.zeros(0, np.int8), (w, h), origin, res * step, t_us, frame_id, store)
     head = store.serialize_cdr(empty, _OCCUPANCY_GRID)
     buf = bytearray(len(head) + h * w)
     buf[: len(head)] = head
@@ -232,7 +260,15 @@ def occupancy_grid_cdr(
     struct.pack_into("<I" if head[1] else ">I", buf, len(head) - 4, h * w)
     data = np.frombuffer(buf, np.int8, offset=len(head)).reshape(w, h)
     # data[j, i] is box cell (h - 1 - i, w - 1 - j) (map_to_occupancy): this view is in map order
-    cells.occupancy(th, values, out=data.swapaxes(0, 1)[::-1, ::-1])
+    target = data.swapaxes(0, 1)[::-1, ::-1]
+    if step == 1:
+        cells.occupancy(th, values, out=target)
+        return buf
+    band = max(1, cells.map.tile_cells // step)  # rows of the message a band
+    for i in range(0, h, band):
+        n = min(band, h - i)
+        fine = TiledCells(cells.map, r0 + i * step, c0, n * step, w * step)
+        target[i : i + n] = coarsen_values(fine.occupancy(th, values), step, th)
     return buf
 
 
@@ -297,7 +333,9 @@ class McapParams:
     ``rate_hz``: how often the window is written (None: at every keyframe). ``maps``: the
     windowed maps (None: the first of ``navigation`` the run has, else its first map).
     ``final_maps``: the maps written whole at the end (None: every map of the run; ``()``:
-    none). ``layers``:
+    none). ``final_max_side``: the most cells along a side of a final OccupancyGrid (0: no
+    limit); a larger map is written coarser by the smallest whole factor that fits
+    (:func:`coarse_step`). ``layers``:
     ``occupancy`` (OccupancyGrid) and any of :data:`GRID_LAYERS` (one GridMap with those
     layers: the masses, ``dynamic`` the dynamic score).
     ``occupancy_values``: ``trinary`` or ``scale`` (:func:`~evgrid.export.nav2.occupancy_values`).
@@ -309,6 +347,10 @@ class McapParams:
     rate_hz: float | None = None
     maps: tuple[str, ...] | None = None
     final_maps: tuple[str, ...] | None = None
+    # 16384: the largest texture side of common GPUs, which RViz and browser viewers such as
+    # Foxglove draw an OccupancyGrid in (RViz draws a larger one empty); it also bounds the
+    # memory of writing a final map however long the drive (docs/store.md)
+    final_max_side: int = 16384
     layers: tuple[str, ...] = ("occupancy",)
     occupancy_values: str = "trinary"
     compression: str = "zstd"
@@ -351,6 +393,12 @@ class McapParams:
             )
         if not self.navigation:
             raise ValueError("McapParams.navigation must name at least one map")
+        side = self.final_max_side
+        if isinstance(side, bool) or not isinstance(side, int) or not (side == 0 or side >= 256):
+            raise ValueError(
+                "McapParams.final_max_side must be 0 (no limit) or a whole number of cells >= "
+                f"256, got {side!r}"
+            )
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
@@ -461,7 +509,17 @@ class McapExporter:
             topic = f"/evgrid/{name}/occupancy"
             if "occupancy" in p.layers and whole:  # a byte a cell, once (the box can be large)
                 th, values = p.thresholds, p.occupancy_values
-                data = occupancy_grid_cdr(cells, t_us, frame, self.store, th, values)
+                step = coarse_step(b[2], b[3], p.final_max_side)
+                if step > 1:
+                    log.info(
+                        "MCAP export %s: the final map %r is %d x %d cells, more than "
+                        "final_max_side=%d a side: written %dx coarser (%d x %d cells of %.3g m; "
+                        "a cell occupied if any of its cells is, unknown if any is, else free); "
+                        "full resolution: the nav2 export and --save-maps",
+                        self.path, name, b[2], b[3], p.final_max_side, step,
+                        -(-b[2] // step), -(-b[3] // step), m.grid.resolution * step,
+                    )  # fmt: skip
+                data = occupancy_grid_cdr(cells, t_us, frame, self.store, th, values, step)
                 self._write_cdr(topic, _OCCUPANCY_GRID, t_us, data)
                 del data  # before the next map's
             elif "occupancy" in p.layers:
