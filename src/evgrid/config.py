@@ -119,7 +119,7 @@ class MapperConfig:
     #: vehicle's own path (docs/equations.md#the-deep-irms-guards)
     prior_guard: PriorGuardParams = field(default_factory=PriorGuardParams)
     #: Ev-Net weights: a .safetensors file (in a config file relative to the file's folder) or
-    #: the name of a shipped one (shipped, sim-v1; docs/training.md); none: shipped
+    #: the name of a shipped one (shipped, sim-v1, sim-v2; docs/training.md); none: shipped
     checkpoint: str | None = None
     #: map updates per second; keyframes are always updated (they are where maps are scored)
     # The paper's 133,708 training samples over ~700 nuScenes scenes of 20 s are ~10 Hz, not the
