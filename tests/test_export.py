@@ -443,7 +443,8 @@ def test_the_mcap_of_whole_maps_is_the_file_the_messages_gave(tmp_path, monkeypa
 
 def test_coarser_values_keep_every_obstacle_and_call_free_only_what_was_all_seen_free():
     """By hand: 2x2 blocks of OccupancyGrid values (trinary, and scale's shades)."""
-    from evgrid.export.mcap import coarse_step, coarsen_values
+    from evgrid.export.mcap import coarsen_values
+    from evgrid.grid import coarse_step
 
     fine = np.array(
         [

@@ -46,6 +46,7 @@ __all__ = [
     "load_map",
     "MapFileError",
     "tile_pieces",
+    "coarse_step",
 ]
 
 
@@ -241,6 +242,15 @@ def _covered_box(layers: dict[str, np.ndarray]) -> tuple[int, int, int, int] | t
         return ()
     c = np.flatnonzero(cov.any(axis=0))
     return int(r[0]), int(r[-1]), int(c[0]), int(c[-1])
+
+
+def coarse_step(h: int, w: int, max_side: int) -> int:
+    """The smallest whole factor that brings ``h`` by ``w`` cells to at most ``max_side`` along
+    each side (1: it fits, or ``max_side`` is 0, no limit): how many cells of a large map a
+    picture or a coarse message takes as one."""
+    if max_side <= 0:
+        return 1
+    return max(1, -(-max(h, w) // max_side))
 
 
 def tile_pieces(

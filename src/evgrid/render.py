@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from evgrid.classes import CLASSES
+from evgrid.grid import coarse_step
 from evgrid.io import atomic_write
 from evgrid.mass import vacuous
 
@@ -547,7 +548,7 @@ def write_scene_figures(
     files: dict[str, str] = {}
     ref = maps.get("ray_ilm") or next(iter(maps.values()))
     r0, c0, h, w = ref.covered_bounds()
-    step = max(1, -(-max(h, w) // _FIGURE_CELLS))
+    step = coarse_step(h, w, _FIGURE_CELLS)
     res = ref.grid.resolution
     panels = {n: sample_map(m, r0, c0, h, w, step)[0] for n, m in maps.items()}
     dynamic = {

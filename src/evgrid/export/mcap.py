@@ -52,7 +52,7 @@ from evgrid.export.nav2 import (
     occupancy_values,
 )
 from evgrid.geometry import SE2, SE3
-from evgrid.grid import EvidentialMap
+from evgrid.grid import EvidentialMap, coarse_step
 
 log = logging.getLogger(__name__)
 
@@ -60,7 +60,6 @@ __all__ = [
     "McapExporter",
     "McapParams",
     "occupancy_grid_msg",
-    "coarse_step",
     "coarsen_values",
     "occupancy_grid_cdr",
     "grid_map_msg",
@@ -210,14 +209,6 @@ def _occupancy_grid(
 _OCCUPANCY_GRID = "nav_msgs/msg/OccupancyGrid"
 
 
-def coarse_step(h: int, w: int, max_side: int) -> int:
-    """The smallest whole factor that brings ``h`` by ``w`` cells to at most ``max_side`` along
-    each side (1: it fits, or ``max_side`` is 0, no limit)."""
-    if max_side <= 0:
-        return 1
-    return max(1, -(-max(h, w) // max_side))
-
-
 def coarsen_values(fine: np.ndarray, step: int, th: Nav2Thresholds) -> np.ndarray:
     """OccupancyGrid values ``(n * step, m * step)`` made ``step`` times coarser: a coarse cell
     is occupied (its largest value) if any of its cells is, unknown if any is unknown, else
@@ -335,7 +326,7 @@ class McapParams:
     ``final_maps``: the maps written whole at the end (None: every map of the run; ``()``:
     none). ``final_max_side``: the most cells along a side of a final OccupancyGrid (0: no
     limit); a larger map is written coarser by the smallest whole factor that fits
-    (:func:`coarse_step`). ``layers``:
+    (:func:`evgrid.grid.coarse_step`). ``layers``:
     ``occupancy`` (OccupancyGrid) and any of :data:`GRID_LAYERS` (one GridMap with those
     layers: the masses, ``dynamic`` the dynamic score).
     ``occupancy_values``: ``trinary`` or ``scale`` (:func:`~evgrid.export.nav2.occupancy_values`).

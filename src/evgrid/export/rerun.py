@@ -37,7 +37,7 @@ import numpy as np
 
 from evgrid.export._files import AtomicFile, refuse_empty, target_path, write_error
 from evgrid.export._place import MapPlacement
-from evgrid.grid import EvidentialMap
+from evgrid.grid import EvidentialMap, coarse_step
 
 __all__ = ["RerunParams", "RerunRecorder", "write_map_rrd", "quad_corners"]
 
@@ -117,7 +117,7 @@ def _dynamic_points(
 def _whole_step(m: EvidentialMap, max_cells: int = 2048) -> int:
     """One cell in how many of a whole map's picture (at most ``max_cells`` a side)."""
     _, _, h, w = m.covered_bounds()
-    return max(1, -(-max(h, w) // max_cells))
+    return coarse_step(h, w, max_cells)
 
 
 def _whole(m: EvidentialMap, max_cells: int = 2048) -> tuple[np.ndarray, np.ndarray]:
