@@ -12,9 +12,10 @@ scenes) of the differences that carry the paper's claims:
 * ``fused`` minus each deep map (``deep_acc``, ``deep_replace``, ``deep_disc``) on Table I's
   classes (the fused map is at least as good as the deep maps, Table I).
 
-The seeds are checked to be disjoint from the shipped checkpoint's training scenes (the first
-40 train-split and first 8 val-split seeds from 0) and from the ``m_u_min`` sweep's (4, 9, 14,
-19). Each scene's metrics are written to ``OUT/scenes/<scene>.json`` as it finishes, and the
+The seeds are checked to be disjoint from the shipped checkpoints' training scenes (the first
+40 train-split and first 8 val-split seeds from 0), from the ``m_u_min`` sweep's (4, 9, 14,
+19) and from those that chose the radar-support radius (val seeds 504, ..., 549). Each scene's
+metrics are written to ``OUT/scenes/<scene>.json`` as it finishes, and the
 tables are rewritten after every scene, so a run that is cut short still reports the scenes it
 finished; run again with the same ``--out`` and the finished scenes are kept, not redone.
 
@@ -46,16 +47,18 @@ from evgrid.runs import convergence_table, map_scene, summarize  # noqa: E402
 from evgrid.sources import SimSource  # noqa: E402
 
 DEEP_MAPS = ("deep_acc", "deep_replace", "deep_disc")
-# The scenes the shipped checkpoint and the m_u_min choice saw (docs/decisions.md,
-# docs/training.md).
+# The scenes the shipped checkpoints and the choices of m_u_min and of the radar-support radius
+# saw (docs/decisions.md, docs/training.md).
 SWEEP_SEEDS = (4, 9, 14, 19)
+SUPPORT_SEEDS = SimSource.split("val", 10, first_seed=500).seeds  # 504, 509, ..., 549
 
 
 def used_seeds() -> set[int]:
-    """Seeds of the shipped checkpoint's training and validation scenes and of the m_u_min sweep."""
+    """Seeds of the shipped checkpoints' training and validation scenes (sim-v2's are the first
+    of sim-v1's), of the m_u_min sweep and of the radar-support radius's choice."""
     train = SimSource.split("train", 40, first_seed=0).seeds
     val = SimSource.split("val", 8, first_seed=0).seeds
-    return set(train) | set(val) | set(SWEEP_SEEDS)
+    return set(train) | set(val) | set(SWEEP_SEEDS) | set(SUPPORT_SEEDS)
 
 
 def map_one(args: tuple) -> dict[str, Any]:

@@ -127,3 +127,17 @@ def test_the_path_painted_ahead_is_taken_back_by_the_combining_maps():
     guarded = _deep_maps(1.0, _Occupied(), 8.0)
     for name in ("deep_acc", "deep_replace"):
         assert not (guarded[name][0] == OCCUPIED).any(), name
+
+
+def test_the_default_support_keeps_occupied_mass_only_in_the_detections_support_cell():
+    # 0.25 m is below one support cell (4 local cells: 0.6 m on this grid), so only the 4 x 4
+    # block of local cells holding the detection keeps its occupied mass
+    assert PriorGuardParams().support_m < 4 * GRID.resolution
+    m = np.broadcast_to(OCC, GRID.shape + (3,)).copy()
+    r, c = _cell(GRID, 5.0, 0.0)
+    out = keep_supported(m, np.array([[5.0, 0.0]]), GRID, PriorGuardParams().support_m)
+    kept = out[..., 1] > 0
+    block = np.zeros(GRID.shape, bool)
+    block[r // 4 * 4 : r // 4 * 4 + 4, c // 4 * 4 : c // 4 * 4 + 4] = True
+    np.testing.assert_array_equal(kept, block)
+    np.testing.assert_allclose(out[~block], np.broadcast_to([0.1, 0.0, 0.9], ((~block).sum(), 3)))

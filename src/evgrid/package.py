@@ -16,10 +16,10 @@ __version__ = "0.2.0"
 
 #: Ev-Net checkpoints shipped inside the package (``evgrid/ism/checkpoints/``), by the name a
 #: config or option may give instead of a path (docs/training.md#the-shipped-checkpoints):
-#: ``shipped`` is the default deep IRM; the others are loadable by their names (``sim-v2``:
-#: accumulated lidar targets and the paper+cor loss, not yet the default).
+#: ``shipped`` is the default deep IRM (``sim-v2``: accumulated lidar targets and the paper+cor
+#: loss); the others are loadable by their names (``sim-v1``: the paper's single-frame targets).
 SHIPPED_CHECKPOINTS: dict[str, str] = {
-    "shipped": "evnet_sim.safetensors",
+    "shipped": "evnet_sim_v2.safetensors",
     "sim-v1": "evnet_sim.safetensors",
     "sim-v2": "evnet_sim_v2.safetensors",
 }

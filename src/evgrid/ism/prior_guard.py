@@ -42,8 +42,10 @@ class PriorGuardParams:
     """The deep IRM's guards (docs/equations.md#the-deep-irms-guards); None turns one off."""
 
     #: occupied mass of the deep IRM kept only within this many metres of a radar detection of
-    #: its input sweeps (none: kept everywhere, as in the paper)
-    support_m: float | None = 2.0
+    #: its input sweeps (none: kept everywhere, as in the paper); the default, below one
+    #: support cell, keeps it only in the support cells the detections fall in
+    #: (docs/decisions.md#radar-support-radius)
+    support_m: float | None = 0.25
     #: occupied mass of the deep IRM within this many metres of the vehicle's trail goes to
     #: free (none: kept, as in the paper); 1 m: half the car's width and a margin
     path_m: float | None = 1.0
