@@ -97,7 +97,7 @@ ISM_NAMES: tuple[str, ...] = ("ray_ilm", "ray_irm", "deep_irm")
 # Default lower limit on the deep ISM's unknown mass; the paper gives no value
 # (docs/decisions.md#default-lower-limit-on-unknown-mass).
 # Chosen by `evgrid sweep-m-u-min` on simulated validation scenes (seeds 4, 9, 14, 19) with the
-# shipped Ev-Net: the highest limit whose deep_disc mIoU is within 0.01 of the best; at >= 0.5
+# sim-v1 Ev-Net: the highest limit whose deep_disc mIoU is within 0.01 of the best; at >= 0.5
 # a cell known only to the deep IRM can never be classified free or occupied, below 0.3 the
 # prior is less clearly apart from verified space for no gain.
 M_U_MIN_DEFAULT = 0.3
