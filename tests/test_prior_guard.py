@@ -12,7 +12,13 @@ from evgrid.config import MapperConfig
 from evgrid.data.frame import Frame, LidarSweep, RadarSweep
 from evgrid.evaluate import classify
 from evgrid.geometry import SE2, SE3, GridSpec
-from evgrid.ism.prior_guard import PriorGuardParams, Trail, clear_path, keep_supported
+from evgrid.ism.prior_guard import (
+    _SUPPORT_POOL,
+    PriorGuardParams,
+    Trail,
+    clear_path,
+    keep_supported,
+)
 from evgrid.mapper import OccupancyMapper
 
 GRID = GridSpec(n_cells=128, length_m=19.2)  # 0.15 m cells
@@ -132,12 +138,13 @@ def test_the_path_painted_ahead_is_taken_back_by_the_combining_maps():
 def test_the_default_support_keeps_occupied_mass_only_in_the_detections_support_cell():
     # 0.25 m is below one support cell (4 local cells: 0.6 m on this grid), so only the 4 x 4
     # block of local cells holding the detection keeps its occupied mass
-    assert PriorGuardParams().support_m < 4 * GRID.resolution
+    p = _SUPPORT_POOL
+    assert p == 4 and PriorGuardParams().support_m < p * GRID.resolution
     m = np.broadcast_to(OCC, GRID.shape + (3,)).copy()
     r, c = _cell(GRID, 5.0, 0.0)
     out = keep_supported(m, np.array([[5.0, 0.0]]), GRID, PriorGuardParams().support_m)
     kept = out[..., 1] > 0
     block = np.zeros(GRID.shape, bool)
-    block[r // 4 * 4 : r // 4 * 4 + 4, c // 4 * 4 : c // 4 * 4 + 4] = True
+    block[r // p * p : r // p * p + p, c // p * p : c // p * p + p] = True
     np.testing.assert_array_equal(kept, block)
     np.testing.assert_allclose(out[~block], np.broadcast_to([0.1, 0.0, 0.9], ((~block).sum(), 3)))
