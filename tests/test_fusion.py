@@ -301,3 +301,46 @@ def test_windows_for_observers_are_the_warps_of_the_last_update():
         np.testing.assert_array_equal(w.covered, ref.covered)
     for n in ms.names:
         np.testing.assert_array_equal(ms[n].to_dense()[0], before[n])
+
+
+def test_clear_occupied_moves_occupied_mass_to_free_in_the_maps_named_only(tmp_path):
+    from evgrid.store import TileStore
+
+    grid = GridSpec(40, 4.0)
+    rng = np.random.default_rng(5)
+    host = MapSet(grid, P, ("deep_acc", "deep_replace", "ray_irm"), 24)
+    extra = MapSet(grid, FusionParams(m_u_min=0.1), ("deep_replace",), 24)
+    host.attach(extra)
+    host.update(SE2(0.1, 0.2, 0.3), {i: random_masses(rng, grid.shape) for i in host.required_isms})
+    host.attach_store(TileStore(tmp_path / "store"))
+    maps = {n: host.maps[n] for n in host.names} | {"extra": extra.maps["deep_replace"]}
+    before = {n: m.to_dense() for n, m in maps.items()}
+    keys_before = {n: set(m.tiles) for n, m in maps.items()}
+    host.page_out(1e3, 1e3, 1.0)  # every tile to the store: clearing brings them back
+    _, _, r0, c0 = before["deep_acc"]
+    r0, c0 = r0 - 3, c0 - 3
+    # the mask covers every map's dense extent so that each can be sliced from it
+    rows = max(mr - r0 + m.shape[0] for m, _, mr, _ in before.values())
+    cols = max(mc - c0 + m.shape[1] for m, _, _, mc in before.values())
+    mask = np.zeros((rows, cols), bool)
+    mask[rows // 2 - 6 : rows // 2 + 4, cols // 2 - 30 : cols // 2 + 2] = True  # seen and not
+    n = host.clear_occupied(r0, c0, mask, ("deep_acc", "deep_replace"))
+    n_occ = 0
+    for name, em in maps.items():
+        m, cov, mr, mc = em.to_dense()
+        m0, cov0, mr0, mc0 = before[name]
+        assert (mr, mc) == (mr0, mc0) and set(em.tiles) == keys_before[name]  # no tile created
+        np.testing.assert_array_equal(cov, cov0)
+        if name == "ray_irm":  # not named: untouched
+            np.testing.assert_array_equal(m, m0)
+            continue
+        sel = mask[mr - r0 : mr - r0 + m.shape[0], mc - c0 : mc - c0 + m.shape[1]]
+        np.testing.assert_allclose(m[sel][:, 0], m0[sel][:, 0] + m0[sel][:, 1], rtol=1e-6)
+        assert (m[sel][:, 1] == 0).all()
+        np.testing.assert_array_equal(m[sel][:, 2], m0[sel][:, 2])
+        np.testing.assert_array_equal(m[~sel], m0[~sel])
+        mass.validate(m)
+        n_occ += int((m0[sel][:, 1] > 0).sum())
+    assert n == n_occ > 0
+    with pytest.raises(ValueError, match="cannot change"):
+        MapSet(grid, P, ("ray_ilm", "fused", "nav")).clear_occupied(0, 0, mask, ("fused",))

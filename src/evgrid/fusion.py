@@ -730,6 +730,32 @@ class MapSet:
                     out[row.name] = int(r)
         return out
 
+    def clear_occupied(self, r0: int, c0: int, mask: np.ndarray, names: tuple[str, ...]) -> int:
+        """Move the occupied mass of the map cells ``(r0 + i, c0 + j)`` where ``mask[i, j]`` to
+        free (``m_f += m_o, m_o = 0``) in the maps ``names`` of this set and of the sets attached
+        to it; tiles a map does not have stay absent. Returns the cells changed, over all maps.
+        Only for maps no other map is computed from (nav reads ``ray_ilm`` and ``fused``)."""
+        derived_inputs = {m for r in self._rows if r.rule.from_maps for m in r.rule.inputs}
+        if set(names) & derived_inputs:
+            raise ValueError(f"clear_occupied cannot change {sorted(set(names) & derived_inputs)}")
+        h, w = mask.shape
+        n = 0
+        for s in (self, *self._attached):
+            for row in s._rows:
+                if row.name not in names or not row.shown:
+                    continue
+                m = row.map
+                for key, tr, tc, wr, wc in m.pieces(r0, c0, h, w):
+                    where = mask[wr, wc]
+                    if key not in m.tiles or not where.any():
+                        continue
+                    cells = m.tile(key)[0][tr, tc]
+                    hit = where & (cells[..., 1] > 0)
+                    cells[..., 0][hit] += cells[..., 1][hit]
+                    cells[..., 1][hit] = 0.0
+                    n += int(np.count_nonzero(hit))
+        return n
+
     def attach_store(self, store: TileStore, prefix: str = "") -> None:
         """Page every map of this set (hidden rows and sets attached included) to ``store``, each
         in a group of its own: the map's name (the ungated lidar map beside nav's gated inputs
