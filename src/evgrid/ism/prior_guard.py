@@ -8,12 +8,13 @@ so the masses stay a valid BBA):
 * **radar support**: occupied mass is kept only within ``support_m`` of a radar detection of
   the deep IRM's input sweeps (an obstacle the prior calls must have been seen by a radar);
   elsewhere it goes to unknown (``m_u += m_o``, ``m_o = 0``);
-* **the vehicle's path**: occupied mass within ``path_m`` of the vehicle's trail (its positions
-  since it came into the local grid, kept every ``trail_step_m``) goes to free
-  (``m_f += m_o``): the vehicle drove there. Not to unknown: the prior paints the road ahead
-  before the vehicle reaches it, and a vacuous update later changes none of the deep maps
-  (``deep_acc`` combines, ``deep_replace`` keeps the more certain mass, ``deep_disc``'s Yager
-  rule keeps what it has), so only free mass on the trail takes the path back.
+* **the vehicle's path**: occupied mass within ``path_m`` of the vehicle's trail (the path
+  since it came into the local grid, kept as cells of ``trail_step_m``) goes to free
+  (``m_f += m_o``): the vehicle drove there. Not to unknown: a vacuous update changes none of
+  the deep maps. The prior also paints the road ahead before the vehicle reaches it, which
+  ``deep_replace`` (the more certain mass wins) and ``deep_disc`` (Yager's rule keeps what it
+  has) would never take back, so the mapper clears the stretch driven at each update in the
+  deep maps too (``driven_cells``, ``OccupancyMapper.clear_driven``).
 
 Both are off with ``None``, which keeps the paper's deep IRM and the maps bit for bit.
 """
@@ -30,7 +31,14 @@ from evgrid.data.frame import RadarSweep
 from evgrid.geometry import SE2, SE3, GridSpec
 from evgrid.validation import check_number
 
-__all__ = ["PriorGuardParams", "Trail", "keep_supported", "clear_path", "detections_xy"]
+__all__ = [
+    "PriorGuardParams",
+    "Trail",
+    "keep_supported",
+    "clear_path",
+    "driven_cells",
+    "detections_xy",
+]
 
 #: The cells of the radar-support mask are this many local cells a side (coarser than the grid:
 #: the support radius is metres, a detection's position is uncertain by decimetres).
@@ -50,7 +58,7 @@ class PriorGuardParams:
     #: free (none: kept, as in the paper); 1 m: half the car's width and a margin
     path_m: float | None = 1.0
     #: the trail keeps a position each time the vehicle is this many metres from all it keeps
-    trail_step_m: float = 0.5
+    trail_step_m: float = 0.25
 
     def __post_init__(self) -> None:
         for name in ("support_m", "path_m"):
@@ -126,25 +134,65 @@ def clear_path(masses: np.ndarray, trail_xy: np.ndarray, grid: GridSpec, radius_
     return _move_occupied(masses, _stamp(grid.n_cells, rows, cols, radius_m / grid.resolution), 0)
 
 
+def driven_cells(
+    grid: GridSpec, a: tuple[float, float], b: tuple[float, float], radius_m: float
+) -> tuple[int, int, np.ndarray]:
+    """The map cells whose centres lie within ``radius_m`` of the segment from map point ``a``
+    to ``b`` (the stretch of path one update drove): ``(r0, c0, mask)``, ``mask[i, j]`` for map
+    cell ``(r0 + i, c0 + j)``."""
+    (ax, ay), (bx, by) = a, b
+    rows, cols = grid.map_xy_to_cell(
+        np.array([min(ax, bx) - radius_m, max(ax, bx) + radius_m]),
+        np.array([min(ay, by) - radius_m, max(ay, by) + radius_m]),
+    )
+    r0, c0 = int(rows.min()), int(cols.min())
+    rr, cc = np.indices((int(rows.max()) - r0 + 1, int(cols.max()) - c0 + 1))
+    x, y = grid.map_cell_to_xy(rr + r0, cc + c0)
+    dx, dy = bx - ax, by - ay
+    L2 = dx * dx + dy * dy
+    t = np.clip(((x - ax) * dx + (y - ay) * dy) / L2, 0.0, 1.0) if L2 > 0 else 0.0
+    d2 = (x - ax - t * dx) ** 2 + (y - ay - t * dy) ** 2
+    return r0, c0, d2 <= radius_m * radius_m
+
+
 class Trail:
-    """The vehicle's path in the map frame as few points as the rule needs: a position is kept
-    when it is ``step_m`` or more from every point kept, and points farther than ``reach_m`` from
-    the vehicle are dropped. Its memory is bounded by the area within ``reach_m``, however long
-    the drive."""
+    """The vehicle's path in the map frame, as the centres of the cells of a square grid of
+    ``step_m`` that it crossed: the straight line between consecutive poses is sampled every
+    ``step_m / 2`` and each sample marks its cell. Cells farther than ``reach_m`` from the
+    vehicle are dropped. Every point of the path within reach lies within :attr:`margin_m` of a
+    centre, whatever the speed; the memory is bounded by the area within ``reach_m``, however
+    long the drive."""
 
     def __init__(self, step_m: float, reach_m: float):
         self.step_m, self.reach_m = float(step_m), float(reach_m)
-        self.xy = np.zeros((0, 2))
+        self._keys = np.zeros((0, 2), np.int64)
+        self._last: np.ndarray | None = None
+
+    @property
+    def margin_m(self) -> float:
+        """How far a point of the path may lie from the nearest centre: half a cell's diagonal
+        and a quarter step (the samples' spacing is half a step)."""
+        return self.step_m * (math.sqrt(0.5) + 0.25)
+
+    @property
+    def xy(self) -> np.ndarray:
+        """The centres ``(k, 2)`` of the cells kept, in the map frame."""
+        return (self._keys + 0.5) * self.step_m
 
     def add(self, pose: SE2) -> None:
         """Take the vehicle's pose in the map frame."""
         p = np.array([pose.x, pose.y])
-        d = np.hypot(*(self.xy - p).T) if len(self.xy) else np.zeros(0)
-        keep = d <= self.reach_m
-        if not (d < self.step_m).any():
-            self.xy = np.concatenate([self.xy[keep], p[None]])
-        elif not keep.all():
-            self.xy = self.xy[keep]
+        a = p if self._last is None else self._last
+        d = float(np.hypot(*(p - a)))
+        if d > self.reach_m:  # a jump (a gap in the poses): what lies beyond reach is dropped
+            a, d = p + (a - p) * (self.reach_m / d), self.reach_m
+        n = max(int(math.ceil(d / (0.5 * self.step_m))), 1)
+        pts = a + (p - a) * (np.arange(n + 1)[:, None] / n)
+        keys = np.floor(pts / self.step_m).astype(np.int64)
+        keys = np.unique(np.concatenate([self._keys, keys]), axis=0)
+        centres = (keys + 0.5) * self.step_m
+        self._keys = keys[np.hypot(*(centres - p).T) <= self.reach_m]
+        self._last = p
 
     def in_ego(self, pose: SE2) -> np.ndarray:
         """The trail's points ``(k, 2)`` in the ego frame at ``pose``."""
