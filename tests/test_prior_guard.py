@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from evgrid.classes import OCCUPIED
 from evgrid.config import MapperConfig
@@ -17,6 +18,7 @@ from evgrid.ism.prior_guard import (
     PriorGuardParams,
     Trail,
     clear_path,
+    driven_cells,
     keep_supported,
 )
 from evgrid.mapper import OccupancyMapper
@@ -50,17 +52,39 @@ def test_path_clears_occupied_mass_within_the_radius_only():
 
 
 def test_trail_memory_is_bounded_however_long_the_drive():
-    trail = Trail(step_m=0.5, reach_m=30.0)
+    step = 0.5
+    trail = Trail(step_m=step, reach_m=30.0)
     for k in range(20000):  # 40 laps of a 10 m circle, then 1 km straight on
         a = 2 * math.pi * k / 500
         trail.add(SE2(10 * math.cos(a), 10 * math.sin(a), a))
-    laps = len(trail.xy)
-    assert laps <= 2 * math.pi * 10 / 0.5 + 2
+    # every centre kept lies within margin_m of the circle: at most the annulus' area in cells
+    assert len(trail.xy) <= 2 * math.pi * 10 * 2 * trail.margin_m / step**2
     for k in range(2000):
         trail.add(SE2(10.0 + 0.5 * k, 0.0, 0.0))
-    assert len(trail.xy) <= 30.0 / 0.5 + 2 and trail.xy[:, 0].min() >= 1009.5 - 30.0 - 1e-9
-    ego = trail.in_ego(SE2(trail.xy[-1, 0], trail.xy[-1, 1], math.pi / 2))
-    np.testing.assert_allclose(ego[-2], [0.0, 0.5], atol=1e-9)  # behind: to the vehicle's right
+    assert len(trail.xy) <= 30.0 / step + 2 and trail.xy[:, 0].min() >= 1009.5 - 30.0
+    ego = trail.in_ego(SE2(1009.5, 0.0, math.pi / 2))
+    behind = ego[np.argsort(-trail.xy[:, 0])][2]  # the third cell from the front: 0.75 m back
+    # facing +y, the path driven along +x lies to the vehicle's left (ego y > 0)
+    np.testing.assert_allclose(behind, [0.25, 0.75], atol=1e-9)
+
+
+def test_every_point_of_the_path_lies_within_the_margin_of_the_trail_at_any_speed():
+    # highway speed at 10 Hz (3.3 m an update), a turn, a crawl: the path between poses counts
+    rng = np.random.default_rng(7)
+    trail = Trail(step_m=0.25, reach_m=30.0)
+    x, y, yaw, poses = 0.0, 0.0, 0.0, []
+    for k in range(60):
+        yaw += rng.uniform(-0.3, 0.3)
+        d = 3.3 if k < 30 else rng.uniform(0.0, 0.4)
+        x, y = x + d * math.cos(yaw), y + d * math.sin(yaw)
+        poses.append((x, y))
+        trail.add(SE2(x, y, yaw))
+    p = np.asarray(poses)
+    t = np.linspace(0.0, 1.0, 50)[:, None, None]
+    path = (p[:-1] + t * (p[1:] - p[:-1])).reshape(-1, 2)
+    path = path[np.hypot(*(path - p[-1]).T) <= 30.0 - trail.margin_m]
+    d = np.hypot(*(path[:, None, :] - trail.xy[None, :, :]).transpose(2, 0, 1)).min(axis=1)
+    assert d.max() <= trail.margin_m + 1e-9
 
 
 class _Occupied:
@@ -94,13 +118,13 @@ def _frames(n: int = 25, speed: float = 8.0):
 DEEP = ("deep_acc", "deep_replace", "deep_disc")
 
 
-def _deep_maps(path_m: float | None, deep, x_end: float):
+def _deep_maps(path_m: float | None, deep, x_end: float, speed: float = 8.0):
     """The classes along the path driven (x from 0 to ``x_end``, y = 0; the cells within 0.75 m
     of it) and on a line 5 m beside it, in each deep map."""
     guard = PriorGuardParams(support_m=None, path_m=path_m)
     config = MapperConfig(grid=GRID, maps=DEEP, frame="first_pose", prior_guard=guard)
     mapper = OccupancyMapper(config, deep=deep)
-    for f in _frames():
+    for f in _frames(speed=speed):
         mapper.process(f)
     x = np.arange(0.0, x_end, 0.05)
     rows, cols = GRID.map_xy_to_cell(x, np.zeros(len(x)))
@@ -124,15 +148,17 @@ def test_a_prior_painting_the_road_behind_never_paints_the_path_driven():
         assert (plain[name][0] == OCCUPIED).any(), name  # without it, the prior paints the path
 
 
-def test_the_path_painted_ahead_is_taken_back_by_the_combining_maps():
-    # A prior calling everything occupied paints the road before the vehicle reaches it; the
-    # trail's free mass takes it back in deep_acc and deep_replace (here for the path driven up
-    # to 8 m: beyond, deep_acc has had fewer free updates than the prior's looks ahead, 12 a
-    # cell at 0.8 m an update). deep_disc discounts the conflicting free mass and keeps it
-    # (docs/equations.md#the-deep-irms-guards).
-    guarded = _deep_maps(1.0, _Occupied(), 8.0)
-    for name in ("deep_acc", "deep_replace"):
+@pytest.mark.parametrize("speed", [8.0, 33.0])  # 0.8 m and 3.3 m an update
+def test_the_path_painted_ahead_is_cleared_in_every_deep_map_as_the_vehicle_drives_it(speed):
+    # A prior calling everything occupied paints the road before the vehicle reaches it, and
+    # the guard on the prediction cannot take it back in deep_replace (the trail's free mass is
+    # no less unknown, both at m_u_min) nor deep_disc (it discounts the conflicting free mass):
+    # the stretch driven at each update is cleared in the deep maps (MapperConfig.prior_guard).
+    x_end = 0.1 * speed * 24  # the last pose
+    guarded = _deep_maps(1.0, _Occupied(), x_end, speed)
+    for name in DEEP:
         assert not (guarded[name][0] == OCCUPIED).any(), name
+        assert (guarded[name][1] == OCCUPIED).all(), name  # 5 m aside: not driven
 
 
 def test_the_default_support_keeps_occupied_mass_only_in_the_detections_support_cell():
@@ -148,3 +174,27 @@ def test_the_default_support_keeps_occupied_mass_only_in_the_detections_support_
     block[r // p * p : r // p * p + p, c // p * p : c // p * p + p] = True
     np.testing.assert_array_equal(kept, block)
     np.testing.assert_allclose(out[~block], np.broadcast_to([0.1, 0.0, 0.9], ((~block).sum(), 3)))
+
+
+def test_driven_cells_are_those_within_the_radius_of_the_segment():
+    grid = GridSpec(n_cells=64, length_m=6.4)  # 0.1 m cells; map cell (R, C) centre -(R+.5)/10
+    r0, c0, mask = driven_cells(grid, (-1.0, -1.0), (-2.0, -1.0), 0.3)
+    rows, cols = np.nonzero(mask)
+    x, y = grid.map_cell_to_xy(rows + r0, cols + c0)
+    # by hand: x from -1.0 to -2.0, y within 0.3 of -1.0 (centres -0.75 .. -1.25), and the
+    # caps: beyond the ends, within 0.3 of the end point
+    inside = (x <= -1.0) & (x >= -2.0)
+    assert np.all(np.abs(y[inside] + 1.0) <= 0.3 + 1e-9)
+    assert set(np.round(y[inside], 2)) == {-0.75, -0.85, -0.95, -1.05, -1.15, -1.25}
+    caps = ~inside
+    d = np.minimum(np.hypot(x + 1.0, y + 1.0), np.hypot(x + 2.0, y + 1.0))
+    assert caps.any() and np.all(d[caps] <= 0.3 + 1e-9)
+    assert mask.sum() == inside.sum() + caps.sum()
+    # a cell just outside the radius beside the segment's middle is not driven
+    rr, cc = grid.map_xy_to_cell(np.array([-1.55]), np.array([-1.35]))
+    assert not mask[rr[0] - r0, cc[0] - c0]
+    # a standing vehicle (a == b): the disc around it
+    _, _, disc = driven_cells(grid, (-1.0, -1.0), (-1.0, -1.0), 0.3)
+    # centres 0.05, 0.15, 0.25 m from a cell corner along each axis: of the 9 pairs a quadrant,
+    # all but (0.25, 0.25) (0.354 m) lie within 0.3 m
+    assert disc.sum() == 4 * 8

@@ -22,10 +22,16 @@ import numpy as np
 from evgrid.config import MapperConfig
 from evgrid.data.frame import Frame
 from evgrid.data.sweeps import GapCounter, RadarBuffer
-from evgrid.fusion import MapSet
+from evgrid.fusion import RULES, MapSet
 from evgrid.geometry import SE2, SE3
 from evgrid.grid import MapWindow, warp_window
-from evgrid.ism.prior_guard import Trail, clear_path, detections_xy, keep_supported
+from evgrid.ism.prior_guard import (
+    Trail,
+    clear_path,
+    detections_xy,
+    driven_cells,
+    keep_supported,
+)
 from evgrid.preprocess import PoseError, PoseGate, Preprocessor
 from evgrid.store import TileStore
 
@@ -201,6 +207,7 @@ class OccupancyMapper:
         # into the map frame and through every map's update rule (paper Table I), in one pass;
         # the extra map sets are rows of the same pass
         self.maps.update(pose, isms, self.moving_detections())
+        self.clear_driven(pose)
         for k, ms in self.maps.last_ms.items():  # "warp": the ISMs checked; "fuse": the pass
             self.timings.setdefault(k, []).append(ms)
         self._time("step_total", t0)
@@ -318,9 +325,30 @@ class OccupancyMapper:
             xy = detections_xy(self.buffer.sweeps(self.config.image.n_sweeps), frame.ego_pose)
             masses = keep_supported(masses, xy, grid, g.support_m)
         if g.path_m is not None:
-            masses = clear_path(masses, self.trail.in_ego(pose), grid, g.path_m)
+            radius = g.path_m + self.trail.margin_m  # the trail's cells stand for the path
+            masses = clear_path(masses, self.trail.in_ego(pose), grid, radius)
         self._time("prior_guard", t)
         return masses
+
+    def clear_driven(self, pose: SE2) -> None:
+        """The stretch of path driven since the last update, within ``prior_guard.path_m``,
+        cleared of occupied mass in the maps only the deep IRM enters: what the prior painted
+        there before the vehicle arrived (the guard on the prediction keeps it from painting
+        the path from then on). ``pose``: this update's, in the map frame."""
+        g = self.config.prior_guard
+        if g.path_m is None or "deep_irm" not in self.maps.required_isms:
+            return
+        # the maps of this set and of the sets attached to it (their ISMs are this set's)
+        names = tuple(n for n, rule in RULES.items() if rule.isms == ("deep_irm",))
+        t = time.perf_counter()
+        a = self.trajectory[-1][:2] if self.trajectory else (pose.x, pose.y)
+        d = math.hypot(pose.x - a[0], pose.y - a[1])
+        if d > self.trail.reach_m:  # a gap in the poses: as the trail, only its last reach
+            k = self.trail.reach_m / d
+            a = (pose.x + (a[0] - pose.x) * k, pose.y + (a[1] - pose.y) * k)
+        r0, c0, mask = driven_cells(self.maps.grid, a, (pose.x, pose.y), g.path_m)
+        self.maps.clear_occupied(r0, c0, mask, names)
+        self._time("path_clear", t)
 
     def _travel(self, frame: Frame) -> tuple[float, float]:
         """Metres travelled (planar) and seconds since the last update; the first update counts
