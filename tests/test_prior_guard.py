@@ -4,6 +4,7 @@ vehicle's own path is never painted occupied by the prior."""
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -198,3 +199,9 @@ def test_driven_cells_are_those_within_the_radius_of_the_segment():
     # centres 0.05, 0.15, 0.25 m from a cell corner along each axis: of the 9 pairs a quadrant,
     # all but (0.25, 0.25) (0.354 m) lie within 0.3 m
     assert disc.sum() == 4 * 8
+
+
+@pytest.mark.parametrize("step", [0.0, 1e-6, 0.04, 2.5, float("nan"), True])
+def test_a_trail_step_outside_5_cm_to_2_m_is_refused_naming_the_value(step):
+    with pytest.raises(ValueError, match=r"trail_step_m must be .*got " + re.escape(repr(step))):
+        PriorGuardParams(trail_step_m=step)

@@ -57,14 +57,16 @@ class PriorGuardParams:
     #: occupied mass of the deep IRM within this many metres of the vehicle's trail goes to
     #: free (none: kept, as in the paper); 1 m: half the car's width and a margin
     path_m: float | None = 1.0
-    #: the trail keeps a position each time the vehicle is this many metres from all it keeps
+    #: the side of the trail's cells (metres): a point of the path lies within
+    #: ``Trail.margin_m`` (0.24 m at 0.25) of a cell kept; at least 5 cm (the trail's memory
+    #: grows as its inverse square), at most 2 m (the margin is added to ``path_m``)
     trail_step_m: float = 0.25
 
     def __post_init__(self) -> None:
         for name in ("support_m", "path_m"):
             if getattr(self, name) is not None:
                 check_number(self, name, min=0.0, min_open=True)
-        check_number(self, "trail_step_m", min=0.0, min_open=True)
+        check_number(self, "trail_step_m", min=0.05, max=2.0)
 
     @property
     def off(self) -> bool:
