@@ -8,6 +8,8 @@ import re
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from evgrid.classes import OCCUPIED
 from evgrid.config import MapperConfig
@@ -18,6 +20,7 @@ from evgrid.ism.prior_guard import (
     _SUPPORT_POOL,
     PriorGuardParams,
     Trail,
+    _stamp,
     clear_path,
     driven_cells,
     keep_supported,
@@ -205,3 +208,20 @@ def test_driven_cells_are_those_within_the_radius_of_the_segment():
 def test_a_trail_step_outside_5_cm_to_2_m_is_refused_naming_the_value(step):
     with pytest.raises(ValueError, match=r"trail_step_m must be .*got " + re.escape(repr(step))):
         PriorGuardParams(trail_step_m=step)
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.lists(st.tuples(st.integers(-25, 65), st.integers(-25, 65)), max_size=12),
+    st.floats(0.0, 20.0),
+)
+def test_a_stamp_is_the_cells_within_the_radius_of_any_cell_given(points, radius):
+    # by the distance to every point, independent of the spans the stamp adds up
+    n = 40
+    rows = np.array([p[0] for p in points], np.int64)
+    cols = np.array([p[1] for p in points], np.int64)
+    i, j = np.indices((n, n))
+    want = np.zeros((n, n), bool)
+    for r, c in points:
+        want |= (i - r) ** 2 + (j - c) ** 2 <= radius * radius
+    np.testing.assert_array_equal(_stamp(n, rows, cols, radius), want)

@@ -24,6 +24,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -91,16 +92,39 @@ def _disc(radius_cells: float) -> tuple[np.ndarray, np.ndarray]:
     return du[keep], dv[keep]
 
 
+@lru_cache(maxsize=8)
+def _disc_rows(radius_cells: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The disc of :func:`_disc` as one span of columns a row: offsets ``du``, ``lo``, ``hi``."""
+    du, dv = _disc(radius_cells)
+    rows = np.unique(du)
+    return (
+        rows,
+        np.array([dv[du == r].min() for r in rows]),
+        np.array([dv[du == r].max() for r in rows]),
+    )
+
+
 def _stamp(n: int, rows: np.ndarray, cols: np.ndarray, radius_cells: float) -> np.ndarray:
     """A boolean ``(n, n)`` mask of the cells within ``radius_cells`` of any of the cells given."""
     mask = np.zeros((n, n), bool)
     if len(rows) == 0:
         return mask
-    du, dv = _disc(radius_cells)
+    # each disc as a span a row: +1 where a span starts, -1 past its end, summed along the row
+    # over the bounding box (a trail of a hundred 1 m discs is 90,000 cells, 3,000 spans)
+    du, lo, hi = _disc_rows(float(radius_cells))
     r = (rows[:, None] + du[None, :]).ravel()
-    c = (cols[:, None] + dv[None, :]).ravel()
-    ok = (r >= 0) & (r < n) & (c >= 0) & (c < n)
-    mask[r[ok], c[ok]] = True
+    c0 = np.clip((cols[:, None] + lo[None, :]).ravel(), 0, n)
+    c1 = np.clip((cols[:, None] + hi[None, :] + 1).ravel(), 0, n)
+    ok = (r >= 0) & (r < n) & (c0 < c1)
+    r, c0, c1 = r[ok], c0[ok], c1[ok]
+    if len(r) == 0:
+        return mask
+    r_lo, c_lo = int(r.min()), int(c0.min())
+    h, w = int(r.max()) - r_lo + 1, int(c1.max()) - c_lo + 1
+    base = (r - r_lo) * w - c_lo
+    edge = np.bincount(base + c0, minlength=h * w) - np.bincount(base + c1, minlength=h * w)
+    inside = np.cumsum(edge.reshape(h, w), axis=1)[:, : w - 1] > 0
+    mask[r_lo : r_lo + h, c_lo : c_lo + w - 1] = inside
     return mask
 
 
