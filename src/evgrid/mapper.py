@@ -336,10 +336,10 @@ class OccupancyMapper:
         there before the vehicle arrived (the guard on the prediction keeps it from painting
         the path from then on). ``pose``: this update's, in the map frame."""
         g = self.config.prior_guard
-        if g.path_m is None or "deep_irm" not in self.maps.required_isms:
+        names = {n for s in (self.maps, *self.extra) for n in s.names}
+        names = tuple(n for n in names if RULES[n].isms == ("deep_irm",))
+        if g.path_m is None or not names:
             return
-        # the maps of this set and of the sets attached to it (their ISMs are this set's)
-        names = tuple(n for n, rule in RULES.items() if rule.isms == ("deep_irm",))
         t = time.perf_counter()
         a = self.trajectory[-1][:2] if self.trajectory else (pose.x, pose.y)
         d = math.hypot(pose.x - a[0], pose.y - a[1])
