@@ -155,6 +155,10 @@ class OccupancyMapper:
         self.trail = Trail(
             g.trail_step_m, config.grid.half_extent * math.sqrt(2.0) + (g.path_m or 0)
         )
+        # the maps only the deep IRM enters, of this set and the extra ones: where the stretch
+        # driven is cleared at each update (clear_driven)
+        mapped = {n for s in (self.maps, *self.extra) for n in s.names}
+        self._deep_only = tuple(n for n in mapped if RULES[n].isms == ("deep_irm",))
         self._doppler_seen: dict[str, int] = {}  # per radar, the sweep the Doppler cue last used
         self.n_frames = 0
         self.n_updates = 0
@@ -207,7 +211,7 @@ class OccupancyMapper:
         # into the map frame and through every map's update rule (paper Table I), in one pass;
         # the extra map sets are rows of the same pass
         self.maps.update(pose, isms, self.moving_detections())
-        self.clear_driven(pose)
+        self.clear_driven()
         for k, ms in self.maps.last_ms.items():  # "warp": the ISMs checked; "fuse": the pass
             self.timings.setdefault(k, []).append(ms)
         self._time("step_total", t0)
@@ -330,24 +334,18 @@ class OccupancyMapper:
         self._time("prior_guard", t)
         return masses
 
-    def clear_driven(self, pose: SE2) -> None:
+    def clear_driven(self) -> None:
         """The stretch of path driven since the last update, within ``prior_guard.path_m``,
         cleared of occupied mass in the maps only the deep IRM enters: what the prior painted
         there before the vehicle arrived (the guard on the prediction keeps it from painting
-        the path from then on). ``pose``: this update's, in the map frame."""
+        the path from then on): the trail's last stretch, which :meth:`guard_prior` added."""
         g = self.config.prior_guard
-        names = {n for s in (self.maps, *self.extra) for n in s.names}
-        names = tuple(n for n in names if RULES[n].isms == ("deep_irm",))
-        if g.path_m is None or not names:
+        if g.path_m is None or not self._deep_only:
             return
         t = time.perf_counter()
-        a = self.trajectory[-1][:2] if self.trajectory else (pose.x, pose.y)
-        d = math.hypot(pose.x - a[0], pose.y - a[1])
-        if d > self.trail.reach_m:  # a gap in the poses: as the trail, only its last reach
-            k = self.trail.reach_m / d
-            a = (pose.x + (a[0] - pose.x) * k, pose.y + (a[1] - pose.y) * k)
-        r0, c0, mask = driven_cells(self.maps.grid, a, (pose.x, pose.y), g.path_m)
-        self.maps.clear_occupied(r0, c0, mask, names)
+        a, b = self.trail.stretch
+        r0, c0, mask = driven_cells(self.maps.grid, tuple(a), tuple(b), g.path_m)
+        self.maps.clear_occupied(r0, c0, mask, self._deep_only)
         self._time("path_clear", t)
 
     def _travel(self, frame: Frame) -> tuple[float, float]:

@@ -193,6 +193,9 @@ class Trail:
         self.step_m, self.reach_m = float(step_m), float(reach_m)
         self._keys = np.zeros((0, 2), np.int64)
         self._last: np.ndarray | None = None
+        #: the stretch the last :meth:`add` drove, ``(a, b)`` map-frame points (a jump: its last
+        #: ``reach_m``; the first pose: ``a == b``)
+        self.stretch: tuple[np.ndarray, np.ndarray] | None = None
 
     @property
     def margin_m(self) -> float:
@@ -218,7 +221,7 @@ class Trail:
         keys = np.unique(np.concatenate([self._keys, keys]), axis=0)
         centres = (keys + 0.5) * self.step_m
         self._keys = keys[np.hypot(*(centres - p).T) <= self.reach_m]
-        self._last = p
+        self._last, self.stretch = p, (a, p)
 
     def in_ego(self, pose: SE2) -> np.ndarray:
         """The trail's points ``(k, 2)`` in the ego frame at ``pose``."""
