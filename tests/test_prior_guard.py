@@ -225,3 +225,16 @@ def test_a_stamp_is_the_cells_within_the_radius_of_any_cell_given(points, radius
     for r, c in points:
         want |= (i - r) ** 2 + (j - c) ** 2 <= radius * radius
     np.testing.assert_array_equal(_stamp(n, rows, cols, radius), want)
+
+
+def test_the_trails_stretch_is_the_last_step_and_a_jump_only_its_last_reach():
+    # the stretch the mapper clears in the deep maps (OccupancyMapper.clear_driven)
+    trail = Trail(step_m=0.25, reach_m=30.0)
+    trail.add(SE2(1.0, 2.0, 0.0))
+    a, b = trail.stretch
+    np.testing.assert_array_equal(a, b)  # the first pose: the vehicle standing there
+    trail.add(SE2(4.0, 6.0, 0.0))
+    np.testing.assert_allclose(np.stack(trail.stretch), [[1.0, 2.0], [4.0, 6.0]])
+    trail.add(SE2(4.0, 106.0, 0.0))  # a 100 m gap in the poses
+    np.testing.assert_allclose(np.stack(trail.stretch), [[4.0, 76.0], [4.0, 106.0]])
+    assert trail.xy[:, 1].min() >= 76.0 - trail.margin_m  # nothing kept before the last reach
